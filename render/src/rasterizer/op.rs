@@ -1,0 +1,232 @@
+//! The rasterizer as one custom Burn op.
+//!
+//! [`GaussianRasterOps`] is a Burn backend extension: `#[backend_extension]` generates its
+//! `Dispatch` implementation, so model code calls it on a plain `Tensor` and the backend is the
+//! one the tensors live on. Implemented for NdArray and Flex (both run [`super::cpu`]) and for
+//! `Autodiff<B, C>` over any backend that also implements [`RasterKernels`].
+//!
+//! Only the forward is public through dispatch. The autodiff implementation calls the hidden
+//! [`RasterKernels`] trait: a forward that also hands back its intermediates (tile lists, final
+//! transmittance, last contributors), kept in the autodiff node's state so the backward never
+//! recomputes projection, sorting or binning (the op is marked compute-bound: no checkpointing
+//! recomputation either).
+
+#![allow(deprecated)] // NdArray is deprecated in Burn 0.22 in favour of Flex; the card asks for both.
+
+use std::any::Any;
+use std::fmt;
+use std::sync::Arc;
+
+use burn::backend::TensorMetadata;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
+use burn::tensor::TensorData;
+
+use super::cpu::{self, GaussianSlices, RasterConfig};
+
+/// The differentiable Gaussian rasterizer, as a Burn backend extension.
+///
+/// Inputs: means `[N,3]`, covariances `[N,6]` (xx, xy, xz, yy, yz, zz), colours `[N,3]`,
+/// opacities `[N]`. Output: `[H, W, C]`, premultiplied RGB, alpha, and depth when
+/// `config.channels` asks for it. Callers validate shapes and finiteness first (see
+/// [`super::rasterize`]); the kernels themselves cull anything non-finite rather than panic.
+#[backend_extension(NdArray, Flex, Autodiff)]
+pub trait GaussianRasterOps: Backend {
+    /// Renders the Gaussians.
+    fn rasterize_gaussians(
+        means: FloatTensor<Self>,
+        covariances: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        config: RasterConfig,
+    ) -> FloatTensor<Self>;
+}
+
+/// A backend's saved forward intermediates, opaque to autodiff.
+#[derive(Clone)]
+pub struct SavedRaster(pub Arc<dyn Any + Send + Sync>);
+
+impl fmt::Debug for SavedRaster {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("SavedRaster(..)")
+    }
+}
+
+/// What a backend implements so that `Autodiff<B>` can differentiate the op.
+#[doc(hidden)]
+pub trait RasterKernels: Backend {
+    /// The forward, also returning what the backward needs.
+    fn rasterize_saving(
+        means: FloatTensor<Self>,
+        covariances: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        config: RasterConfig,
+    ) -> (FloatTensor<Self>, SavedRaster);
+
+    /// Gradients w.r.t. `[means, covariances, colors, opacities]` given `dL/dimage`.
+    fn rasterize_backward(
+        saved: &SavedRaster,
+        grad_image: FloatTensor<Self>,
+    ) -> [FloatTensor<Self>; 4];
+}
+
+fn read_f32<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
+    let data =
+        burn::tensor::read_sync(B::float_into_data(t)).expect("reading a CPU tensor cannot fail");
+    match data.clone().into_vec::<f32>() {
+        Ok(v) => v,
+        Err(_) => data.try_into_vec_as::<f32>().expect("converted to f32"),
+    }
+}
+
+fn cpu_forward<B: Backend>(
+    means: FloatTensor<B>,
+    covariances: FloatTensor<B>,
+    colors: FloatTensor<B>,
+    opacities: FloatTensor<B>,
+    config: RasterConfig,
+) -> (FloatTensor<B>, Arc<cpu::ForwardState>) {
+    let device = means.device();
+    let means = read_f32::<B>(means);
+    let covariances = read_f32::<B>(covariances);
+    let colors = read_f32::<B>(colors);
+    let opacities = read_f32::<B>(opacities);
+    let slices = GaussianSlices {
+        means: &means,
+        covariances: &covariances,
+        colors: &colors,
+        opacities: &opacities,
+    };
+    let (image, state) = cpu::forward(&config, &slices);
+    let shape = [
+        config.view.height as usize,
+        config.view.width as usize,
+        config.channels.count(),
+    ];
+    (
+        B::float_from_data(TensorData::new(image, shape), &device),
+        Arc::new(state),
+    )
+}
+
+fn cpu_backward<B: Backend>(
+    saved: &SavedRaster,
+    grad_image: FloatTensor<B>,
+) -> [FloatTensor<B>; 4] {
+    let state = saved
+        .0
+        .downcast_ref::<cpu::ForwardState>()
+        .expect("CPU backward given a CPU forward state");
+    let device = grad_image.device();
+    let grads = cpu::backward(state, &read_f32::<B>(grad_image));
+    let n = state.num_gaussians;
+    [
+        B::float_from_data(TensorData::new(grads.means, [n, 3]), &device),
+        B::float_from_data(TensorData::new(grads.covariances, [n, 6]), &device),
+        B::float_from_data(TensorData::new(grads.colors, [n, 3]), &device),
+        B::float_from_data(TensorData::new(grads.opacities, [n]), &device),
+    ]
+}
+
+/// Implements the op for a CPU backend through the shared slice functions.
+macro_rules! cpu_raster_backend {
+    ($backend:ty) => {
+        impl GaussianRasterOps for $backend {
+            fn rasterize_gaussians(
+                means: FloatTensor<Self>,
+                covariances: FloatTensor<Self>,
+                colors: FloatTensor<Self>,
+                opacities: FloatTensor<Self>,
+                config: RasterConfig,
+            ) -> FloatTensor<Self> {
+                cpu_forward::<Self>(means, covariances, colors, opacities, config).0
+            }
+        }
+
+        impl RasterKernels for $backend {
+            fn rasterize_saving(
+                means: FloatTensor<Self>,
+                covariances: FloatTensor<Self>,
+                colors: FloatTensor<Self>,
+                opacities: FloatTensor<Self>,
+                config: RasterConfig,
+            ) -> (FloatTensor<Self>, SavedRaster) {
+                let (image, state) =
+                    cpu_forward::<Self>(means, covariances, colors, opacities, config);
+                (image, SavedRaster(state))
+            }
+
+            fn rasterize_backward(
+                saved: &SavedRaster,
+                grad_image: FloatTensor<Self>,
+            ) -> [FloatTensor<Self>; 4] {
+                cpu_backward::<Self>(saved, grad_image)
+            }
+        }
+    };
+}
+
+cpu_raster_backend!(NdArray);
+cpu_raster_backend!(Flex);
+
+#[derive(Debug)]
+struct RasterBackward;
+
+impl<B: RasterKernels> Backward<B, 4> for RasterBackward {
+    type State = SavedRaster;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 4>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad_image = grads.consume::<B>(&ops.node);
+        let input_grads = B::rasterize_backward(&ops.state, grad_image);
+        for (parent, grad) in ops.parents.into_iter().zip(input_grads) {
+            if let Some(parent) = parent {
+                grads.register::<B>(parent.id, grad);
+            }
+        }
+    }
+}
+
+impl<B: GaussianRasterOps + RasterKernels, C: CheckpointStrategy> GaussianRasterOps
+    for Autodiff<B, C>
+{
+    fn rasterize_gaussians(
+        means: FloatTensor<Self>,
+        covariances: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        config: RasterConfig,
+    ) -> FloatTensor<Self> {
+        let (means, means_node) = means.into_parts();
+        let (covariances, cov_node) = covariances.into_parts();
+        let (colors, colors_node) = colors.into_parts();
+        let (opacities, opacities_node) = opacities.into_parts();
+        match RasterBackward
+            .prepare::<C>([means_node, cov_node, colors_node, opacities_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let (image, saved) =
+                    B::rasterize_saving(means, covariances, colors, opacities, config);
+                prep.finish(saved, image)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::rasterize_gaussians(
+                means,
+                covariances,
+                colors,
+                opacities,
+                config,
+            )),
+        }
+    }
+}
