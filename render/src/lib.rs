@@ -16,7 +16,7 @@
 //! | [`rasterizer`] | the differentiable EWA splatting op (forward, backward, Burn glue) |
 //! | [`visibility`] | a triangle-ID z-buffer for visibility (no gradient) |
 //!
-//! ```no_run
+//! ```
 //! use burn::tensor::Device;
 //! use lifegom_render::{camera::{Camera, Intrinsics}, gom, rasterizer, template::BodyTemplate};
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -25,12 +25,13 @@
 //! let camera = Camera::look_at(
 //!     glam::Vec3::new(0.0, 0.1, 2.5), glam::Vec3::new(0.0, 0.1, 0.0), glam::Vec3::Y,
 //!     Intrinsics { fx: 102.4, fy: 102.4, cx: 64.0, cy: 64.0 }, 128, 128)?;
-//! let mesh = gom::GomMesh::new(&body.topology, 1)?;
+//! let mesh = gom::GomMesh::new(&body.topology, 1, &device)?;
 //! let vertices = body.vertex_tensor(&device);
 //! let params = gom::GomParams::init(mesh.num_gaussians(), &device);
 //! let gaussians = mesh.gaussians(vertices, &params);
 //! let image = rasterizer::rasterize(&gaussians, &rasterizer::RasterSettings::new(camera))?;
 //! assert_eq!(image.rgb().dims(), [128, 128, 3]);
+//! assert!(image.alpha().max().into_scalar::<f32>() > 0.9); // the body is in view
 //! # Ok(()) }
 //! ```
 

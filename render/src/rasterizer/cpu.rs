@@ -180,6 +180,9 @@ pub struct Splat2d {
     pub depth: f32,
     /// Half-extent, in pixels, of the box outside which alpha is below the cutoff.
     pub extent: [f32; 2],
+    /// `ln(cutoff / opacity)`: below this exponent alpha is under the cutoff, so `exp` can be
+    /// skipped.
+    pub log_cutoff: f32,
     /// First tile (x, y) touched.
     pub tile_min: [u32; 2],
     /// One past the last tile (x, y) touched.
@@ -264,6 +267,7 @@ pub fn project_one(
         opacity,
         depth: tz,
         extent,
+        log_cutoff: -0.5 * k2,
         tile_min,
         tile_max,
     })
@@ -345,7 +349,8 @@ fn ewa_cov2d(cfg: &RasterConfig, t: [f32; 3], cov: [f32; 6]) -> [f32; 3] {
 fn eval_alpha(s: &Splat2d, dx: f32, dy: f32, cutoff: AlphaCutoff) -> Option<(f32, f32, f32)> {
     let [qa, qb, qc] = s.conic;
     let power = -0.5 * (qa * dx * dx + qc * dy * dy) - qb * dx * dy;
-    if power > 0.0 {
+    // Outside [log_cutoff, 0] the pixel skips the splat (below the cutoff, or a non-PD conic).
+    if power > 0.0 || power < s.log_cutoff {
         return None;
     }
     let g = power.exp();
@@ -379,19 +384,13 @@ fn axis_range(center: f32, extent: f32, start: usize, end: usize) -> (usize, usi
     (lo.max(start), hi.max(lo.max(start)))
 }
 
-/// Everything the backward needs from the forward.
+/// Everything the backward needs from the forward, besides the inputs themselves.
 #[derive(Debug, Clone)]
 pub struct ForwardState {
     /// The config the forward ran with.
     pub cfg: RasterConfig,
     /// Number of Gaussians.
     pub num_gaussians: usize,
-    /// Input means, kept for the projection backward.
-    pub means: Vec<f32>,
-    /// Input covariances.
-    pub covariances: Vec<f32>,
-    /// Input colours.
-    pub colors: Vec<f32>,
     /// Projected Gaussians; `None` for culled ones.
     pub splats: Vec<Option<Splat2d>>,
     /// `[num_tiles + 1]` offsets into `gaussian_from_isect`.
@@ -428,7 +427,7 @@ fn project_and_bin(
             .collect()
     };
     // Depth is > NEAR_Z > 0, so its bit pattern orders like the float; the index breaks ties.
-    let mut order: Vec<u64> = {
+    let order: Vec<u64> = {
         let _span = tracing::trace_span!("depth_sort").entered();
         let mut keys: Vec<u64> = splats
             .iter()
@@ -439,38 +438,47 @@ fn project_and_bin(
         keys
     };
     let _span = tracing::trace_span!("bin").entered();
+    // Gather the tile rectangles in depth order once (in parallel), so the two sequential passes
+    // below stream through a compact array instead of chasing ids through `splats`.
+    let rects: Vec<(u32, [u32; 4])> = order
+        .par_iter()
+        .map(|key| {
+            let gid = (*key & 0xffff_ffff) as u32;
+            let s = splats[gid as usize]
+                .as_ref()
+                .expect("sorted splats are visible");
+            (
+                gid,
+                [s.tile_min[0], s.tile_min[1], s.tile_max[0], s.tile_max[1]],
+            )
+        })
+        .collect();
+    drop(order);
     let (gx, gy) = cfg.tiles();
-    let mut counts = vec![0u32; gx * gy + 1];
-    for key in &order {
-        let s = splats[(*key & 0xffff_ffff) as usize]
-            .as_ref()
-            .expect("sorted splats are visible");
-        for ty in s.tile_min[1]..s.tile_max[1] {
-            for tx in s.tile_min[0]..s.tile_max[0] {
-                counts[ty as usize * gx + tx as usize] += 1;
+    let mut tile_offsets = vec![0u32; gx * gy + 1];
+    for (_, [x0, y0, x1, y1]) in &rects {
+        for ty in *y0..*y1 {
+            let row = ty as usize * gx;
+            for tx in *x0..*x1 {
+                tile_offsets[row + tx as usize + 1] += 1;
             }
         }
     }
-    let mut tile_offsets = vec![0u32; gx * gy + 1];
     let mut total = 0u64;
-    for t in 0..gx * gy {
-        tile_offsets[t] = total as u32;
-        total += counts[t] as u64;
+    for offset in tile_offsets.iter_mut() {
+        total += *offset as u64;
+        assert!(total < u32::MAX as u64, "more than 2^32 tile intersections");
+        *offset = total as u32;
     }
-    assert!(total < u32::MAX as u64, "more than 2^32 tile intersections");
-    tile_offsets[gx * gy] = total as u32;
     let mut cursor = tile_offsets.clone();
     let mut gaussian_from_isect = vec![0u32; total as usize];
-    for key in order.drain(..) {
-        let gid = (key & 0xffff_ffff) as u32;
-        let s = splats[gid as usize]
-            .as_ref()
-            .expect("sorted splats are visible");
-        for ty in s.tile_min[1]..s.tile_max[1] {
-            for tx in s.tile_min[0]..s.tile_max[0] {
-                let t = ty as usize * gx + tx as usize;
-                gaussian_from_isect[cursor[t] as usize] = gid;
-                cursor[t] += 1;
+    for (gid, [x0, y0, x1, y1]) in &rects {
+        for ty in *y0..*y1 {
+            let row = ty as usize * gx;
+            for tx in *x0..*x1 {
+                let slot = &mut cursor[row + tx as usize];
+                gaussian_from_isect[*slot as usize] = *gid;
+                *slot += 1;
             }
         }
     }
@@ -560,9 +568,6 @@ pub fn forward(cfg: &RasterConfig, g: &GaussianSlices) -> (Vec<f32>, ForwardStat
     let state = ForwardState {
         cfg: *cfg,
         num_gaussians: g.len(),
-        means: g.means.to_vec(),
-        covariances: g.covariances.to_vec(),
-        colors: g.colors.to_vec(),
         splats,
         tile_offsets,
         gaussian_from_isect,
@@ -585,9 +590,15 @@ pub struct Gradients {
     pub opacities: Vec<f32>,
 }
 
-/// Backpropagates `d_image` (`[H, W, C]`, the gradient of the loss w.r.t. the forward's output).
+/// Backpropagates `d_image` (`[H, W, C]`, the gradient of the loss w.r.t. the forward's output)
+/// through the forward that ran on `g` and produced `state`.
 #[tracing::instrument(level = "trace", skip_all)]
-pub fn backward(state: &ForwardState, d_image: &[f32]) -> Gradients {
+pub fn backward(g: &GaussianSlices, state: &ForwardState, d_image: &[f32]) -> Gradients {
+    assert_eq!(
+        g.len(),
+        state.num_gaussians,
+        "backward: inputs differ from the forward's"
+    );
     let cfg = &state.cfg;
     let w = cfg.view.width as usize;
     let h = cfg.view.height as usize;
@@ -644,7 +655,7 @@ pub fn backward(state: &ForwardState, d_image: &[f32]) -> Gradients {
                         let s = state.splats[gid]
                             .as_ref()
                             .expect("binned splats are visible");
-                        let f = feature(&state.colors, gid, s.depth);
+                        let f = feature(g.colors, gid, s.depth);
                         let mut acc = [0.0f32; SLOT];
                         let (ylo, yhi) = axis_range(s.xy[1], s.extent[1], y0, y1);
                         let (xlo, xhi) = axis_range(s.xy[0], s.extent[0], x0, x1);
@@ -729,12 +740,8 @@ pub fn backward(state: &ForwardState, d_image: &[f32]) -> Gradients {
             let g2 = &grad2d[i * SLOT..i * SLOT + SLOT];
             dcol.copy_from_slice(&g2[6..9]);
             *dop = g2[5];
-            let m = [
-                state.means[3 * i],
-                state.means[3 * i + 1],
-                state.means[3 * i + 2],
-            ];
-            let c = &state.covariances[6 * i..6 * i + 6];
+            let m = [g.means[3 * i], g.means[3 * i + 1], g.means[3 * i + 2]];
+            let c = &g.covariances[6 * i..6 * i + 6];
             let (gm, gc) = project_backward(
                 cfg,
                 m,

@@ -84,18 +84,37 @@ fn read_f32<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
     }
 }
 
+/// What a CPU backend saves for the backward: the inputs (moved, not copied) and the
+/// forward's intermediates.
+struct CpuSaved {
+    means: Vec<f32>,
+    covariances: Vec<f32>,
+    colors: Vec<f32>,
+    opacities: Vec<f32>,
+    state: cpu::ForwardState,
+}
+
+impl CpuSaved {
+    fn slices(&self) -> GaussianSlices<'_> {
+        GaussianSlices {
+            means: &self.means,
+            covariances: &self.covariances,
+            colors: &self.colors,
+            opacities: &self.opacities,
+        }
+    }
+}
+
 fn cpu_forward<B: Backend>(
     means: FloatTensor<B>,
     covariances: FloatTensor<B>,
     colors: FloatTensor<B>,
     opacities: FloatTensor<B>,
     config: RasterConfig,
-) -> (FloatTensor<B>, Arc<cpu::ForwardState>) {
+) -> (FloatTensor<B>, CpuSaved) {
     let device = means.device();
-    let means = read_f32::<B>(means);
-    let covariances = read_f32::<B>(covariances);
-    let colors = read_f32::<B>(colors);
-    let opacities = read_f32::<B>(opacities);
+    let (means, covariances) = (read_f32::<B>(means), read_f32::<B>(covariances));
+    let (colors, opacities) = (read_f32::<B>(colors), read_f32::<B>(opacities));
     let slices = GaussianSlices {
         means: &means,
         covariances: &covariances,
@@ -103,6 +122,13 @@ fn cpu_forward<B: Backend>(
         opacities: &opacities,
     };
     let (image, state) = cpu::forward(&config, &slices);
+    let saved = CpuSaved {
+        means,
+        covariances,
+        colors,
+        opacities,
+        state,
+    };
     let shape = [
         config.view.height as usize,
         config.view.width as usize,
@@ -110,7 +136,7 @@ fn cpu_forward<B: Backend>(
     ];
     (
         B::float_from_data(TensorData::new(image, shape), &device),
-        Arc::new(state),
+        saved,
     )
 }
 
@@ -118,13 +144,13 @@ fn cpu_backward<B: Backend>(
     saved: &SavedRaster,
     grad_image: FloatTensor<B>,
 ) -> [FloatTensor<B>; 4] {
-    let state = saved
+    let saved = saved
         .0
-        .downcast_ref::<cpu::ForwardState>()
+        .downcast_ref::<CpuSaved>()
         .expect("CPU backward given a CPU forward state");
     let device = grad_image.device();
-    let grads = cpu::backward(state, &read_f32::<B>(grad_image));
-    let n = state.num_gaussians;
+    let grads = cpu::backward(&saved.slices(), &saved.state, &read_f32::<B>(grad_image));
+    let n = saved.state.num_gaussians;
     [
         B::float_from_data(TensorData::new(grads.means, [n, 3]), &device),
         B::float_from_data(TensorData::new(grads.covariances, [n, 6]), &device),
@@ -158,7 +184,7 @@ macro_rules! cpu_raster_backend {
             ) -> (FloatTensor<Self>, SavedRaster) {
                 let (image, state) =
                     cpu_forward::<Self>(means, covariances, colors, opacities, config);
-                (image, SavedRaster(state))
+                (image, SavedRaster(Arc::new(state)))
             }
 
             fn rasterize_backward(
