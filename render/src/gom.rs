@@ -89,7 +89,7 @@ pub fn so3_exp_map(r: Tensor<2>) -> Tensor<3> {
         1,
     )
     .reshape([f, 3, 3]);
-    let eye = Tensor::<2>::eye(3, &device).reshape([1, 3, 3]);
+    let eye = Tensor::<2>::eye(3, &device).cast(r.dtype()).reshape([1, 3, 3]);
     // K² = r rᵀ − |r|² I.
     let hat2 =
         r.clone().reshape([f, 3, 1]) * r.reshape([f, 1, 3]) - eye.clone() * nrm2.reshape([f, 1, 1]);
@@ -269,5 +269,104 @@ mod tests {
         for k in 0..3 {
             assert!((mean[k] - centroid[k]).abs() < 1e-6);
         }
+    }
+}
+
+#[cfg(test)]
+mod gradient_tests {
+    //! Central finite differences against `backward()` for every differentiable input of the
+    //! GoM geometry: triangle corners (hence vertices), rotations, scales and offsets.
+    #![allow(deprecated)]
+    use super::*;
+    use burn::tensor::{DType, TensorData};
+
+    struct Rng(u64);
+    impl Rng {
+        fn next(&mut self) -> f64 {
+            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (self.0 >> 11) as f64 / (1u64 << 53) as f64
+        }
+        fn range(&mut self, lo: f64, hi: f64) -> f64 {
+            lo + (hi - lo) * self.next()
+        }
+    }
+
+    /// Inputs as f64 host vectors: [v0, v1, v2, so3, scales, offsets], each `[F*3]`.
+    type Inputs = [Vec<f64>; 6];
+
+    fn to_tensor(v: &[f64], device: &Device) -> Tensor<2> {
+        Tensor::from_data(TensorData::new(v.to_vec(), [v.len() / 3, 3]), (device, DType::F64))
+    }
+
+    /// The scalar `Σ Wm·means + Σ Wc·covariances` and its tensors.
+    fn loss(inputs: &Inputs, wm: &[f64], wc: &[f64], device: &Device) -> (Tensor<1>, Vec<Tensor<2>>) {
+        let t: Vec<Tensor<2>> = inputs.iter().map(|v| to_tensor(v, device).require_grad()).collect();
+        let f = inputs[0].len() / 3;
+        let params = GomParams {
+            so3: t[3].clone(),
+            scales: t[4].clone(),
+            offsets: t[5].clone(),
+            colors: Tensor::zeros([f, 3], device),
+            opacities: Tensor::ones([f], device),
+        };
+        let g = gaussians_from_triangles(t[0].clone(), t[1].clone(), t[2].clone(), &params);
+        let wm = Tensor::<2>::from_data(TensorData::new(wm.to_vec(), [f, 3]), (device, DType::F64));
+        let wc = Tensor::<2>::from_data(TensorData::new(wc.to_vec(), [f, 6]), (device, DType::F64));
+        ((g.means * wm).sum() + (g.covariances * wc).sum(), t)
+    }
+
+    fn scalar(t: Tensor<1>) -> f64 {
+        t.into_data().try_into_vec_as::<f64>().unwrap()[0]
+    }
+
+    fn check(device: &Device) {
+        let ad = device.clone().autodiff();
+        let mut rng = Rng(42);
+        let f = 6;
+        let mut inputs: Inputs = Default::default();
+        for (k, v) in inputs.iter_mut().enumerate() {
+            *v = (0..3 * f)
+                .map(|_| match k {
+                    0..=2 => rng.range(-0.3, 0.3),
+                    3 => rng.range(-1.5, 1.5),
+                    4 => rng.range(0.5, 2.0) * if rng.next() < 0.2 { -1.0 } else { 1.0 },
+                    _ => rng.range(-1.0, 1.0),
+                })
+                .collect();
+        }
+        let wm: Vec<f64> = (0..3 * f).map(|_| rng.range(-1.0, 1.0)).collect();
+        let wc: Vec<f64> = (0..6 * f).map(|_| rng.range(-1.0, 1.0) * 50.0).collect();
+        let (l, leaves) = loss(&inputs, &wm, &wc, &ad);
+        let grads = l.backward();
+        let names = ["v0", "v1", "v2", "so3", "scales", "offsets"];
+        for (k, leaf) in leaves.iter().enumerate() {
+            let analytic = leaf.grad(&grads).unwrap().into_data();
+            assert_eq!(analytic.dtype(), DType::F64, "the check runs in f64");
+            let analytic = analytic.try_into_vec_as::<f64>().unwrap();
+            for i in 0..inputs[k].len() {
+                let eps = 1e-6;
+                let mut plus = inputs.clone();
+                plus[k][i] += eps;
+                let mut minus = inputs.clone();
+                minus[k][i] -= eps;
+                let numeric = (scalar(loss(&plus, &wm, &wc, &ad).0) - scalar(loss(&minus, &wm, &wc, &ad).0)) / (2.0 * eps);
+                let a = analytic[i];
+                assert!(
+                    (a - numeric).abs() <= 1e-5 * a.abs().max(numeric.abs()) + 1e-7,
+                    "{}[{i}]: analytic {a} vs numeric {numeric}",
+                    names[k]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn geometry_gradients_ndarray() {
+        check(&Device::ndarray());
+    }
+
+    #[test]
+    fn geometry_gradients_flex() {
+        check(&Device::flex());
     }
 }

@@ -54,7 +54,7 @@ pub fn steiner_frames(v0: Tensor<2>, v1: Tensor<2>, v2: Tensor<2>) -> SteinerFra
     let size2 = (f11 + f22).powi_scalar(2);
     let degenerate =
         (x.clone().powi_scalar(2) + y.clone().powi_scalar(2)).lower_equal(size2 * 1e-12 + 1e-30);
-    let x_safe = x + degenerate.float();
+    let x_safe = x.clone().mask_where(degenerate, x + 1.0);
     let t0 = y.atan2(x_safe) * 0.5;
     let (cos, sin) = (t0.clone().cos(), t0.sin());
     let a0 = f1.clone() * cos.clone() + f2.clone() * sin.clone();
