@@ -89,7 +89,9 @@ pub fn so3_exp_map(r: Tensor<2>) -> Tensor<3> {
         1,
     )
     .reshape([f, 3, 3]);
-    let eye = Tensor::<2>::eye(3, &device).cast(r.dtype()).reshape([1, 3, 3]);
+    let eye = Tensor::<2>::eye(3, &device)
+        .cast(r.dtype())
+        .reshape([1, 3, 3]);
     // K² = r rᵀ − |r|² I.
     let hat2 =
         r.clone().reshape([f, 3, 1]) * r.reshape([f, 1, 3]) - eye.clone() * nrm2.reshape([f, 1, 1]);
@@ -283,7 +285,10 @@ mod gradient_tests {
     struct Rng(u64);
     impl Rng {
         fn next(&mut self) -> f64 {
-            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (self.0 >> 11) as f64 / (1u64 << 53) as f64
         }
         fn range(&mut self, lo: f64, hi: f64) -> f64 {
@@ -295,12 +300,23 @@ mod gradient_tests {
     type Inputs = [Vec<f64>; 6];
 
     fn to_tensor(v: &[f64], device: &Device) -> Tensor<2> {
-        Tensor::from_data(TensorData::new(v.to_vec(), [v.len() / 3, 3]), (device, DType::F64))
+        Tensor::from_data(
+            TensorData::new(v.to_vec(), [v.len() / 3, 3]),
+            (device, DType::F64),
+        )
     }
 
     /// The scalar `Σ Wm·means + Σ Wc·covariances` and its tensors.
-    fn loss(inputs: &Inputs, wm: &[f64], wc: &[f64], device: &Device) -> (Tensor<1>, Vec<Tensor<2>>) {
-        let t: Vec<Tensor<2>> = inputs.iter().map(|v| to_tensor(v, device).require_grad()).collect();
+    fn loss(
+        inputs: &Inputs,
+        wm: &[f64],
+        wc: &[f64],
+        device: &Device,
+    ) -> (Tensor<1>, Vec<Tensor<2>>) {
+        let t: Vec<Tensor<2>> = inputs
+            .iter()
+            .map(|v| to_tensor(v, device).require_grad())
+            .collect();
         let f = inputs[0].len() / 3;
         let params = GomParams {
             so3: t[3].clone(),
@@ -349,7 +365,9 @@ mod gradient_tests {
                 plus[k][i] += eps;
                 let mut minus = inputs.clone();
                 minus[k][i] -= eps;
-                let numeric = (scalar(loss(&plus, &wm, &wc, &ad).0) - scalar(loss(&minus, &wm, &wc, &ad).0)) / (2.0 * eps);
+                let numeric = (scalar(loss(&plus, &wm, &wc, &ad).0)
+                    - scalar(loss(&minus, &wm, &wc, &ad).0))
+                    / (2.0 * eps);
                 let a = analytic[i];
                 assert!(
                     (a - numeric).abs() <= 1e-5 * a.abs().max(numeric.abs()) + 1e-7,
