@@ -14,3 +14,5 @@
 pub mod fusion;
 pub mod knn;
 pub mod point_transformer;
+pub mod encoder;
+pub mod sampling;
