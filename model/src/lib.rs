@@ -11,8 +11,11 @@
 //! Model code has no backend generic: modules take a `burn::tensor::Device` and run on ndarray,
 //! Flex (and wgpu once the GPU kernels land), with `.autodiff()` for training.
 
+pub mod encoder;
+pub mod error;
+pub mod feedback;
 pub mod fusion;
+pub mod heads;
 pub mod knn;
 pub mod point_transformer;
-pub mod encoder;
 pub mod sampling;

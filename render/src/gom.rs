@@ -159,6 +159,16 @@ impl GomMesh {
         })
     }
 
+    /// The barycentric high-res-from-low-res tables, on the mesh's device.
+    pub fn tables(&self) -> &SubdivisionTables {
+        &self.tables
+    }
+
+    /// High-res face corners, flattened `[F·3]`, on the mesh's device.
+    pub fn highres_faces(&self) -> &Tensor<1, Int> {
+        &self.highres_faces
+    }
+
     /// One Gaussian per high-res face.
     pub fn num_gaussians(&self) -> usize {
         self.subdivision.highres.faces.len()

@@ -1,0 +1,678 @@
+//! The reconstructor with learned iterative feedback (spec §5.2–§5.7).
+//!
+//! ```text
+//! feats_src = Enc(I_src)                                   once, with gradients
+//! state_0   = (xyz = canonical template, embed = learned per-vertex, faces = init)
+//! R_0, M_0  = render(state_0) in every source view
+//! for t in 1..=T:
+//!     feats_ren = Enc(R_{t-1})                             no gradient
+//!     state_t   = update(state_{t-1}, feats_src, feats_ren, M_{t-1})
+//!     R_t, M_t  = render(state_t)                          kept for supervision
+//! ```
+//!
+//! One update: pose the current low-res vertices into each view (LBS), project them, sample
+//! the source and rendered feature maps there; blend each with the learned visibility
+//! embedding (source: by the discrete triangle-ID visibility; rendered: by the sampled soft
+//! alpha); fuse across views (shared weights, the rendered branch detached); run the Point
+//! Transformer on the canonical vertices with `[source ‖ rendered]` features; predict `Δxyz`,
+//! the next embedding, and the per-face Gaussian parameters of the subdivided mesh.
+//!
+//! **Coupled multi-resolution**: only the low-res vertices are state; the Gaussians live on the
+//! `s`-times subdivided mesh given by the [`GomMesh`] the caller passes, so one trained model
+//! serves any `s` (the reference trains with `s = 1` and tests with `s = 2`).
+
+use burn::config::Config;
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Distribution, Tensor, TensorData};
+use glam::{Affine3A, Vec3};
+
+use lifegom_render::camera::Camera;
+use lifegom_render::gom::{GomMesh, GomParams};
+use lifegom_render::rasterizer::{RasterSettings, rasterize};
+use lifegom_render::skinning::skin_vertices;
+use lifegom_render::visibility::{rasterize_triangle_ids, visible_vertices};
+
+use crate::encoder::{ImageEncoder, ImageEncoderConfig};
+use crate::error::{ModelError, Result};
+use crate::fusion::{Fusion, FusionConfig};
+use crate::heads::{UpdateHeads, UpdateHeadsConfig, face_inputs};
+use crate::point_transformer::{PointTransformer, PointTransformerConfig};
+use crate::sampling::{PreparedMaps, project_points, sample_single};
+
+/// Width of the encoder's concatenated pyramid for a configuration (1152 for the paper's).
+fn encoder_feature_dim(cfg: &ImageEncoderConfig) -> usize {
+    cfg.resnet_channels().iter().sum::<usize>() + cfg.rgb_embed_channels
+}
+
+/// Configuration of the [`Reconstructor`].
+#[derive(Config, Debug)]
+pub struct ReconstructorConfig {
+    /// The image encoder.
+    pub encoder: ImageEncoderConfig,
+    /// The Point Transformer; its `in_dim` must be `3 + 2·feature_dim`.
+    pub point_transformer: PointTransformerConfig,
+    /// Number of source views N.
+    pub num_views: usize,
+    /// Attention heads of the fusion layers (must divide the feature width).
+    #[config(default = 6)]
+    pub n_heads: usize,
+    /// Dropout of the fusion layers (training only).
+    #[config(default = 0.1)]
+    pub dropout: f64,
+    /// Feedback steps T.
+    #[config(default = 3)]
+    pub iterations: usize,
+}
+
+impl ReconstructorConfig {
+    /// The paper's network (1152 channels, 6 heads, the full Point Transformer) for N views.
+    pub fn paper(num_views: usize) -> Self {
+        let encoder = ImageEncoderConfig::new();
+        let d = encoder_feature_dim(&encoder);
+        Self::new(encoder, PointTransformerConfig::paper(3 + 2 * d), num_views)
+    }
+
+    /// A small network with every component, for CPU tests and quick runs.
+    pub fn tiny(num_views: usize) -> Self {
+        let encoder = ImageEncoderConfig::new()
+            .with_width(0.125)
+            .with_rgb_embed_channels(16);
+        let d = encoder_feature_dim(&encoder);
+        Self::new(encoder, PointTransformerConfig::tiny(3 + 2 * d), num_views).with_n_heads(4)
+    }
+
+    /// Width of one view's image feature.
+    pub fn feature_dim(&self) -> usize {
+        encoder_feature_dim(&self.encoder)
+    }
+
+    /// Builds the reconstructor for a template with `num_lowres_vertices` vertices (the
+    /// per-vertex query embedding has one row per vertex).
+    pub fn init(&self, num_lowres_vertices: usize, device: &Device) -> Result<Reconstructor> {
+        let d = self.feature_dim();
+        if self.point_transformer.in_dim != 3 + 2 * d {
+            return Err(ModelError::InvalidInput {
+                what: "point_transformer.in_dim",
+                reason: format!(
+                    "must be 3 + 2·{d} = {}, got {}",
+                    3 + 2 * d,
+                    self.point_transformer.in_dim
+                ),
+            });
+        }
+        if self.n_heads == 0 || d % self.n_heads != 0 {
+            return Err(ModelError::InvalidInput {
+                what: "n_heads",
+                reason: format!("{} does not divide the feature width {d}", self.n_heads),
+            });
+        }
+        let point_dim = self.point_transformer.planes[0];
+        Ok(Reconstructor {
+            encoder: self.encoder.init(device),
+            fusion: FusionConfig::new(d)
+                .with_n_heads(self.n_heads)
+                .with_dropout(self.dropout)
+                .init(device),
+            point_transformer: self.point_transformer.init(device),
+            heads: UpdateHeadsConfig::new(d, self.num_views)
+                .with_point_dim(point_dim)
+                .init(device),
+            visibility_embed: Param::from_tensor(Tensor::zeros([d], device)),
+            vertex_embed: Param::from_tensor(Tensor::random(
+                [num_lowres_vertices, d],
+                Distribution::Normal(0.0, 1.0),
+                device,
+            )),
+            iterations: self.iterations,
+            num_views: self.num_views,
+        })
+    }
+}
+
+/// The reconstructor: encoder, fusion, Point Transformer, update heads and the two learned
+/// embeddings. See the module docs for the algorithm.
+#[derive(Module, Debug)]
+pub struct Reconstructor {
+    /// Image encoder (source images with gradients, renders without).
+    pub encoder: ImageEncoder,
+    /// Multi-source fusion, shared by the source and rendered branches.
+    pub fusion: Fusion,
+    /// Point Transformer over the low-res canonical vertices.
+    pub point_transformer: PointTransformer,
+    /// Update heads.
+    pub heads: UpdateHeads,
+    /// Feature used where a vertex is not visible (`e_vis`), `[D]`, initialised to zeros.
+    pub visibility_embed: Param<Tensor<1>>,
+    /// Initial per-vertex query embedding, `[V↓, D]`, initialised N(0, 1).
+    pub vertex_embed: Param<Tensor<2>>,
+    iterations: usize,
+    num_views: usize,
+}
+
+/// The person's body in canonical T-pose: low-res vertices and skinning weights.
+#[derive(Debug, Clone)]
+pub struct Subject {
+    /// Canonical low-res vertices, `[V↓, 3]` (the estimated body shape, not the clothed surface).
+    pub canonical_vertices: Tensor<2>,
+    /// Dense skinning weights, `[V↓, J]`.
+    pub lbs_weights: Tensor<2>,
+}
+
+/// The source views: images, cameras and the body pose seen in each.
+#[derive(Debug, Clone)]
+pub struct SourceViews {
+    /// Background-composited images in [0, 1], `[N, 3, H, W]`.
+    pub images: Tensor<4>,
+    /// One camera per view, with the view's global body transform folded in.
+    pub cameras: Vec<Camera>,
+    /// Per view, one canonical-to-posed transform per joint (`Skeleton::skinning_transforms`).
+    pub skinning: Vec<Vec<Affine3A>>,
+    /// Background colour the images were composited on.
+    pub background: [f32; 3],
+}
+
+impl SourceViews {
+    fn check(&self, num_views: usize) -> Result<(u32, u32)> {
+        let [n, c, h, w] = self.images.dims();
+        let fail = |what, reason: String| Err(ModelError::InvalidInput { what, reason });
+        if n != num_views || c != 3 {
+            return fail(
+                "images",
+                format!(
+                    "expected [{num_views}, 3, H, W], got {:?}",
+                    self.images.dims()
+                ),
+            );
+        }
+        if self.cameras.len() != n || self.skinning.len() != n {
+            return fail(
+                "cameras/skinning",
+                format!(
+                    "{} images but {} cameras and {} poses",
+                    n,
+                    self.cameras.len(),
+                    self.skinning.len()
+                ),
+            );
+        }
+        for (i, cam) in self.cameras.iter().enumerate() {
+            cam.validate()?;
+            if cam.width as usize != w || cam.height as usize != h {
+                return fail(
+                    "cameras",
+                    format!(
+                        "camera {i} is {}x{}, images are {w}x{h}",
+                        cam.width, cam.height
+                    ),
+                );
+            }
+        }
+        Ok((w as u32, h as u32))
+    }
+}
+
+/// The reconstructor's state after a step.
+#[derive(Debug, Clone)]
+pub struct GomState {
+    /// Canonical low-res vertices, `[V↓, 3]`.
+    pub xyz: Tensor<2>,
+    /// Per-vertex query embedding, `[V↓, D]`.
+    pub embed: Tensor<2>,
+    /// Per-face Gaussian parameters of the subdivided mesh.
+    pub faces: GomParams,
+}
+
+/// Renders of the current state in the source views.
+#[derive(Debug, Clone)]
+pub struct SourceRenders {
+    /// Composited as the reference does (`rgb·α + bg·(1−α)`), `[N, 3, H, W]`.
+    pub rgb: Tensor<4>,
+    /// Alpha, `[N, 1, H, W]`.
+    pub alpha: Tensor<4>,
+}
+
+/// Everything a forward pass produces: the state after every step and its source renders.
+#[derive(Debug, Clone)]
+pub struct Reconstruction {
+    /// `state_1 … state_T`.
+    pub states: Vec<GomState>,
+    /// `R_1, M_1 … R_T, M_T` (for the training losses).
+    pub renders: Vec<SourceRenders>,
+}
+
+impl Reconstruction {
+    /// The final state.
+    pub fn last(&self) -> &GomState {
+        self.states
+            .last()
+            .expect("a reconstruction has at least one step")
+    }
+}
+
+/// Renders `state` posed into each source view.
+pub fn render_views(
+    mesh: &GomMesh,
+    state_xyz: &Tensor<2>,
+    faces: &GomParams,
+    subject: &Subject,
+    cameras: &[Camera],
+    skinning: &[Vec<Affine3A>],
+    background: [f32; 3],
+) -> Result<SourceRenders> {
+    let _span = tracing::debug_span!("render_views", views = cameras.len()).entered();
+    let mut rgb = Vec::with_capacity(cameras.len());
+    let mut alpha = Vec::with_capacity(cameras.len());
+    for (camera, transforms) in cameras.iter().zip(skinning) {
+        let posed = skin_vertices(state_xyz.clone(), subject.lbs_weights.clone(), transforms)?;
+        let rendered = rasterize(&mesh.gaussians(posed, faces), &RasterSettings::new(*camera))?;
+        rgb.push(rendered.composite_reference(background).permute([2, 0, 1]));
+        alpha.push(rendered.alpha().unsqueeze_dim::<3>(0));
+    }
+    Ok(SourceRenders {
+        rgb: Tensor::stack(rgb, 0),
+        alpha: Tensor::stack(alpha, 0),
+    })
+}
+
+fn host_points(t: Tensor<2>) -> Vec<Vec3> {
+    let v = t.into_data().try_into_vec_as::<f32>().unwrap_or_default();
+    v.chunks_exact(3)
+        .map(|c| Vec3::new(c[0], c[1], c[2]))
+        .collect()
+}
+
+impl Reconstructor {
+    /// Number of feedback steps.
+    pub fn iterations(&self) -> usize {
+        self.iterations
+    }
+
+    /// Runs the encoder and `T` feedback steps; `mesh` fixes the subdivision level of the
+    /// Gaussians (its low-res topology must be the subject's).
+    pub fn forward(
+        &self,
+        subject: &Subject,
+        mesh: &GomMesh,
+        sources: &SourceViews,
+    ) -> Result<Reconstruction> {
+        let _span = tracing::info_span!(
+            "reconstruct",
+            views = sources.cameras.len(),
+            steps = self.iterations
+        )
+        .entered();
+        sources.check(self.num_views)?;
+        let [v, _] = subject.canonical_vertices.dims();
+        if v != self.vertex_embed.dims()[0] || v != mesh.subdivision.lowres.num_vertices {
+            return Err(ModelError::InvalidInput {
+                what: "subject",
+                reason: format!(
+                    "{v} canonical vertices, but the model has {} vertex embeddings and the mesh {} low-res vertices",
+                    self.vertex_embed.dims()[0],
+                    mesh.subdivision.lowres.num_vertices
+                ),
+            });
+        }
+        let device = subject.canonical_vertices.device();
+        let feats_src = {
+            let _span = tracing::debug_span!("encode_sources").entered();
+            PreparedMaps::new(&self.encoder.forward(sources.images.clone()))?
+        };
+        let mut state = GomState {
+            xyz: subject.canonical_vertices.clone(),
+            embed: self.vertex_embed.val(),
+            faces: GomParams::init(mesh.num_gaussians(), &device),
+        };
+        let mut renders = render_views(
+            mesh,
+            &state.xyz,
+            &state.faces,
+            subject,
+            &sources.cameras,
+            &sources.skinning,
+            sources.background,
+        )?;
+        let mut out = Reconstruction {
+            states: Vec::new(),
+            renders: Vec::new(),
+        };
+        for step in 0..self.iterations {
+            let _span = tracing::debug_span!("feedback_step", step).entered();
+            // The rendered branch carries no gradient into the encoder (spec §5.4, §9.6).
+            let feats_ren = {
+                let maps: Vec<Tensor<4>> = self
+                    .encoder
+                    .forward(renders.rgb.clone().detach())
+                    .into_iter()
+                    .map(|m| m.detach())
+                    .collect();
+                PreparedMaps::new(&maps)?
+            };
+            state = self.update(
+                subject,
+                mesh,
+                sources,
+                &feats_src,
+                &feats_ren,
+                renders.alpha.clone().detach(),
+                &state,
+            )?;
+            renders = render_views(
+                mesh,
+                &state.xyz,
+                &state.faces,
+                subject,
+                &sources.cameras,
+                &sources.skinning,
+                sources.background,
+            )?;
+            out.states.push(state.clone());
+            out.renders.push(renders.clone());
+        }
+        Ok(out)
+    }
+
+    /// One feedback step (module docs).
+    #[allow(clippy::too_many_arguments)]
+    fn update(
+        &self,
+        subject: &Subject,
+        mesh: &GomMesh,
+        sources: &SourceViews,
+        feats_src: &PreparedMaps,
+        feats_ren: &PreparedMaps,
+        alpha_prev: Tensor<4>,
+        state: &GomState,
+    ) -> Result<GomState> {
+        let (w, h) = (sources.cameras[0].width, sources.cameras[0].height);
+        let n = sources.cameras.len();
+        let [v, _] = state.xyz.dims();
+        let d = self.visibility_embed.dims()[0];
+        let device = state.xyz.device();
+
+        // Pose the current vertices into each view and project them.
+        let posed: Vec<Tensor<2>> = sources
+            .skinning
+            .iter()
+            .map(|t| skin_vertices(state.xyz.clone(), subject.lbs_weights.clone(), t))
+            .collect::<std::result::Result<_, _>>()?;
+        let proj = project_points(Tensor::stack(posed.clone(), 0), &sources.cameras)?;
+
+        // Discrete visibility of the high-res mesh in each view (no gradient).
+        let highres_faces = &mesh.subdivision.highres.faces;
+        let mut vis_lowres = vec![0.0f32; v * n];
+        let mut vis_highres: Vec<Vec<bool>> = Vec::with_capacity(n);
+        {
+            let _span = tracing::debug_span!("visibility").entered();
+            for (view, (p, cam)) in posed.iter().zip(&sources.cameras).enumerate() {
+                let hr = mesh
+                    .subdivision
+                    .highres_vertices_cpu(&host_points(p.clone().detach()));
+                let ids = rasterize_triangle_ids(&hr, highres_faces, cam)?;
+                let visible = visible_vertices(&ids, highres_faces, hr.len());
+                for (i, vis) in visible[..v].iter().enumerate() {
+                    vis_lowres[i * n + view] = f32::from(u8::from(*vis));
+                }
+                vis_highres.push(visible);
+            }
+        }
+        let vis = Tensor::<3>::from_data(TensorData::new(vis_lowres, [v, n, 1]), &device);
+        let e_vis = self.visibility_embed.val().reshape([1, 1, d]);
+
+        // Source branch, blended with e_vis where the vertex is hidden.
+        let f_src = feats_src.sample(proj.uv.clone(), w, h)?;
+        let src = f_src * vis.clone() + e_vis.clone() * (vis.ones_like() - vis);
+        // Rendered branch, blended by the previous render's soft alpha.
+        let f_ren = feats_ren.sample(proj.uv.clone(), w, h)?;
+        let m = sample_single(alpha_prev, proj.uv.clone(), w, h)?.reshape([v, n, 1]);
+        let ren = f_ren * m.clone() + e_vis * (m.ones_like() - m);
+
+        let fused_src = self.fusion.forward(src, state.embed.clone());
+        let fused_ren = self.fusion.forward(ren, state.embed.clone()).detach();
+        let h_pt = {
+            let _span = tracing::debug_span!("point_transformer").entered();
+            self.point_transformer.forward(
+                state.xyz.clone(),
+                Tensor::cat(vec![fused_src, fused_ren], 1),
+            )
+        };
+        let vertex = self.heads.vertices(h_pt.clone());
+
+        // Faces: source features at the projected centroid of each high-res face of the current
+        // (pre-update) mesh, zeroed where the face is not fully visible in that view.
+        let tables = mesh.tables();
+        let faces_flat = mesh.highres_faces().clone();
+        let f = mesh.num_gaussians();
+        let posed_hr: Vec<Tensor<2>> = posed.iter().map(|p| tables.apply(p.clone())).collect();
+        let proj_hr = project_points(Tensor::stack(posed_hr, 0), &sources.cameras)?;
+        let uv_faces = proj_hr
+            .uv
+            .select(1, faces_flat.clone())
+            .reshape([n, f, 3, 2])
+            .mean_dim(2)
+            .reshape([n, f, 2]);
+        let face_feats = feats_src.sample(uv_faces, w, h)?; // [F, N, D]
+        let mut face_vis = vec![0.0f32; f * n];
+        for (view, visible) in vis_highres.iter().enumerate() {
+            for (face, corners) in highres_faces.iter().enumerate() {
+                if corners.iter().all(|c| visible[*c as usize]) {
+                    face_vis[face * n + view] = 1.0;
+                }
+            }
+        }
+        let face_vis = Tensor::<2>::from_data(TensorData::new(face_vis, [f, n]), &device);
+        let inputs = face_inputs(
+            h_pt,
+            tables.index.clone(),
+            tables.weight.clone(),
+            faces_flat,
+            face_feats,
+            face_vis,
+        );
+        let faces = self.heads.faces(inputs);
+        Ok(GomState {
+            xyz: state.xyz.clone() + vertex.delta_xyz,
+            embed: vertex.embed,
+            faces,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(deprecated)]
+    use super::*;
+    use lifegom_render::camera::Intrinsics;
+    use lifegom_render::skeleton::BodyPose;
+    use lifegom_render::template::{BodyTemplate, lowres_template_path};
+
+    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+        t.into_data().try_into_vec_as::<f32>().unwrap()
+    }
+
+    struct Fixture {
+        subject: Subject,
+        mesh: GomMesh,
+        sources: SourceViews,
+        vertices: usize,
+    }
+
+    fn fixture(device: &Device, size: u32) -> Fixture {
+        let body = BodyTemplate::load(lowres_template_path()).unwrap();
+        let f = 0.8 * size as f32;
+        let k = Intrinsics {
+            fx: f,
+            fy: f,
+            cx: size as f32 / 2.0,
+            cy: size as f32 / 2.0,
+        };
+        let cameras: Vec<Camera> = [Vec3::new(0.0, 0.1, 2.5), Vec3::new(2.0, 0.1, -1.5)]
+            .iter()
+            .map(|eye| {
+                Camera::look_at(*eye, Vec3::new(0.0, 0.1, 0.0), Vec3::Y, k, size, size).unwrap()
+            })
+            .collect();
+        let rest = body
+            .skeleton
+            .skinning_transforms(&BodyPose::rest(body.num_joints()))
+            .unwrap();
+        Fixture {
+            subject: Subject {
+                canonical_vertices: body.vertex_tensor(device),
+                lbs_weights: body.skin.tensor(device),
+            },
+            mesh: GomMesh::new(&body.topology, 0, device).unwrap(),
+            sources: SourceViews {
+                images: Tensor::random(
+                    [2, 3, size as usize, size as usize],
+                    Distribution::Uniform(0.0, 1.0),
+                    device,
+                ),
+                cameras,
+                skinning: vec![rest.clone(), rest],
+                background: [0.0; 3],
+            },
+            vertices: body.num_vertices(),
+        }
+    }
+
+    fn end_to_end(device: &Device) {
+        let ad = device.clone().autodiff();
+        let fx = fixture(&ad, 32);
+        let model = ReconstructorConfig::tiny(2)
+            .with_iterations(2)
+            .with_dropout(0.0)
+            .init(fx.vertices, &ad)
+            .unwrap();
+        let rec = model.forward(&fx.subject, &fx.mesh, &fx.sources).unwrap();
+        assert_eq!(rec.states.len(), 2);
+        assert_eq!(rec.renders[1].rgb.dims(), [2, 3, 32, 32]);
+        assert_eq!(rec.last().faces.colors.dims(), [fx.mesh.num_gaussians(), 3]);
+        let alpha = read(rec.renders[0].alpha.clone());
+        assert!(
+            alpha.iter().all(|a| a.is_finite()) && alpha.iter().any(|a| *a > 0.5),
+            "the body is rendered"
+        );
+
+        let loss = rec
+            .renders
+            .iter()
+            .map(|r| r.rgb.clone().mean())
+            .reduce(|a, b| a + b)
+            .unwrap()
+            + rec.last().xyz.clone().powi_scalar(2).mean();
+        let grads = loss.backward();
+        let mut check = GradCheck {
+            grads: &grads,
+            path: Vec::new(),
+            trainable: 0,
+            missing: Vec::new(),
+        };
+        model.visit(&mut check);
+        assert!(
+            check.trainable > 50,
+            "visited {} trainable tensors",
+            check.trainable
+        );
+        assert!(
+            check.missing.is_empty(),
+            "no gradient reached: {:?}",
+            check.missing
+        );
+    }
+
+    /// Records every trainable parameter that got no (finite, non-zero) gradient.
+    struct GradCheck<'a> {
+        grads: &'a burn::tensor::Gradients,
+        path: Vec<String>,
+        trainable: usize,
+        missing: Vec<String>,
+    }
+
+    impl burn::module::ModuleVisitor for GradCheck<'_> {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let t = param.val();
+            if !t.is_require_grad() {
+                return; // frozen (e.g. the Point Transformer's batch norms)
+            }
+            self.trainable += 1;
+            let ok = t
+                .grad(self.grads)
+                .map(read)
+                .is_some_and(|g| g.iter().all(|v| v.is_finite()) && g.iter().any(|v| *v != 0.0));
+            if !ok {
+                self.missing.push(self.path.join("."));
+            }
+        }
+    }
+
+    #[test]
+    fn end_to_end_ndarray() {
+        end_to_end(&Device::ndarray());
+    }
+
+    #[test]
+    fn end_to_end_flex() {
+        end_to_end(&Device::flex());
+    }
+
+    #[test]
+    fn mismatched_inputs_are_errors() {
+        let device = Device::flex();
+        let fx = fixture(&device, 32);
+        let model = ReconstructorConfig::tiny(3)
+            .with_iterations(1)
+            .init(fx.vertices, &device)
+            .unwrap();
+        let err = model
+            .forward(&fx.subject, &fx.mesh, &fx.sources)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("images"), "{err}");
+        let model = ReconstructorConfig::tiny(2)
+            .init(fx.vertices + 1, &device)
+            .unwrap();
+        assert!(
+            model
+                .forward(&fx.subject, &fx.mesh, &fx.sources)
+                .unwrap_err()
+                .to_string()
+                .contains("subject")
+        );
+        assert!(
+            ReconstructorConfig::tiny(2)
+                .with_n_heads(7)
+                .init(fx.vertices, &device)
+                .is_err()
+        );
+    }
+
+    #[test]
+    fn same_seed_same_avatar() {
+        let device = Device::flex();
+        let run = || {
+            device.seed(7);
+            let fx = fixture(&device, 32);
+            let model = ReconstructorConfig::tiny(2)
+                .with_iterations(1)
+                .init(fx.vertices, &device)
+                .unwrap();
+            read(
+                model
+                    .forward(&fx.subject, &fx.mesh, &fx.sources)
+                    .unwrap()
+                    .last()
+                    .faces
+                    .colors
+                    .clone(),
+            )
+        };
+        assert_eq!(run(), run());
+    }
+}

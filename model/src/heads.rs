@@ -1,0 +1,262 @@
+//! Update heads (spec §5.6): what one feedback step predicts from the Point Transformer's
+//! per-vertex features `h` (`[V↓, 32]`).
+//!
+//! - **Low-res vertices** (coupled multi-resolution: only these move): a residual
+//!   `Δxyz = MLP(h)` and a new query embedding `Linear(h)` for the next step's fusion.
+//! - **Faces of the subdivided mesh**: `h` is interpolated to the high-res vertices with the
+//!   subdivision's barycentric tables, the three corner features are concatenated in face-vertex
+//!   order (`3·32`), and the source-image features sampled at the projected face centroid are
+//!   appended per view (`N·D`, zeroed where the face is not fully visible in that view). Four
+//!   heads map this to `so3`, `scale`, `offset` and `rgb`, each added to the **constant** initial
+//!   value (0, 1, 0, 0), not to the previous step's: faces are re-predicted every step; only the
+//!   vertices accumulate.
+//!
+//! The last layers of the xyz, so3, scale and offset heads start at U(±1e-5) with zero bias, so
+//! the first steps barely move the template; the rgb head keeps the default initialisation.
+
+use burn::config::Config;
+use burn::module::{Module, Param};
+use burn::nn::{Initializer, Linear, LinearConfig};
+use burn::tensor::activation::relu;
+use burn::tensor::{Device, Int, Tensor};
+
+use lifegom_render::gom::GomParams;
+
+/// `Linear → ReLU → Linear`, named `l0`/`l2` after the reference's `Sequential` indices.
+#[derive(Module, Debug)]
+pub struct Mlp {
+    l0: Linear,
+    l2: Linear,
+}
+
+/// How the last layer of an [`Mlp`] starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LastLayerInit {
+    /// Weights U(±1e-5), bias 0: the head's output starts at (almost) zero.
+    NearZero,
+    /// The framework default (kaiming-uniform, bound `1/√fan_in`).
+    Default,
+}
+
+impl Mlp {
+    fn new(
+        input: usize,
+        hidden: usize,
+        output: usize,
+        last: LastLayerInit,
+        device: &Device,
+    ) -> Self {
+        let l0 = LinearConfig::new(input, hidden).init(device);
+        let l2 = match last {
+            LastLayerInit::Default => LinearConfig::new(hidden, output).init(device),
+            LastLayerInit::NearZero => {
+                let mut l = LinearConfig::new(hidden, output)
+                    .with_initializer(Initializer::Uniform {
+                        min: -1e-5,
+                        max: 1e-5,
+                    })
+                    .init(device);
+                l.bias = Some(Param::from_tensor(Tensor::zeros([output], device)));
+                l
+            }
+        };
+        Self { l0, l2 }
+    }
+
+    /// `[.., input] → [.., output]`.
+    pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
+        self.l2.forward(relu(self.l0.forward(x)))
+    }
+}
+
+/// Sizes of the update heads.
+#[derive(Config, Debug)]
+pub struct UpdateHeadsConfig {
+    /// Width of the Point Transformer's per-vertex output (32).
+    #[config(default = 32)]
+    pub point_dim: usize,
+    /// Width of the per-vertex embedding and of one view's image feature (1152).
+    pub feature_dim: usize,
+    /// Number of source views N.
+    pub num_views: usize,
+    /// Hidden width of every head (32).
+    #[config(default = 32)]
+    pub hidden: usize,
+}
+
+impl UpdateHeadsConfig {
+    /// Width of a face's input: three corner features and one image feature per view.
+    pub fn face_input_dim(&self) -> usize {
+        3 * self.point_dim + self.num_views * self.feature_dim
+    }
+
+    /// Builds the heads.
+    pub fn init(&self, device: &Device) -> UpdateHeads {
+        let g = self.face_input_dim();
+        let h = self.hidden;
+        UpdateHeads {
+            xyz: Mlp::new(self.point_dim, h, 3, LastLayerInit::NearZero, device),
+            embed: LinearConfig::new(self.point_dim, self.feature_dim).init(device),
+            so3: Mlp::new(g, h, 3, LastLayerInit::NearZero, device),
+            scale: Mlp::new(g, h, 3, LastLayerInit::NearZero, device),
+            offset: Mlp::new(g, h, 3, LastLayerInit::NearZero, device),
+            rgb: Mlp::new(g, h, 3, LastLayerInit::Default, device),
+        }
+    }
+}
+
+/// See [`UpdateHeadsConfig`].
+#[derive(Module, Debug)]
+pub struct UpdateHeads {
+    /// Residual low-res vertex update.
+    pub xyz: Mlp,
+    /// New per-vertex query embedding.
+    pub embed: Linear,
+    /// Face rotation (axis-angle in the Steiner frame).
+    pub so3: Mlp,
+    /// Face scales.
+    pub scale: Mlp,
+    /// Face offsets in the Steiner frame.
+    pub offset: Mlp,
+    /// Face colours.
+    pub rgb: Mlp,
+}
+
+/// What a step predicts for the low-res vertices.
+#[derive(Debug, Clone)]
+pub struct VertexUpdate {
+    /// `Δxyz`, `[V↓, 3]`: added to the current canonical vertices.
+    pub delta_xyz: Tensor<2>,
+    /// The next embedding, `[V↓, D]`: replaces the current one.
+    pub embed: Tensor<2>,
+}
+
+impl UpdateHeads {
+    /// Vertex update from the per-vertex features `h` `[V↓, point_dim]`.
+    pub fn vertices(&self, h: Tensor<2>) -> VertexUpdate {
+        VertexUpdate {
+            delta_xyz: self.xyz.forward(h.clone()),
+            embed: self.embed.forward(h),
+        }
+    }
+
+    /// Face parameters from the face inputs `[F, face_input_dim]` (see [`face_inputs`]):
+    /// the constant init (so3 0, scale 1, offset 0, rgb 0, opacity 1) plus each head's output.
+    pub fn faces(&self, inputs: Tensor<2>) -> GomParams {
+        let [f, _] = inputs.dims();
+        let device = inputs.device();
+        let init = GomParams::init(f, &device);
+        GomParams {
+            so3: init.so3 + self.so3.forward(inputs.clone()),
+            scales: init.scales + self.scale.forward(inputs.clone()),
+            offsets: init.offsets + self.offset.forward(inputs.clone()),
+            colors: init.colors + self.rgb.forward(inputs),
+            opacities: init.opacities,
+        }
+    }
+}
+
+/// Builds each high-res face's head input (spec §5.6).
+///
+/// - `h` `[V↓, P]`: per low-res vertex features;
+/// - `highres_index` `[Vh·3]`, `highres_weight` `[Vh, 3]`: the subdivision's barycentric tables
+///   (each high-res vertex as ≤3 weighted low-res vertices);
+/// - `faces` `[F·3]`: high-res face corners, in face-vertex order;
+/// - `image_features` `[F, N, D]`: source-image features at each face's projected centroid;
+/// - `face_visible` `[F, N]`: 1 where all three corners are visible in that view, else 0.
+///
+/// Returns `[F, 3P + N·D]`.
+pub fn face_inputs(
+    h: Tensor<2>,
+    highres_index: Tensor<1, Int>,
+    highres_weight: Tensor<2>,
+    faces: Tensor<1, Int>,
+    image_features: Tensor<3>,
+    face_visible: Tensor<2>,
+) -> Tensor<2> {
+    let [_, p] = h.dims();
+    let [vh, k] = highres_weight.dims();
+    let [f, n, d] = image_features.dims();
+    let h_hr = (h.select(0, highres_index).reshape([vh, k, p])
+        * highres_weight.reshape([vh, k, 1]))
+    .sum_dim(1)
+    .reshape([vh, p]);
+    let corners = h_hr.select(0, faces).reshape([f, 3 * p]);
+    let images = (image_features * face_visible.reshape([f, n, 1])).reshape([f, n * d]);
+    Tensor::cat(vec![corners, images], 1)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(deprecated)]
+    use super::*;
+    use burn::tensor::{Distribution, TensorData};
+    use lifegom_render::mesh::MeshTopology;
+    use lifegom_render::subdivision::Subdivision;
+
+    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+        t.into_data().try_into_vec_as::<f32>().unwrap()
+    }
+
+    fn check(device: &Device) {
+        let cfg = UpdateHeadsConfig::new(8, 2)
+            .with_point_dim(4)
+            .with_hidden(6);
+        let heads = cfg.init(device);
+        // Near-zero heads: the first step barely moves vertices and faces start at their init.
+        let h = Tensor::<2>::random([5, 4], Distribution::Normal(0.0, 1.0), device);
+        let v = heads.vertices(h.clone());
+        assert_eq!(v.delta_xyz.dims(), [5, 3]);
+        assert_eq!(v.embed.dims(), [5, 8]);
+        assert!(read(v.delta_xyz).iter().all(|x| x.abs() < 1e-3));
+
+        // Two triangles sharing an edge, subdivided once.
+        let topo = MeshTopology::new(vec![[0, 1, 2], [2, 1, 3]], 4).unwrap();
+        let sub = Subdivision::new(&topo, 1).unwrap();
+        let tables = sub.tables(device);
+        let faces = sub.highres.face_index_tensor(device);
+        let f = sub.highres.faces.len();
+        let h4 = Tensor::<2>::random([4, 4], Distribution::Normal(0.0, 1.0), device);
+        let feats = Tensor::<3>::random([f, 2, 8], Distribution::Normal(0.0, 1.0), device);
+        let mut vis = vec![1.0f32; f * 2];
+        vis[1] = 0.0; // face 0 is hidden in view 1
+        let vis = Tensor::<2>::from_data(TensorData::new(vis, [f, 2]), device);
+        let inputs = face_inputs(
+            h4.clone(),
+            tables.index.clone(),
+            tables.weight.clone(),
+            faces,
+            feats,
+            vis,
+        );
+        assert_eq!(inputs.dims(), [f, cfg.face_input_dim()]);
+        let x = read(inputs.clone());
+        let row0 = &x[..cfg.face_input_dim()];
+        assert!(
+            row0[12 + 8..12 + 16].iter().all(|v| *v == 0.0),
+            "hidden view's block is zeroed"
+        );
+        // Corner 0 of child face 0 is low-res vertex 0 itself: its feature is copied exactly.
+        let h4v = read(h4);
+        for c in 0..4 {
+            assert!((row0[c] - h4v[c]).abs() < 1e-6);
+        }
+        let params = heads.faces(inputs);
+        let scales = read(params.scales);
+        assert!(
+            scales.iter().all(|s| (s - 1.0).abs() < 1e-3),
+            "scale starts at 1"
+        );
+        assert_eq!(params.colors.dims(), [f, 3]);
+    }
+
+    #[test]
+    fn heads_ndarray() {
+        check(&Device::ndarray());
+    }
+
+    #[test]
+    fn heads_flex() {
+        check(&Device::flex());
+    }
+}
