@@ -51,7 +51,9 @@ use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, Initializer, PaddingConfig2d};
 use burn::store::{ApplyResult, KeyRemapper, ModuleSnapshot, PytorchStore, SafetensorsStore};
 use burn::tensor::activation::relu;
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData, s};
+
+use crate::sampling::{PreparedMaps, SamplingError};
 
 /// ImageNet normalisation used by torchvision's ResNet weights.
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -415,6 +417,37 @@ impl ImageEncoder {
         vec![f0, f1, f2, f3, f4, rgb]
     }
 
+    /// The backbone maps plus what is needed to sample the rgb embedding without building it
+    /// at full resolution; see [`EncodedViews`].
+    pub fn encode(&self, images: Tensor<4>) -> Result<EncodedViews, SamplingError> {
+        let dims = images.dims();
+        assert_eq!(
+            dims[1], 3,
+            "ImageEncoder::encode: images must be [N, 3, H, W], got {dims:?}"
+        );
+        let x = Self::normalize(images);
+        let f0 = relu(frozen_bn(&self.bn1, self.conv1.forward(x.clone())));
+        let run = |blocks: &[BasicBlock], x: Tensor<4>| blocks.iter().fold(x, |x, b| b.forward(x));
+        let f1 = run(&self.layer1, self.maxpool.forward(f0.clone()));
+        let f2 = run(&self.layer2, f1.clone());
+        let f3 = run(&self.layer3, f2.clone());
+        let f4 = run(&self.layer4, f3.clone());
+        // [x̂ | 1]: bilinear weights are linear, so sampling x̂ and the in-image weight sum
+        // recovers Σw·(W x̂ + b) = W·Σw x̂ + b·Σw exactly, zero padding included.
+        let ones = x.clone().slice(s![.., 0..1, .., ..]).ones_like();
+        let affine = Tensor::cat(vec![x, ones], 1);
+        let [c_rgb, _, _, _] = self.rgb_embed.weight.dims();
+        let w = self.rgb_embed.weight.val().reshape([c_rgb, 3]).transpose(); // [3, C]
+        let b = match &self.rgb_embed.bias {
+            Some(b) => b.val().reshape([1, c_rgb]),
+            None => w.clone().slice(s![0..1, ..]).zeros_like(),
+        };
+        Ok(EncodedViews {
+            maps: PreparedMaps::new(&[f0, f1, f2, f3, f4, affine])?,
+            rgb_projection: Tensor::cat(vec![w, b], 0),
+        })
+    }
+
     /// Every batch norm (tests set their statistics).
     #[cfg(test)]
     fn bns_mut(&mut self) -> Vec<&mut BatchNorm> {
@@ -516,6 +549,55 @@ impl ImageEncoder {
         };
         tracing::info!(%weights, "image encoder weights");
         Ok((self, weights))
+    }
+}
+
+/// The encoded source views, ready to be sampled at any pixel positions many times.
+///
+/// Equivalent to [`crate::sampling::sample_maps`] on [`ImageEncoder::forward`]'s six maps, but
+/// the full-resolution rgb embedding (128 channels at `H × W`, 1.5 GB for three 1024² views) is
+/// never built: its 1×1 convolution is affine per pixel, so it is applied after sampling the
+/// 3-channel normalised image (and a ones channel that carries the zero-padding weight).
+#[derive(Debug, Clone)]
+pub struct EncodedViews {
+    /// Levels 0–4 and `[x̂ | 1]` (4 channels), channel-last.
+    maps: PreparedMaps,
+    /// `[Wᵀ; bᵀ]` of `rgb_embed`, `[4, C_rgb]`.
+    rgb_projection: Tensor<2>,
+}
+
+impl EncodedViews {
+    /// Samples the pyramid at `uv` `[N, V, 2]` (pixels of the `width × height` image the views
+    /// were encoded from): `[V, N, feature_dim]`, the same as sampling `forward`'s maps.
+    pub fn sample(
+        &self,
+        uv: Tensor<3>,
+        width: u32,
+        height: u32,
+    ) -> Result<Tensor<3>, SamplingError> {
+        let sampled = self.maps.sample(uv, width, height)?;
+        let [v, n, c] = sampled.dims();
+        let backbone = sampled.clone().slice(s![.., .., 0..c - 4]);
+        let affine = sampled.slice(s![.., .., c - 4..c]).reshape([v * n, 4]);
+        let c_rgb = self.rgb_projection.dims()[1];
+        let rgb = affine
+            .matmul(self.rgb_projection.clone())
+            .reshape([v, n, c_rgb]);
+        Ok(Tensor::cat(vec![backbone, rgb], 2))
+    }
+
+    /// Channels of one sample (1152 at width 1).
+    pub fn feature_dim(&self) -> usize {
+        let ch = self.maps.channels();
+        ch[..ch.len() - 1].iter().sum::<usize>() + self.rgb_projection.dims()[1]
+    }
+
+    /// The same views detached from the autodiff graph (the feedback branch, spec §5.4).
+    pub fn detach(self) -> Self {
+        Self {
+            maps: self.maps.detach(),
+            rgb_projection: self.rgb_projection.detach(),
+        }
     }
 }
 
@@ -752,6 +834,46 @@ mod tests {
     }
     on_both_backends!(batch_norm_is_frozen_but_affine_trains, frozen_batch_norm);
 
+    /// `encode(..).sample(..)` equals sampling `forward`'s six maps (out-of-image points too),
+    /// and gradients reach the rgb embedding's weight and bias through the affine path.
+    fn encoded_views(device: &Device) {
+        let enc = small().init(device);
+        let (w, h) = (24u32, 32u32);
+        let img = images(2, h as usize, w as usize, device);
+        let pts: Vec<f32> = (0..2 * 9)
+            .flat_map(|i| [(i as f32 * 2.9) % 27.0 - 1.5, (i as f32 * 3.7) % 35.0 - 1.5])
+            .collect();
+        let uv = Tensor::<3>::from_data(TensorData::new(pts, [2, 9, 2]), device);
+        let direct =
+            crate::sampling::sample_maps(&enc.forward(img.clone()), uv.clone(), w, h).unwrap();
+        let views = enc.encode(img.clone()).unwrap();
+        assert_eq!(views.feature_dim(), enc.feature_dim());
+        let via = views.sample(uv.clone(), w, h).unwrap();
+        assert_eq!(via.dims(), [9, 2, 144]);
+        let d = max_abs_diff(direct, via);
+        assert!(
+            d < 1e-4,
+            "encode().sample() differs from sampling forward() by {d}"
+        );
+
+        let ad = device.clone().autodiff();
+        let enc = enc.fork(&ad).train();
+        let sampled = enc
+            .encode(img.clone().to_device(&ad))
+            .unwrap()
+            .sample(uv.to_device(&ad), w, h)
+            .unwrap();
+        let grads = sampled.sum().backward();
+        assert!(enc.rgb_embed.weight.grad(&grads).is_some());
+        let gb = read(enc.rgb_embed.bias.as_ref().unwrap().grad(&grads).unwrap());
+        assert!(
+            gb.iter().all(|g| *g > 0.0),
+            "bias gradient is the sum of in-image weights: {gb:?}"
+        );
+        assert!(enc.conv1.weight.grad(&grads).is_some());
+    }
+    on_both_backends!(encoded_views_match_sampled_forward, encoded_views);
+
     /// A scratch directory removed on drop.
     struct TempDir(PathBuf);
     impl TempDir {
@@ -937,5 +1059,58 @@ mod tests {
         let (_, weights) = small().init(&device).load_optional(None).unwrap();
         assert_eq!(weights, Weights::RandomInit);
         assert!(weights.to_string().contains("RANDOM"));
+    }
+
+    /// Forward time of the width-1 encoder on 3 images of 256², per CPU backend, plus one
+    /// forward+backward on Flex autodiff. Run with
+    /// `cargo test --workspace encoder_forward_timing -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "timing report, not a check"]
+    fn encoder_forward_timing() {
+        use std::time::Instant;
+        let median = |mut t: Vec<f64>| {
+            t.sort_by(f64::total_cmp);
+            t[t.len() / 2]
+        };
+        let sync = |maps: Vec<Tensor<4>>| -> f32 {
+            maps.into_iter().map(|m| m.sum().into_scalar::<f32>()).sum()
+        };
+        for (name, device) in [("flex", Device::flex()), ("ndarray", Device::ndarray())] {
+            let enc = ImageEncoderConfig::new().init(&device);
+            let img = images(3, 256, 256, &device);
+            sync(enc.forward(img.clone())); // warm-up
+            let times: Vec<f64> = (0..3)
+                .map(|_| {
+                    let t = Instant::now();
+                    sync(enc.forward(img.clone()));
+                    t.elapsed().as_secs_f64()
+                })
+                .collect();
+            eprintln!(
+                "encoder forward, width 1, 3x3x256x256, {name}: median {:.3} s of {times:.3?}",
+                median(times.clone())
+            );
+        }
+        let ad = Device::flex().autodiff();
+        let enc = ImageEncoderConfig::new().init(&ad);
+        let img = images(3, 256, 256, &ad);
+        let times: Vec<f64> = (0..3)
+            .map(|_| {
+                let t = Instant::now();
+                let loss = enc
+                    .forward(img.clone())
+                    .into_iter()
+                    .map(|m| m.mean())
+                    .reduce(|a, b| a + b)
+                    .unwrap();
+                let grads = loss.backward();
+                assert!(enc.conv1.weight.grad(&grads).is_some());
+                t.elapsed().as_secs_f64()
+            })
+            .collect();
+        eprintln!(
+            "encoder forward+backward, width 1, 3x3x256x256, flex autodiff: median {:.3} s of {times:.3?}",
+            median(times.clone())
+        );
     }
 }

@@ -187,6 +187,21 @@ impl PreparedMaps {
         Ok(Self { levels, batch })
     }
 
+    /// The same maps detached from the autodiff graph.
+    pub fn detach(self) -> Self {
+        Self {
+            levels: self
+                .levels
+                .into_iter()
+                .map(|l| Level {
+                    rows: l.rows.detach(),
+                    ..l
+                })
+                .collect(),
+            batch: self.batch,
+        }
+    }
+
     /// Channels per level.
     pub fn channels(&self) -> Vec<usize> {
         self.levels.iter().map(|l| l.channels).collect()
