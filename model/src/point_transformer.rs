@@ -1,0 +1,1077 @@
+//! The Point Transformer encoder–decoder over the low-res body vertices (spec §5.6): Zhao et
+//! al.'s segmentation network without its classifier, used by LIFe-GoM to turn the fused
+//! per-vertex features into a 32-d feature per vertex for the update heads.
+//!
+//! # Data flow
+//!
+//! Input: canonical positions `p` `[V, 3]` and per-vertex features `x` `[V, in_dim − 3]`. The
+//! network itself forms `cat(p, x)` (as the reference's `PointTransformerSeg` does when its
+//! input width is not 3), so [`PointTransformerConfig::in_dim`] is the width of the *first
+//! Linear*, positions included: 2307 = 3 + 2·1152 in the paper.
+//!
+//! ```text
+//! level 1   V points      enc1: TD(stride 1)  + blocks[0] PT blocks        dec1: TU(64→32)  + 1 block → out [V, 32]
+//! level 2   V/4           enc2: TD(stride 4)  + blocks[1]                  dec2: TU(128→64) + 1 block
+//! …                       …                                                …
+//! level 5   V/4⁴          enc5: TD(stride 4)  + blocks[4]                  dec5: TU head    + 1 block
+//! ```
+//!
+//! Level sizes are `n_{l+1} = max(1, n_l / stride_l)` (integer division; the reference has no
+//! `max`, and would produce an empty level below `stride` points). Each level's points are an
+//! FPS subset of the previous level's; the decoder returns to them through 3-NN interpolation.
+//!
+//! # Building blocks
+//!
+//! All Linear layers of the transitions-down and of the blocks have no bias; the PT layer's
+//! q/k/v and its two MLPs have biases, and so do the transition-up Linears (the reference
+//! builds them with `nn.Linear`'s default, which the checkpoint's `linear{1,2}.0.bias` keys
+//! reflect).
+//!
+//! - [`TransitionDown`], stride 1: `ReLU(BN(Linear(x)))`. Stride `s > 1`: FPS to `n/s` points;
+//!   for each sampled point its `k` nearest neighbours (itself included) in the previous level;
+//!   `ReLU(BN(Linear([p_j − p_i ‖ x_j])))`, max over the `k` neighbours.
+//! - [`PointTransformerBlock`]: `ReLU(BN₃(Linear₃(ReLU(BN₂(PT(ReLU(BN₁(Linear₁ x)))))) + x)`.
+//! - [`PointTransformerLayer`] (vector attention with shared planes): for point `i` and its
+//!   `k` neighbours `j` (self included) `δ_j = MLP_p(p_j − p_i)`,
+//!   `w_j = softmax_j(MLP_w(k_j − q_i + δ_j))` with `c/s` channels, and
+//!   `out[g·c/s + m] = Σ_j (v_j + δ_j)[g·c/s + m] · w_j[m]`: the `c/s` attention channels are
+//!   shared by the `s = share_planes` groups of value channels.
+//! - [`TransitionUp`] head (coarsest level): `ReLU(BN(Linear([x ‖ ReLU(Linear(mean_i x_i))])))`.
+//!   Otherwise `ReLU(BN(Linear(x_skip))) + interp₃(ReLU(BN(Linear(x_coarse))))`, with inverse
+//!   distance weights `w ∝ 1/(‖d‖ + 1e-8)` over the 3 nearest coarse points, normalised.
+//!
+//! # Geometry (host side, recomputed every forward)
+//!
+//! The positions change between calls (the feedback loop moves the vertices), so FPS and every
+//! kNN are recomputed per forward from a single host readback of `p` ([`crate::knn`]: `O(n·m)`
+//! FPS, grid kNN). The indices and interpolation weights carry no gradient, exactly like the
+//! reference's `pointops`; the *relative positions* `p_j − p_i` are gathered on the device, so
+//! gradients do reach `p` through them and through `cat(p, x)`. One self-kNN per level serves
+//! all blocks of that level, encoder and decoder (same points, same `k`).
+//!
+//! # Frozen BatchNorm
+//!
+//! Every BN is Burn's [`BatchNorm`] (so an importer maps `weight/bias/running_mean/running_var`
+//! onto `gamma/beta/running_mean/running_var`) built with [`Module::freeze`]: its `training`
+//! flag is off, so it always normalises with the running statistics — also on an autodiff
+//! device, where it neither recomputes batch statistics nor writes them back — and γ/β do not
+//! require gradients. Record loading keeps both (flags and `require_grad` come from the
+//! destination module). Do not call `unfreeze()` on this module. BN is applied with
+//! BatchNorm1d semantics on `[rows, C]` (neighbour axes flattened into rows), which in eval mode
+//! is the same per-channel affine map as the reference's `[n, C, k]` layout.
+//!
+//! # Parameter names (for the checkpoint importer)
+//!
+//! | PyTorch (`reconstructor.gom_encoder.…`) | Burn path |
+//! |---|---|
+//! | `enc{l}.0.{linear,bn}` | `enc.{l−1}.down.{linear,bn}` |
+//! | `enc{l}.{b≥1}.{linear1,bn1,bn2,linear3,bn3}` | `enc.{l−1}.blocks.{b−1}.{…}` |
+//! | `….transformer2.linear_{q,k,v}` | `….transformer2.linear_{q,k,v}` |
+//! | `….transformer2.linear_p.{0,1,3}` | `….transformer2.linear_p.{fc0,bn1,fc3}` |
+//! | `….transformer2.linear_w.{0,2,3,5}` | `….transformer2.linear_w.{bn0,fc2,bn3,fc5}` |
+//! | `dec{l}.0.linear1.{0,1}` / `.linear2.{0,1}` | `dec.{l−1}.up.{linear1,bn1}` / `.{linear2,bn2}` (dec5: `linear2` only, `bn2` is `None`) |
+//! | `dec{l}.1.*` | `dec.{l−1}.blocks.0.*` |
+//!
+//! Burn's `Linear` stores its weight `[in, out]` (PyTorch: `[out, in]`), so weights transpose on
+//! import; `enc1.0.linear.weight` is not imported (input width differs, spec §5.6).
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
+use burn::tensor::activation::{relu, softmax};
+use burn::tensor::{Device, Int, Tensor, TensorData};
+
+use crate::knn::{Neighbours, farthest_point_sampling, knn};
+
+/// Weight-sharing groups must divide every width; this is the paper's value.
+const PAPER_SHARE_PLANES: usize = 8;
+
+/// Neighbours used by the transition-up interpolation.
+const INTERP_K: usize = 3;
+
+/// Configuration of [`PointTransformer`]; the defaults are the paper's (spec §5.6).
+#[derive(Config, Debug)]
+pub struct PointTransformerConfig {
+    /// Width of the first Linear: 3 (positions) + the feature width (module docs).
+    pub in_dim: usize,
+    /// Channel width per level.
+    #[config(default = "vec![32, 64, 128, 256, 512]")]
+    pub planes: Vec<usize>,
+    /// PT blocks after each level's transition-down (the reference's `[2,3,4,6,3]` minus one).
+    #[config(default = "vec![1, 2, 3, 5, 2]")]
+    pub blocks: Vec<usize>,
+    /// Subsampling factor of each level's transition-down; the first must be 1.
+    #[config(default = "vec![1, 4, 4, 4, 4]")]
+    pub strides: Vec<usize>,
+    /// Neighbours per point at each level (transition-down grouping and PT layers).
+    #[config(default = "vec![8, 16, 16, 16, 16]")]
+    pub nsample: Vec<usize>,
+    /// Groups of value channels sharing one attention channel; must divide every `planes`.
+    #[config(default = 8)]
+    pub share_planes: usize,
+    /// PT blocks after each transition-up.
+    #[config(default = 1)]
+    pub decoder_blocks: usize,
+    /// BatchNorm epsilon (PyTorch's default).
+    #[config(default = 1e-5)]
+    pub bn_epsilon: f64,
+}
+
+impl PointTransformerConfig {
+    /// The paper's network for input width `in_dim` (2307 in LIFe-GoM).
+    pub fn paper(in_dim: usize) -> Self {
+        Self::new(in_dim).with_share_planes(PAPER_SHARE_PLANES)
+    }
+
+    /// A small network with every component of the paper's (all five levels, every transition
+    /// kind, padding at the coarsest level for ~1K points) for fast CPU tests.
+    pub fn tiny(in_dim: usize) -> Self {
+        Self::new(in_dim)
+            .with_planes(vec![8, 16, 32, 64, 64])
+            .with_blocks(vec![1, 1, 1, 1, 1])
+            .with_nsample(vec![8, 16, 16, 16, 16])
+            .with_share_planes(4)
+    }
+
+    /// Number of levels.
+    pub fn levels(&self) -> usize {
+        self.planes.len()
+    }
+
+    fn validate(&self) {
+        let l = self.planes.len();
+        assert!(l >= 1, "Point Transformer needs at least one level");
+        assert!(
+            self.blocks.len() == l && self.strides.len() == l && self.nsample.len() == l,
+            "planes, blocks, strides and nsample must have one entry per level"
+        );
+        assert_eq!(self.strides[0], 1, "the first level keeps every point");
+        assert!(self.strides.iter().all(|&s| s >= 1), "strides must be ≥ 1");
+        assert!(self.nsample.iter().all(|&k| k >= 1), "nsample must be ≥ 1");
+        assert!(self.in_dim > 3, "in_dim includes the 3 position channels");
+        assert!(
+            self.share_planes >= 1
+                && self
+                    .planes
+                    .iter()
+                    .all(|c| c.is_multiple_of(self.share_planes)),
+            "share_planes must divide every width"
+        );
+    }
+
+    /// Builds the network; every BatchNorm is frozen (module docs).
+    ///
+    /// # Panics
+    ///
+    /// On an inconsistent configuration (see the field docs).
+    pub fn init(&self, device: &Device) -> PointTransformer {
+        self.validate();
+        let eps = self.bn_epsilon;
+        let block =
+            |c: usize, k: usize| PointTransformerBlock::new(c, self.share_planes, k, eps, device);
+        let levels = self.levels();
+        let mut enc = Vec::with_capacity(levels);
+        let mut c_in = self.in_dim;
+        for l in 0..levels {
+            let c = self.planes[l];
+            let stride = self.strides[l];
+            let k = self.nsample[l];
+            let down = TransitionDown {
+                linear: linear(if stride == 1 { c_in } else { 3 + c_in }, c, false, device),
+                bn: frozen_bn(c, eps, device),
+                stride,
+                nsample: k,
+            };
+            enc.push(EncoderStage {
+                down,
+                blocks: (0..self.blocks[l]).map(|_| block(c, k)).collect(),
+            });
+            c_in = c;
+        }
+        let dec = (0..levels)
+            .map(|l| {
+                let c = self.planes[l];
+                let up = if l + 1 == levels {
+                    TransitionUp {
+                        linear1: linear(2 * c, c, true, device),
+                        bn1: frozen_bn(c, eps, device),
+                        linear2: linear(c, c, true, device),
+                        bn2: None,
+                    }
+                } else {
+                    TransitionUp {
+                        linear1: linear(c, c, true, device),
+                        bn1: frozen_bn(c, eps, device),
+                        linear2: linear(self.planes[l + 1], c, true, device),
+                        bn2: Some(frozen_bn(c, eps, device)),
+                    }
+                };
+                DecoderStage {
+                    up,
+                    blocks: (0..self.decoder_blocks)
+                        .map(|_| block(c, self.nsample[l]))
+                        .collect(),
+                }
+            })
+            .collect();
+        PointTransformer { enc, dec }
+    }
+}
+
+fn linear(d_in: usize, d_out: usize, bias: bool, device: &Device) -> Linear {
+    LinearConfig::new(d_in, d_out).with_bias(bias).init(device)
+}
+
+/// A BatchNorm that always uses its running statistics and whose γ/β take no gradient.
+pub fn frozen_bn(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
+    BatchNormConfig::new(channels)
+        .with_epsilon(epsilon)
+        .init(device)
+        .freeze()
+}
+
+/// Applies a (frozen) BatchNorm1d over the last axis of `x`, all leading axes being rows.
+fn bn_last<const D: usize>(bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
+    let dims = x.dims();
+    let c = dims[D - 1];
+    let rows = dims[..D - 1].iter().product::<usize>();
+    bn.forward(x.reshape([rows, c])).reshape(dims)
+}
+
+/// The Point Transformer encoder–decoder (module docs). Build with [`PointTransformerConfig`].
+#[derive(Module, Debug)]
+pub struct PointTransformer {
+    /// `enc.{l}` ↔ the reference's `enc{l+1}`.
+    pub enc: Vec<EncoderStage>,
+    /// `dec.{l}` ↔ the reference's `dec{l+1}`; the last one is the head.
+    pub dec: Vec<DecoderStage>,
+}
+
+/// One encoder level: a transition-down and its PT blocks.
+#[derive(Module, Debug)]
+pub struct EncoderStage {
+    /// The reference's `enc{l}.0`.
+    pub down: TransitionDown,
+    /// The reference's `enc{l}.1…`.
+    pub blocks: Vec<PointTransformerBlock>,
+}
+
+/// One decoder level: a transition-up and its PT blocks.
+#[derive(Module, Debug)]
+pub struct DecoderStage {
+    /// The reference's `dec{l}.0`.
+    pub up: TransitionUp,
+    /// The reference's `dec{l}.1…`.
+    pub blocks: Vec<PointTransformerBlock>,
+}
+
+/// Host-side geometry of one level, valid for one forward.
+struct Level {
+    /// Points at this level.
+    n: usize,
+    /// Their positions on the device (in the autodiff graph: an FPS gather of the input).
+    p: Tensor<2>,
+    /// The same, read back.
+    host: Vec<[f32; 3]>,
+    /// Self-kNN: flattened neighbour indices `[n·k]` and relative positions `[n, k, 3]`.
+    nbr: Tensor<1, Int>,
+    rel: Tensor<3>,
+    /// For a subsampling level: kNN of each point in the previous level, as above.
+    down: Option<(Tensor<1, Int>, Tensor<3>)>,
+}
+
+fn index_tensor(idx: &[u32], device: &Device) -> Tensor<1, Int> {
+    let data: Vec<i64> = idx.iter().map(|&i| i64::from(i)).collect();
+    Tensor::from_data(TensorData::new(data, [idx.len()]), device)
+}
+
+/// `(indices [m·k], p_ref[j] − p_query[i] as [m, k, 3])` for a kNN result.
+fn group_positions(
+    nb: &Neighbours,
+    p_ref: &Tensor<2>,
+    p_query: &Tensor<2>,
+) -> (Tensor<1, Int>, Tensor<3>) {
+    let device = p_ref.device();
+    let m = nb.len();
+    let idx = index_tensor(&nb.indices, &device);
+    let rel = p_ref.clone().select(0, idx.clone()).reshape([m, nb.k, 3])
+        - p_query.clone().unsqueeze_dim::<3>(1);
+    (idx, rel)
+}
+
+impl PointTransformer {
+    /// Per-vertex features `[V, planes[0]]` from positions `[V, 3]` and features
+    /// `[V, in_dim − 3]`; the network concatenates `cat(p, x)` itself (module docs).
+    ///
+    /// # Panics
+    ///
+    /// If `V = 0` or the widths do not match the configuration.
+    pub fn forward(&self, positions: Tensor<2>, features: Tensor<2>) -> Tensor<2> {
+        let [v, three] = positions.dims();
+        assert_eq!(three, 3, "positions must be [V, 3]");
+        assert!(v > 0, "Point Transformer over zero points");
+        assert_eq!(features.dims()[0], v, "one feature row per point");
+        let levels = self.hierarchy(positions.clone());
+
+        // Encoder.
+        let mut x = Tensor::cat(vec![positions, features], 1);
+        let mut skips = Vec::with_capacity(self.enc.len());
+        for (l, stage) in self.enc.iter().enumerate() {
+            x = match &levels[l].down {
+                None => stage.down.forward_pointwise(x),
+                Some((idx, rel)) => stage.down.forward_grouped(x, idx.clone(), rel.clone()),
+            };
+            for block in &stage.blocks {
+                x = block.forward(x, levels[l].rel.clone(), levels[l].nbr.clone());
+            }
+            skips.push(x.clone());
+        }
+
+        // Decoder, coarsest first.
+        let last = self.dec.len() - 1;
+        let mut y = self.dec[last].up.forward_head(skips.pop().unwrap());
+        for block in &self.dec[last].blocks {
+            y = block.forward(y, levels[last].rel.clone(), levels[last].nbr.clone());
+        }
+        for l in (0..last).rev() {
+            let interp = Interpolation::new(&levels[l], &levels[l + 1]);
+            y = self.dec[l].up.forward(skips.pop().unwrap(), y, &interp);
+            for block in &self.dec[l].blocks {
+                y = block.forward(y, levels[l].rel.clone(), levels[l].nbr.clone());
+            }
+        }
+        y
+    }
+
+    /// FPS levels and every kNN of one forward.
+    fn hierarchy(&self, positions: Tensor<2>) -> Vec<Level> {
+        let device = positions.device();
+        let host: Vec<f32> = positions
+            .clone()
+            .into_data()
+            .try_into_vec_as::<f32>()
+            .expect("positions readback");
+        let host: Vec<[f32; 3]> = host.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let mut levels: Vec<Level> = Vec::with_capacity(self.enc.len());
+        for stage in &self.enc {
+            let k = stage.down.nsample;
+            let (p, host, down) = match levels.last() {
+                None => (positions.clone(), host.clone(), None),
+                Some(prev) if stage.down.stride == 1 => (prev.p.clone(), prev.host.clone(), None),
+                Some(prev) => {
+                    let m = (prev.n / stage.down.stride).max(1);
+                    let sel = farthest_point_sampling(&prev.host, m);
+                    let p = prev.p.clone().select(0, index_tensor(&sel, &device));
+                    let host: Vec<[f32; 3]> = sel.iter().map(|&i| prev.host[i as usize]).collect();
+                    let nb = knn(&prev.host, &host, k);
+                    let down = group_positions(&nb, &prev.p, &p);
+                    (p, host, Some(down))
+                }
+            };
+            let nb = knn(&host, &host, k);
+            let (nbr, rel) = group_positions(&nb, &p, &p);
+            levels.push(Level {
+                n: host.len(),
+                p,
+                host,
+                nbr,
+                rel,
+                down,
+            });
+        }
+        levels
+    }
+}
+
+/// Transition-down (module docs). The reference's `enc{l}.0`.
+#[derive(Module, Debug)]
+pub struct TransitionDown {
+    /// `Linear(in → out)` for stride 1, `Linear(3 + in → out)` otherwise; no bias.
+    pub linear: Linear,
+    /// Frozen BN.
+    pub bn: BatchNorm,
+    /// Subsampling factor.
+    pub stride: usize,
+    /// Neighbours grouped per sampled point (and used by the level's PT layers).
+    pub nsample: usize,
+}
+
+impl TransitionDown {
+    /// Stride 1: `ReLU(BN(Linear(x)))`, `[n, in] → [n, out]`.
+    pub fn forward_pointwise(&self, x: Tensor<2>) -> Tensor<2> {
+        relu(self.bn.forward(self.linear.forward(x)))
+    }
+
+    /// Stride > 1: `x` `[n, in]` of the previous level, `idx` `[m·k]` neighbour indices into
+    /// it and `rel` `[m, k, 3]` their positions relative to the sampled points → `[m, out]`.
+    pub fn forward_grouped(&self, x: Tensor<2>, idx: Tensor<1, Int>, rel: Tensor<3>) -> Tensor<2> {
+        let [m, k, _] = rel.dims();
+        let c_in = x.dims()[1];
+        let grouped = x.select(0, idx).reshape([m, k, c_in]);
+        let h = self.linear.forward(Tensor::cat(vec![rel, grouped], 2));
+        let h = relu(bn_last(&self.bn, h));
+        let c = h.dims()[2];
+        h.max_dim(1).reshape([m, c])
+    }
+}
+
+/// The residual block around a [`PointTransformerLayer`]. The reference's `enc{l}.{b≥1}` and
+/// `dec{l}.1`.
+#[derive(Module, Debug)]
+pub struct PointTransformerBlock {
+    /// `Linear(c → c)`, no bias.
+    pub linear1: Linear,
+    /// Frozen BN.
+    pub bn1: BatchNorm,
+    /// The vector-attention layer.
+    pub transformer2: PointTransformerLayer,
+    /// Frozen BN.
+    pub bn2: BatchNorm,
+    /// `Linear(c → c)`, no bias.
+    pub linear3: Linear,
+    /// Frozen BN.
+    pub bn3: BatchNorm,
+}
+
+impl PointTransformerBlock {
+    fn new(c: usize, share_planes: usize, _k: usize, eps: f64, device: &Device) -> Self {
+        Self {
+            linear1: linear(c, c, false, device),
+            bn1: frozen_bn(c, eps, device),
+            transformer2: PointTransformerLayer::new(c, share_planes, eps, device),
+            bn2: frozen_bn(c, eps, device),
+            linear3: linear(c, c, false, device),
+            bn3: frozen_bn(c, eps, device),
+        }
+    }
+
+    /// `x` `[n, c]` with the level's self-kNN (`rel` `[n, k, 3]`, `nbr` `[n·k]`) → `[n, c]`.
+    pub fn forward(&self, x: Tensor<2>, rel: Tensor<3>, nbr: Tensor<1, Int>) -> Tensor<2> {
+        let identity = x.clone();
+        let h = relu(self.bn1.forward(self.linear1.forward(x)));
+        let h = relu(self.bn2.forward(self.transformer2.forward(h, rel, nbr)));
+        let h = self.bn3.forward(self.linear3.forward(h));
+        relu(h + identity)
+    }
+}
+
+/// `MLP_p`: `Linear(3,3) → BN(3) → ReLU → Linear(3,c)`, biases on. The reference's
+/// `linear_p.{0,1,3}`.
+#[derive(Module, Debug)]
+pub struct PositionMlp {
+    /// `linear_p.0`.
+    pub fc0: Linear,
+    /// `linear_p.1`.
+    pub bn1: BatchNorm,
+    /// `linear_p.3`.
+    pub fc3: Linear,
+}
+
+/// `MLP_w`: `BN(c) → ReLU → Linear(c, c/s) → BN(c/s) → ReLU → Linear(c/s, c/s)`, biases on.
+/// The reference's `linear_w.{0,2,3,5}`.
+#[derive(Module, Debug)]
+pub struct WeightMlp {
+    /// `linear_w.0`.
+    pub bn0: BatchNorm,
+    /// `linear_w.2`.
+    pub fc2: Linear,
+    /// `linear_w.3`.
+    pub bn3: BatchNorm,
+    /// `linear_w.5`.
+    pub fc5: Linear,
+}
+
+/// Vector self-attention over each point's `k` nearest neighbours with shared planes (module
+/// docs). The reference's `transformer2`.
+#[derive(Module, Debug)]
+pub struct PointTransformerLayer {
+    /// Query, with bias.
+    pub linear_q: Linear,
+    /// Key, with bias.
+    pub linear_k: Linear,
+    /// Value, with bias.
+    pub linear_v: Linear,
+    /// Positional encoding `δ`.
+    pub linear_p: PositionMlp,
+    /// Attention-weight MLP.
+    pub linear_w: WeightMlp,
+    /// Groups of value channels sharing one weight channel.
+    pub share_planes: usize,
+}
+
+impl PointTransformerLayer {
+    /// A layer of width `c` with `c / share_planes` attention channels.
+    pub fn new(c: usize, share_planes: usize, eps: f64, device: &Device) -> Self {
+        assert!(
+            c.is_multiple_of(share_planes),
+            "share_planes must divide the width"
+        );
+        let cw = c / share_planes;
+        Self {
+            linear_q: linear(c, c, true, device),
+            linear_k: linear(c, c, true, device),
+            linear_v: linear(c, c, true, device),
+            linear_p: PositionMlp {
+                fc0: linear(3, 3, true, device),
+                bn1: frozen_bn(3, eps, device),
+                fc3: linear(3, c, true, device),
+            },
+            linear_w: WeightMlp {
+                bn0: frozen_bn(c, eps, device),
+                fc2: linear(c, cw, true, device),
+                bn3: frozen_bn(cw, eps, device),
+                fc5: linear(cw, cw, true, device),
+            },
+            share_planes,
+        }
+    }
+
+    /// `x` `[n, c]`, relative neighbour positions `rel` `[n, k, 3]` (`p_j − p_i`) and the
+    /// flattened neighbour indices `nbr` `[n·k]` → `[n, c]`.
+    pub fn forward(&self, x: Tensor<2>, rel: Tensor<3>, nbr: Tensor<1, Int>) -> Tensor<2> {
+        let [n, c] = x.dims();
+        let [_, k, _] = rel.dims();
+        let s = self.share_planes;
+        let q = self.linear_q.forward(x.clone());
+        // Project before gathering: n rows instead of n·k.
+        let kf = self
+            .linear_k
+            .forward(x.clone())
+            .select(0, nbr.clone())
+            .reshape([n, k, c]);
+        let vf = self.linear_v.forward(x).select(0, nbr).reshape([n, k, c]);
+
+        let mp = &self.linear_p;
+        let delta = mp.fc3.forward(relu(bn_last(&mp.bn1, mp.fc0.forward(rel)))); // [n, k, c]
+
+        let mw = &self.linear_w;
+        let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
+        let w = mw.fc2.forward(relu(bn_last(&mw.bn0, w)));
+        let w = mw.fc5.forward(relu(bn_last(&mw.bn3, w))); // [n, k, c/s]
+        let w = softmax(w, 1);
+
+        let values = (vf + delta).reshape([n, k, s, c / s]);
+        (values * w.unsqueeze_dim::<4>(2))
+            .sum_dim(1)
+            .reshape([n, c])
+    }
+}
+
+/// Inverse-distance weights of the 3 nearest coarse points of every fine point.
+struct Interpolation {
+    /// `[n_fine·3]` indices into the coarse level.
+    idx: Tensor<1, Int>,
+    /// `[n_fine, 3, 1]` normalised weights (no gradient, like the reference's).
+    weights: Tensor<3>,
+}
+
+impl Interpolation {
+    fn new(fine: &Level, coarse: &Level) -> Self {
+        let device = fine.p.device();
+        let nb = knn(&coarse.host, &fine.host, INTERP_K);
+        let mut w: Vec<f32> = nb
+            .dist2
+            .iter()
+            .map(|&d2| 1.0 / (d2.sqrt() + 1e-8))
+            .collect();
+        for row in w.chunks_mut(INTERP_K) {
+            let sum: f32 = row.iter().sum();
+            row.iter_mut().for_each(|v| *v /= sum);
+        }
+        Self {
+            idx: index_tensor(&nb.indices, &device),
+            weights: Tensor::from_data(TensorData::new(w, [fine.n, INTERP_K, 1]), &device),
+        }
+    }
+
+    /// `[n_coarse, c] → [n_fine, c]`.
+    fn apply(&self, x: Tensor<2>) -> Tensor<2> {
+        let [n, kk, _] = self.weights.dims();
+        let c = x.dims()[1];
+        (x.select(0, self.idx.clone()).reshape([n, kk, c]) * self.weights.clone())
+            .sum_dim(1)
+            .reshape([n, c])
+    }
+}
+
+/// Transition-up (module docs). The reference's `dec{l}.0`: `linear1.{0,1}` ↔
+/// `linear1`/`bn1`, `linear2.{0[,1]}` ↔ `linear2`/`bn2`.
+#[derive(Module, Debug)]
+pub struct TransitionUp {
+    /// Head: `Linear(2c → c)`; otherwise `Linear(c → c)` on the skip features. With bias.
+    pub linear1: Linear,
+    /// Frozen BN after `linear1`.
+    pub bn1: BatchNorm,
+    /// Head: `Linear(c → c)` on the global mean; otherwise `Linear(c_coarse → c)`. With bias.
+    pub linear2: Linear,
+    /// Frozen BN after `linear2`; `None` for the head.
+    pub bn2: Option<BatchNorm>,
+}
+
+impl TransitionUp {
+    /// Head (coarsest level, global context): `[n, c] → [n, c]`.
+    pub fn forward_head(&self, x: Tensor<2>) -> Tensor<2> {
+        let [n, c] = x.dims();
+        let global = relu(self.linear2.forward(x.clone().mean_dim(0))).expand([n, c]);
+        relu(
+            self.bn1
+                .forward(self.linear1.forward(Tensor::cat(vec![x, global], 1))),
+        )
+    }
+
+    /// `skip` `[n_fine, c]` (encoder features of this level) plus the interpolated decoder
+    /// features of the coarser level `coarse` `[n_coarse, c_coarse]` → `[n_fine, c]`.
+    fn forward(&self, skip: Tensor<2>, coarse: Tensor<2>, interp: &Interpolation) -> Tensor<2> {
+        let fine = relu(self.bn1.forward(self.linear1.forward(skip)));
+        let mut up = self.linear2.forward(coarse);
+        if let Some(bn) = &self.bn2 {
+            up = bn.forward(up);
+        }
+        fine + interp.apply(relu(up))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(deprecated)]
+    use super::*;
+
+    struct Rng(u64);
+    impl Rng {
+        fn next(&mut self) -> f32 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((self.0 >> 40) as f32) / (1u64 << 24) as f32 - 0.5
+        }
+        fn tensor(&mut self, shape: [usize; 2], device: &Device) -> Tensor<2> {
+            let v: Vec<f32> = (0..shape[0] * shape[1]).map(|_| self.next()).collect();
+            Tensor::from_data(TensorData::new(v, shape), device)
+        }
+    }
+
+    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+        t.into_data().try_into_vec_as::<f32>().unwrap()
+    }
+
+    fn lowres_vertices(device: &Device) -> Tensor<2> {
+        let t = lifegom_render::template::BodyTemplate::load(
+            lifegom_render::template::lowres_template_path(),
+        )
+        .unwrap();
+        let v: Vec<f32> = t.vertices.iter().flat_map(|p| p.to_array()).collect();
+        let n = v.len() / 3;
+        Tensor::from_data(TensorData::new(v, [n, 3]), device)
+    }
+
+    fn check_layer_shapes(device: &Device) {
+        let mut rng = Rng(1);
+        let (n, c, k) = (50, 16, 8);
+        let layer = PointTransformerLayer::new(c, 8, 1e-5, device);
+        let p = rng.tensor([n, 3], device);
+        let host: Vec<[f32; 3]> = read(p.clone())
+            .chunks(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect();
+        let nb = knn(&host, &host, k);
+        let (nbr, rel) = group_positions(&nb, &p, &p);
+        assert_eq!(rel.dims(), [n, k, 3]);
+        let out = layer.forward(rng.tensor([n, c], device), rel.clone(), nbr.clone());
+        assert_eq!(out.dims(), [n, c]);
+        assert!(read(out).iter().all(|v| v.is_finite()));
+        let block = PointTransformerBlock::new(c, 8, k, 1e-5, device);
+        assert_eq!(
+            block.forward(rng.tensor([n, c], device), rel, nbr).dims(),
+            [n, c]
+        );
+    }
+
+    #[test]
+    fn point_transformer_layer_shapes_ndarray() {
+        check_layer_shapes(&Device::ndarray());
+    }
+
+    #[test]
+    fn point_transformer_layer_shapes_flex() {
+        check_layer_shapes(&Device::flex());
+    }
+
+    /// A hand-computed PT layer output: with unit BN and identity-like weights the layer must
+    /// follow the shared-plane formula of the module docs.
+    fn check_layer_formula(device: &Device) {
+        let mut rng = Rng(5);
+        let (n, c, k, s) = (7, 8, 4, 4);
+        let layer = PointTransformerLayer::new(c, s, 1e-5, device);
+        let p = rng.tensor([n, 3], device);
+        let x = rng.tensor([n, c], device);
+        let host: Vec<[f32; 3]> = read(p.clone())
+            .chunks(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect();
+        let nb = knn(&host, &host, k);
+        let (nbr, rel) = group_positions(&nb, &p, &p);
+        let out = read(layer.forward(x.clone(), rel, nbr));
+
+        // Reference computation on the host, f64.
+        let lin = |l: &Linear, v: &[f64]| -> Vec<f64> {
+            let w = read(l.weight.val());
+            let [din, dout] = l.weight.val().dims();
+            let b = l
+                .bias
+                .as_ref()
+                .map(|b| read(b.val()))
+                .unwrap_or(vec![0.0; dout]);
+            (0..dout)
+                .map(|o| b[o] as f64 + (0..din).map(|i| v[i] * w[i * dout + o] as f64).sum::<f64>())
+                .collect()
+        };
+        let bn = |v: Vec<f64>| {
+            v.into_iter()
+                .map(|a| a / (1.0f64 + 1e-5).sqrt())
+                .collect::<Vec<_>>()
+        };
+        let relu = |v: Vec<f64>| v.into_iter().map(|a| a.max(0.0)).collect::<Vec<_>>();
+        let xs: Vec<Vec<f64>> = read(x)
+            .chunks(c)
+            .map(|r| r.iter().map(|&a| a as f64).collect())
+            .collect();
+        let cw = c / s;
+        for i in 0..n {
+            let q = lin(&layer.linear_q, &xs[i]);
+            let mut ws = Vec::new();
+            let mut vals = Vec::new();
+            for j in 0..k {
+                let nj = nb.indices[i * k + j] as usize;
+                let r: Vec<f64> = (0..3).map(|a| (host[nj][a] - host[i][a]) as f64).collect();
+                let d = lin(&layer.linear_p.fc3, &relu(bn(lin(&layer.linear_p.fc0, &r))));
+                let kj = lin(&layer.linear_k, &xs[nj]);
+                let vj = lin(&layer.linear_v, &xs[nj]);
+                let pre: Vec<f64> = (0..c).map(|a| kj[a] - q[a] + d[a]).collect();
+                let w = lin(&layer.linear_w.fc2, &relu(bn(pre)));
+                ws.push(lin(&layer.linear_w.fc5, &relu(bn(w))));
+                vals.push((0..c).map(|a| vj[a] + d[a]).collect::<Vec<_>>());
+            }
+            for m in 0..cw {
+                let mx = ws.iter().map(|w| w[m]).fold(f64::MIN, f64::max);
+                let z: f64 = ws.iter().map(|w| (w[m] - mx).exp()).sum();
+                for g in 0..s {
+                    let ch = g * cw + m;
+                    let expect: f64 = (0..k)
+                        .map(|j| vals[j][ch] * (ws[j][m] - mx).exp() / z)
+                        .sum();
+                    let got = out[i * c + ch] as f64;
+                    assert!(
+                        (got - expect).abs() < 1e-4,
+                        "point {i} channel {ch}: {got} vs {expect}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn point_transformer_layer_formula_ndarray() {
+        check_layer_formula(&Device::ndarray());
+    }
+
+    #[test]
+    fn point_transformer_layer_formula_flex() {
+        check_layer_formula(&Device::flex());
+    }
+
+    fn check_full_net(device: &Device) {
+        let p = lowres_vertices(device);
+        let v = p.dims()[0];
+        assert_eq!(v, 1229);
+        let cfg = PointTransformerConfig::tiny(3 + 13);
+        let net = cfg.init(device);
+        let x = Rng(2).tensor([v, 13], device);
+        let a = net.forward(p.clone(), x.clone());
+        assert_eq!(a.dims(), [v, 8]);
+        let a = read(a);
+        assert!(a.iter().all(|v| v.is_finite()));
+        assert!(a.iter().any(|&v| v > 0.0), "not all dead");
+        // Same input twice → same output (deterministic FPS/kNN, no batch statistics).
+        let b = read(net.forward(p, x));
+        assert_eq!(a, b);
+    }
+
+    #[test]
+    fn point_transformer_full_net_lowres_ndarray() {
+        check_full_net(&Device::ndarray());
+    }
+
+    #[test]
+    fn point_transformer_full_net_lowres_flex() {
+        check_full_net(&Device::flex());
+    }
+
+    fn check_degenerate(device: &Device) {
+        let net = PointTransformerConfig::tiny(3 + 4).init(device);
+        // All points identical.
+        let p = Tensor::<2>::ones([40, 3], device);
+        let x = Rng(3).tensor([40, 4], device);
+        let out = net.forward(p, x);
+        assert_eq!(out.dims(), [40, 8]);
+        assert!(read(out).iter().all(|v| v.is_finite()));
+        // Fewer points than nsample and than the strides' product.
+        for v in [1, 5] {
+            let mut rng = Rng(4);
+            let out = net.forward(rng.tensor([v, 3], device), rng.tensor([v, 4], device));
+            assert_eq!(out.dims(), [v, 8]);
+            assert!(read(out).iter().all(|v| v.is_finite()));
+        }
+    }
+
+    #[test]
+    fn point_transformer_degenerate_inputs_ndarray() {
+        check_degenerate(&Device::ndarray());
+    }
+
+    #[test]
+    fn point_transformer_degenerate_inputs_flex() {
+        check_degenerate(&Device::flex());
+    }
+
+    /// What a backward left on one float parameter.
+    struct ParamGrad {
+        /// e.g. `enc.0.down.bn.gamma`.
+        path: String,
+        require_grad: bool,
+        grad: Option<Vec<f32>>,
+    }
+
+    /// Collects a [`ParamGrad`] for every float parameter.
+    struct CollectGrads<'a> {
+        grads: &'a burn::tensor::Gradients,
+        path: Vec<String>,
+        out: Vec<ParamGrad>,
+    }
+
+    impl burn::module::ModuleVisitor for CollectGrads<'_> {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+            // The gradient is keyed by the parameter's own node: query it before any reshape.
+            let t = param.val();
+            self.out.push(ParamGrad {
+                path: self.path.join("."),
+                require_grad: t.is_require_grad(),
+                grad: t.grad(self.grads).map(read),
+            });
+        }
+    }
+
+    /// Replaces every Linear weight and bias with deterministic values: weights
+    /// `U(±1/√fan_in)·√3`, biases `U(0, 0.1)`. Burn's default init is unseeded, and a tiny
+    /// network at random init often has a whole ReLU layer dead (e.g. all `c/s = 2` attention
+    /// channels, or all 3 channels of `MLP_p`, whose bias dominates small relative positions),
+    /// which legitimately zeroes some gradients; positive biases make that unlikely and the
+    /// fixed values make the test reproducible.
+    struct Reinit {
+        rng: Rng,
+        path: Vec<String>,
+    }
+
+    impl burn::module::ModuleMapper for Reinit {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn map_float<const D: usize>(
+            &mut self,
+            param: burn::module::Param<Tensor<D>>,
+        ) -> burn::module::Param<Tensor<D>> {
+            let name = self.path.last().map(String::as_str).unwrap_or("");
+            if name != "weight" && name != "bias" {
+                return param;
+            }
+            let is_bias = name == "bias";
+            let rng = &mut self.rng;
+            param
+                .map(|t| {
+                    let shape = t.shape();
+                    let fan_in = if D == 2 { shape[0] } else { 1 } as f32;
+                    let v: Vec<f32> = (0..shape.num_elements())
+                        .map(|_| match is_bias {
+                            true => 0.05 + 0.1 * rng.next(),
+                            false => 2.0 * rng.next() * (3.0 / fan_in).sqrt(),
+                        })
+                        .collect();
+                    Tensor::from_data(TensorData::new(v, shape), &t.device())
+                })
+                .set_require_grad(true)
+        }
+    }
+
+    fn check_gradients(device: &Device) {
+        let device = device.clone().autodiff();
+        let net = PointTransformerConfig::tiny(3 + 5)
+            .init(&device)
+            .map(&mut Reinit {
+                rng: Rng(11),
+                path: Vec::new(),
+            });
+        let mut rng = Rng(6);
+        // 600 points: the coarsest level keeps 2, so its attention weights are not all equal
+        // (a single point attending to padded copies of itself has a zero softmax gradient).
+        let (v, c_out) = (600, 8);
+        let p = rng.tensor([v, 3], &device).require_grad();
+        let x = rng.tensor([v, 5], &device).require_grad();
+        let probe = rng.tensor([v, c_out], &device);
+        let means_before = read(net.enc[1].blocks[0].bn1.running_mean.value());
+        let out = net.forward(p.clone(), x.clone());
+        // Frozen BN: the autodiff forward equals the inference forward (running statistics,
+        // not the batch's, which differ from the initial 0/1 for these inputs).
+        let out_inner = net.valid().forward(p.clone().inner(), x.clone().inner());
+        let (a, b) = (read(out.clone()), read(out_inner));
+        assert!(
+            a.iter()
+                .zip(&b)
+                .all(|(a, b)| (a - b).abs() <= 1e-5 * (1.0 + b.abs()))
+        );
+        let grads = (out * probe).sum().backward();
+
+        assert!(p.grad(&grads).is_some(), "positions get a gradient");
+        assert!(x.grad(&grads).is_some(), "features get a gradient");
+        let mut collect = CollectGrads {
+            grads: &grads,
+            path: Vec::new(),
+            out: Vec::new(),
+        };
+        net.visit(&mut collect);
+        let (mut checked, mut frozen, mut stats) = (0, 0, 0);
+        for ParamGrad {
+            path,
+            require_grad,
+            grad,
+        } in collect.out
+        {
+            if path.ends_with("running_mean") || path.ends_with("running_var") {
+                assert!(!require_grad && grad.is_none(), "{path} is a buffer");
+                stats += 1;
+            } else if path.ends_with("gamma") || path.ends_with("beta") {
+                assert!(!require_grad, "{path} must be frozen");
+                assert!(grad.is_none(), "{path} must get no gradient");
+                frozen += 1;
+            } else {
+                assert!(require_grad, "{path} must be trainable");
+                let g = grad.unwrap_or_else(|| panic!("{path} gets no gradient"));
+                assert!(g.iter().all(|v| v.is_finite()), "{path}");
+                assert!(
+                    g.iter().any(|&v| v != 0.0),
+                    "{path} has an all-zero gradient"
+                );
+                checked += 1;
+            }
+        }
+        // tiny: 5 TD linears, 10 blocks × (2 + 3·2 + 2·2 + 2·2) … at least dozens of params.
+        assert!(checked > 100, "{checked} trainable tensors");
+        assert!(frozen > 50, "{frozen} frozen BN tensors");
+        assert_eq!(stats, frozen, "one mean and one variance per γ and β");
+        // A forward on an autodiff device leaves the running statistics alone.
+        let means_after = read(net.enc[1].blocks[0].bn1.running_mean.value());
+        assert_eq!(means_before, means_after);
+        let var = read(net.dec[0].up.bn1.running_var.value());
+        assert!(var.iter().all(|&v| v == 1.0));
+    }
+
+    #[test]
+    fn point_transformer_gradients_ndarray() {
+        check_gradients(&Device::ndarray());
+    }
+
+    #[test]
+    fn point_transformer_gradients_flex() {
+        check_gradients(&Device::flex());
+    }
+
+    #[test]
+    fn point_transformer_paper_config() {
+        let cfg = PointTransformerConfig::paper(2307);
+        assert_eq!(cfg.planes, vec![32, 64, 128, 256, 512]);
+        assert_eq!(cfg.blocks, vec![1, 2, 3, 5, 2]);
+        assert_eq!(cfg.strides, vec![1, 4, 4, 4, 4]);
+        assert_eq!(cfg.nsample, vec![8, 16, 16, 16, 16]);
+        assert_eq!(cfg.share_planes, 8);
+        let net = cfg.init(&Device::flex());
+        assert_eq!(net.enc.len(), 5);
+        assert_eq!(net.enc[3].blocks.len(), 5);
+        assert!(net.dec[4].up.bn2.is_none());
+        assert!(net.dec[0].up.bn2.is_some());
+    }
+
+    /// Timing of the paper network on the full template and the tiny one on the low-res
+    /// template, on Flex: `cargo test --workspace [--release] point_transformer_timing --
+    /// --ignored --nocapture`.
+    #[test]
+    #[ignore = "timing, prints only"]
+    fn point_transformer_timing() {
+        use lifegom_render::template::{BodyTemplate, full_template_path, lowres_template_path};
+        use std::time::Instant;
+        let device = Device::flex();
+        for (name, path, cfg) in [
+            (
+                "paper",
+                full_template_path(),
+                PointTransformerConfig::paper(2307),
+            ),
+            (
+                "tiny",
+                lowres_template_path(),
+                PointTransformerConfig::tiny(2307),
+            ),
+        ] {
+            let t = BodyTemplate::load(path).unwrap();
+            let v: Vec<f32> = t.vertices.iter().flat_map(|p| p.to_array()).collect();
+            let n = v.len() / 3;
+            let mut rng = Rng(9);
+            let p = Tensor::<2>::from_data(TensorData::new(v.clone(), [n, 3]), &device);
+            let host: Vec<[f32; 3]> = v.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
+            let t0 = Instant::now();
+            let fps = farthest_point_sampling(&host, n / 4);
+            let t_fps = t0.elapsed();
+            let t0 = Instant::now();
+            let _ = knn(&host, &host, 8);
+            let t_knn = t0.elapsed();
+            let sub: Vec<[f32; 3]> = fps.iter().map(|&i| host[i as usize]).collect();
+            let t0 = Instant::now();
+            let _ = knn(&sub, &host, 3);
+            let t_interp = t0.elapsed();
+            println!(
+                "{name}: V={n}: FPS→{} {:?}, self-kNN(8) {:?}, 3-NN into V/4 {:?}",
+                fps.len(),
+                t_fps,
+                t_knn,
+                t_interp
+            );
+            let x = rng.tensor([n, 2304], &device);
+            let net = cfg.init(&device);
+            println!("{name}: {} parameters", net.num_params());
+            for _ in 0..3 {
+                let t0 = Instant::now();
+                let out = net.forward(p.clone(), x.clone());
+                let _ = read(out);
+                println!("{name}: forward {:?}", t0.elapsed());
+            }
+            let ad = device.clone().autodiff();
+            let net = net.fork(&ad);
+            let xa = Tensor::<2>::from_data(x.clone().into_data(), &ad).require_grad();
+            let pa = Tensor::<2>::from_data(p.clone().into_data(), &ad);
+            for _ in 0..3 {
+                let t0 = Instant::now();
+                let grads = net.forward(pa.clone(), xa.clone()).sum().backward();
+                let g = xa.grad(&grads).unwrap();
+                let _ = read(g);
+                println!("{name}: forward+backward {:?}", t0.elapsed());
+            }
+        }
+    }
+}
