@@ -31,6 +31,13 @@
 //! tests and CPU smoke runs can use a small network. Only width 1 matches the torchvision
 //! architecture and can load pretrained weights.
 //!
+//! # Sampling without the full-resolution embedding
+//!
+//! [`ImageEncoder::encode`] returns [`EncodedViews`], which samples exactly what
+//! [`crate::sampling::sample_maps`] would sample from `forward`'s six maps, but applies the
+//! 1×1 `rgb_embed` after sampling (it is affine per pixel), so the 128-channel full-resolution
+//! map never exists. Use it for the reconstructor; `forward` is the literal pyramid.
+//!
 //! # Weights
 //!
 //! [`ImageEncoder::load_torchvision`] reads a torchvision ResNet-18 state dict (`.pth` zip or
