@@ -63,26 +63,39 @@ pub fn farthest_point_sampling(points: &[[f32; 3]], m: usize) -> Vec<u32> {
     if m == 0 {
         return Vec::new();
     }
+    // Structure of arrays and three simple passes per pick (update the distance to the chosen
+    // set, take its maximum, find the first index holding it): each pass vectorises, where one
+    // fused loop tracking the arg-max does not. Per element the arithmetic is the same.
+    let xs: Vec<f32> = points.iter().map(|p| p[0]).collect();
+    let ys: Vec<f32> = points.iter().map(|p| p[1]).collect();
+    let zs: Vec<f32> = points.iter().map(|p| p[2]).collect();
     let mut min_d2 = vec![f32::INFINITY; n];
     let mut chosen = Vec::with_capacity(m);
     let mut last = 0usize;
     chosen.push(0u32);
     for _ in 1..m {
-        let p = points[last];
-        // One pass both updates the distance to the chosen set and finds its maximum; starting
-        // `best` below 0 makes an all-zero row pick index 0 (the reference kernel's `besti = 0`).
-        let mut best = -1.0f32;
-        let mut best_i = 0usize;
-        for (j, (q, d)) in points.iter().zip(min_d2.iter_mut()).enumerate() {
-            let dj = dist2(q, &p).min(*d);
-            *d = dj;
-            if dj > best {
-                best = dj;
-                best_i = j;
+        let (px, py, pz) = (xs[last], ys[last], zs[last]);
+        for (((d, &x), &y), &z) in min_d2.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
+            let (dx, dy, dz) = (x - px, y - py, z - pz);
+            let dj = dx * dx + dy * dy + dz * dz;
+            *d = if dj < *d { dj } else { *d };
+        }
+        let mut lanes = [-1.0f32; 8];
+        let mut chunks = min_d2.chunks_exact(8);
+        for c in &mut chunks {
+            for (l, &v) in lanes.iter_mut().zip(c) {
+                *l = if v > *l { v } else { *l };
             }
         }
-        chosen.push(best_i as u32);
-        last = best_i;
+        let max = chunks
+            .remainder()
+            .iter()
+            .chain(&lanes)
+            .fold(-1.0f32, |a, &v| if v > a { v } else { a });
+        // The first index attaining the maximum (the reference kernel's `besti = 0` start makes
+        // an all-zero row pick 0); a NaN row (non-finite input) also falls back to 0.
+        last = min_d2.iter().position(|&v| v == max).unwrap_or(0);
+        chosen.push(last as u32);
     }
     chosen
 }

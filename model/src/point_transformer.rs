@@ -52,13 +52,16 @@
 //! # Frozen BatchNorm
 //!
 //! Every BN is Burn's [`BatchNorm`] (so an importer maps `weight/bias/running_mean/running_var`
-//! onto `gamma/beta/running_mean/running_var`) built with [`Module::freeze`]: its `training`
-//! flag is off, so it always normalises with the running statistics — also on an autodiff
-//! device, where it neither recomputes batch statistics nor writes them back — and γ/β do not
-//! require gradients. Record loading keeps both (flags and `require_grad` come from the
-//! destination module). Do not call `unfreeze()` on this module. BN is applied with
-//! BatchNorm1d semantics on `[rows, C]` (neighbour axes flattened into rows), which in eval mode
-//! is the same per-channel affine map as the reference's `[n, C, k]` layout.
+//! onto `gamma/beta/running_mean/running_var`) built with [`Module::freeze`]: γ/β do not require
+//! gradients and the `training` flag is off. The network never calls `BatchNorm::forward`: it
+//! applies the eval-mode map `x·γ/√(σ²+ε) + β − μ·γ/√(σ²+ε)` over the last (channel) axis
+//! itself (`bn_last`), from the running statistics, on every device — so an autodiff forward
+//! neither recomputes batch statistics nor writes them back, whatever the flag says. This is
+//! BatchNorm1d on `[rows, C]` (neighbour axes as rows), the same per-channel affine map as the
+//! reference's eval-mode BN on its `[n, C, k]` layout. Record loading keeps the frozen state
+//! (flags and `require_grad` come from the destination module); do not call `unfreeze()` on
+//! this module, which would make γ/β trainable (the statistics would still be the running
+//! ones).
 //!
 //! # Parameter names (for the checkpoint importer)
 //!
@@ -230,12 +233,24 @@ pub fn frozen_bn(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
         .freeze()
 }
 
-/// Applies a (frozen) BatchNorm1d over the last axis of `x`, all leading axes being rows.
+/// Applies a frozen BatchNorm1d over the last axis of `x` (all leading axes are rows): the
+/// per-channel affine map `x·γ/√(σ²+ε) + (β − μ·γ/√(σ²+ε))` with the running statistics.
+///
+/// Folding the statistics into one scale and one shift on the `[C]` vectors costs two passes
+/// over `x` instead of the four of Burn's generic inference `batch_norm` (sub, div, mul, add),
+/// which matters on the `[n, k, c]` attention tensors; it also needs no reshape to put channels
+/// on axis 1. It uses the running statistics whatever the layer's training flag says (the flag
+/// is off anyway, see [`frozen_bn`]).
 fn bn_last<const D: usize>(bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
-    let dims = x.dims();
-    let c = dims[D - 1];
-    let rows = dims[..D - 1].iter().product::<usize>();
-    bn.forward(x.reshape([rows, c])).reshape(dims)
+    let device = x.device();
+    let c = x.dims()[D - 1];
+    let mean = bn.running_mean.value().to_device(&device);
+    let var = bn.running_var.value().to_device(&device);
+    let scale = bn.gamma.val() / (var + bn.epsilon).sqrt();
+    let shift = bn.beta.val() - mean * scale.clone();
+    let mut shape = [1; D];
+    shape[D - 1] = c;
+    x * scale.reshape(shape) + shift.reshape(shape)
 }
 
 /// The Point Transformer encoder–decoder (module docs). Build with [`PointTransformerConfig`].
@@ -399,7 +414,7 @@ pub struct TransitionDown {
 impl TransitionDown {
     /// Stride 1: `ReLU(BN(Linear(x)))`, `[n, in] → [n, out]`.
     pub fn forward_pointwise(&self, x: Tensor<2>) -> Tensor<2> {
-        relu(self.bn.forward(self.linear.forward(x)))
+        relu(bn_last(&self.bn, self.linear.forward(x)))
     }
 
     /// Stride > 1: `x` `[n, in]` of the previous level, `idx` `[m·k]` neighbour indices into
@@ -448,9 +463,9 @@ impl PointTransformerBlock {
     /// `x` `[n, c]` with the level's self-kNN (`rel` `[n, k, 3]`, `nbr` `[n·k]`) → `[n, c]`.
     pub fn forward(&self, x: Tensor<2>, rel: Tensor<3>, nbr: Tensor<1, Int>) -> Tensor<2> {
         let identity = x.clone();
-        let h = relu(self.bn1.forward(self.linear1.forward(x)));
-        let h = relu(self.bn2.forward(self.transformer2.forward(h, rel, nbr)));
-        let h = self.bn3.forward(self.linear3.forward(h));
+        let h = relu(bn_last(&self.bn1, self.linear1.forward(x)));
+        let h = relu(bn_last(&self.bn2, self.transformer2.forward(h, rel, nbr)));
+        let h = bn_last(&self.bn3, self.linear3.forward(h));
         relu(h + identity)
     }
 }
@@ -613,19 +628,19 @@ impl TransitionUp {
     pub fn forward_head(&self, x: Tensor<2>) -> Tensor<2> {
         let [n, c] = x.dims();
         let global = relu(self.linear2.forward(x.clone().mean_dim(0))).expand([n, c]);
-        relu(
-            self.bn1
-                .forward(self.linear1.forward(Tensor::cat(vec![x, global], 1))),
-        )
+        relu(bn_last(
+            &self.bn1,
+            self.linear1.forward(Tensor::cat(vec![x, global], 1)),
+        ))
     }
 
     /// `skip` `[n_fine, c]` (encoder features of this level) plus the interpolated decoder
     /// features of the coarser level `coarse` `[n_coarse, c_coarse]` → `[n_fine, c]`.
     fn forward(&self, skip: Tensor<2>, coarse: Tensor<2>, interp: &Interpolation) -> Tensor<2> {
-        let fine = relu(self.bn1.forward(self.linear1.forward(skip)));
+        let fine = relu(bn_last(&self.bn1, self.linear1.forward(skip)));
         let mut up = self.linear2.forward(coarse);
         if let Some(bn) = &self.bn2 {
-            up = bn.forward(up);
+            up = bn_last(bn, up);
         }
         fine + interp.apply(relu(up))
     }
@@ -1055,6 +1070,10 @@ mod tests {
             let x = rng.tensor([n, 2304], &device);
             let net = cfg.init(&device);
             println!("{name}: {} parameters", net.num_params());
+            let t0 = Instant::now();
+            let levels = net.hierarchy(p.clone());
+            let _ = read(levels.last().unwrap().rel.clone());
+            println!("{name}: geometry of one forward {:?}", t0.elapsed());
             for _ in 0..3 {
                 let t0 = Instant::now();
                 let out = net.forward(p.clone(), x.clone());
