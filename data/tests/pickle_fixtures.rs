@@ -7,7 +7,9 @@ use std::path::PathBuf;
 use lifegom_data::pickle::{self, DType, Value};
 
 fn fixture(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/pickle").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../tests/fixtures/pickle")
+        .join(name)
 }
 
 fn array<'a>(v: &'a Value, key: &str) -> &'a lifegom_data::pickle::NdArray {
@@ -19,11 +21,17 @@ fn array<'a>(v: &'a Value, key: &str) -> &'a lifegom_data::pickle::NdArray {
 fn check(v: &Value) {
     let a = array(v, "f32");
     assert_eq!((a.dtype, a.shape.as_slice()), (DType::F32, &[3, 4][..]));
-    assert_eq!(a.to_f64(), (0..12).map(|i| i as f64 * 0.5 - 1.0).collect::<Vec<_>>());
+    assert_eq!(
+        a.to_f64(),
+        (0..12).map(|i| i as f64 * 0.5 - 1.0).collect::<Vec<_>>()
+    );
 
     let a = array(v, "f64");
     assert_eq!((a.dtype, a.shape.as_slice()), (DType::F64, &[2, 3][..]));
-    assert_eq!(a.to_f64(), (0..6).map(|i| i as f64 / 3.0).collect::<Vec<_>>());
+    assert_eq!(
+        a.to_f64(),
+        (0..6).map(|i| i as f64 / 3.0).collect::<Vec<_>>()
+    );
 
     let a = array(v, "i32");
     assert_eq!(a.dtype, DType::I32);
@@ -31,7 +39,10 @@ fn check(v: &Value) {
 
     let a = array(v, "i64");
     assert_eq!((a.dtype, a.shape.as_slice()), (DType::I64, &[2, 2][..]));
-    assert_eq!(a.to_i64().unwrap(), (0..4).map(|i| i << 40).collect::<Vec<_>>());
+    assert_eq!(
+        a.to_i64().unwrap(),
+        (0..4).map(|i| i << 40).collect::<Vec<_>>()
+    );
 
     let a = array(v, "u8");
     assert_eq!(a.dtype, DType::U8);
@@ -79,13 +90,19 @@ fn check(v: &Value) {
     );
 
     // The official file shapes.
-    let cam = v.get("cameras").and_then(|c| c.get("frame_000000")).unwrap();
+    let cam = v
+        .get("cameras")
+        .and_then(|c| c.get("frame_000000"))
+        .unwrap();
     let k = array(cam, "intrinsics");
     assert_eq!(k.shape, vec![3, 3]);
     assert!((k.to_f64()[0] - 819.2).abs() < 1e-4);
     let e = array(cam, "extrinsics");
     assert_eq!(e.to_f64()[11], 2.0);
-    let info = v.get("mesh_infos").and_then(|c| c.get("frame_000000")).unwrap();
+    let info = v
+        .get("mesh_infos")
+        .and_then(|c| c.get("frame_000000"))
+        .unwrap();
     assert_eq!(array(info, "poses").len(), 72);
     assert_eq!(array(info, "Rh").shape, vec![1, 3]);
     let cj = v.get("canonical_joints").unwrap();
@@ -108,13 +125,19 @@ fn numpy1_and_numpy2_pickles_at_protocols_2_4_5() {
 fn truncated_fixture_is_an_error_naming_the_file() {
     let bytes = std::fs::read(fixture("np2_p5.pkl")).unwrap();
     for cut in (0..bytes.len()).step_by(7) {
-        assert!(pickle::reader::from_slice(&bytes[..cut]).is_err(), "cut {cut}");
+        assert!(
+            pickle::reader::from_slice(&bytes[..cut]).is_err(),
+            "cut {cut}"
+        );
     }
     let dir = std::env::temp_dir().join(format!("lifegom-pickle-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("cut.pkl");
     std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
     let msg = pickle::load(&path).unwrap_err().to_string();
-    assert!(msg.contains("cut.pkl") && msg.contains("truncated"), "{msg}");
+    assert!(
+        msg.contains("cut.pkl") && msg.contains("truncated"),
+        "{msg}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -28,7 +28,7 @@ pub fn load(path: &Path) -> Result<Value> {
 
 /// Writes `value` as a pickle at `path`.
 pub fn save(path: &Path, value: &Value) -> Result<()> {
-    let bytes = writer::to_vec(value)
-        .map_err(|reason| DataError::invalid(Location::file(path), reason))?;
+    let bytes =
+        writer::to_vec(value).map_err(|reason| DataError::invalid(Location::file(path), reason))?;
     std::fs::write(path, bytes).map_err(|source| DataError::io(Location::file(path), source))
 }

@@ -134,7 +134,10 @@ enum Obj {
         callable: Option<Callable>,
     },
     /// A dtype before or after its `BUILD`: the type and the byte order (`<`, `>`, `|`, `=`).
-    Dtype { dtype: DType, order: u8 },
+    Dtype {
+        dtype: DType,
+        order: u8,
+    },
     /// `_reconstruct`'s empty array, waiting for `BUILD`.
     EmptyArray,
     Array(NdArray),
@@ -491,8 +494,7 @@ impl<'a> Vm<'a> {
                 }
                 0x98 => {} // READONLY_BUFFER: in-band data is already bytes
                 0x97 => {
-                    return self
-                        .err("NEXT_BUFFER: out-of-band buffers cannot be read from a file");
+                    return self.err("NEXT_BUFFER: out-of-band buffers cannot be read from a file");
                 }
                 other => {
                     return self.err(format!(
@@ -516,7 +518,11 @@ impl<'a> Vm<'a> {
                 return self.err("integer does not fit in 64 bits");
             }
         }
-        let fill = if raw[raw.len() - 1] & 0x80 != 0 { 0xff } else { 0 };
+        let fill = if raw[raw.len() - 1] & 0x80 != 0 {
+            0xff
+        } else {
+            0
+        };
         let mut a = [fill; 8];
         let n = raw.len().min(8);
         a[..n].copy_from_slice(&raw[..n]);
@@ -684,7 +690,10 @@ impl<'a> Vm<'a> {
                 Some(Obj::Str(s)) => {
                     let bytes: Option<Vec<u8>> =
                         s.chars().map(|c| u8::try_from(c as u32).ok()).collect();
-                    bytes.map_or_else(|| self.err("bytearray(): not latin-1"), |b| Ok(Obj::Bytes(b)))
+                    bytes.map_or_else(
+                        || self.err("bytearray(): not latin-1"),
+                        |b| Ok(Obj::Bytes(b)),
+                    )
                 }
                 Some(_) => self.err("bytearray(): unsupported argument"),
             },
@@ -731,7 +740,10 @@ impl<'a> Vm<'a> {
                 let fortran = self.int(items[3], "ndarray fortran flag")? != 0;
                 let elements = match &self.arena[items[4]] {
                     Obj::Bytes(raw) => self.decode(raw, dtype, order, &shape, fortran)?,
-                    _ => return self.err("ndarray data is not bytes (object arrays are not supported)"),
+                    _ => {
+                        return self
+                            .err("ndarray data is not bytes (object arrays are not supported)");
+                    }
                 };
                 self.arena[target] = Obj::Array(NdArray {
                     dtype,
@@ -751,7 +763,10 @@ impl<'a> Vm<'a> {
                 }
                 Ok(())
             }
-            other => self.err(format!("BUILD on an unsupported object ({})", obj_name(&other))),
+            other => self.err(format!(
+                "BUILD on an unsupported object ({})",
+                obj_name(&other)
+            )),
         }
     }
 
@@ -799,7 +814,11 @@ impl<'a> Vm<'a> {
         let at = |c: usize| index.as_ref().map_or(c, |idx| idx[c]);
         let elements = match dtype {
             DType::Bool => Elements::Bool((0..count).map(|c| raw[at(c)] != 0).collect()),
-            DType::F16 => Elements::Float((0..count).map(|c| f16_to_f64(u16::from_le_bytes([word(at(c))[0], word(at(c))[1]]))).collect()),
+            DType::F16 => Elements::Float(
+                (0..count)
+                    .map(|c| f16_to_f64(u16::from_le_bytes([word(at(c))[0], word(at(c))[1]])))
+                    .collect(),
+            ),
             DType::F32 => Elements::Float(
                 (0..count)
                     .map(|c| {
@@ -808,9 +827,11 @@ impl<'a> Vm<'a> {
                     })
                     .collect(),
             ),
-            DType::F64 => {
-                Elements::Float((0..count).map(|c| f64::from_le_bytes(word(at(c)))).collect())
-            }
+            DType::F64 => Elements::Float(
+                (0..count)
+                    .map(|c| f64::from_le_bytes(word(at(c))))
+                    .collect(),
+            ),
             DType::U64 => {
                 let mut out = Vec::with_capacity(count);
                 for c in 0..count {
@@ -944,11 +965,17 @@ mod tests {
     #[test]
     fn small_containers_and_memo() {
         // pickle.dumps({'a': [1, 2, 300, -5], 'b': (1.5, 'x'), 'c': None}, protocol=2), by hand.
-        let mut p = vec![0x80, 2, b'}', b'q', 0, b'(', 0x8c, 1, b'a', b']', b'q', 1, b'('];
-        p.extend([b'K', 1, b'K', 2, b'M', 44, 1, b'J', 0xfb, 0xff, 0xff, 0xff, b'e']);
+        let mut p = vec![
+            0x80, 2, b'}', b'q', 0, b'(', 0x8c, 1, b'a', b']', b'q', 1, b'(',
+        ];
+        p.extend([
+            b'K', 1, b'K', 2, b'M', 44, 1, b'J', 0xfb, 0xff, 0xff, 0xff, b'e',
+        ]);
         p.extend([0x8c, 1, b'b', b'G']);
         p.extend(1.5f64.to_be_bytes());
-        p.extend([0x8c, 1, b'x', 0x86, 0x8c, 1, b'c', b'N', b'h', 1, b'u', b'.']);
+        p.extend([
+            0x8c, 1, b'x', 0x86, 0x8c, 1, b'c', b'N', b'h', 1, b'u', b'.',
+        ]);
         // The memo GET re-pushes the list under the name `c`... after `N`: the dict then has
         // an odd item count, which must be an error, not a panic.
         assert!(from_slice(&p).is_err());
@@ -1006,7 +1033,9 @@ mod tests {
             let len = (state % 40) as usize;
             let mut junk = vec![0x80, 4];
             for _ in 0..len {
-                state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
                 junk.push((state >> 56) as u8);
             }
             let _ = from_slice(&junk);

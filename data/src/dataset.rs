@@ -1,0 +1,571 @@
+//! Splits, frame-indexing rules and per-sample loading (spec §1.5–1.7): what train and eval
+//! iterate over.
+//!
+//! # Frame-indexing rules ([`Protocol`] × [`Phase`])
+//!
+//! | protocol / phase | samples per subject | inputs | target |
+//! |---|---|---|---|
+//! | THuman view3 and XHuman, train | 48 | `i0 ~ U{0..15}`, `i_{k+1} = (i_k + {5 or 6}) mod 16` | `16 + s` |
+//! | THuman view3 and XHuman, val | N (3) | `0..N` | `N + s` |
+//! | THuman view5 (train and val), AIST++ val | `frames − N` | `0..N` | `N + s` |
+//! | AIST++ train | `frames` | N distinct random frames ≠ target | `s` |
+//!
+//! Sample `i` of a split maps to (subject, sample-in-subject `s`) by walking the subjects in
+//! split order. Random choices (ring start and steps, AIST++ inputs, a random background) come
+//! from the caller's [`Rng`], so a training loop controls reproducibility with its seed.
+//!
+//! # Backgrounds
+//!
+//! One colour per sample, shared by the inputs and the target: uniform in `[0, 255)³` when
+//! [`Background::Random`] (THuman training), the configured colour otherwise (black for
+//! THuman/XHuman test, white for AIST++).
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{DataError, Location, Result};
+use crate::format::{Subject, read_split};
+use crate::kinematics::KinematicTree;
+use crate::preprocess::{self, Kernel};
+use crate::rng::Rng;
+
+/// Which experiment's frame-indexing rules apply (module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Protocol {
+    /// THuman2.0, 3 source views (`LG:datasets/thuman_view3.py`).
+    ThumanView3,
+    /// THuman2.0, 5 source views (`LG:datasets/thuman_view5.py`).
+    ThumanView5,
+    /// XHuman evaluation: the view3 rules on `xhuman/view3_val`.
+    Xhuman,
+    /// AIST++ (`LG:datasets/aistpp.py` for val, the default dataset for train).
+    Aistpp,
+}
+
+/// Training or evaluation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Phase {
+    /// Training split, random choices enabled.
+    Train,
+    /// Validation / test split, deterministic.
+    Val,
+}
+
+/// Background colour policy.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Background {
+    /// A uniform random colour per sample.
+    Random,
+    /// A fixed colour, 0..255.
+    Fixed([u8; 3]),
+}
+
+/// The data section of an experiment config (`[data]` in `configs/*.toml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DataConfig {
+    /// Dataset root (`data/thuman2.0`); the paths below are relative to it.
+    pub root: PathBuf,
+    /// Frame-indexing rules.
+    pub protocol: Protocol,
+    /// SMPL, SMPL-X or the tree stored in the data.
+    pub kinematic_tree: KinematicTree,
+    /// Folder of the training subjects, relative to `root` (`view3_train`).
+    pub train_dir: PathBuf,
+    /// Training split file, relative to `root` (`train.json`).
+    pub train_split: PathBuf,
+    /// Folder of the validation subjects (`view3_val`).
+    pub val_dir: PathBuf,
+    /// Validation split file (`val.json`).
+    pub val_split: PathBuf,
+    /// Explicit validation subject list; overrides `val_split` (AIST++ lists `d16_val..d20_val`
+    /// in its experiment file).
+    #[serde(default)]
+    pub val_subjects: Option<Vec<String>>,
+    /// Output image size `[W, H]`.
+    pub img_size: [u32; 2],
+    /// Source views per sample, N.
+    pub n_input_frames: usize,
+    /// Background during training.
+    pub train_background: Background,
+    /// Background during evaluation.
+    pub test_background: Background,
+}
+
+impl DataConfig {
+    /// The subject folder and split file of `phase`.
+    pub fn split_paths(&self, phase: Phase) -> (PathBuf, PathBuf) {
+        match phase {
+            Phase::Train => (
+                self.root.join(&self.train_dir),
+                self.root.join(&self.train_split),
+            ),
+            Phase::Val => (
+                self.root.join(&self.val_dir),
+                self.root.join(&self.val_split),
+            ),
+        }
+    }
+
+    /// Checks settings that serde cannot.
+    pub fn validate(&self, source: &Path) -> Result<()> {
+        let bad = |field: &str, reason: String| DataError::Config {
+            location: Location::file(source).field(format!("data.{field}")),
+            reason,
+        };
+        if self.img_size.contains(&0) {
+            return Err(bad(
+                "img_size",
+                format!("must be positive, got {:?}", self.img_size),
+            ));
+        }
+        if self.n_input_frames == 0 {
+            return Err(bad("n_input_frames", "must be at least 1".into()));
+        }
+        if matches!(self.protocol, Protocol::ThumanView3 | Protocol::Xhuman)
+            && self.n_input_frames > 16
+        {
+            return Err(bad(
+                "n_input_frames",
+                "the ring of source views has 16 frames".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// One sample's frames: indices into the subject's frame list.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SampleIndex {
+    /// Subject index in the split.
+    pub subject: usize,
+    /// Source frames, N.
+    pub inputs: Vec<usize>,
+    /// Target frame.
+    pub target: usize,
+}
+
+/// The frame rule of a protocol and phase (module docs), independent of any files.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameRule {
+    /// The protocol.
+    pub protocol: Protocol,
+    /// The phase.
+    pub phase: Phase,
+    /// N.
+    pub n_inputs: usize,
+}
+
+/// THuman view3 training: 16 source frames on the ring, 48 targets after them.
+pub const RING_FRAMES: usize = 16;
+/// THuman view3 training targets per subject.
+pub const RING_TARGETS: usize = 48;
+
+impl FrameRule {
+    /// Samples a subject with `num_frames` frames contributes (0 if it has too few frames).
+    pub fn samples_per_subject(&self, num_frames: usize) -> usize {
+        let n = self.n_inputs;
+        match (self.protocol, self.phase) {
+            (Protocol::ThumanView3 | Protocol::Xhuman, Phase::Train) => {
+                if num_frames >= RING_FRAMES + RING_TARGETS {
+                    RING_TARGETS
+                } else {
+                    0
+                }
+            }
+            (Protocol::ThumanView3 | Protocol::Xhuman, Phase::Val) => {
+                if num_frames >= 2 * n {
+                    n
+                } else {
+                    0
+                }
+            }
+            (Protocol::ThumanView5, _) | (Protocol::Aistpp, Phase::Val) => {
+                num_frames.saturating_sub(n)
+            }
+            (Protocol::Aistpp, Phase::Train) => {
+                if num_frames > n {
+                    num_frames
+                } else {
+                    0
+                }
+            }
+        }
+    }
+
+    /// Minimum frame count a subject needs under this rule.
+    pub fn min_frames(&self) -> usize {
+        let n = self.n_inputs;
+        match (self.protocol, self.phase) {
+            (Protocol::ThumanView3 | Protocol::Xhuman, Phase::Train) => RING_FRAMES + RING_TARGETS,
+            (Protocol::ThumanView3 | Protocol::Xhuman, Phase::Val) => 2 * n,
+            _ => n + 1,
+        }
+    }
+
+    /// Inputs and target of sample `s` of a subject with `num_frames` frames.
+    pub fn frames(&self, s: usize, num_frames: usize, rng: &mut Rng) -> (Vec<usize>, usize) {
+        let n = self.n_inputs;
+        match (self.protocol, self.phase) {
+            (Protocol::ThumanView3 | Protocol::Xhuman, Phase::Train) => {
+                let mut i = rng.below(RING_FRAMES);
+                let mut inputs = Vec::with_capacity(n);
+                for _ in 0..n {
+                    inputs.push(i);
+                    i = (i + 5 + rng.below(2)) % RING_FRAMES;
+                }
+                (inputs, RING_FRAMES + s)
+            }
+            (Protocol::Aistpp, Phase::Train) => {
+                let pool: Vec<usize> = (0..num_frames).filter(|&f| f != s).collect();
+                (rng.sample_distinct(&pool, n), s)
+            }
+            _ => ((0..n).collect(), n + s),
+        }
+    }
+}
+
+/// A preprocessed view: image, alpha and camera at the output size.
+#[derive(Debug, Clone, PartialEq)]
+pub struct View {
+    /// Frame name.
+    pub frame: String,
+    /// `H×W×3` in `[0, 1]`, composited over the sample's background.
+    pub rgb: Vec<f32>,
+    /// `H×W` alpha in `[0, 1]`.
+    pub mask: Vec<f32>,
+    /// Intrinsics scaled to the output size.
+    pub k: [[f32; 3]; 3],
+    /// World→camera extrinsics with the body's global transform folded in:
+    /// `E' = E·[R(Rh) | Th]` (spec §2.3), so points stay in the body frame.
+    pub e: [[f32; 4]; 4],
+    /// The frame's axis-angle pose, flat `3J`.
+    pub poses: Vec<f32>,
+    /// The frame's zero-pose joints, `J×3`.
+    pub tpose_joints: Vec<[f32; 3]>,
+}
+
+/// One training or evaluation sample: N source views and the target (last).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sample {
+    /// Subject name.
+    pub subject: String,
+    /// `scene_<subject>_<target frame>`, the reference's output file stem.
+    pub frame_name: String,
+    /// The N inputs, then the target.
+    pub views: Vec<View>,
+    /// Background colour in `[0, 1]`.
+    pub bgcolor: [f32; 3],
+    /// The subject's canonical vertices (`V↓×3`).
+    pub canonical_vertices: Vec<[f32; 3]>,
+}
+
+/// A split of subjects with its frame rule: what a data loader iterates over.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    /// The subjects, in split order.
+    pub subjects: Vec<Subject>,
+    /// The frame rule.
+    pub rule: FrameRule,
+    /// Output size `(W, H)`.
+    pub img_size: (u32, u32),
+    /// Background policy of this phase.
+    pub background: Background,
+    /// Samples before each subject (prefix sums), plus the total at the end.
+    offsets: Vec<usize>,
+}
+
+impl Dataset {
+    /// Opens the split of `phase` described by `config`: reads the split file and every
+    /// subject's pickles (images are read per sample).
+    pub fn open(config: &DataConfig, phase: Phase) -> Result<Self> {
+        let (dir, split) = config.split_paths(phase);
+        let names = match (&config.val_subjects, phase) {
+            (Some(list), Phase::Val) => list.clone(),
+            _ => read_split(&split)?,
+        };
+        let rule = FrameRule {
+            protocol: config.protocol,
+            phase,
+            n_inputs: config.n_input_frames,
+        };
+        let mut subjects = Vec::with_capacity(names.len());
+        for name in &names {
+            let subject = Subject::load(&dir.join(name), config.kinematic_tree)?;
+            if subject.frames.len() < rule.min_frames() {
+                return Err(DataError::invalid(
+                    Location::file(subject.dir.join("images")).subject(name),
+                    format!(
+                        "{} frames, but the {:?} {:?} rule needs at least {}",
+                        subject.frames.len(),
+                        rule.protocol,
+                        phase,
+                        rule.min_frames()
+                    ),
+                ));
+            }
+            subjects.push(subject);
+        }
+        let background = match phase {
+            Phase::Train => config.train_background,
+            Phase::Val => config.test_background,
+        };
+        Ok(Self::from_subjects(
+            subjects,
+            rule,
+            (config.img_size[0], config.img_size[1]),
+            background,
+        ))
+    }
+
+    /// A dataset over already loaded subjects.
+    pub fn from_subjects(
+        subjects: Vec<Subject>,
+        rule: FrameRule,
+        img_size: (u32, u32),
+        background: Background,
+    ) -> Self {
+        let mut offsets = vec![0];
+        for s in &subjects {
+            let last = *offsets.last().unwrap_or(&0);
+            offsets.push(last + rule.samples_per_subject(s.frames.len()));
+        }
+        Self {
+            subjects,
+            rule,
+            img_size,
+            background,
+            offsets,
+        }
+    }
+
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        *self.offsets.last().unwrap_or(&0)
+    }
+
+    /// Whether there are no samples.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Frames of sample `i` (`None` past the end).
+    pub fn index(&self, i: usize, rng: &mut Rng) -> Option<SampleIndex> {
+        if i >= self.len() {
+            return None;
+        }
+        let subject = self.offsets.partition_point(|&o| o <= i) - 1;
+        let s = i - self.offsets[subject];
+        let (inputs, target) = self
+            .rule
+            .frames(s, self.subjects[subject].frames.len(), rng);
+        Some(SampleIndex {
+            subject,
+            inputs,
+            target,
+        })
+    }
+
+    /// Loads and preprocesses sample `i` (module docs); `rng` drives every random choice.
+    pub fn sample(&self, i: usize, rng: &mut Rng) -> Result<Sample> {
+        let idx = self.index(i, rng).ok_or_else(|| {
+            DataError::invalid(
+                Location::default(),
+                format!("sample {i} out of range ({} samples)", self.len()),
+            )
+        })?;
+        let bg = match self.background {
+            Background::Random => [0, 1, 2].map(|_| rng.range(0.0, 255.0) as f32),
+            Background::Fixed(c) => c.map(f32::from),
+        };
+        let subject = &self.subjects[idx.subject];
+        let views = idx
+            .inputs
+            .iter()
+            .chain(std::iter::once(&idx.target))
+            .map(|&f| load_view(subject, f, bg, self.img_size))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Sample {
+            subject: subject.name.clone(),
+            frame_name: format!("scene_{}_{}", subject.name, subject.frames[idx.target]),
+            views,
+            bgcolor: bg.map(|c| c / 255.0),
+            canonical_vertices: subject
+                .canonical
+                .vertices
+                .iter()
+                .map(|v| v.to_array())
+                .collect(),
+        })
+    }
+}
+
+/// Reads, undistorts, composites and resizes frame `f` of `subject` (spec §1.5).
+pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) -> Result<View> {
+    let frame = &subject.frames[f];
+    let at = |path: &Path, field: &str| {
+        Location::file(path)
+            .subject(&subject.name)
+            .frame(frame)
+            .field(field)
+    };
+    let img_path = subject.image_path(f);
+    let mask_path = subject.mask_path(f);
+    let mut rgb = preprocess::read_rgb(&img_path, &at(&img_path, "images"))?;
+    let mut alpha = preprocess::read_mask(&mask_path, &at(&mask_path, "masks"))?;
+    if (rgb.width, rgb.height) != (alpha.width, alpha.height) {
+        return Err(DataError::Image {
+            location: at(&mask_path, "masks"),
+            reason: format!(
+                "image/mask size mismatch: image {}×{}, mask {}×{}",
+                rgb.width, rgb.height, alpha.width, alpha.height
+            ),
+        });
+    }
+    let cam = &subject.cameras[f];
+    if let Some(d) = &cam.distortion {
+        rgb = preprocess::undistort(&rgb, &cam.k, d);
+        alpha = preprocess::undistort(&alpha, &cam.k, d);
+    }
+    preprocess::composite(&mut rgb, &alpha, bg);
+    let orig = (rgb.width, rgb.height);
+    let rgb = preprocess::resize(&rgb, size.0, size.1, Kernel::Lanczos4);
+    let alpha = preprocess::resize(&alpha, size.0, size.1, Kernel::Linear);
+    let k = preprocess::scale_intrinsics(cam.k, orig, size);
+    let info = &subject.mesh_infos[f];
+    let e = fold_body_transform(&cam.e, info.rh, info.th);
+    Ok(View {
+        frame: frame.clone(),
+        rgb: rgb
+            .data
+            .iter()
+            .map(|v| (v / 255.0).clamp(0.0, 1.0))
+            .collect(),
+        mask: alpha.data.iter().map(|v| v.clamp(0.0, 1.0)).collect(),
+        k: k.map(|r| r.map(|v| v as f32)),
+        e,
+        poses: info.poses.clone(),
+        tpose_joints: info.tpose_joints.iter().map(|j| j.to_array()).collect(),
+    })
+}
+
+/// `E · [R(rh) | th]` (spec §2.3), row-major, computed in f64.
+pub fn fold_body_transform(e: &[[f64; 4]; 4], rh: glam::Vec3, th: glam::Vec3) -> [[f32; 4]; 4] {
+    let r = lifegom_render::skeleton::rodrigues(rh);
+    let mut body = [[0.0f64; 4]; 4];
+    for (i, row) in body.iter_mut().enumerate().take(3) {
+        for (j, v) in row.iter_mut().enumerate().take(3) {
+            *v = r.col(j)[i] as f64;
+        }
+        row[3] = th[i] as f64;
+    }
+    body[3][3] = 1.0;
+    let mut out = [[0.0f32; 4]; 4];
+    for i in 0..4 {
+        for j in 0..4 {
+            out[i][j] = (0..4).map(|k| e[i][k] * body[k][j]).sum::<f64>() as f32;
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rule(protocol: Protocol, phase: Phase, n: usize) -> FrameRule {
+        FrameRule {
+            protocol,
+            phase,
+            n_inputs: n,
+        }
+    }
+
+    #[test]
+    fn thuman_view3_train_ring() {
+        let r = rule(Protocol::ThumanView3, Phase::Train, 3);
+        assert_eq!(r.samples_per_subject(64), 48);
+        assert_eq!(r.samples_per_subject(63), 0);
+        let mut rng = Rng::new(3);
+        let mut starts = [false; 16];
+        for s in 0..48 {
+            for _ in 0..20 {
+                let (inputs, target) = r.frames(s, 64, &mut rng);
+                assert_eq!(target, 16 + s);
+                assert_eq!(inputs.len(), 3);
+                starts[inputs[0]] = true;
+                for w in inputs.windows(2) {
+                    let step = (w[1] + 16 - w[0]) % 16;
+                    assert!(step == 5 || step == 6, "{inputs:?}");
+                }
+                // Three distinct views (5+5+6 at most 17 > 16 wraps to a different frame).
+                assert!(inputs[0] != inputs[2]);
+            }
+        }
+        assert!(starts.iter().all(|&s| s), "every ring start is drawn");
+    }
+
+    #[test]
+    fn deterministic_rules() {
+        let mut rng = Rng::new(0);
+        let v3 = rule(Protocol::ThumanView3, Phase::Val, 3);
+        assert_eq!(v3.samples_per_subject(6), 3);
+        assert_eq!(v3.frames(2, 6, &mut rng), (vec![0, 1, 2], 5));
+        let xh = rule(Protocol::Xhuman, Phase::Val, 3);
+        assert_eq!(xh.frames(0, 6, &mut rng), (vec![0, 1, 2], 3));
+        for phase in [Phase::Train, Phase::Val] {
+            let v5 = rule(Protocol::ThumanView5, phase, 5);
+            assert_eq!(v5.samples_per_subject(64), 59);
+            assert_eq!(v5.frames(0, 64, &mut rng), (vec![0, 1, 2, 3, 4], 5));
+            assert_eq!(v5.frames(58, 64, &mut rng).1, 63);
+        }
+        let a = rule(Protocol::Aistpp, Phase::Val, 5);
+        assert_eq!(a.samples_per_subject(100), 95);
+        assert_eq!(a.frames(3, 100, &mut rng), (vec![0, 1, 2, 3, 4], 8));
+    }
+
+    #[test]
+    fn aistpp_train_draws_distinct_inputs_without_the_target() {
+        let r = rule(Protocol::Aistpp, Phase::Train, 5);
+        assert_eq!(r.samples_per_subject(30), 30);
+        let mut rng = Rng::new(9);
+        for s in 0..30 {
+            let (inputs, target) = r.frames(s, 30, &mut rng);
+            assert_eq!(target, s);
+            assert_eq!(inputs.len(), 5);
+            assert!(!inputs.contains(&s));
+            let mut d = inputs.clone();
+            d.sort();
+            d.dedup();
+            assert_eq!(d.len(), 5);
+        }
+    }
+
+    #[test]
+    fn folding_the_body_transform() {
+        let e = [
+            [1.0, 0.0, 0.0, 0.5],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 2.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        let f = fold_body_transform(
+            &e,
+            glam::Vec3::new(0.0, std::f32::consts::FRAC_PI_2, 0.0),
+            glam::Vec3::new(0.0, 1.0, 0.0),
+        );
+        // A body point on +x goes to world -z (rotation about y by 90°), then +Th, then E.
+        let p = [1.0f32, 0.0, 0.0, 1.0];
+        let c: Vec<f32> = (0..3)
+            .map(|i| (0..4).map(|k| f[i][k] * p[k]).sum())
+            .collect();
+        assert!(
+            (c[0] - 0.5).abs() < 1e-4 && (c[1] - 1.0).abs() < 1e-4 && (c[2] - 1.0).abs() < 1e-4,
+            "{c:?}"
+        );
+    }
+}

