@@ -11,6 +11,7 @@
 //! Model code has no backend generic: modules take a `burn::tensor::Device` and run on ndarray,
 //! Flex (and wgpu once the GPU kernels land), with `.autodiff()` for training.
 
+pub mod avatar;
 pub mod encoder;
 pub mod error;
 pub mod feedback;

@@ -1,0 +1,180 @@
+//! `recon-bench`: how long reconstruction takes, per feedback step and in total.
+//!
+//! ```text
+//! cargo run --release -p lifegom-model --bin recon-bench -- --config tiny --json
+//! cargo run --release -p lifegom-model --bin recon-bench -- --config cpu --size 256 --json
+//! cargo run --release -p lifegom-model --bin recon-bench -- --config paper --size 1024 --subdiv 2 --json
+//! ```
+//!
+//! Random-initialised weights (timing does not depend on their values), source views rendered
+//! from the template, inference mode (no autodiff). Prints one JSON line: total and per-stage
+//! milliseconds of the median run, the parameter count, and the setup. The paper's anchor is
+//! 907.92 ms for T = 3, 3 views, 1024², 2 subdivisions on one A100.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use burn::module::Module;
+use burn::tensor::{Distribution, Tensor};
+use clap::{Parser, ValueEnum};
+use glam::Vec3;
+use lifegom_model::feedback::{ReconstructorConfig, SourceViews, Subject};
+use lifegom_render::camera::{Camera, Intrinsics};
+use lifegom_render::device::DeviceChoice;
+use lifegom_render::gom::GomMesh;
+use lifegom_render::skeleton::BodyPose;
+use lifegom_render::template::{BodyTemplate, full_template_path, lowres_template_path};
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum Preset {
+    /// Tiny network, low-res template.
+    Tiny,
+    /// Quarter-width encoder, paper fusion/Point Transformer, full template.
+    Cpu,
+    /// The paper's network (1152 channels), full template.
+    Paper,
+}
+
+#[derive(Parser, Debug)]
+#[command(about = "Benchmark LIFe-GoM reconstruction")]
+struct Args {
+    /// Network preset.
+    #[arg(long, value_enum, default_value = "tiny")]
+    config: Preset,
+    /// Body template; defaults to the low-res one for `tiny`, the full one otherwise.
+    #[arg(long)]
+    template: Option<PathBuf>,
+    /// Image side, pixels.
+    #[arg(long, default_value_t = 128)]
+    size: u32,
+    /// Source views.
+    #[arg(long, default_value_t = 3)]
+    views: usize,
+    /// Feedback steps T.
+    #[arg(long, default_value_t = 3)]
+    iterations: usize,
+    /// Subdivision levels of the Gaussians.
+    #[arg(long, default_value_t = 1)]
+    subdiv: u32,
+    /// Backend: ndarray or flex.
+    #[arg(long, default_value = "flex")]
+    device: DeviceChoice,
+    /// Timed runs (median reported), after one warm-up.
+    #[arg(long, default_value_t = 3)]
+    runs: usize,
+    /// Only the JSON line.
+    #[arg(long)]
+    json: bool,
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let device = args.device.device();
+    let path = args.template.clone().unwrap_or_else(|| match args.config {
+        Preset::Tiny => lowres_template_path(),
+        _ => full_template_path(),
+    });
+    let body = BodyTemplate::load(&path).with_context(|| format!("loading {}", path.display()))?;
+    let cfg = match args.config {
+        Preset::Tiny => ReconstructorConfig::tiny(args.views),
+        Preset::Cpu => ReconstructorConfig::cpu(args.views),
+        Preset::Paper => ReconstructorConfig::paper(args.views),
+    }
+    .with_iterations(args.iterations);
+    let model = cfg.init(body.num_vertices(), &device)?;
+    let params = model.num_params();
+    let s = args.size;
+    let k = Intrinsics {
+        fx: 0.8 * s as f32,
+        fy: 0.8 * s as f32,
+        cx: s as f32 / 2.0,
+        cy: s as f32 / 2.0,
+    };
+    let cameras: Vec<Camera> = (0..args.views)
+        .map(|i| {
+            let a = i as f32 / args.views as f32 * std::f32::consts::TAU;
+            Camera::look_at(
+                Vec3::new(2.5 * a.sin(), 0.1, 2.5 * a.cos()),
+                Vec3::new(0.0, 0.1, 0.0),
+                Vec3::Y,
+                k,
+                s,
+                s,
+            )
+        })
+        .collect::<Result<_, _>>()?;
+    let rest = body
+        .skeleton
+        .skinning_transforms(&BodyPose::rest(body.num_joints()))?;
+    let sources = SourceViews {
+        images: Tensor::random(
+            [args.views, 3, s as usize, s as usize],
+            Distribution::Uniform(0.0, 1.0),
+            &device,
+        ),
+        cameras,
+        skinning: vec![rest; args.views],
+        background: [1.0; 3],
+    };
+    let subject = Subject {
+        canonical_vertices: body.vertex_tensor(&device),
+        lbs_weights: body.skin.tensor(&device),
+        skeleton: body.skeleton.clone(),
+    };
+    let mesh = GomMesh::new(&body.topology, args.subdiv, &device)?;
+
+    let mut runs = Vec::new();
+    for run in 0..=args.runs.max(1) {
+        let start = Instant::now();
+        let rec = model.forward(&subject, &mesh, &sources)?;
+        // Reading the final colours back makes the time include all queued work.
+        let _ = rec.last().faces.colors.clone().into_data();
+        let total = start.elapsed().as_secs_f64() * 1e3;
+        if run > 0 {
+            runs.push((total, rec.timings));
+        }
+    }
+    runs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (total, stages) = &runs[runs.len() / 2];
+    let stage_ms: serde_json::Map<String, serde_json::Value> = stages
+        .iter()
+        .map(|(n, d)| {
+            (
+                n.clone(),
+                serde_json::json!((d.as_secs_f64() * 1e5).round() / 100.0),
+            )
+        })
+        .collect();
+    let steps: Vec<f64> = stages
+        .iter()
+        .filter(|(n, _)| n.starts_with("step_"))
+        .map(|(_, d)| d.as_secs_f64() * 1e3)
+        .collect();
+    let line = serde_json::json!({
+        "bench": "recon",
+        "config": format!("{:?}", args.config).to_lowercase(),
+        "backend": args.device.name(),
+        "template": path.file_name().map(|f| f.to_string_lossy().into_owned()),
+        "vertices": body.num_vertices(),
+        "gaussians": mesh.num_gaussians(),
+        "feature_dim": cfg.feature_dim(),
+        "params": params,
+        "views": args.views,
+        "size": s,
+        "iterations": args.iterations,
+        "subdiv": args.subdiv,
+        "total_ms": (total * 100.0).round() / 100.0,
+        "ms_per_step": (steps.iter().sum::<f64>() / steps.len().max(1) as f64 * 100.0).round() / 100.0,
+        "stages_ms": stage_ms,
+        "threads": rayon::current_num_threads(),
+    });
+    if !args.json {
+        eprintln!(
+            "reconstruction: {total:.1} ms total ({} params, random weights)",
+            params
+        );
+    }
+    println!("{line}");
+    Ok(())
+}
