@@ -70,8 +70,12 @@ impl AttentionLayerConfig {
             w_o: lin(self.d_model, self.d_model),
             fc1: lin(self.d_model, self.d_ff),
             fc2: lin(self.d_ff, self.d_model),
-            norm1: LayerNormConfig::new(self.d_model).with_epsilon(self.layer_norm_eps).init(device),
-            norm2: LayerNormConfig::new(self.d_model).with_epsilon(self.layer_norm_eps).init(device),
+            norm1: LayerNormConfig::new(self.d_model)
+                .with_epsilon(self.layer_norm_eps)
+                .init(device),
+            norm2: LayerNormConfig::new(self.d_model)
+                .with_epsilon(self.layer_norm_eps)
+                .init(device),
             dropout: DropoutConfig::new(self.dropout).init(),
             n_heads: self.n_heads,
         }
@@ -123,8 +127,12 @@ pub struct Fusion {
 impl FusionConfig {
     /// Builds the fusion block (feed-forward width = `d_model`, as in the reference).
     pub fn init(&self, device: &Device) -> Fusion {
-        let layer = AttentionLayerConfig::new(self.d_model, self.d_model, self.n_heads).with_dropout(self.dropout);
-        Fusion { views: layer.init(device), query: layer.init(device) }
+        let layer = AttentionLayerConfig::new(self.d_model, self.d_model, self.n_heads)
+            .with_dropout(self.dropout);
+        Fusion {
+            views: layer.init(device),
+            query: layer.init(device),
+        }
     }
 }
 
@@ -134,7 +142,9 @@ impl Fusion {
     pub fn forward(&self, features: Tensor<3>, embed: Tensor<2>) -> Tensor<2> {
         let [v, _, d] = features.dims();
         let across_views = self.views.forward(features.clone(), features);
-        self.query.forward(embed.reshape([v, 1, d]), across_views).reshape([v, d])
+        self.query
+            .forward(embed.reshape([v, 1, d]), across_views)
+            .reshape([v, d])
     }
 }
 
@@ -155,7 +165,10 @@ mod tests {
         let out = fusion.forward(feats.clone(), embed.clone());
         assert_eq!(out.dims(), [5, 24]);
         // Views are a set: permuting them leaves the fused vertex feature unchanged.
-        let perm = Tensor::<1, burn::tensor::Int>::from_data(TensorData::new(vec![2i64, 0, 3, 1], [4]), device);
+        let perm = Tensor::<1, burn::tensor::Int>::from_data(
+            TensorData::new(vec![2i64, 0, 3, 1], [4]),
+            device,
+        );
         let out_perm = fusion.forward(feats.select(1, perm), embed);
         for (a, b) in read(out).iter().zip(read(out_perm)) {
             assert!((a - b).abs() < 1e-4, "{a} vs {b}");
@@ -165,13 +178,17 @@ mod tests {
     /// A single head over a single view is a plain MLP-like map: check against a hand-computed
     /// attention (softmax over one key is 1, so the output is LN-layers of W_o·W_v·x).
     fn single_view_attention_is_value_projection(device: &Device) {
-        let layer = AttentionLayerConfig::new(4, 4, 1).with_dropout(0.0).init(device);
+        let layer = AttentionLayerConfig::new(4, 4, 1)
+            .with_dropout(0.0)
+            .init(device);
         let q = Tensor::<3>::random([2, 1, 4], Distribution::Normal(0.0, 1.0), device);
         let c = Tensor::<3>::random([2, 1, 4], Distribution::Normal(0.0, 1.0), device);
         let out = layer.forward(q.clone(), c.clone());
         let attn = layer.w_o.forward(layer.w_v.forward(c));
         let x = layer.norm1.forward(q + attn);
-        let expect = layer.norm2.forward(x.clone() + layer.fc2.forward(relu(layer.fc1.forward(x))));
+        let expect = layer
+            .norm2
+            .forward(x.clone() + layer.fc2.forward(relu(layer.fc1.forward(x))));
         for (a, b) in read(out).iter().zip(read(expect)) {
             assert!((a - b).abs() < 1e-5);
         }
@@ -179,14 +196,26 @@ mod tests {
 
     fn gradients_reach_every_parameter(device: &Device) {
         let ad = device.clone().autodiff();
-        let fusion = FusionConfig::new(12).with_n_heads(2).with_dropout(0.0).init(&ad);
+        let fusion = FusionConfig::new(12)
+            .with_n_heads(2)
+            .with_dropout(0.0)
+            .init(&ad);
         let feats = Tensor::<3>::random([3, 2, 12], Distribution::Normal(0.0, 1.0), &ad);
-        let embed = Tensor::<2>::random([3, 12], Distribution::Normal(0.0, 1.0), &ad).require_grad();
-        let grads = (fusion.forward(feats, embed.clone()).powi_scalar(2)).sum().backward();
+        let embed =
+            Tensor::<2>::random([3, 12], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+        let grads = (fusion.forward(feats, embed.clone()).powi_scalar(2))
+            .sum()
+            .backward();
         assert!(embed.grad(&grads).is_some());
         for layer in [&fusion.views, &fusion.query] {
-            for lin in [&layer.w_q, &layer.w_k, &layer.w_v, &layer.w_o, &layer.fc1, &layer.fc2] {
-                let g = lin.weight.val().grad(&grads).expect("every linear gets a gradient");
+            for lin in [
+                &layer.w_q, &layer.w_k, &layer.w_v, &layer.w_o, &layer.fc1, &layer.fc2,
+            ] {
+                let g = lin
+                    .weight
+                    .val()
+                    .grad(&grads)
+                    .expect("every linear gets a gradient");
                 assert!(read(g).iter().all(|v| v.is_finite()));
             }
         }
