@@ -37,7 +37,7 @@ impl ConfigFile {
     /// Parses config text; `source` names it in errors.
     pub fn parse(text: &str, source: &Path) -> Result<Self> {
         let mut cfg: Self = toml::from_str(text).map_err(|e| DataError::Config {
-            location: Location::file(source),
+            location: Box::new(Location::file(source)),
             reason: e.to_string(),
         })?;
         cfg.source = source.to_path_buf();
@@ -92,9 +92,16 @@ mod tests {
     fn bad_configs_name_the_file_and_key() {
         let text = std::fs::read_to_string(configs_dir().join("synthetic-tiny.toml")).unwrap();
         let bad = text.replace("img_size = [64, 64]", "img_size = [0, 64]");
-        let e = ConfigFile::parse(&bad, Path::new("tiny.toml")).unwrap_err().to_string();
-        assert!(e.contains("tiny.toml") && e.contains("data.img_size"), "{e}");
-        let e = ConfigFile::parse("[data]\nroot = 3\n", Path::new("x.toml")).unwrap_err().to_string();
+        let e = ConfigFile::parse(&bad, Path::new("tiny.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("tiny.toml") && e.contains("data.img_size"),
+            "{e}"
+        );
+        let e = ConfigFile::parse("[data]\nroot = 3\n", Path::new("x.toml"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("x.toml"), "{e}");
     }
 }

@@ -114,7 +114,7 @@ impl DataConfig {
     /// Checks settings that serde cannot.
     pub fn validate(&self, source: &Path) -> Result<()> {
         let bad = |field: &str, reason: String| DataError::Config {
-            location: Location::file(source).field(format!("data.{field}")),
+            location: Box::new(Location::file(source).field(format!("data.{field}"))),
             reason,
         };
         if self.img_size.contains(&0) {
@@ -419,7 +419,7 @@ pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) ->
     let mut alpha = preprocess::read_mask(&mask_path, &at(&mask_path, "masks"))?;
     if (rgb.width, rgb.height) != (alpha.width, alpha.height) {
         return Err(DataError::Image {
-            location: at(&mask_path, "masks"),
+            location: Box::new(at(&mask_path, "masks")),
             reason: format!(
                 "image/mask size mismatch: image {}×{}, mask {}×{}",
                 rgb.width, rgb.height, alpha.width, alpha.height

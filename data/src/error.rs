@@ -72,14 +72,14 @@ impl fmt::Display for Location {
     }
 }
 
-/// Errors raised by the data crate.
+/// Errors raised by the data crate. Locations are boxed to keep `Result`s small.
 #[derive(Debug, thiserror::Error)]
 pub enum DataError {
     /// A file that does not exist or cannot be read.
     #[error("{location}: cannot read: {source}")]
     Io {
         /// What was being read.
-        location: Location,
+        location: Box<Location>,
         /// The underlying error.
         source: std::io::Error,
     },
@@ -87,7 +87,7 @@ pub enum DataError {
     #[error("{location}: pickle error at byte {offset}: {reason}")]
     Pickle {
         /// The pickle file.
-        location: Location,
+        location: Box<Location>,
         /// Byte offset of the opcode at fault.
         offset: usize,
         /// What is wrong.
@@ -97,7 +97,7 @@ pub enum DataError {
     #[error("{location}: {reason}")]
     Invalid {
         /// Where.
-        location: Location,
+        location: Box<Location>,
         /// What is wrong with it.
         reason: String,
     },
@@ -105,7 +105,7 @@ pub enum DataError {
     #[error("{location}: image: {reason}")]
     Image {
         /// Where.
-        location: Location,
+        location: Box<Location>,
         /// What is wrong with it.
         reason: String,
     },
@@ -113,7 +113,7 @@ pub enum DataError {
     #[error("config {location}: {reason}")]
     Config {
         /// The config file (and the key, as `field`).
-        location: Location,
+        location: Box<Location>,
         /// What is wrong.
         reason: String,
     },
@@ -121,7 +121,7 @@ pub enum DataError {
     #[error("{location}: {source}")]
     Render {
         /// Where.
-        location: Location,
+        location: Box<Location>,
         /// The render crate's error.
         source: lifegom_render::RenderError,
     },
@@ -131,19 +131,25 @@ impl DataError {
     /// A [`DataError::Invalid`] at `location`.
     pub fn invalid(location: Location, reason: impl Into<String>) -> Self {
         Self::Invalid {
-            location,
+            location: Box::new(location),
             reason: reason.into(),
         }
     }
 
     /// A [`DataError::Io`] for `path`.
     pub fn io(location: Location, source: std::io::Error) -> Self {
-        Self::Io { location, source }
+        Self::Io {
+            location: Box::new(location),
+            source,
+        }
     }
 
     /// A [`DataError::Render`] at `location`.
     pub fn render(location: Location, source: lifegom_render::RenderError) -> Self {
-        Self::Render { location, source }
+        Self::Render {
+            location: Box::new(location),
+            source,
+        }
     }
 }
 

@@ -155,7 +155,7 @@ impl Subject {
 fn with_subject(e: DataError, subject: &str) -> DataError {
     match e {
         DataError::Io { location, source } => DataError::Io {
-            location: location.subject(subject),
+            location: Box::new(location.subject(subject)),
             source,
         },
         DataError::Pickle {
@@ -163,7 +163,7 @@ fn with_subject(e: DataError, subject: &str) -> DataError {
             offset,
             reason,
         } => DataError::Pickle {
-            location: location.subject(subject),
+            location: Box::new(location.subject(subject)),
             offset,
             reason,
         },
@@ -286,7 +286,7 @@ fn read_camera(v: &Value, loc: &Location) -> Result<FrameCamera> {
     let det = e[0][0] * (e[1][1] * e[2][2] - e[1][2] * e[2][1])
         - e[0][1] * (e[1][0] * e[2][2] - e[1][2] * e[2][0])
         + e[0][2] * (e[1][0] * e[2][1] - e[1][1] * e[2][0]);
-    if !(det.abs() > 1e-6) {
+    if det.is_nan() || det.abs() <= 1e-6 {
         return Err(DataError::invalid(
             eloc,
             format!("not invertible (rotation block determinant {det:.3e})"),

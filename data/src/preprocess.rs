@@ -71,7 +71,7 @@ impl Kernel {
 pub fn read_rgb(path: &Path, loc: &Location) -> Result<FloatImage> {
     let bytes = std::fs::read(path).map_err(|e| DataError::io(loc.clone(), e))?;
     let img = image::load_from_memory(&bytes).map_err(|e| DataError::Image {
-        location: loc.clone(),
+        location: Box::new(loc.clone()),
         reason: format!("unreadable PNG: {e}"),
     })?;
     let rgb = img.to_rgb8();

@@ -87,16 +87,28 @@ fn generated_split_reads_back_with_the_official_rules() {
     // Cameras see the body: the posed canonical joints project inside the mask.
     let subj = &train.subjects[0];
     let cam = &subj.cameras[20];
-    let e = lifegom_data::dataset::fold_body_transform(&cam.e, subj.mesh_infos[20].rh, subj.mesh_infos[20].th);
+    let e = lifegom_data::dataset::fold_body_transform(
+        &cam.e,
+        subj.mesh_infos[20].rh,
+        subj.mesh_infos[20].th,
+    );
     let pelvis = subj.canonical.joints[0];
     let p = [pelvis.x, pelvis.y, pelvis.z, 1.0];
-    let c: Vec<f32> = (0..3).map(|i| (0..4).map(|k| e[i][k] * p[k]).sum()).collect();
+    let c: Vec<f32> = (0..3)
+        .map(|i| (0..4).map(|k| e[i][k] * p[k]).sum())
+        .collect();
     assert!((c[2] - 2.0).abs() < 0.4, "pelvis depth {}", c[2]);
     let k = cam.k;
-    let (u, v) = (k[0][0] as f32 * c[0] / c[2] + k[0][2] as f32, k[1][1] as f32 * c[1] / c[2] + k[1][2] as f32);
+    let (u, v) = (
+        k[0][0] as f32 * c[0] / c[2] + k[0][2] as f32,
+        k[1][1] as f32 * c[1] / c[2] + k[1][2] as f32,
+    );
     let view = lifegom_data::dataset::load_view(subj, 20, [0.0; 3], (64, 64)).unwrap();
     let mask_at = view.mask[(v as usize).min(63) * 64 + (u as usize).min(63)];
-    assert!(mask_at > 0.5, "pelvis projects at ({u}, {v}) outside the mask");
+    assert!(
+        mask_at > 0.5,
+        "pelvis projects at ({u}, {v}) outside the mask"
+    );
 
     let val = Dataset::open(&cfg.data, Phase::Val).unwrap();
     assert_eq!((val.subjects.len(), val.len()), (1, 3));
@@ -106,21 +118,35 @@ fn generated_split_reads_back_with_the_official_rules() {
     let vs = val.sample(0, &mut rng).unwrap();
     assert_eq!(vs.bgcolor, [0.0; 3]);
     let meta: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(root.join("view3_val_meta.json")).unwrap()).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(root.join("view3_val_meta.json")).unwrap())
+            .unwrap();
     assert_eq!(meta[0]["input_frames"], serde_json::json!([0, 1, 2]));
     assert_eq!(meta[0]["output_frame"], 3);
 }
 
 #[test]
 fn canonical_body_is_the_estimated_template_not_the_clothed_surface() {
-    let s = Subject::load(&tiny_split().join("view3_train/0000"), KinematicTree::Stored).unwrap();
-    let template = lifegom_render::template::BodyTemplate::load(lifegom_render::template::lowres_template_path()).unwrap();
+    let s = Subject::load(
+        &tiny_split().join("view3_train/0000"),
+        KinematicTree::Stored,
+    )
+    .unwrap();
+    let template = lifegom_render::template::BodyTemplate::load(
+        lifegom_render::template::lowres_template_path(),
+    )
+    .unwrap();
     assert_eq!(s.canonical.vertices.len(), template.num_vertices());
     assert_eq!(s.canonical.faces, template.topology.faces);
     // The estimated shape is the template in some PCA shape: its offset from the neutral body
     // lies in the span of the basis (least squares leaves ~no residual).
     let basis = &template.shape_basis;
-    let d: Vec<Vec3> = s.canonical.vertices.iter().zip(&template.vertices).map(|(a, b)| *a - *b).collect();
+    let d: Vec<Vec3> = s
+        .canonical
+        .vertices
+        .iter()
+        .zip(&template.vertices)
+        .map(|(a, b)| *a - *b)
+        .collect();
     let coeffs: Vec<f32> = basis
         .vertex_deltas
         .iter()
@@ -131,8 +157,15 @@ fn canonical_body_is_the_estimated_template_not_the_clothed_surface() {
         })
         .collect();
     let (fit, _) = template.shaped(&coeffs).unwrap();
-    let err = fit.iter().zip(&s.canonical.vertices).map(|(a, b)| (*a - *b).length()).fold(0.0f32, f32::max);
-    assert!(err < 0.02, "canonical vertices are not a template shape (max residual {err} m)");
+    let err = fit
+        .iter()
+        .zip(&s.canonical.vertices)
+        .map(|(a, b)| (*a - *b).length())
+        .fold(0.0f32, f32::max);
+    assert!(
+        err < 0.02,
+        "canonical vertices are not a template shape (max residual {err} m)"
+    );
     assert_eq!(s.canonical.parents.len(), 104);
     assert_eq!(s.mesh_infos[0].tpose_joints, s.canonical.joints);
 }
@@ -146,7 +179,12 @@ fn generation_is_deterministic_per_seed() {
     let b = synth::generate_subject(&template, &s, 7, 1, "x", Some(3)).unwrap();
     let c = synth::generate_subject(&template, &s, 8, 1, "x", Some(3)).unwrap();
     assert_eq!(a.frames.len(), 6);
-    assert!(a.frames.iter().zip(&b.frames).all(|(x, y)| x.rgb == y.rgb && x.mask == y.mask));
+    assert!(
+        a.frames
+            .iter()
+            .zip(&b.frames)
+            .all(|(x, y)| x.rgb == y.rgb && x.mask == y.mask)
+    );
     assert_eq!((a.poses.clone(), a.rh, a.th), (b.poses.clone(), b.rh, b.th));
     assert_ne!(a.frames[0].rgb, c.frames[0].rgb);
     // Masks come from coverage: every lit pixel is inside the mask, and the body is in view.
@@ -176,7 +214,13 @@ fn edit_pickle(path: &Path, edit: impl FnOnce(&mut Value)) {
 fn set_field(v: &mut Value, frame: Option<&str>, key: &str, new: Value) {
     let dict = match frame {
         Some(f) => match v {
-            Value::Dict(items) => &mut items.iter_mut().find(|(k, _)| k.as_str() == Some(f)).unwrap().1,
+            Value::Dict(items) => {
+                &mut items
+                    .iter_mut()
+                    .find(|(k, _)| k.as_str() == Some(f))
+                    .unwrap()
+                    .1
+            }
             _ => unreachable!(),
         },
         None => v,
@@ -192,7 +236,9 @@ fn set_field(v: &mut Value, frame: Option<&str>, key: &str, new: Value) {
 fn assert_error(dir: &Path, parts: &[&str]) {
     let msg = Subject::load(dir, KinematicTree::Stored)
         .and_then(|s| {
-            (0..s.frames.len()).try_for_each(|f| lifegom_data::dataset::load_view(&s, f, [0.0; 3], (32, 32)).map(|_| ()))
+            (0..s.frames.len()).try_for_each(|f| {
+                lifegom_data::dataset::load_view(&s, f, [0.0; 3], (32, 32)).map(|_| ())
+            })
         })
         .unwrap_err()
         .to_string();
@@ -204,7 +250,9 @@ fn assert_error(dir: &Path, parts: &[&str]) {
 #[test]
 fn bad_data_errors_name_subject_frame_and_field() {
     let f3 = Some("frame_000003");
-    let arr = |shape: Vec<usize>, v: Vec<f64>| Value::Array(lifegom_data::pickle::NdArray::from_f64(shape, v).unwrap());
+    let arr = |shape: Vec<usize>, v: Vec<f64>| {
+        Value::Array(lifegom_data::pickle::NdArray::from_f64(shape, v).unwrap())
+    };
 
     // NaN in a camera.
     let d = scratch_subject("nan");
@@ -213,7 +261,15 @@ fn bad_data_errors_name_subject_frame_and_field() {
         e[0] = f64::NAN;
         set_field(v, f3, "extrinsics", arr(vec![4, 4], e));
     });
-    assert_error(&d, &["subject `0000`", "frame `frame_000003`", "field `extrinsics`", "non-finite"]);
+    assert_error(
+        &d,
+        &[
+            "subject `0000`",
+            "frame `frame_000003`",
+            "field `extrinsics`",
+            "non-finite",
+        ],
+    );
 
     // Non-invertible extrinsics.
     let d = scratch_subject("singular");
@@ -222,26 +278,51 @@ fn bad_data_errors_name_subject_frame_and_field() {
         e[15] = 1.0;
         set_field(v, f3, "extrinsics", arr(vec![4, 4], e));
     });
-    assert_error(&d, &["frame `frame_000003`", "extrinsics", "not invertible"]);
+    assert_error(
+        &d,
+        &["frame `frame_000003`", "extrinsics", "not invertible"],
+    );
 
     // Inf in a pose, and a wrong joint count.
     let d = scratch_subject("pose");
-    edit_pickle(&d.join("mesh_infos.pkl"), |v| set_field(v, f3, "Th", arr(vec![3], vec![0.0, f64::INFINITY, 0.0])));
+    edit_pickle(&d.join("mesh_infos.pkl"), |v| {
+        set_field(v, f3, "Th", arr(vec![3], vec![0.0, f64::INFINITY, 0.0]))
+    });
     assert_error(&d, &["frame `frame_000003`", "field `Th`", "non-finite"]);
     let d = scratch_subject("joints");
-    edit_pickle(&d.join("mesh_infos.pkl"), |v| set_field(v, f3, "poses", arr(vec![72], vec![0.0; 72])));
+    edit_pickle(&d.join("mesh_infos.pkl"), |v| {
+        set_field(v, f3, "poses", arr(vec![72], vec![0.0; 72]))
+    });
     assert_error(&d, &["frame `frame_000003`", "field `poses`", "104 joints"]);
 
     // Missing file, unreadable PNG, image/mask size mismatch.
     let d = scratch_subject("missing");
     std::fs::remove_file(d.join("masks/frame_000007.png")).unwrap();
-    assert_error(&d, &["subject `0000`", "frame `frame_000007`", "masks", "cannot read"]);
+    assert_error(
+        &d,
+        &[
+            "subject `0000`",
+            "frame `frame_000007`",
+            "masks",
+            "cannot read",
+        ],
+    );
     let d = scratch_subject("png");
     std::fs::write(d.join("images/frame_000002.png"), b"not a png").unwrap();
     assert_error(&d, &["frame `frame_000002`", "unreadable PNG"]);
     let d = scratch_subject("size");
-    image::save_buffer(d.join("masks/frame_000005.png"), &[0u8; 16 * 8], 16, 8, image::ExtendedColorType::L8).unwrap();
-    assert_error(&d, &["frame `frame_000005`", "size mismatch", "64×64", "16×8"]);
+    image::save_buffer(
+        d.join("masks/frame_000005.png"),
+        &[0u8; 16 * 8],
+        16,
+        8,
+        image::ExtendedColorType::L8,
+    )
+    .unwrap();
+    assert_error(
+        &d,
+        &["frame `frame_000005`", "size mismatch", "64×64", "16×8"],
+    );
 
     // A frame without a camera, and a missing pickle.
     let d = scratch_subject("nocam");
@@ -257,6 +338,11 @@ fn bad_data_errors_name_subject_frame_and_field() {
 
     // Wrong joint count for the kinematic tree of the config (SMPL-X on Anny data).
     let d = scratch_subject("tree");
-    let msg = Subject::load(&d, KinematicTree::Smplx).unwrap_err().to_string();
-    assert!(msg.contains("wrong joint count") && msg.contains("104") && msg.contains("55"), "{msg}");
+    let msg = Subject::load(&d, KinematicTree::Smplx)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        msg.contains("wrong joint count") && msg.contains("104") && msg.contains("55"),
+        "{msg}"
+    );
 }

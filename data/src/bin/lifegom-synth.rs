@@ -33,13 +33,18 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let cfg = ConfigFile::load(&args.config)?.with_root(&args.out);
     let Some(synth_cfg) = cfg.synthetic.clone() else {
-        bail!("{}: no [synthetic] section: not a synthetic-data config", args.config.display());
+        bail!(
+            "{}: no [synthetic] section: not a synthetic-data config",
+            args.config.display()
+        );
     };
     let seed = args.seed.unwrap_or(synth_cfg.seed);
     let total = (synth_cfg.train_subjects + synth_cfg.val_subjects) as u64;
     let bar = ProgressBar::new(total).with_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} subjects, eta {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} subjects, eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let start = Instant::now();
     let summary = synth::generate_split(&synth_cfg, &cfg.data, &args.out, seed, &|| bar.inc(1))?;

@@ -20,7 +20,7 @@ pub fn load(path: &Path) -> Result<Value> {
     let bytes =
         std::fs::read(path).map_err(|source| DataError::io(Location::file(path), source))?;
     reader::from_slice(&bytes).map_err(|e| DataError::Pickle {
-        location: Location::file(path),
+        location: Box::new(Location::file(path)),
         offset: e.offset,
         reason: e.reason,
     })

@@ -172,12 +172,16 @@ struct Landmarks {
 
 impl Landmarks {
     fn new(skeleton: &Skeleton, joints: &[Vec3]) -> Self {
-        let y = |name: &str, fallback: f32| skeleton.joint_index(name).map_or(fallback, |i| joints[i].y);
+        let y = |name: &str, fallback: f32| {
+            skeleton.joint_index(name).map_or(fallback, |i| joints[i].y)
+        };
         let root = joints.first().copied().unwrap_or(Vec3::ZERO);
         let hip_y = y("upperleg01.L", root.y - 0.08);
         let knee_y = y("lowerleg01.L", hip_y - 0.42);
         let spine = y("spine03", root.y + 0.2);
-        let head = skeleton.joint_index("head").map_or(root + Vec3::Y * 0.6, |i| joints[i]);
+        let head = skeleton
+            .joint_index("head")
+            .map_or(root + Vec3::Y * 0.6, |i| joints[i]);
         Self {
             waist_y: 0.5 * (root.y + spine) + 0.02,
             hip_y,
@@ -200,7 +204,11 @@ pub fn vertex_normals(vertices: &[Vec3], faces: &[[u32; 3]]) -> Vec<Vec3> {
         }
     }
     let centroid = vertices.iter().copied().sum::<Vec3>() / vertices.len().max(1) as f32;
-    let outward: f32 = vertices.iter().zip(&n).map(|(v, n)| (*v - centroid).dot(*n)).sum();
+    let outward: f32 = vertices
+        .iter()
+        .zip(&n)
+        .map(|(v, n)| (*v - centroid).dot(*n))
+        .sum();
     let sign = if outward < 0.0 { -1.0 } else { 1.0 };
     n.iter().map(|v| sign * v.normalize_or_zero()).collect()
 }
@@ -223,11 +231,23 @@ pub fn surfaces(
             match part {
                 Part::Head | Part::Neck => {
                     let back = v.z < lm.head.z - 0.03;
-                    let low = if outfit.long_hair { lm.neck_y - 0.05 } else { lm.head.y - 0.03 };
-                    if v.y > hairline || (back && v.y > low) { Surface::Hair } else { Surface::Skin }
+                    let low = if outfit.long_hair {
+                        lm.neck_y - 0.05
+                    } else {
+                        lm.head.y - 0.03
+                    };
+                    if v.y > hairline || (back && v.y > low) {
+                        Surface::Hair
+                    } else {
+                        Surface::Skin
+                    }
                 }
                 Part::Torso => {
-                    if v.y > lm.waist_y { Surface::Top } else { Surface::Bottom }
+                    if v.y > lm.waist_y {
+                        Surface::Top
+                    } else {
+                        Surface::Bottom
+                    }
                 }
                 Part::UpperArm => match outfit.sleeves {
                     Sleeves::None => Surface::Skin,
@@ -298,15 +318,31 @@ pub fn random_pose(skeleton: &Skeleton, outfit: &Outfit, rng: &mut Rng) -> BodyP
     // Arms down from the T-pose: the left arm (+x) rotates by −θ about z, the right by +θ.
     for (side, s) in [("L", -1.0f32), ("R", 1.0)] {
         let down = (45f32 + 35.0 * (u(1.0) * 0.5 + 0.5)).to_radians();
-        set(&format!("upperarm01.{side}"), Vec3::new(u(0.35), u(0.3), s * down));
-        set(&format!("lowerarm01.{side}"), Vec3::new(u(0.2), s * (u(0.25) - 0.25), 0.0));
+        set(
+            &format!("upperarm01.{side}"),
+            Vec3::new(u(0.35), u(0.3), s * down),
+        );
+        set(
+            &format!("lowerarm01.{side}"),
+            Vec3::new(u(0.2), s * (u(0.25) - 0.25), 0.0),
+        );
         set(&format!("wrist.{side}"), Vec3::new(u(0.3), u(0.3), u(0.3)));
     }
-    let leg_swing = if outfit.bottom == Bottom::Skirt { 0.12 } else { 0.3 };
+    let leg_swing = if outfit.bottom == Bottom::Skirt {
+        0.12
+    } else {
+        0.3
+    };
     for (side, s) in [("L", 1.0f32), ("R", -1.0)] {
-        set(&format!("upperleg01.{side}"), Vec3::new(u(leg_swing), u(0.15), s * (u(0.06) + 0.05)));
+        set(
+            &format!("upperleg01.{side}"),
+            Vec3::new(u(leg_swing), u(0.15), s * (u(0.06) + 0.05)),
+        );
         // Knee flexion: +x moves the shin backwards (−z).
-        set(&format!("lowerleg01.{side}"), Vec3::new(0.25 * (u(1.0) * 0.5 + 0.5), 0.0, 0.0));
+        set(
+            &format!("lowerleg01.{side}"),
+            Vec3::new(0.25 * (u(1.0) * 0.5 + 0.5), 0.0, 0.0),
+        );
     }
     for name in ["spine04", "spine03", "spine02"] {
         set(name, Vec3::new(u(0.08), u(0.12), u(0.06)));
@@ -330,7 +366,10 @@ mod tests {
             sleeves[o.sleeves as usize] += 1;
             hair[usize::from(o.long_hair)] += 1;
         }
-        assert!(bottoms.iter().chain(&sleeves).all(|&n| n > 60), "{bottoms:?} {sleeves:?}");
+        assert!(
+            bottoms.iter().chain(&sleeves).all(|&n| n > 60),
+            "{bottoms:?} {sleeves:?}"
+        );
         assert!(hair.iter().all(|&n| n > 60), "{hair:?}");
     }
 

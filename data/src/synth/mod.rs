@@ -177,17 +177,26 @@ impl SynthConfig {
     /// Checks settings serde cannot; `source` names the config in errors.
     pub fn validate(&self, data: &DataConfig, source: &Path) -> Result<()> {
         let bad = |field: &str, reason: String| DataError::Config {
-            location: Location::file(source).field(format!("synthetic.{field}")),
+            location: Box::new(Location::file(source).field(format!("synthetic.{field}"))),
             reason,
         };
         if self.image_size < 8 {
-            return Err(bad("image_size", format!("must be at least 8, got {}", self.image_size)));
+            return Err(bad(
+                "image_size",
+                format!("must be at least 8, got {}", self.image_size),
+            ));
         }
         if !(1..=8).contains(&self.supersample) {
-            return Err(bad("supersample", format!("must be in 1..=8, got {}", self.supersample)));
+            return Err(bad(
+                "supersample",
+                format!("must be in 1..=8, got {}", self.supersample),
+            ));
         }
         if self.source_views < data.n_input_frames.max(1) || self.source_views > 360 {
-            return Err(bad("source_views", format!("must be in N..=360, got {}", self.source_views)));
+            return Err(bad(
+                "source_views",
+                format!("must be in N..=360, got {}", self.source_views),
+            ));
         }
         if matches!(data.protocol, Protocol::ThumanView3 | Protocol::Xhuman)
             && (self.source_views, self.target_views) != (16, 48)
@@ -199,13 +208,22 @@ impl SynthConfig {
             ));
         }
         if !(self.camera_radius > 0.3 && self.camera_radius.is_finite()) {
-            return Err(bad("camera_radius", format!("must be > 0.3 m, got {}", self.camera_radius)));
+            return Err(bad(
+                "camera_radius",
+                format!("must be > 0.3 m, got {}", self.camera_radius),
+            ));
         }
         if !(self.focal_factor > 0.0 && self.focal_factor.is_finite()) {
-            return Err(bad("focal_factor", format!("must be > 0, got {}", self.focal_factor)));
+            return Err(bad(
+                "focal_factor",
+                format!("must be > 0, got {}", self.focal_factor),
+            ));
         }
         if !(self.shape_noise >= 0.0 && self.shape_noise.is_finite()) {
-            return Err(bad("shape_noise", format!("must be >= 0, got {}", self.shape_noise)));
+            return Err(bad(
+                "shape_noise",
+                format!("must be >= 0, got {}", self.shape_noise),
+            ));
         }
         Ok(())
     }
@@ -282,8 +300,15 @@ pub fn ring_camera(cfg: &SynthConfig, az: f32) -> Result<Camera> {
         cx: size as f32 / 2.0,
         cy: size as f32 / 2.0 + 25.0 * size as f32 / 1024.0,
     };
-    Camera::look_at(LOOK_AT + dir * cfg.camera_radius, LOOK_AT, Vec3::Y, intr, size, size)
-        .map_err(|e| DataError::render(Location::default().field("camera"), e))
+    Camera::look_at(
+        LOOK_AT + dir * cfg.camera_radius,
+        LOOK_AT,
+        Vec3::Y,
+        intr,
+        size,
+        size,
+    )
+    .map_err(|e| DataError::render(Location::default().field("camera"), e))
 }
 
 /// The subject's surface, ready to shade.
@@ -318,7 +343,8 @@ impl Scene<'_> {
             let Some(frag) = frag else { continue };
             let face = self.faces[frag.face as usize];
             let b = frag.bary;
-            let interp = |attr: &[Vec3]| -> Vec3 { (0..3).map(|c| attr[face[c] as usize] * b[c]).sum() };
+            let interp =
+                |attr: &[Vec3]| -> Vec3 { (0..3).map(|c| attr[face[c] as usize] * b[c]).sum() };
             // The material of the corner nearest the sample, so textures do not blend across
             // garment borders.
             let corner = (0..3).max_by(|&x, &y| b[x].total_cmp(&b[y])).unwrap_or(0);
@@ -338,7 +364,10 @@ impl Scene<'_> {
         }
         let n = (ss * ss) as f32;
         let to_u8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-        let rgb = acc.iter().flat_map(|a| [to_u8(a[0] / n), to_u8(a[1] / n), to_u8(a[2] / n)]).collect();
+        let rgb = acc
+            .iter()
+            .flat_map(|a| [to_u8(a[0] / n), to_u8(a[1] / n), to_u8(a[2] / n)])
+            .collect();
         let mask = acc.iter().map(|a| to_u8(a[3] / n)).collect();
         Ok((rgb, mask))
     }
@@ -364,10 +393,19 @@ pub fn generate_subject(
     for attempt in 0..64 {
         let spread = if attempt < 48 { 1.0 } else { 0.5 };
         coeffs = (0..k)
-            .map(|i| basis.coeff_mean[i] + spread * basis.coeff_std[i] * (rng.normal() as f32).clamp(-2.5, 2.5))
+            .map(|i| {
+                basis.coeff_mean[i]
+                    + spread * basis.coeff_std[i] * (rng.normal() as f32).clamp(-2.5, 2.5)
+            })
             .collect();
-        let (v, _) = template.shaped(&coeffs).map_err(|e| DataError::render(at("shape"), e))?;
-        let (lo, hi) = v.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), p| (lo.min(p.y), hi.max(p.y)));
+        let (v, _) = template
+            .shaped(&coeffs)
+            .map_err(|e| DataError::render(at("shape"), e))?;
+        let (lo, hi) = v
+            .iter()
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), p| {
+                (lo.min(p.y), hi.max(p.y))
+            });
         if HEIGHT_RANGE.contains(&(hi - lo)) {
             break;
         }
@@ -381,8 +419,12 @@ pub fn generate_subject(
             .map(|(c, s)| c + cfg.shape_noise * s * rng.normal() as f32)
             .collect(),
     };
-    let (vertices, joints) = template.shaped(&coeffs).map_err(|e| DataError::render(at("shape"), e))?;
-    let (est_vertices, est_joints) = template.shaped(&est).map_err(|e| DataError::render(at("shape"), e))?;
+    let (vertices, joints) = template
+        .shaped(&coeffs)
+        .map_err(|e| DataError::render(at("shape"), e))?;
+    let (est_vertices, est_joints) = template
+        .shaped(&est)
+        .map_err(|e| DataError::render(at("shape"), e))?;
     let skeleton = template
         .skeleton
         .with_rest_joints(joints.clone())
@@ -405,14 +447,24 @@ pub fn generate_subject(
     let clothed = body::clothe(&skeleton, &joints, &vertices, &normals, &surfaces, &outfit);
 
     let pose = body::random_pose(&skeleton, &outfit, &mut rng);
-    let transforms = skeleton.skinning_transforms(&pose).map_err(|e| DataError::render(at("pose"), e))?;
-    let posed = skin_points(&clothed, &template.skin, &transforms).map_err(|e| DataError::render(at("skinning"), e))?;
+    let transforms = skeleton
+        .skinning_transforms(&pose)
+        .map_err(|e| DataError::render(at("pose"), e))?;
+    let posed = skin_points(&clothed, &template.skin, &transforms)
+        .map_err(|e| DataError::render(at("skinning"), e))?;
     let posed_normals = body::vertex_normals(&posed, faces);
 
     let rh = Vec3::new(0.0, rng.uniform() as f32 * std::f32::consts::TAU, 0.0);
     let rot = lifegom_render::skeleton::rodrigues(rh);
-    let min_y = posed.iter().map(|p| (rot * *p).y).fold(f32::INFINITY, f32::min);
-    let th = Vec3::new(rng.range(-0.05, 0.05) as f32, -min_y, rng.range(-0.05, 0.05) as f32);
+    let min_y = posed
+        .iter()
+        .map(|p| (rot * *p).y)
+        .fold(f32::INFINITY, f32::min);
+    let th = Vec3::new(
+        rng.range(-0.05, 0.05) as f32,
+        -min_y,
+        rng.range(-0.05, 0.05) as f32,
+    );
     let world: Vec<Vec3> = posed.iter().map(|p| rot * *p + th).collect();
     let world_normals: Vec<Vec3> = posed_normals.iter().map(|n| rot * *n).collect();
 
@@ -478,9 +530,15 @@ fn vec3_array(v: &[Vec3]) -> Value {
 }
 
 /// Writes `subject` into `dir/<name>/` in the official layout.
-pub fn write_subject(template: &BodyTemplate, subject: &SyntheticSubject, dir: &Path) -> Result<()> {
+pub fn write_subject(
+    template: &BodyTemplate,
+    subject: &SyntheticSubject,
+    dir: &Path,
+) -> Result<()> {
     let root = dir.join(&subject.name);
-    let io = |path: &Path, e: std::io::Error| DataError::io(Location::file(path).subject(&subject.name), e);
+    let io = |path: &Path, e: std::io::Error| {
+        DataError::io(Location::file(path).subject(&subject.name), e)
+    };
     for sub in ["images", "masks"] {
         let p = root.join(sub);
         std::fs::create_dir_all(&p).map_err(|e| io(&p, e))?;
@@ -492,7 +550,11 @@ pub fn write_subject(template: &BodyTemplate, subject: &SyntheticSubject, dir: &
         let (w, h) = (frame.camera.width, frame.camera.height);
         let img_path = root.join("images").join(format!("{}.png", frame.name));
         let save_err = |path: &Path, e: image::ImageError| DataError::Image {
-            location: Location::file(path).subject(&subject.name).frame(&frame.name),
+            location: Box::new(
+                Location::file(path)
+                    .subject(&subject.name)
+                    .frame(&frame.name),
+            ),
             reason: format!("cannot write PNG: {e}"),
         };
         image::save_buffer(&img_path, &frame.rgb, w, h, image::ExtendedColorType::Rgb8)
@@ -512,14 +574,23 @@ pub fn write_subject(template: &BodyTemplate, subject: &SyntheticSubject, dir: &
         cameras.push((
             key(&frame.name),
             Value::Dict(vec![
-                (key("intrinsics"), f32_array(vec![3, 3], k.into_iter().flatten())),
-                (key("extrinsics"), f32_array(vec![4, 4], e.into_iter().flatten())),
+                (
+                    key("intrinsics"),
+                    f32_array(vec![3, 3], k.into_iter().flatten()),
+                ),
+                (
+                    key("extrinsics"),
+                    f32_array(vec![4, 4], e.into_iter().flatten()),
+                ),
             ]),
         ));
         infos.push((
             key(&frame.name),
             Value::Dict(vec![
-                (key("poses"), f32_array(vec![3 * j], subject.poses.iter().copied())),
+                (
+                    key("poses"),
+                    f32_array(vec![3 * j], subject.poses.iter().copied()),
+                ),
                 (key("tpose_joints"), vec3_array(&subject.est_joints)),
                 (key("Rh"), f32_array(vec![3], subject.rh.to_array())),
                 (key("Th"), f32_array(vec![3], subject.th.to_array())),
@@ -528,17 +599,30 @@ pub fn write_subject(template: &BodyTemplate, subject: &SyntheticSubject, dir: &
     }
     pickle::save(&root.join("cameras.pkl"), &Value::Dict(cameras))?;
     pickle::save(&root.join("mesh_infos.pkl"), &Value::Dict(infos))?;
-    let parents = template.skeleton.parents.iter().map(|p| p.map_or(-1, |p| p as i64));
+    let parents = template
+        .skeleton
+        .parents
+        .iter()
+        .map(|p| p.map_or(-1, |p| p as i64));
     let canonical = Value::Dict(vec![
         (key("joints"), vec3_array(&subject.est_joints)),
         (key("vertex"), vec3_array(&subject.est_vertices)),
-        (key("weights"), f32_array(vec![template.num_vertices(), j], template.skin.to_dense())),
+        (
+            key("weights"),
+            f32_array(vec![template.num_vertices(), j], template.skin.to_dense()),
+        ),
         (
             key("faces"),
-            i64_array(vec![template.topology.num_faces(), 3], template.topology.faces.iter().flatten().map(|&i| i as i64)),
+            i64_array(
+                vec![template.topology.num_faces(), 3],
+                template.topology.faces.iter().flatten().map(|&i| i as i64),
+            ),
         ),
         (key("parents"), i64_array(vec![j], parents)),
-        (key("joint_names"), Value::List(template.skeleton.names.iter().map(|n| key(n)).collect())),
+        (
+            key("joint_names"),
+            Value::List(template.skeleton.names.iter().map(|n| key(n)).collect()),
+        ),
     ]);
     pickle::save(&root.join("canonical_joints.pkl"), &canonical)
 }
@@ -588,7 +672,8 @@ pub fn generate_split(
     let (train, val) = names.split_at(cfg.train_subjects);
     let write_json = |path: PathBuf, value: serde_json::Value| -> Result<()> {
         if let Some(parent) = path.parent() {
-            std::fs::create_dir_all(parent).map_err(|e| DataError::io(Location::file(parent), e))?;
+            std::fs::create_dir_all(parent)
+                .map_err(|e| DataError::io(Location::file(parent), e))?;
         }
         let text = serde_json::to_string_pretty(&value).unwrap_or_default();
         std::fs::write(&path, text).map_err(|e| DataError::io(Location::file(&path), e))
@@ -610,7 +695,11 @@ pub fn generate_split(
 
 /// A contact sheet of generated subjects: per subject, `views` images then their masks, in one
 /// row; `dir` is a split folder. Returns `(width, height, rgb8)`.
-pub fn contact_sheet(dir: &Path, subjects: &[String], views: &[usize]) -> Result<(u32, u32, Vec<u8>)> {
+pub fn contact_sheet(
+    dir: &Path,
+    subjects: &[String],
+    views: &[usize],
+) -> Result<(u32, u32, Vec<u8>)> {
     let mut tiles: Vec<Vec<image::RgbImage>> = Vec::new();
     for s in subjects {
         let mut row = Vec::new();
@@ -618,7 +707,10 @@ pub fn contact_sheet(dir: &Path, subjects: &[String], views: &[usize]) -> Result
             for &v in views {
                 let path = dir.join(s).join(sub).join(format!("frame_{v:06}.png"));
                 let loc = Location::file(&path).subject(s);
-                let img = image::open(&path).map_err(|e| DataError::Image { location: loc, reason: e.to_string() })?;
+                let img = image::open(&path).map_err(|e| DataError::Image {
+                    location: Box::new(loc),
+                    reason: e.to_string(),
+                })?;
                 row.push(img.to_rgb8());
             }
         }
@@ -633,7 +725,12 @@ pub fn contact_sheet(dir: &Path, subjects: &[String], views: &[usize]) -> Result
     let mut sheet = image::RgbImage::new(w, h);
     for (r, row) in tiles.iter().enumerate() {
         for (c, t) in row.iter().enumerate() {
-            image::imageops::replace(&mut sheet, t, (c as u32 * tw) as i64, (r as u32 * th) as i64);
+            image::imageops::replace(
+                &mut sheet,
+                t,
+                (c as u32 * tw) as i64,
+                (r as u32 * th) as i64,
+            );
         }
     }
     Ok((w, h, sheet.into_raw()))

@@ -64,7 +64,10 @@ pub fn rasterize(vertices: &[Vec3], faces: &[[u32; 3]], camera: &Camera) -> Vec<
         else {
             continue; // out-of-range index: callers validate topology, so never in practice
         };
-        if corners.iter().any(|c| !(c.1 >= NEAR as f64) || !c.0.is_finite()) {
+        if corners
+            .iter()
+            .any(|c| c.1.is_nan() || c.1 < NEAR as f64 || !c.0.is_finite())
+        {
             continue;
         }
         let p = [corners[0].0, corners[1].0, corners[2].0];
@@ -78,8 +81,12 @@ pub fn rasterize(vertices: &[Vec3], faces: &[[u32; 3]], camera: &Camera) -> Vec<
         let sign = area.signum();
         let lo = p[0].min(p[1]).min(p[2]);
         let hi = p[0].max(p[1]).max(p[2]);
-        let Some((i0, i1)) = pixel_range(lo.x, hi.x, w) else { continue };
-        let Some((j0, j1)) = pixel_range(lo.y, hi.y, h) else { continue };
+        let Some((i0, i1)) = pixel_range(lo.x, hi.x, w) else {
+            continue;
+        };
+        let Some((j0, j1)) = pixel_range(lo.y, hi.y, h) else {
+            continue;
+        };
         for j in j0..=j1 {
             for i in i0..=i1 {
                 let x = DVec2::new(i as f64 + 0.5, j as f64 + 0.5);
@@ -110,7 +117,11 @@ pub fn rasterize(vertices: &[Vec3], faces: &[[u32; 3]], camera: &Camera) -> Vec<
                 if nearer {
                     *slot = Some(Fragment {
                         face: f as u32,
-                        bary: [(wz[0] / wsum) as f32, (wz[1] / wsum) as f32, (wz[2] / wsum) as f32],
+                        bary: [
+                            (wz[0] / wsum) as f32,
+                            (wz[1] / wsum) as f32,
+                            (wz[2] / wsum) as f32,
+                        ],
                         depth,
                     });
                 }
@@ -147,7 +158,18 @@ mod tests {
 
     /// Identity extrinsics, f = 1, c = 0: world `(u·z, v·z, z)` lands on pixel coords `(u, v)`.
     fn screen(w: u32, h: u32) -> Camera {
-        Camera::new(Intrinsics { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0 }, Affine3A::IDENTITY, w, h).unwrap()
+        Camera::new(
+            Intrinsics {
+                fx: 1.0,
+                fy: 1.0,
+                cx: 0.0,
+                cy: 0.0,
+            },
+            Affine3A::IDENTITY,
+            w,
+            h,
+        )
+        .unwrap()
     }
 
     #[test]
@@ -180,23 +202,39 @@ mod tests {
 
     #[test]
     fn nearer_triangle_wins_and_perspective_is_correct() {
-        let far = [Vec3::new(-10.0, -10.0, 5.0), Vec3::new(50.0, -10.0, 5.0), Vec3::new(-10.0, 50.0, 5.0)];
+        let far = [
+            Vec3::new(-10.0, -10.0, 5.0),
+            Vec3::new(50.0, -10.0, 5.0),
+            Vec3::new(-10.0, 50.0, 5.0),
+        ];
         // A slanted triangle: depth varies across the screen.
-        let near = [Vec3::new(0.0, 0.0, 1.0), Vec3::new(12.0, 0.0, 3.0), Vec3::new(0.0, 8.0, 2.0)];
+        let near = [
+            Vec3::new(0.0, 0.0, 1.0),
+            Vec3::new(12.0, 0.0, 3.0),
+            Vec3::new(0.0, 8.0, 2.0),
+        ];
         let verts: Vec<Vec3> = far.iter().chain(&near).copied().collect();
         let img = rasterize(&verts, &[[0, 1, 2], [3, 4, 5]], &screen(8, 8));
         let frag = img[8 + 1].unwrap();
         assert_eq!(frag.face, 1);
         // The interpolated 3D point must project back onto the pixel centre (1.5, 1.5).
         let p: Vec3 = (0..3).map(|c| frag.bary[c] * near[c]).sum();
-        assert!((p.x / p.z - 1.5).abs() < 1e-4 && (p.y / p.z - 1.5).abs() < 1e-4, "{p}");
+        assert!(
+            (p.x / p.z - 1.5).abs() < 1e-4 && (p.y / p.z - 1.5).abs() < 1e-4,
+            "{p}"
+        );
         assert!((p.z - frag.depth).abs() < 1e-4);
         assert_eq!(img[8 + 5].unwrap().face, 0);
     }
 
     #[test]
     fn degenerate_and_behind_camera_triangles_draw_nothing() {
-        let v = [Vec3::new(0.0, 0.0, 1.0), Vec3::new(4.0, 4.0, 1.0), Vec3::new(8.0, 8.0, 1.0), Vec3::new(0.0, 8.0, -1.0)];
+        let v = [
+            Vec3::new(0.0, 0.0, 1.0),
+            Vec3::new(4.0, 4.0, 1.0),
+            Vec3::new(8.0, 8.0, 1.0),
+            Vec3::new(0.0, 8.0, -1.0),
+        ];
         let img = rasterize(&v, &[[0, 1, 2], [0, 2, 3], [0, 1, 9]], &screen(8, 8));
         assert!(img.iter().all(Option::is_none));
     }

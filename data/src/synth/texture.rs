@@ -67,16 +67,28 @@ impl Material {
         let t = match self.pattern {
             Pattern::Solid => 0.0,
             Pattern::Stripes { period } => {
-                if (p.y / period).rem_euclid(1.0) < 0.5 { 0.0 } else { 1.0 }
+                if (p.y / period).rem_euclid(1.0) < 0.5 {
+                    0.0
+                } else {
+                    1.0
+                }
             }
             Pattern::Checks { size } => {
                 let c = (p / size).floor();
-                if (c.x + c.y + c.z).rem_euclid(2.0) < 0.5 { 0.0 } else { 1.0 }
+                if (c.x + c.y + c.z).rem_euclid(2.0) < 0.5 {
+                    0.0
+                } else {
+                    1.0
+                }
             }
             Pattern::Noise { scale, seed } => value_noise(p / scale, seed),
             Pattern::Dots { period, radius } => {
                 let cell = (p / period).round() * period;
-                if (p - cell).length() < radius { 1.0 } else { 0.0 }
+                if (p - cell).length() < radius {
+                    1.0
+                } else {
+                    0.0
+                }
             }
         };
         std::array::from_fn(|i| self.base[i] * (1.0 - t) + self.accent[i] * t)
@@ -231,7 +243,10 @@ mod tests {
                 varied += usize::from(distinct);
             }
         }
-        assert!(patterned > 20 && varied * 10 >= patterned * 8, "{varied}/{patterned}");
+        assert!(
+            patterned > 20 && varied * 10 >= patterned * 8,
+            "{varied}/{patterned}"
+        );
     }
 
     #[test]
