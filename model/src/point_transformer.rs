@@ -1125,14 +1125,14 @@ mod tests {
                     Some((idx, rel)) => stage.down.forward_grouped(xl, idx.clone(), rel.clone()),
                 };
                 let xl2 = xl.clone().add_scalar(0.0);
-                let _ = read(xl2.clone().slice([0..1]));
+                let _ = read(xl2.clone().narrow(0, 0, 1));
                 let t_down = t0.elapsed();
                 let t0 = Instant::now();
                 let y = match stage.blocks.first() {
                     Some(b) => b.forward(xl2, levels[l].rel.clone(), levels[l].nbr.clone()),
                     None => xl2,
                 };
-                let _ = read(y.slice([0..1]));
+                let _ = read(y.narrow(0, 0, 1));
                 println!(
                     "{name}: level {} n={} c={}: down {t_down:?}, one block {:?}",
                     l + 1,
