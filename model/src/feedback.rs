@@ -28,6 +28,7 @@ use glam::{Affine3A, Vec3};
 
 use lifegom_render::camera::Camera;
 use lifegom_render::gom::{GomMesh, GomParams};
+use lifegom_render::mesh::MeshTopology;
 use lifegom_render::rasterizer::{RasterSettings, rasterize};
 use lifegom_render::skeleton::Skeleton;
 use lifegom_render::skinning::skin_vertices;
@@ -44,6 +45,15 @@ use crate::sampling::{project_points, sample_single};
 /// Width of the encoder's concatenated pyramid for a configuration (1152 for the paper's).
 fn encoder_feature_dim(cfg: &ImageEncoderConfig) -> usize {
     cfg.resnet_channels().iter().sum::<usize>() + cfg.rgb_embed_channels
+}
+
+/// Which subdivision level a mesh is built for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    /// Training (`subdivide_train`).
+    Train,
+    /// Inference and evaluation (`subdivide_test`).
+    Inference,
 }
 
 /// Configuration of the [`Reconstructor`].
@@ -64,6 +74,12 @@ pub struct ReconstructorConfig {
     /// Feedback steps T.
     #[config(default = 3)]
     pub iterations: usize,
+    /// Subdivisions of the Gaussians' mesh in training (the reference forces 1).
+    #[config(default = 1)]
+    pub subdivide_train: u32,
+    /// Subdivisions at inference (2 for THuman, 1 for AIST++). The weights do not depend on it.
+    #[config(default = 2)]
+    pub subdivide_test: u32,
 }
 
 impl ReconstructorConfig {
@@ -91,6 +107,16 @@ impl ReconstructorConfig {
             .with_rgb_embed_channels(32);
         let d = encoder_feature_dim(&encoder);
         Self::new(encoder, PointTransformerConfig::paper(3 + 2 * d), num_views)
+    }
+
+    /// The Gaussians' mesh for `phase`: the low-res template subdivided `subdivide_train` or
+    /// `subdivide_test` times (coupled multi-resolution: one model serves both).
+    pub fn mesh(&self, lowres: &MeshTopology, phase: Phase, device: &Device) -> Result<GomMesh> {
+        let levels = match phase {
+            Phase::Train => self.subdivide_train,
+            Phase::Inference => self.subdivide_test,
+        };
+        Ok(GomMesh::new(lowres, levels, device)?)
     }
 
     /// Width of one view's image feature.
@@ -826,5 +852,17 @@ mod tests {
         let grads = rec.renders.iter().map(|r| r.rgb.clone().mean()).reduce(|a, b| a + b).unwrap().backward();
         let g = read(model.vertex_embed.val().grad(&grads).unwrap());
         assert!(g.iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn training_and_inference_meshes_share_the_low_res_topology() {
+        let device = Device::flex();
+        let body = BodyTemplate::load(lowres_template_path()).unwrap();
+        let cfg = ReconstructorConfig::tiny(2);
+        let train = cfg.mesh(&body.topology, Phase::Train, &device).unwrap();
+        let test = cfg.mesh(&body.topology, Phase::Inference, &device).unwrap();
+        let f = body.topology.faces.len();
+        assert_eq!((train.num_gaussians(), test.num_gaussians()), (4 * f, 16 * f));
+        assert_eq!(train.subdivision.lowres, test.subdivision.lowres);
     }
 }
