@@ -1,1 +1,7 @@
-//! placeholder
+//! # lifegom-eval
+//!
+//! The evaluation command for THuman-style splits (spec §7): novel-view and novel-pose
+//! renders, PSNR, SSIM, LPIPS-style and FID metrics.
+//!
+//! Not implemented yet: this crate is the home of the `lifegom-eval` binary (issue "Train and
+//! eval commands"). It builds so the workspace layout is in place; it has no API yet.

@@ -1,1 +1,7 @@
-//! placeholder
+//! # lifegom-train
+//!
+//! The training command for LIFe-GoM (spec §6): Adam on the reconstructor with the RGB, mask,
+//! SSIM and Laplacian losses, supervised on every feedback step's source renders and target view.
+//!
+//! Not implemented yet: this crate is the home of the `lifegom-train` binary (issue "Train and
+//! eval commands"). It builds so the workspace layout is in place; it has no API yet.
