@@ -54,6 +54,16 @@ impl Intrinsics {
         })
     }
 
+    /// Square pixels of focal length `focal` with the principal point at the image centre.
+    pub fn centered(focal: f32, width: u32, height: u32) -> Self {
+        Self {
+            fx: focal,
+            fy: focal,
+            cx: width as f32 / 2.0,
+            cy: height as f32 / 2.0,
+        }
+    }
+
     /// The row-major 3×3 matrix.
     pub fn matrix(&self) -> [[f32; 3]; 3] {
         [

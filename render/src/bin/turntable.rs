@@ -99,12 +99,7 @@ fn main() -> anyhow::Result<()> {
         Vec3::new(0.0, 0.1, 2.6),
         Vec3::new(0.0, 0.1, 0.0),
         Vec3::Y,
-        Intrinsics {
-            fx: f,
-            fy: f,
-            cx: size as f32 / 2.0,
-            cy: size as f32 / 2.0,
-        },
+        Intrinsics::centered(f, size, size),
         size,
         size,
     )?;
