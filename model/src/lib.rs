@@ -49,6 +49,7 @@
 //! weights every network is randomly initialised; binaries say so when they print results.
 
 pub mod avatar;
+pub mod checkpoint;
 pub mod encoder;
 pub mod error;
 pub mod feedback;
