@@ -1,6 +1,7 @@
 //! Errors of the model crate: each wraps the failing stage's own error, so the message names
 //! the input at fault.
 
+use crate::checkpoint::CheckpointError;
 use crate::encoder::EncoderError;
 use crate::sampling::SamplingError;
 use lifegom_render::RenderError;
@@ -17,6 +18,9 @@ pub enum ModelError {
     /// The image encoder failed (weights file, width).
     #[error(transparent)]
     Encoder(#[from] EncoderError),
+    /// Importing an official checkpoint failed.
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
     /// Inputs that do not fit together.
     #[error("invalid `{what}`: {reason}")]
     InvalidInput {

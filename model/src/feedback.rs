@@ -836,20 +836,50 @@ mod tests {
         let device = Device::ndarray().autodiff();
         let mut fx = fixture(&device, 32);
         let k = fx.sources.cameras[0].intrinsics;
-        fx.sources.cameras[1] = Camera::look_at(Vec3::new(0.0, 0.1, 2.5), Vec3::new(0.0, 0.1, 5.0), Vec3::Y, k, 32, 32).unwrap();
+        fx.sources.cameras[1] = Camera::look_at(
+            Vec3::new(0.0, 0.1, 2.5),
+            Vec3::new(0.0, 0.1, 5.0),
+            Vec3::Y,
+            k,
+            32,
+            32,
+        )
+        .unwrap();
         let body = BodyTemplate::load(lowres_template_path()).unwrap();
-        let twisted = BodyPose { joint_rotations: vec![Vec3::new(0.0, std::f32::consts::PI, 0.0); body.num_joints()] };
+        let twisted = BodyPose {
+            joint_rotations: vec![Vec3::new(0.0, std::f32::consts::PI, 0.0); body.num_joints()],
+        };
         fx.sources.skinning[0] = body.skeleton.skinning_transforms(&twisted).unwrap();
-        let model = ReconstructorConfig::tiny(2).with_iterations(3).init(fx.vertices, &device).unwrap();
+        let model = ReconstructorConfig::tiny(2)
+            .with_iterations(3)
+            .init(fx.vertices, &device)
+            .unwrap();
         let rec = model.forward(&fx.subject, &fx.mesh, &fx.sources).unwrap();
         assert_eq!(rec.states.len(), 3);
         let away = read(rec.renders[2].alpha.clone().slice([1..2]));
-        assert!(away.iter().all(|a| *a == 0.0), "the view looking away renders nothing");
+        assert!(
+            away.iter().all(|a| *a == 0.0),
+            "the view looking away renders nothing"
+        );
         for (t, state) in rec.states.iter().enumerate() {
-            assert!(read(state.xyz.clone()).iter().all(|v| v.is_finite()), "xyz at step {t}");
-            assert!(read(state.faces.scales.clone()).iter().all(|v| v.is_finite()), "scales at step {t}");
+            assert!(
+                read(state.xyz.clone()).iter().all(|v| v.is_finite()),
+                "xyz at step {t}"
+            );
+            assert!(
+                read(state.faces.scales.clone())
+                    .iter()
+                    .all(|v| v.is_finite()),
+                "scales at step {t}"
+            );
         }
-        let grads = rec.renders.iter().map(|r| r.rgb.clone().mean()).reduce(|a, b| a + b).unwrap().backward();
+        let grads = rec
+            .renders
+            .iter()
+            .map(|r| r.rgb.clone().mean())
+            .reduce(|a, b| a + b)
+            .unwrap()
+            .backward();
         let g = read(model.vertex_embed.val().grad(&grads).unwrap());
         assert!(g.iter().all(|v| v.is_finite()));
     }
@@ -862,7 +892,10 @@ mod tests {
         let train = cfg.mesh(&body.topology, Phase::Train, &device).unwrap();
         let test = cfg.mesh(&body.topology, Phase::Inference, &device).unwrap();
         let f = body.topology.faces.len();
-        assert_eq!((train.num_gaussians(), test.num_gaussians()), (4 * f, 16 * f));
+        assert_eq!(
+            (train.num_gaussians(), test.num_gaussians()),
+            (4 * f, 16 * f)
+        );
         assert_eq!(train.subdivision.lowres, test.subdivision.lowres);
     }
 }

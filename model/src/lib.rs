@@ -43,6 +43,7 @@
 //! | [`heads`] | update heads: residual vertex update, new embedding, per-face Gaussian parameters |
 //! | [`feedback`] | the reconstructor: T steps of render → encode → fuse → update |
 //! | [`avatar`] | the result: render in any pose and view, save/load, 3DGS `.ply` export |
+//! | [`checkpoint`] | import of the official LIFe-GoM PyTorch checkpoint (spec §10 key map) |
 //!
 //! Model code has no backend generic: modules take a `burn::tensor::Device` and run on ndarray
 //! and Flex (wgpu once its kernels land), with `.autodiff()` for training. Without trained

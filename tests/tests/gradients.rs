@@ -11,9 +11,28 @@ use lifegom_tests::{Rng, camera, cpu_devices, read, tensor2};
 
 /// An octahedron of radius ~0.25 m, slightly irregular so no face is special.
 fn octahedron(rng: &mut Rng) -> (MeshTopology, Vec<f32>) {
-    let dirs = [[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]];
-    let vertices = dirs.iter().flat_map(|d: &[f32; 3]| d.map(|c| c * 0.25 + rng.range(-0.03, 0.03))).collect();
-    let faces = vec![[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]];
+    let dirs = [
+        [1.0, 0.0, 0.0],
+        [-1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, -1.0, 0.0],
+        [0.0, 0.0, 1.0],
+        [0.0, 0.0, -1.0],
+    ];
+    let vertices = dirs
+        .iter()
+        .flat_map(|d: &[f32; 3]| d.map(|c| c * 0.25 + rng.range(-0.03, 0.03)))
+        .collect();
+    let faces = vec![
+        [0, 2, 4],
+        [2, 1, 4],
+        [1, 3, 4],
+        [3, 0, 4],
+        [2, 0, 5],
+        [1, 2, 5],
+        [3, 1, 5],
+        [0, 3, 5],
+    ];
     (MeshTopology::new(faces, 6).unwrap(), vertices)
 }
 
@@ -21,12 +40,15 @@ fn check(device: &Device) {
     let mut rng = Rng::new(5);
     let (topology, vertices) = octahedron(&mut rng);
     let (w, h) = (40u32, 32u32);
-    let settings = RasterSettings::new(camera(Vec3::new(0.4, 0.3, 1.6), w, h, 40.0)).with_cutoff(AlphaCutoff::Smooth);
+    let settings = RasterSettings::new(camera(Vec3::new(0.4, 0.3, 1.6), w, h, 40.0))
+        .with_cutoff(AlphaCutoff::Smooth);
     let ad = device.clone().autodiff();
     let mesh = GomMesh::new(&topology, 1, &ad).unwrap();
     let f = mesh.num_gaussians();
     let colors: Vec<f32> = (0..3 * f).map(|_| rng.range(0.1, 1.0)).collect();
-    let weights: Vec<f32> = (0..(w * h * 4) as usize).map(|_| rng.range(-1.0, 1.0)).collect();
+    let weights: Vec<f32> = (0..(w * h * 4) as usize)
+        .map(|_| rng.range(-1.0, 1.0))
+        .collect();
     let params = |dev: &Device| {
         let mut p = GomParams::init(f, dev);
         p.colors = tensor2(colors.clone(), 3, dev);
@@ -41,13 +63,19 @@ fn check(device: &Device) {
     };
     let loss_host = |v: &[f32]| -> f64 {
         let img = read(render(v, &ad));
-        img.iter().zip(&weights).map(|(a, b)| *a as f64 * *b as f64).sum()
+        img.iter()
+            .zip(&weights)
+            .map(|(a, b)| *a as f64 * *b as f64)
+            .sum()
     };
 
     let leaf = tensor2(vertices.clone(), 3, &ad).require_grad();
     let g = mesh.gaussians(leaf.clone(), &params(&ad));
     let image = rasterize(&g, &settings).unwrap().image;
-    assert!(read(image.clone()).chunks(4).filter(|p| p[3] > 0.1).count() > 50, "the mesh must be in view");
+    assert!(
+        read(image.clone()).chunks(4).filter(|p| p[3] > 0.1).count() > 50,
+        "the mesh must be in view"
+    );
     let wt = Tensor::<3>::from_data(TensorData::new(weights.clone(), image.dims()), &ad);
     let grads = (image * wt).sum().backward();
     let analytic = read(leaf.grad(&grads).expect("vertex gradient"));
@@ -65,9 +93,15 @@ fn check(device: &Device) {
         let numeric = central(1e-4);
         let a = analytic[i] as f64;
         let tol = 2e-2 * a.abs().max(numeric.abs()) + 0.05;
-        assert!((a - numeric).abs() <= tol, "vertex coordinate {i}: analytic {a} vs numeric {numeric}");
+        assert!(
+            (a - numeric).abs() <= tol,
+            "vertex coordinate {i}: analytic {a} vs numeric {numeric}"
+        );
     }
-    assert!(analytic.iter().map(|g| g.abs()).fold(0.0, f32::max) > 1.0, "gradients must be non-trivial: {analytic:?}");
+    assert!(
+        analytic.iter().map(|g| g.abs()).fold(0.0, f32::max) > 1.0,
+        "gradients must be non-trivial: {analytic:?}"
+    );
 }
 
 #[test]
