@@ -90,7 +90,7 @@ fn main() -> anyhow::Result<()> {
         sources
             .images
             .clone()
-            .slice([0..1])
+            .narrow(0, 0, 1)
             .squeeze_dim(0)
             .permute([1, 2, 0]),
     )?;

@@ -316,6 +316,7 @@ impl Avatar {
 
 /// Eigen-decomposition of a symmetric 3×3 matrix by cyclic Jacobi rotations (f64 inside):
 /// returns a proper rotation whose columns are eigenvectors, and the eigenvalues.
+#[allow(clippy::needless_range_loop)] // index form mirrors the Jacobi rotation formulas
 fn symmetric_eigen(m: Mat3) -> (Mat3, Vec3) {
     let mut a = [[0.0f64; 3]; 3];
     for (r, row) in a.iter_mut().enumerate() {

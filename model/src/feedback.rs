@@ -138,7 +138,7 @@ impl ReconstructorConfig {
                 ),
             });
         }
-        if self.n_heads == 0 || d % self.n_heads != 0 {
+        if self.n_heads == 0 || !d.is_multiple_of(self.n_heads) {
             return Err(ModelError::InvalidInput {
                 what: "n_heads",
                 reason: format!("{} does not divide the feature width {d}", self.n_heads),
@@ -856,7 +856,7 @@ mod tests {
             .unwrap();
         let rec = model.forward(&fx.subject, &fx.mesh, &fx.sources).unwrap();
         assert_eq!(rec.states.len(), 3);
-        let away = read(rec.renders[2].alpha.clone().slice([1..2]));
+        let away = read(rec.renders[2].alpha.clone().narrow(0, 1, 1));
         assert!(
             away.iter().all(|a| *a == 0.0),
             "the view looking away renders nothing"

@@ -57,7 +57,7 @@ impl AttentionLayerConfig {
     /// kaiming-uniform with bound `1/√fan_in`).
     pub fn init(&self, device: &Device) -> AttentionLayer {
         assert!(
-            self.n_heads > 0 && self.d_model % self.n_heads == 0,
+            self.n_heads > 0 && self.d_model.is_multiple_of(self.n_heads),
             "d_model {} must be divisible by n_heads {}",
             self.d_model,
             self.n_heads

@@ -231,6 +231,7 @@ impl Camera {
 
     /// Projects a world point to pixel coordinates (pixel `i` covers `[i, i+1)`), with its depth.
     /// Returns `None` for points at or behind the camera plane.
+    #[allow(clippy::neg_cmp_op_on_partial_ord)] // worded so that a NaN depth fails the test
     pub fn project(&self, p: Vec3) -> Option<(Vec2, f32)> {
         let c = self.world_to_camera(p);
         if !(c.z > 0.0) {

@@ -50,7 +50,7 @@ pub fn camera(eye: glam::Vec3, width: u32, height: u32, f: f32) -> Camera {
 
 /// A `[rows, cols]` tensor from a flat vector.
 pub fn tensor2(values: Vec<f32>, cols: usize, device: &Device) -> Tensor<2> {
-    let rows = if cols == 0 { 0 } else { values.len() / cols };
+    let rows = values.len().checked_div(cols).unwrap_or(0);
     Tensor::from_data(TensorData::new(values, [rows, cols]), device)
 }
 

@@ -275,6 +275,7 @@ pub fn project_one(
 
 /// The EWA Jacobian rows (`J00`, `J02`, `J11`, `J12`) and whether x/y were clamped.
 #[inline]
+#[allow(clippy::neg_cmp_op_on_partial_ord)] // a NaN ratio counts as clamped
 fn ewa_jacobian(cfg: &RasterConfig, t: [f32; 3]) -> ([f32; 4], [bool; 2]) {
     let v = &cfg.view;
     let limx = FOV_CLAMP * v.width as f32 / (2.0 * v.fx);

@@ -294,6 +294,7 @@ fn gradients_match_central_differences(device: &Device) {
     }
 }
 
+#[allow(clippy::needless_range_loop)] // `i` indexes the analytic gradient and a perturbed copy
 pub(crate) fn check_gradients(
     device: &Device,
     scene: &Scene,
