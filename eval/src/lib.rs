@@ -4,4 +4,11 @@
 //! renders, PSNR, SSIM, LPIPS-style and FID metrics.
 //!
 //! Not implemented yet: this crate is the home of the `lifegom-eval` binary (issue "Train and
-//! eval commands"). It builds so the workspace layout is in place; it has no API yet.
+//! eval commands"). It builds so the workspace layout is in place.
+//!
+//! ## Module map
+//!
+//! - [`metrics`]: host-side PSNR, skimage-compatible SSIM and the THuman 1000×500 foreground
+//!   crop (spec §7.2–§7.3). LPIPS and FID are not implemented yet.
+
+pub mod metrics;
