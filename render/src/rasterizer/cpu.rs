@@ -167,7 +167,9 @@ impl GaussianSlices<'_> {
     }
 }
 
-/// A Gaussian after projection: what blending needs.
+/// A Gaussian after projection: what blending needs, and nothing more. Blending reads one of
+/// these per tile intersection, in depth order, i.e. at random: keeping it at 32 bytes (two per
+/// cache line) is worth more than caching derived values.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Splat2d {
     /// Centre in the reference pixel frame (projected `u − ½`, `v − ½`).
@@ -178,15 +180,34 @@ pub struct Splat2d {
     pub opacity: f32,
     /// View-space depth.
     pub depth: f32,
-    /// Half-extent, in pixels, of the box outside which alpha is below the cutoff.
-    pub extent: [f32; 2],
     /// `ln(cutoff / opacity)`: below this exponent alpha is under the cutoff, so `exp` can be
     /// skipped.
     pub log_cutoff: f32,
-    /// First tile (x, y) touched.
-    pub tile_min: [u32; 2],
-    /// One past the last tile (x, y) touched.
-    pub tile_max: [u32; 2],
+}
+
+impl Splat2d {
+    /// Half-extents, in pixels, of the box outside which alpha is below the cutoff: where
+    /// `dᵀQd = k²` with `k² = −2·log_cutoff`, i.e. `k·√Σxx` and `k·√Σyy`. The 1e-3 relative
+    /// margin keeps boundary pixels whose alpha equals the cutoff up to rounding.
+    #[inline]
+    pub fn extent(&self) -> [f32; 2] {
+        let [qa, qb, qc] = self.conic;
+        let inv_det = 1.0 / (qa * qc - qb * qb);
+        let k2 = -2.0 * self.log_cutoff;
+        [
+            (k2 * qc * inv_det).sqrt() * 1.001 + 1e-3,
+            (k2 * qa * inv_det).sqrt() * 1.001 + 1e-3,
+        ]
+    }
+}
+
+/// A projected Gaussian and the tiles it touches (`[x0, y0, x1, y1)`, in tiles).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Projected {
+    /// What blending needs.
+    pub splat: Splat2d,
+    /// Tile rectangle, used only for binning.
+    pub tiles: [u32; 4],
 }
 
 #[inline]
@@ -203,7 +224,7 @@ pub fn project_one(
     mean: [f32; 3],
     cov: [f32; 6],
     opacity: f32,
-) -> Option<Splat2d> {
+) -> Option<Projected> {
     let v = &cfg.view;
     let m = &v.view;
     let tx = m[0] * mean[0] + m[1] * mean[1] + m[2] * mean[2] + m[3];
@@ -233,12 +254,15 @@ pub fn project_one(
         AlphaCutoff::Hard => (3.0 * lambda_max.sqrt()).ceil(),
         AlphaCutoff::Smooth => (k2 * lambda_max).sqrt().ceil(),
     };
-    // The 1e-3 relative margin keeps boundary pixels whose alpha is the cutoff up to rounding.
-    let extent = [
-        (k2 * a).sqrt() * 1.001 + 1e-3,
-        (k2 * c).sqrt() * 1.001 + 1e-3,
-    ];
     let xy = [v.fx * tx / tz + v.cx - 0.5, v.fy * ty / tz + v.cy - 0.5];
+    let splat = Splat2d {
+        xy,
+        conic,
+        opacity,
+        depth: tz,
+        log_cutoff: -0.5 * k2,
+    };
+    let extent = splat.extent();
     if !(xy[0].is_finite()
         && xy[1].is_finite()
         && radius.is_finite()
@@ -261,15 +285,9 @@ pub fn project_one(
     if tile_max[0] <= tile_min[0] || tile_max[1] <= tile_min[1] {
         return None;
     }
-    Some(Splat2d {
-        xy,
-        conic,
-        opacity,
-        depth: tz,
-        extent,
-        log_cutoff: -0.5 * k2,
-        tile_min,
-        tile_max,
+    Some(Projected {
+        splat,
+        tiles: [tile_min[0], tile_min[1], tile_max[0], tile_max[1]],
     })
 }
 
@@ -392,8 +410,10 @@ pub struct ForwardState {
     pub cfg: RasterConfig,
     /// Number of Gaussians.
     pub num_gaussians: usize,
-    /// Projected Gaussians; `None` for culled ones.
-    pub splats: Vec<Option<Splat2d>>,
+    /// Projected Gaussians (meaningless where `visible` is false).
+    pub splats: Vec<Splat2d>,
+    /// Whether each Gaussian survived culling.
+    pub visible: Vec<bool>,
     /// `[num_tiles + 1]` offsets into `gaussian_from_isect`.
     pub tile_offsets: Vec<u32>,
     /// Per intersection, the Gaussian id; each tile's range is front to back.
@@ -409,52 +429,57 @@ pub struct ForwardState {
 fn project_and_bin(
     cfg: &RasterConfig,
     g: &GaussianSlices,
-) -> (Vec<Option<Splat2d>>, Vec<u32>, Vec<u32>) {
+) -> (Vec<Splat2d>, Vec<bool>, Vec<u32>, Vec<u32>) {
     let n = g.len();
-    let splats: Vec<Option<Splat2d>> = {
+    let mut splats = vec![Splat2d::default(); n];
+    let mut tiles = vec![[0u32; 4]; n];
+    let mut visible = vec![false; n];
+    {
         let _span = tracing::trace_span!("project").entered();
-        (0..n)
-            .into_par_iter()
+        splats
+            .par_iter_mut()
+            .zip(tiles.par_iter_mut())
+            .zip(visible.par_iter_mut())
+            .enumerate()
             .with_min_len(2048)
-            .map(|i| {
-                let m = [g.means[3 * i], g.means[3 * i + 1], g.means[3 * i + 2]];
-                let c = &g.covariances[6 * i..6 * i + 6];
+            .for_each(|(i, ((splat, rect), vis))| {
                 // A non-finite colour would poison every pixel it touches: cull it like a NaN mean.
                 if !g.colors[3 * i..3 * i + 3].iter().all(|v| v.is_finite()) {
-                    return None;
+                    return;
                 }
-                project_one(cfg, m, [c[0], c[1], c[2], c[3], c[4], c[5]], g.opacities[i])
-            })
-            .collect()
-    };
+                let m = [g.means[3 * i], g.means[3 * i + 1], g.means[3 * i + 2]];
+                let c = &g.covariances[6 * i..6 * i + 6];
+                if let Some(p) =
+                    project_one(cfg, m, [c[0], c[1], c[2], c[3], c[4], c[5]], g.opacities[i])
+                {
+                    *splat = p.splat;
+                    *rect = p.tiles;
+                    *vis = true;
+                }
+            });
+    }
     // Depth is > NEAR_Z > 0, so its bit pattern orders like the float; the index breaks ties.
     let order: Vec<u64> = {
         let _span = tracing::trace_span!("depth_sort").entered();
-        let mut keys: Vec<u64> = splats
-            .iter()
-            .enumerate()
-            .filter_map(|(i, s)| s.map(|s| ((s.depth.to_bits() as u64) << 32) | i as u64))
+        let mut keys: Vec<u64> = (0..n)
+            .filter(|&i| visible[i])
+            .map(|i| ((splats[i].depth.to_bits() as u64) << 32) | i as u64)
             .collect();
         keys.par_sort_unstable();
         keys
     };
     let _span = tracing::trace_span!("bin").entered();
     // Gather the tile rectangles in depth order once (in parallel), so the two sequential passes
-    // below stream through a compact array instead of chasing ids through `splats`.
+    // below stream through a compact array.
     let rects: Vec<(u32, [u32; 4])> = order
         .par_iter()
         .map(|key| {
             let gid = (*key & 0xffff_ffff) as u32;
-            let s = splats[gid as usize]
-                .as_ref()
-                .expect("sorted splats are visible");
-            (
-                gid,
-                [s.tile_min[0], s.tile_min[1], s.tile_max[0], s.tile_max[1]],
-            )
+            (gid, tiles[gid as usize])
         })
         .collect();
     drop(order);
+    drop(tiles);
     let (gx, gy) = cfg.tiles();
     let mut tile_offsets = vec![0u32; gx * gy + 1];
     for (_, [x0, y0, x1, y1]) in &rects {
@@ -483,7 +508,7 @@ fn project_and_bin(
             }
         }
     }
-    (splats, tile_offsets, gaussian_from_isect)
+    (splats, visible, tile_offsets, gaussian_from_isect)
 }
 
 #[inline]
@@ -500,7 +525,7 @@ fn feature(colors: &[f32], gid: usize, depth: f32) -> [f32; 5] {
 /// Renders the Gaussians. Returns the `[H, W, C]` image and the state for [`backward`].
 #[tracing::instrument(level = "trace", skip_all, fields(n = g.opacities.len()))]
 pub fn forward(cfg: &RasterConfig, g: &GaussianSlices) -> (Vec<f32>, ForwardState) {
-    let (splats, tile_offsets, gaussian_from_isect) = project_and_bin(cfg, g);
+    let (splats, visible, tile_offsets, gaussian_from_isect) = project_and_bin(cfg, g);
     let w = cfg.view.width as usize;
     let h = cfg.view.height as usize;
     let nc = cfg.channels.count();
@@ -526,12 +551,11 @@ pub fn forward(cfg: &RasterConfig, g: &GaussianSlices) -> (Vec<f32>, ForwardStat
                     let mut live = (y1 - y0) * (x1 - x0);
                     let mut done = [false; TILE * TILE];
                     for (k, &gid) in gaussian_from_isect[range].iter().enumerate() {
-                        let s = splats[gid as usize]
-                            .as_ref()
-                            .expect("binned splats are visible");
+                        let s = &splats[gid as usize];
+                        let extent = s.extent();
                         let f = feature(g.colors, gid as usize, s.depth);
-                        let (ylo, yhi) = axis_range(s.xy[1], s.extent[1], y0, y1);
-                        let (xlo, xhi) = axis_range(s.xy[0], s.extent[0], x0, x1);
+                        let (ylo, yhi) = axis_range(s.xy[1], extent[1], y0, y1);
+                        let (xlo, xhi) = axis_range(s.xy[0], extent[0], x0, x1);
                         for py in ylo..yhi {
                             for px in xlo..xhi {
                                 let local = (py - y0) * TILE + (px - x0);
@@ -570,6 +594,7 @@ pub fn forward(cfg: &RasterConfig, g: &GaussianSlices) -> (Vec<f32>, ForwardStat
         cfg: *cfg,
         num_gaussians: g.len(),
         splats,
+        visible,
         tile_offsets,
         gaussian_from_isect,
         last_contrib,
@@ -653,13 +678,12 @@ pub fn backward(g: &GaussianSlices, state: &ForwardState, d_image: &[f32]) -> Gr
                     }
                     for k in (0..max_last as usize).rev() {
                         let gid = state.gaussian_from_isect[start + k] as usize;
-                        let s = state.splats[gid]
-                            .as_ref()
-                            .expect("binned splats are visible");
+                        let s = &state.splats[gid];
+                        let extent = s.extent();
                         let f = feature(g.colors, gid, s.depth);
                         let mut acc = [0.0f32; SLOT];
-                        let (ylo, yhi) = axis_range(s.xy[1], s.extent[1], y0, y1);
-                        let (xlo, xhi) = axis_range(s.xy[0], s.extent[0], x0, x1);
+                        let (ylo, yhi) = axis_range(s.xy[1], extent[1], y0, y1);
+                        let (xlo, xhi) = axis_range(s.xy[0], extent[0], x0, x1);
                         for py in ylo..yhi {
                             for px in xlo..xhi {
                                 let local = (py - y0) * TILE + (px - x0);
@@ -735,9 +759,10 @@ pub fn backward(g: &GaussianSlices, state: &ForwardState, d_image: &[f32]) -> Gr
         .enumerate()
         .with_min_len(2048)
         .for_each(|(i, (((dm, dc), dcol), dop))| {
-            let Some(s) = state.splats[i].as_ref() else {
+            if !state.visible[i] {
                 return;
-            };
+            }
+            let s = &state.splats[i];
             let g2 = &grad2d[i * SLOT..i * SLOT + SLOT];
             dcol.copy_from_slice(&g2[6..9]);
             *dop = g2[5];
