@@ -797,6 +797,7 @@ mod tests {
     use crate::feedback::ReconstructorConfig;
     use burn::store::bridge;
     use burn::tensor::{Device, Tensor};
+    use lifegom_render::testing::Rng;
 
     /// Low-res vertex count of the small test models.
     const V: usize = 40;
@@ -870,17 +871,6 @@ mod tests {
         std::fs::write(path, bytes).unwrap();
     }
 
-    struct Rng(u64);
-    impl Rng {
-        fn next(&mut self) -> f32 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((self.0 >> 40) as f32) / (1u64 << 24) as f32 - 0.5
-        }
-    }
-
     fn tiny(device: &Device) -> Reconstructor {
         ReconstructorConfig::tiny(3).init(V, device).unwrap()
     }
@@ -893,7 +883,7 @@ mod tests {
             .into_iter()
             .map(|t| {
                 let n = t.shape.iter().product();
-                let v = (0..n).map(|_| rng.next()).collect();
+                let v = (0..n).map(|_| rng.next_f32() - 0.5).collect();
                 (t.key, t.shape, Data::F32(v))
             })
             .collect()

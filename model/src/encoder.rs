@@ -669,22 +669,6 @@ mod tests {
     use burn::store::{BurnToPyTorchAdapter, bridge};
     use burn::tensor::Distribution;
 
-    /// Runs `$body(&Device)` as one test per CPU backend.
-    macro_rules! on_both_backends {
-        ($name:ident, $body:ident) => {
-            mod $name {
-                #[test]
-                fn ndarray() {
-                    super::$body(&burn::tensor::Device::ndarray());
-                }
-                #[test]
-                fn flex() {
-                    super::$body(&burn::tensor::Device::flex());
-                }
-            }
-        };
-    }
-
     fn small() -> ImageEncoderConfig {
         ImageEncoderConfig::new()
             .with_width(0.125)
@@ -746,7 +730,7 @@ mod tests {
             assert!(read(m).iter().all(|v| v.is_finite()));
         }
     }
-    on_both_backends!(pyramid_shapes_and_order, shapes);
+    lifegom_render::cpu_backend_tests!(pyramid_shapes_and_order => shapes);
 
     /// The rgb embedding sees the ImageNet-normalised image: W·((x − μ)/σ) + b per pixel.
     fn normalisation(device: &Device) {
@@ -768,7 +752,7 @@ mod tests {
             );
         }
     }
-    on_both_backends!(rgb_embed_sees_normalised_image, normalisation);
+    lifegom_render::cpu_backend_tests!(rgb_embed_sees_normalised_image => normalisation);
 
     /// Gives every batch norm random statistics and affine parameters.
     fn randomise_bn(enc: &mut ImageEncoder, device: &Device) {
@@ -839,7 +823,7 @@ mod tests {
             );
         }
     }
-    on_both_backends!(batch_norm_is_frozen_but_affine_trains, frozen_batch_norm);
+    lifegom_render::cpu_backend_tests!(batch_norm_is_frozen_but_affine_trains => frozen_batch_norm);
 
     /// `encode(..).sample(..)` equals sampling `forward`'s six maps (out-of-image points too),
     /// and gradients reach the rgb embedding's weight and bias through the affine path.
@@ -879,7 +863,7 @@ mod tests {
         );
         assert!(enc.conv1.weight.grad(&grads).is_some());
     }
-    on_both_backends!(encoded_views_match_sampled_forward, encoded_views);
+    lifegom_render::cpu_backend_tests!(encoded_views_match_sampled_forward => encoded_views);
 
     /// A scratch directory removed on drop.
     struct TempDir(PathBuf);
@@ -975,7 +959,7 @@ mod tests {
         assert!(a.contains_key("layer2.0.downsample.bn.running_var"));
         assert_eq!(read(loaded.rgb_embed.weight.val()), rgb_before);
     }
-    on_both_backends!(torchvision_names_round_trip, torchvision_round_trip);
+    lifegom_render::cpu_backend_tests!(torchvision_names_round_trip => torchvision_round_trip);
 
     /// The official checkpoint's names (nested under a wrapper key) load every field,
     /// rgb_embed included; the forward pass then equals the source encoder's.

@@ -409,21 +409,12 @@ pub fn knn(reference: &[[f32; 3]], queries: &[[f32; 3]], k: usize) -> Neighbours
 #[cfg(test)]
 mod tests {
     use super::*;
+    use lifegom_render::testing::Rng;
 
-    struct Rng(u64);
-    impl Rng {
-        fn next(&mut self) -> f32 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((self.0 >> 40) as f32) / (1u64 << 24) as f32
-        }
-        fn cloud(&mut self, n: usize, scale: [f32; 3]) -> Vec<[f32; 3]> {
-            (0..n)
-                .map(|_| std::array::from_fn(|a| (self.next() - 0.5) * scale[a]))
-                .collect()
-        }
+    fn cloud(rng: &mut Rng, n: usize, scale: [f32; 3]) -> Vec<[f32; 3]> {
+        (0..n)
+            .map(|_| std::array::from_fn(|a| (rng.next_f32() - 0.5) * scale[a]))
+            .collect()
     }
 
     #[test]
@@ -444,7 +435,7 @@ mod tests {
 
     #[test]
     fn fps_is_deterministic_and_spread() {
-        let pts = Rng(7).cloud(3000, [1.0, 2.0, 0.5]);
+        let pts = cloud(&mut Rng(7), 3000, [1.0, 2.0, 0.5]);
         let a = farthest_point_sampling(&pts, 750);
         let b = farthest_point_sampling(&pts, 750);
         assert_eq!(a, b);
@@ -483,11 +474,11 @@ mod tests {
             (500, 2000, 3, [0.2, 1.0, 0.0]), // flat cloud, queries outside the grid
             (1000, 1000, 8, [1.0, 1.0, 1.0]),
         ] {
-            let reference = rng.cloud(n, scale);
+            let reference = cloud(&mut rng, n, scale);
             let queries = if m == n {
                 reference.clone()
             } else {
-                rng.cloud(m, [1.5, 2.5, 0.5])
+                cloud(&mut rng, m, [1.5, 2.5, 0.5])
             };
             let grid = knn(&reference, &queries, k);
             let brute = knn_brute_force(&reference, &queries, k);

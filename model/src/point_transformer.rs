@@ -670,20 +670,16 @@ impl TransitionUp {
 mod tests {
     #![allow(deprecated)]
     use super::*;
+    use lifegom_render::testing::Rng;
 
-    struct Rng(u64);
-    impl Rng {
-        fn next(&mut self) -> f32 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((self.0 >> 40) as f32) / (1u64 << 24) as f32 - 0.5
-        }
-        fn tensor(&mut self, shape: [usize; 2], device: &Device) -> Tensor<2> {
-            let v: Vec<f32> = (0..shape[0] * shape[1]).map(|_| self.next()).collect();
-            Tensor::from_data(TensorData::new(v, shape), device)
-        }
+    /// Values in [−½, ½) from the shared test generator.
+    fn centred(rng: &mut Rng) -> f32 {
+        rng.next_f32() - 0.5
+    }
+
+    fn random_tensor(rng: &mut Rng, shape: [usize; 2], device: &Device) -> Tensor<2> {
+        let v: Vec<f32> = (0..shape[0] * shape[1]).map(|_| centred(rng)).collect();
+        Tensor::from_data(TensorData::new(v, shape), device)
     }
 
     fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
@@ -704,7 +700,7 @@ mod tests {
         let mut rng = Rng(1);
         let (n, c, k) = (50, 16, 8);
         let layer = PointTransformerLayer::new(c, 8, 1e-5, device);
-        let p = rng.tensor([n, 3], device);
+        let p = random_tensor(&mut rng, [n, 3], device);
         let host: Vec<[f32; 3]> = read(p.clone())
             .chunks(3)
             .map(|c| [c[0], c[1], c[2]])
@@ -712,12 +708,18 @@ mod tests {
         let nb = knn(&host, &host, k);
         let (nbr, rel) = group_positions(&nb, &p, &p);
         assert_eq!(rel.dims(), [n, k, 3]);
-        let out = layer.forward(rng.tensor([n, c], device), rel.clone(), nbr.clone());
+        let out = layer.forward(
+            random_tensor(&mut rng, [n, c], device),
+            rel.clone(),
+            nbr.clone(),
+        );
         assert_eq!(out.dims(), [n, c]);
         assert!(read(out).iter().all(|v| v.is_finite()));
         let block = PointTransformerBlock::new(c, 8, k, 1e-5, device);
         assert_eq!(
-            block.forward(rng.tensor([n, c], device), rel, nbr).dims(),
+            block
+                .forward(random_tensor(&mut rng, [n, c], device), rel, nbr)
+                .dims(),
             [n, c]
         );
     }
@@ -726,7 +728,10 @@ mod tests {
     fn check_input_split(device: &Device) {
         let mut rng = Rng(8);
         let down = &PointTransformerConfig::tiny(3 + 10).init(device).enc[0].down;
-        let (p, x) = (rng.tensor([30, 3], device), rng.tensor([30, 10], device));
+        let (p, x) = (
+            random_tensor(&mut rng, [30, 3], device),
+            random_tensor(&mut rng, [30, 10], device),
+        );
         let a = read(down.forward_input(p.clone(), x.clone()));
         let b = read(down.forward_pointwise(Tensor::cat(vec![p, x], 1)));
         assert!(a.iter().zip(&b).all(|(a, b)| (a - b).abs() < 1e-5));
@@ -758,8 +763,8 @@ mod tests {
         let mut rng = Rng(5);
         let (n, c, k, s) = (7, 8, 4, 4);
         let layer = PointTransformerLayer::new(c, s, 1e-5, device);
-        let p = rng.tensor([n, 3], device);
-        let x = rng.tensor([n, c], device);
+        let p = random_tensor(&mut rng, [n, 3], device);
+        let x = random_tensor(&mut rng, [n, c], device);
         let host: Vec<[f32; 3]> = read(p.clone())
             .chunks(3)
             .map(|c| [c[0], c[1], c[2]])
@@ -841,7 +846,7 @@ mod tests {
         assert_eq!(v, 1229);
         let cfg = PointTransformerConfig::tiny(3 + 13);
         let net = cfg.init(device);
-        let x = Rng(2).tensor([v, 13], device);
+        let x = random_tensor(&mut Rng(2), [v, 13], device);
         let a = net.forward(p.clone(), x.clone());
         assert_eq!(a.dims(), [v, 8]);
         let a = read(a);
@@ -866,14 +871,17 @@ mod tests {
         let net = PointTransformerConfig::tiny(3 + 4).init(device);
         // All points identical.
         let p = Tensor::<2>::ones([40, 3], device);
-        let x = Rng(3).tensor([40, 4], device);
+        let x = random_tensor(&mut Rng(3), [40, 4], device);
         let out = net.forward(p, x);
         assert_eq!(out.dims(), [40, 8]);
         assert!(read(out).iter().all(|v| v.is_finite()));
         // Fewer points than nsample and than the strides' product.
         for v in [1, 5] {
             let mut rng = Rng(4);
-            let out = net.forward(rng.tensor([v, 3], device), rng.tensor([v, 4], device));
+            let out = net.forward(
+                random_tensor(&mut rng, [v, 3], device),
+                random_tensor(&mut rng, [v, 4], device),
+            );
             assert_eq!(out.dims(), [v, 8]);
             assert!(read(out).iter().all(|v| v.is_finite()));
         }
@@ -956,8 +964,8 @@ mod tests {
                     let fan_in = if D == 2 { shape[0] } else { 1 } as f32;
                     let v: Vec<f32> = (0..shape.num_elements())
                         .map(|_| match is_bias {
-                            true => 0.05 + 0.1 * rng.next(),
-                            false => 2.0 * rng.next() * (3.0 / fan_in).sqrt(),
+                            true => 0.05 + 0.1 * centred(rng),
+                            false => 2.0 * centred(rng) * (3.0 / fan_in).sqrt(),
                         })
                         .collect();
                     Tensor::from_data(TensorData::new(v, shape), &t.device())
@@ -978,9 +986,9 @@ mod tests {
         // 600 points: the coarsest level keeps 2, so its attention weights are not all equal
         // (a single point attending to padded copies of itself has a zero softmax gradient).
         let (v, c_out) = (600, 8);
-        let p = rng.tensor([v, 3], &device).require_grad();
-        let x = rng.tensor([v, 5], &device).require_grad();
-        let probe = rng.tensor([v, c_out], &device);
+        let p = random_tensor(&mut rng, [v, 3], &device).require_grad();
+        let x = random_tensor(&mut rng, [v, 5], &device).require_grad();
+        let probe = random_tensor(&mut rng, [v, c_out], &device);
         let means_before = read(net.enc[1].blocks[0].bn1.running_mean.value());
         let out = net.forward(p.clone(), x.clone());
         // Frozen BN: the autodiff forward equals the inference forward (running statistics,
@@ -1107,7 +1115,7 @@ mod tests {
                 t_knn,
                 t_interp
             );
-            let x = rng.tensor([n, 2304], &device);
+            let x = random_tensor(&mut rng, [n, 2304], &device);
             let net = cfg.init(&device);
             println!("{name}: {} parameters", net.num_params());
             let t0 = Instant::now();

@@ -343,36 +343,7 @@ mod tests {
     use burn::tensor::{DType, Device};
     use glam::Vec3;
     use lifegom_render::camera::Intrinsics;
-
-    /// Runs `$body(&Device)` as one test per CPU backend.
-    macro_rules! on_both_backends {
-        ($name:ident, $body:ident) => {
-            mod $name {
-                #[test]
-                fn ndarray() {
-                    super::$body(&burn::tensor::Device::ndarray());
-                }
-                #[test]
-                fn flex() {
-                    super::$body(&burn::tensor::Device::flex());
-                }
-            }
-        };
-    }
-
-    struct Rng(u64);
-    impl Rng {
-        fn next(&mut self) -> f64 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (self.0 >> 11) as f64 / (1u64 << 53) as f64
-        }
-        fn range(&mut self, lo: f64, hi: f64) -> f64 {
-            lo + (hi - lo) * self.next()
-        }
-    }
+    use lifegom_render::testing::Rng;
 
     fn tensor<const D: usize>(v: Vec<f64>, shape: [usize; D], device: &Device) -> Tensor<D> {
         Tensor::from_data(TensorData::new(v, shape), (device, DType::F64))
@@ -441,7 +412,7 @@ mod tests {
             }
         }
     }
-    on_both_backends!(linear_ramp_is_reproduced, linear_ramp);
+    lifegom_render::cpu_backend_tests!(linear_ramp_is_reproduced => linear_ramp);
 
     /// At a pixel centre of the full-resolution map the sample is that pixel, for every channel.
     fn pixel_centre(device: &Device) {
@@ -467,7 +438,7 @@ mod tests {
             }
         }
     }
-    on_both_backends!(pixel_centre_returns_the_pixel, pixel_centre);
+    lifegom_render::cpu_backend_tests!(pixel_centre_returns_the_pixel => pixel_centre);
 
     /// Points half a pixel or more outside the image (every texel of the bilinear footprint is
     /// outside), NaN and ±Inf sample exactly zero; closer to the border the sample fades.
@@ -496,7 +467,7 @@ mod tests {
         let got = read(sample_single(map, uv, w as u32, h as u32).unwrap());
         assert!((got[0] - 1.5).abs() < 1e-12, "{got:?}");
     }
-    on_both_backends!(outside_samples_zero, outside);
+    lifegom_render::cpu_backend_tests!(outside_samples_zero => outside);
 
     fn random_maps(
         rng: &mut Rng,
@@ -506,7 +477,11 @@ mod tests {
     ) -> (Vec<Vec<f64>>, Vec<Tensor<4>>) {
         let host: Vec<Vec<f64>> = shapes
             .iter()
-            .map(|&(c, h, w)| (0..n * c * h * w).map(|_| rng.range(-1.0, 1.0)).collect())
+            .map(|&(c, h, w)| {
+                (0..n * c * h * w)
+                    .map(|_| rng.range_f64(-1.0, 1.0))
+                    .collect()
+            })
             .collect();
         let maps = host
             .iter()
@@ -525,7 +500,7 @@ mod tests {
         let shapes = [(3, 24, 40), (2, 12, 20), (4, 3, 5), (1, 1, 1)];
         let (host, maps) = random_maps(&mut rng, n, &shapes, device);
         let uv_host: Vec<f64> = (0..n * v)
-            .flat_map(|_| [rng.range(-3.0, 43.0), rng.range(-3.0, 27.0)])
+            .flat_map(|_| [rng.range_f64(-3.0, 43.0), rng.range_f64(-3.0, 27.0)])
             .collect();
         let uv = tensor(uv_host.clone(), [n, v, 2], device);
         let got = read(sample_maps(&maps, uv.clone(), width, height).unwrap());
@@ -568,7 +543,7 @@ mod tests {
             );
         }
     }
-    on_both_backends!(matches_reference_at_random_points, random_reference);
+    lifegom_render::cpu_backend_tests!(matches_reference_at_random_points => random_reference);
 
     /// `Σ W ⊙ sample_maps(maps, uv)` with the leaves it was built from.
     fn weighted_loss(
@@ -607,14 +582,20 @@ mod tests {
         let shapes = [(2, 12, 20), (3, 3, 5), (1, 12, 20)];
         let maps: Vec<Vec<f64>> = shapes
             .iter()
-            .map(|&(c, h, w)| (0..n * c * h * w).map(|_| rng.range(-1.0, 1.0)).collect())
+            .map(|&(c, h, w)| {
+                (0..n * c * h * w)
+                    .map(|_| rng.range_f64(-1.0, 1.0))
+                    .collect()
+            })
             .collect();
         // 9 points per view, a few within a pixel of the border so zero padding is exercised.
         let uv: Vec<f64> = (0..n * 9)
-            .flat_map(|_| [rng.range(-0.8, 20.8), rng.range(-0.8, 12.8)])
+            .flat_map(|_| [rng.range_f64(-0.8, 20.8), rng.range_f64(-0.8, 12.8)])
             .collect();
         let total: usize = shapes.iter().map(|s| s.0).sum();
-        let weights: Vec<f64> = (0..9 * n * total).map(|_| rng.range(-1.0, 1.0)).collect();
+        let weights: Vec<f64> = (0..9 * n * total)
+            .map(|_| rng.range_f64(-1.0, 1.0))
+            .collect();
         let (loss, map_leaves, uv_leaf) = weighted_loss(&maps, &shapes, &uv, &weights, n, &ad);
         let grads = loss.backward();
         let eps = 1e-6;
@@ -652,7 +633,7 @@ mod tests {
             }
         }
     }
-    on_both_backends!(gradients_match_finite_differences, gradients);
+    lifegom_render::cpu_backend_tests!(gradients_match_finite_differences => gradients);
 
     fn cameras() -> Vec<Camera> {
         let intr = Intrinsics {
@@ -681,7 +662,7 @@ mod tests {
         let mut rng = Rng(3);
         let v = 10;
         let pts: Vec<f64> = (0..cams.len() * v * 3)
-            .map(|_| rng.range(-0.4, 0.4))
+            .map(|_| rng.range_f64(-0.4, 0.4))
             .collect();
         let proj = project_points(tensor(pts.clone(), [2, v, 3], device), &cams).unwrap();
         let (uv, depth) = (read(proj.uv), read(proj.depth));
@@ -712,7 +693,7 @@ mod tests {
         );
         assert!(read(proj.depth)[0] < 0.0);
     }
-    on_both_backends!(projection_matches_camera, projection);
+    lifegom_render::cpu_backend_tests!(projection_matches_camera => projection);
 
     /// Gradients from sampled features reach the 3D points (the xyz update path).
     fn projection_gradients(device: &Device) {
@@ -720,9 +701,11 @@ mod tests {
         let cams = cameras();
         let mut rng = Rng(5);
         let (n, v, c) = (2, 6, 2);
-        let map: Vec<f64> = (0..n * c * 12 * 20).map(|_| rng.range(-1.0, 1.0)).collect();
-        let pts: Vec<f64> = (0..n * v * 3).map(|_| rng.range(-0.3, 0.3)).collect();
-        let w: Vec<f64> = (0..v * n * c).map(|_| rng.range(-1.0, 1.0)).collect();
+        let map: Vec<f64> = (0..n * c * 12 * 20)
+            .map(|_| rng.range_f64(-1.0, 1.0))
+            .collect();
+        let pts: Vec<f64> = (0..n * v * 3).map(|_| rng.range_f64(-0.3, 0.3)).collect();
+        let w: Vec<f64> = (0..v * n * c).map(|_| rng.range_f64(-1.0, 1.0)).collect();
         let loss = |pts: &[f64], device: &Device| {
             let p = tensor(pts.to_vec(), [n, v, 3], device).require_grad();
             let proj = project_points(p.clone(), &cams).unwrap();
@@ -749,7 +732,7 @@ mod tests {
             "point gradients vanished: {g:?}"
         );
     }
-    on_both_backends!(projection_gradients_reach_points, projection_gradients);
+    lifegom_render::cpu_backend_tests!(projection_gradients_reach_points => projection_gradients);
 
     /// Shape contracts are checked and the offending input is named.
     #[test]

@@ -290,21 +290,8 @@ mod gradient_tests {
     //! GoM geometry: triangle corners (hence vertices), rotations, scales and offsets.
     #![allow(deprecated)]
     use super::*;
+    use crate::testing::Rng;
     use burn::tensor::{DType, TensorData};
-
-    struct Rng(u64);
-    impl Rng {
-        fn next(&mut self) -> f64 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (self.0 >> 11) as f64 / (1u64 << 53) as f64
-        }
-        fn range(&mut self, lo: f64, hi: f64) -> f64 {
-            lo + (hi - lo) * self.next()
-        }
-    }
 
     /// Inputs as f64 host vectors: [v0, v1, v2, so3, scales, offsets], each `[F*3]`.
     type Inputs = [Vec<f64>; 6];
@@ -353,15 +340,17 @@ mod gradient_tests {
         for (k, v) in inputs.iter_mut().enumerate() {
             *v = (0..3 * f)
                 .map(|_| match k {
-                    0..=2 => rng.range(-0.3, 0.3),
-                    3 => rng.range(-1.5, 1.5),
-                    4 => rng.range(0.5, 2.0) * if rng.next() < 0.2 { -1.0 } else { 1.0 },
-                    _ => rng.range(-1.0, 1.0),
+                    0..=2 => rng.range_f64(-0.3, 0.3),
+                    3 => rng.range_f64(-1.5, 1.5),
+                    4 => rng.range_f64(0.5, 2.0) * if rng.next_f64() < 0.2 { -1.0 } else { 1.0 },
+                    _ => rng.range_f64(-1.0, 1.0),
                 })
                 .collect();
         }
-        let wm: Vec<f64> = (0..3 * f).map(|_| rng.range(-1.0, 1.0)).collect();
-        let wc: Vec<f64> = (0..6 * f).map(|_| rng.range(-1.0, 1.0) * 50.0).collect();
+        let wm: Vec<f64> = (0..3 * f).map(|_| rng.range_f64(-1.0, 1.0)).collect();
+        let wc: Vec<f64> = (0..6 * f)
+            .map(|_| rng.range_f64(-1.0, 1.0) * 50.0)
+            .collect();
         let (l, leaves) = loss(&inputs, &wm, &wc, &ad);
         let grads = l.backward();
         let names = ["v0", "v1", "v2", "so3", "scales", "offsets"];

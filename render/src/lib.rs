@@ -46,6 +46,8 @@ pub mod skinning;
 pub mod steiner;
 pub mod subdivision;
 pub mod template;
+#[doc(hidden)]
+pub mod testing;
 pub mod visibility;
 
 pub use error::{RenderError, Result};

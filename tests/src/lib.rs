@@ -12,29 +12,7 @@ pub fn cpu_devices() -> [(&'static str, Device); 2] {
     [("ndarray", Device::ndarray()), ("flex", Device::flex())]
 }
 
-/// A deterministic generator (SplitMix64).
-pub struct Rng(u64);
-
-impl Rng {
-    /// Seeded generator.
-    pub fn new(seed: u64) -> Self {
-        Self(seed)
-    }
-
-    /// Uniform in [0, 1).
-    pub fn next_f32(&mut self) -> f32 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    }
-
-    /// Uniform in [lo, hi).
-    pub fn range(&mut self, lo: f32, hi: f32) -> f32 {
-        lo + (hi - lo) * self.next_f32()
-    }
-}
+pub use lifegom_render::testing::Rng;
 
 /// A camera at `eye` looking at the origin with focal `f` and a centred principal point.
 pub fn camera(eye: glam::Vec3, width: u32, height: u32, f: f32) -> Camera {

@@ -8,16 +8,9 @@ use glam::Affine3A;
 use super::cpu::{self, GaussianSlices};
 use super::*;
 use crate::camera::{Camera, Intrinsics};
+use crate::testing::Rng;
 
-/// Runs a test body on every CPU backend.
-macro_rules! on_cpu_backends {
-    ($($name:ident),* $(,)?) => {
-        mod ndarray_backend { $(#[test] fn $name() { super::$name(&burn::tensor::Device::ndarray()); })* }
-        mod flex_backend { $(#[test] fn $name() { super::$name(&burn::tensor::Device::flex()); })* }
-    };
-}
-
-on_cpu_backends!(
+crate::cpu_backend_tests!(
     isotropic_gaussian_renders_the_expected_bump,
     culled_and_transparent_gaussians_leave_the_image_unchanged,
     output_is_deterministic_and_order_independent,
@@ -25,25 +18,6 @@ on_cpu_backends!(
     depth_channel_and_its_gradient,
     non_finite_inputs_are_rejected,
 );
-
-/// A deterministic generator (SplitMix64), so scenes are seeded without a dependency.
-pub(crate) struct Rng(u64);
-
-impl Rng {
-    pub(crate) fn new(seed: u64) -> Self {
-        Self(seed)
-    }
-    pub(crate) fn next_f32(&mut self) -> f32 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    }
-    pub(crate) fn range(&mut self, lo: f32, hi: f32) -> f32 {
-        lo + (hi - lo) * self.next_f32()
-    }
-}
 
 /// Camera at the origin looking down +z (world = camera frame).
 pub(crate) fn axis_camera(width: u32, height: u32, f: f32) -> Camera {
