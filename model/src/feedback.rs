@@ -707,15 +707,7 @@ mod tests {
         }
     }
 
-    #[test]
-    fn end_to_end_ndarray() {
-        end_to_end(&Device::ndarray());
-    }
-
-    #[test]
-    fn end_to_end_flex() {
-        end_to_end(&Device::flex());
-    }
+    lifegom_render::cpu_backend_tests!(end_to_end => end_to_end);
 
     #[test]
     fn mismatched_inputs_are_errors() {

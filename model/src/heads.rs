@@ -250,13 +250,5 @@ mod tests {
         assert_eq!(params.colors.dims(), [f, 3]);
     }
 
-    #[test]
-    fn heads_ndarray() {
-        check(&Device::ndarray());
-    }
-
-    #[test]
-    fn heads_flex() {
-        check(&Device::flex());
-    }
+    lifegom_render::cpu_backend_tests!(heads => check);
 }

@@ -737,25 +737,9 @@ mod tests {
         assert!(a.iter().zip(&b).all(|(a, b)| (a - b).abs() < 1e-5));
     }
 
-    #[test]
-    fn point_transformer_input_split_ndarray() {
-        check_input_split(&Device::ndarray());
-    }
+    lifegom_render::cpu_backend_tests!(point_transformer_input_split => check_input_split);
 
-    #[test]
-    fn point_transformer_input_split_flex() {
-        check_input_split(&Device::flex());
-    }
-
-    #[test]
-    fn point_transformer_layer_shapes_ndarray() {
-        check_layer_shapes(&Device::ndarray());
-    }
-
-    #[test]
-    fn point_transformer_layer_shapes_flex() {
-        check_layer_shapes(&Device::flex());
-    }
+    lifegom_render::cpu_backend_tests!(point_transformer_layer_shapes => check_layer_shapes);
 
     /// A hand-computed PT layer output: with unit BN and identity-like weights the layer must
     /// follow the shared-plane formula of the module docs.
@@ -830,15 +814,7 @@ mod tests {
         }
     }
 
-    #[test]
-    fn point_transformer_layer_formula_ndarray() {
-        check_layer_formula(&Device::ndarray());
-    }
-
-    #[test]
-    fn point_transformer_layer_formula_flex() {
-        check_layer_formula(&Device::flex());
-    }
+    lifegom_render::cpu_backend_tests!(point_transformer_layer_formula => check_layer_formula);
 
     fn check_full_net(device: &Device) {
         let p = lowres_vertices(device);
@@ -857,15 +833,7 @@ mod tests {
         assert_eq!(a, b);
     }
 
-    #[test]
-    fn point_transformer_full_net_lowres_ndarray() {
-        check_full_net(&Device::ndarray());
-    }
-
-    #[test]
-    fn point_transformer_full_net_lowres_flex() {
-        check_full_net(&Device::flex());
-    }
+    lifegom_render::cpu_backend_tests!(point_transformer_full_net_lowres => check_full_net);
 
     fn check_degenerate(device: &Device) {
         let net = PointTransformerConfig::tiny(3 + 4).init(device);
@@ -887,15 +855,7 @@ mod tests {
         }
     }
 
-    #[test]
-    fn point_transformer_degenerate_inputs_ndarray() {
-        check_degenerate(&Device::ndarray());
-    }
-
-    #[test]
-    fn point_transformer_degenerate_inputs_flex() {
-        check_degenerate(&Device::flex());
-    }
+    lifegom_render::cpu_backend_tests!(point_transformer_degenerate_inputs => check_degenerate);
 
     /// What a backward left on one float parameter.
     struct ParamGrad {
@@ -1046,15 +1006,7 @@ mod tests {
         assert!(var.iter().all(|&v| v == 1.0));
     }
 
-    #[test]
-    fn point_transformer_gradients_ndarray() {
-        check_gradients(&Device::ndarray());
-    }
-
-    #[test]
-    fn point_transformer_gradients_flex() {
-        check_gradients(&Device::flex());
-    }
+    lifegom_render::cpu_backend_tests!(point_transformer_gradients => check_gradients);
 
     #[test]
     fn point_transformer_paper_config() {

@@ -239,15 +239,7 @@ mod tests {
         );
     }
 
-    #[test]
-    fn so3_ndarray() {
-        check_so3(&Device::ndarray());
-    }
-
-    #[test]
-    fn so3_flex() {
-        check_so3(&Device::flex());
-    }
+    crate::cpu_backend_tests!(so3 => check_so3);
 
     /// At init, Σ = A Aᵀ and the mean is the centroid.
     #[test]
@@ -377,13 +369,5 @@ mod gradient_tests {
         }
     }
 
-    #[test]
-    fn geometry_gradients_ndarray() {
-        check(&Device::ndarray());
-    }
-
-    #[test]
-    fn geometry_gradients_flex() {
-        check(&Device::flex());
-    }
+    crate::cpu_backend_tests!(geometry_gradients => check);
 }

@@ -338,15 +338,7 @@ mod tests {
         assert!(err <= 1e-5, "tensor vs CPU LBS: {err} m");
     }
 
-    #[test]
-    fn tensor_lbs_matches_cpu_on_ndarray() {
-        check_tensor_matches_cpu(&Device::ndarray());
-    }
-
-    #[test]
-    fn tensor_lbs_matches_cpu_on_flex() {
-        check_tensor_matches_cpu(&Device::flex());
-    }
+    crate::cpu_backend_tests!(tensor_lbs_matches_cpu_on => check_tensor_matches_cpu);
 
     #[test]
     fn no_normalisation_by_the_weight_sum() {

@@ -116,13 +116,5 @@ mod tests {
         }
     }
 
-    #[test]
-    fn inellipse_ndarray() {
-        check_inellipse(&Device::ndarray());
-    }
-
-    #[test]
-    fn inellipse_flex() {
-        check_inellipse(&Device::flex());
-    }
+    crate::cpu_backend_tests!(inellipse => check_inellipse);
 }
