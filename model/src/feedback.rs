@@ -337,6 +337,13 @@ impl Reconstructor {
         self.iterations
     }
 
+    /// The same weights run for `t` feedback steps (the paper's Table 4 varies T at test time;
+    /// `t = 0` is clamped to 1).
+    pub fn with_iterations(mut self, t: usize) -> Self {
+        self.iterations = t.max(1);
+        self
+    }
+
     /// Reconstructs the avatar (inference): the forward pass, keeping only the final state.
     pub fn reconstruct(
         &self,

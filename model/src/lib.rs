@@ -44,6 +44,8 @@
 //! | [`feedback`] | the reconstructor: T steps of render → encode → fuse → update |
 //! | [`avatar`] | the result: render in any pose and view, save/load, 3DGS `.ply` export |
 //! | [`checkpoint`] | import of the official LIFe-GoM PyTorch checkpoint (spec §10 key map) |
+//! | [`inputs`] | a `lifegom-data` sample → subject, source views and target (skinning per spec §2.3) |
+//! | [`trained`] | our trained-model files: weights + config + payload, written atomically |
 //!
 //! Model code has no backend generic: modules take a `burn::tensor::Device` and run on ndarray
 //! and Flex (wgpu once its kernels land), with `.autodiff()` for training. Without trained
@@ -56,6 +58,8 @@ pub mod error;
 pub mod feedback;
 pub mod fusion;
 pub mod heads;
+pub mod inputs;
 pub mod knn;
 pub mod point_transformer;
 pub mod sampling;
+pub mod trained;

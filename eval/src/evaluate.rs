@@ -1,0 +1,436 @@
+//! Evaluating a trained reconstructor on a validation split (spec §7).
+//!
+//! For every subject the avatar is reconstructed once from its deterministic inputs (the first
+//! N frames; every target of a subject shares them, so re-running per target as the reference
+//! does would give the same avatar), then every target view is rendered at the last iteration
+//! over the split's fixed background and scored:
+//!
+//! - **THuman2.0 / XHuman** (§7.2): the prediction and ground truth are cropped to the GT's
+//!   non-black bounding box grown to 1000×500 at 1024² (scaled proportionally for smaller images,
+//!   e.g. 250×125 at 256²), then PSNR and skimage SSIM on the float crop, LPIPS and FID on the
+//!   crops.
+//! - **AIST++** (§7.3): full images, white background.
+//!
+//! Timings are host wall clock around the reconstruction (encoder + T feedback steps + the final
+//! source render the reference always performs) and around the target render (skinning,
+//! subdivision, Gaussians, rasterisation, read back). On eager CPU backends they are the cost.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use burn::tensor::{Device, Tensor};
+use lifegom_data::dataset::{Dataset, Protocol};
+use lifegom_data::rng::Rng;
+use lifegom_model::avatar::Avatar;
+use lifegom_model::feedback::{Reconstructor, ReconstructorConfig, render_views};
+use lifegom_model::inputs::{SubjectBody, model_inputs};
+use lifegom_render::gom::GomMesh;
+use serde::{Deserialize, Serialize};
+
+use crate::images::{Image, error_map, grid};
+use crate::metrics::{ImageRef, crop, full_image_metrics, thuman_crop_box};
+
+/// What to evaluate and where to write it.
+#[derive(Debug, Clone)]
+pub struct EvalSettings {
+    /// Output folder.
+    pub out: PathBuf,
+    /// Subdivisions of the Gaussians' mesh (`None`: the model's `subdivide_test`).
+    pub subdivide: Option<u32>,
+    /// Feedback steps (`None`: the model's own T).
+    pub iterations: Option<usize>,
+    /// Write prediction PNGs (`preds/scene_<subject>_<frame>.png`).
+    pub save_predictions: bool,
+    /// Comparison sheets to write (GT | prediction | error), at most.
+    pub sheets: usize,
+    /// Evaluate at most this many subjects (`None`: all).
+    pub max_subjects: Option<usize>,
+}
+
+/// Scores of one target view.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ViewScore {
+    /// Subject.
+    pub subject: String,
+    /// `scene_<subject>_<frame>`.
+    pub frame_name: String,
+    /// PSNR (dB) on the protocol's region.
+    pub psnr: f64,
+    /// skimage SSIM on the protocol's region.
+    pub ssim: f64,
+    /// LPIPS-Alex on the region (`None` when weights are missing).
+    pub lpips_alex: Option<f64>,
+    /// LPIPS-VGG on the region.
+    pub lpips_vgg: Option<f64>,
+    /// Reconstruction wall time of the subject's avatar (ms).
+    pub recon_ms: f64,
+    /// Render wall time of this view (ms).
+    pub render_ms: f64,
+}
+
+/// The crops (or full images) that metrics were computed on, for FID and LPIPS.
+#[derive(Debug, Clone, Default)]
+pub struct MetricImages {
+    /// Predictions.
+    pub pred: Vec<Image>,
+    /// Ground truth.
+    pub gt: Vec<Image>,
+}
+
+/// Everything one evaluation produced.
+#[derive(Debug, Clone)]
+pub struct SplitScores {
+    /// Per view.
+    pub views: Vec<ViewScore>,
+    /// The metric regions, in `views` order.
+    pub images: MetricImages,
+    /// Gaussians rendered per view.
+    pub num_gaussians: usize,
+    /// Feedback steps used.
+    pub iterations: usize,
+    /// Subdivisions used.
+    pub subdivide: u32,
+}
+
+/// THuman's 1000×500 crop scaled to an `h × w` image (never larger than the image).
+pub fn thuman_crop_size(h: usize, w: usize) -> [usize; 2] {
+    let ch = (1000.0 * h as f64 / 1024.0).round() as usize;
+    let cw = (500.0 * w as f64 / 1024.0).round() as usize;
+    [ch.clamp(1, h), cw.clamp(1, w)]
+}
+
+/// A reconstructed avatar and how long it took.
+pub struct Reconstructed {
+    /// The avatar (canonical state + mesh).
+    pub avatar: Avatar,
+    /// Wall time (ms).
+    pub ms: f64,
+}
+
+/// Reconstructs the avatar of `inputs` (no autodiff) and times it.
+pub fn reconstruct_timed(
+    model: &Reconstructor,
+    mesh: &GomMesh,
+    inputs: &lifegom_model::inputs::ModelInputs,
+) -> anyhow::Result<Reconstructed> {
+    let start = Instant::now();
+    let avatar = model.reconstruct(&inputs.subject, mesh, &inputs.sources)?;
+    // Force the result to exist before stopping the clock (matters on lazy backends).
+    let _ = avatar.xyz.clone().sum().into_data();
+    Ok(Reconstructed {
+        avatar,
+        ms: start.elapsed().as_secs_f64() * 1e3,
+    })
+}
+
+/// Renders the avatar in a view given as camera + skinning, composited over `background`;
+/// returns the image and the wall time (ms).
+pub fn render_timed(
+    avatar: &Avatar,
+    inputs: &lifegom_model::inputs::ModelInputs,
+    camera: &lifegom_render::camera::Camera,
+    skinning: &[glam::Affine3A],
+) -> anyhow::Result<(Image, f64)> {
+    let start = Instant::now();
+    let subject = lifegom_model::feedback::Subject {
+        canonical_vertices: avatar.xyz.clone(),
+        lbs_weights: avatar.lbs_weights.clone(),
+        skeleton: avatar.skeleton.clone(),
+    };
+    let rendered = render_views(
+        &avatar.mesh,
+        &avatar.xyz,
+        &avatar.faces,
+        &subject,
+        std::slice::from_ref(camera),
+        &[skinning.to_vec()],
+        inputs.sources.background,
+    )?;
+    let img = Image::from_chw(rendered.rgb.squeeze_dim::<3>(0));
+    Ok((img, start.elapsed().as_secs_f64() * 1e3))
+}
+
+/// Evaluates `model` on every target of `dataset` (a validation split).
+pub fn evaluate_split(
+    model: &Reconstructor,
+    config: &ReconstructorConfig,
+    dataset: &Dataset,
+    settings: &EvalSettings,
+    device: &Device,
+) -> anyhow::Result<SplitScores> {
+    let _span = tracing::info_span!("evaluate_split", samples = dataset.len()).entered();
+    let model = match settings.iterations {
+        Some(t) => model.clone().with_iterations(t),
+        None => model.clone(),
+    };
+    let subdivide = settings.subdivide.unwrap_or(config.subdivide_test);
+    let bodies: Vec<SubjectBody> = dataset
+        .subjects
+        .iter()
+        .map(|s| SubjectBody::new(&s.name, &s.canonical))
+        .collect::<Result<_, _>>()?;
+    let first = bodies
+        .first()
+        .context("the validation split has no subjects")?;
+    let mesh = GomMesh::new(&first.topology, subdivide, device)?;
+    let (w, h) = (dataset.img_size.0, dataset.img_size.1);
+    let crop_size = thuman_crop_size(h as usize, w as usize);
+    let crop_protocol = dataset.rule.protocol != Protocol::Aistpp;
+    let mut cache: HashMap<(usize, Vec<usize>), Reconstructed> = HashMap::new();
+    let mut views = Vec::new();
+    let mut images = MetricImages::default();
+    let mut sheets = Vec::new();
+    let mut rng = Rng::new(0);
+    let max_subjects = settings.max_subjects.unwrap_or(usize::MAX);
+    for i in 0..dataset.len() {
+        let Some(index) = dataset.index(i, &mut rng) else {
+            break;
+        };
+        if index.subject >= max_subjects {
+            continue;
+        }
+        let sample = dataset.sample(i, &mut rng)?;
+        let body = &bodies[index.subject];
+        let inputs = model_inputs(body, &sample, w, h, device)?;
+        let key = (index.subject, index.inputs.clone());
+        if !cache.contains_key(&key) {
+            let rec = reconstruct_timed(&model, &mesh, &inputs)
+                .with_context(|| format!("reconstructing {}", sample.frame_name))?;
+            cache.clear();
+            cache.insert(key.clone(), rec);
+        }
+        let rec = &cache[&key];
+        let (pred, render_ms) = render_timed(
+            &rec.avatar,
+            &inputs,
+            &inputs.target_camera,
+            &inputs.target_skinning,
+        )?;
+        let gt = Image::from_chw(inputs.target_rgb.clone());
+        // Metrics on what the reference scores: the uint8 PNG dump of the prediction.
+        let pred_q = pred.quantized();
+        let gt_q = gt.quantized();
+        let shape = [h as usize, w as usize, 3];
+        let (p_img, g_img) = if crop_protocol {
+            match thuman_crop_box(ImageRef::new(&gt_q.data, shape)?, crop_size)? {
+                Some(bbox) => {
+                    let (p, s) = crop(ImageRef::new(&pred_q.data, shape)?, bbox)?;
+                    let (g, _) = crop(ImageRef::new(&gt_q.data, shape)?, bbox)?;
+                    (
+                        Image {
+                            width: s[1],
+                            height: s[0],
+                            data: p,
+                        },
+                        Image {
+                            width: s[1],
+                            height: s[0],
+                            data: g,
+                        },
+                    )
+                }
+                None => {
+                    tracing::warn!(frame = %sample.frame_name, "ground truth is all black: no crop, scored on the full image");
+                    (pred_q.clone(), gt_q.clone())
+                }
+            }
+        } else {
+            (pred_q.clone(), gt_q.clone())
+        };
+        let m = full_image_metrics(
+            ImageRef::new(&p_img.data, [p_img.height, p_img.width, 3])?,
+            ImageRef::new(&g_img.data, [g_img.height, g_img.width, 3])?,
+        )?;
+        if settings.save_predictions {
+            pred.save_png(
+                &settings
+                    .out
+                    .join("preds")
+                    .join(format!("{}.png", sample.frame_name)),
+            )?;
+        }
+        if sheets.len() < settings.sheets {
+            let err = error_map(&pred, &gt, 4.0)?;
+            let sheet = grid(&[vec![gt.clone(), pred.clone(), err]], 2, [1.0; 3]);
+            let path = settings
+                .out
+                .join("sheets")
+                .join(format!("{}.png", sample.frame_name));
+            sheet.save_png(&path)?;
+            sheets.push(path);
+        }
+        views.push(ViewScore {
+            subject: sample.subject.clone(),
+            frame_name: sample.frame_name.clone(),
+            psnr: m.psnr,
+            ssim: m.ssim,
+            lpips_alex: None,
+            lpips_vgg: None,
+            recon_ms: rec.ms,
+            render_ms,
+        });
+        images.pred.push(p_img);
+        images.gt.push(g_img);
+    }
+    Ok(SplitScores {
+        views,
+        images,
+        num_gaussians: mesh.num_gaussians(),
+        iterations: model.iterations(),
+        subdivide,
+    })
+}
+
+/// Mean of `f` over the views that have a value.
+pub fn mean_of(views: &[ViewScore], f: impl Fn(&ViewScore) -> Option<f64>) -> Option<f64> {
+    let vals: Vec<f64> = views
+        .iter()
+        .filter_map(&f)
+        .filter(|v| v.is_finite())
+        .collect();
+    (!vals.is_empty()).then(|| vals.iter().sum::<f64>() / vals.len() as f64)
+}
+
+/// Per-subject means, in first-seen order: `(subject, views, psnr, ssim, lpips_alex, lpips_vgg, recon_ms, render_ms)`.
+pub fn per_subject(views: &[ViewScore]) -> Vec<(String, Vec<ViewScore>)> {
+    let mut order: Vec<String> = Vec::new();
+    let mut groups: HashMap<String, Vec<ViewScore>> = HashMap::new();
+    for v in views {
+        if !groups.contains_key(&v.subject) {
+            order.push(v.subject.clone());
+        }
+        groups.entry(v.subject.clone()).or_default().push(v.clone());
+    }
+    order
+        .into_iter()
+        .map(|s| {
+            let g = groups.remove(&s).unwrap_or_default();
+            (s, g)
+        })
+        .collect()
+}
+
+/// A template-only baseline "model": the canonical template with the Gaussians' initial
+/// parameters and a constant grey colour, i.e. what the network starts from. Used to show what
+/// training buys.
+pub fn template_baseline_scores(
+    dataset: &Dataset,
+    settings: &EvalSettings,
+    subdivide: u32,
+    device: &Device,
+) -> anyhow::Result<SplitScores> {
+    let bodies: Vec<SubjectBody> = dataset
+        .subjects
+        .iter()
+        .map(|s| SubjectBody::new(&s.name, &s.canonical))
+        .collect::<Result<_, _>>()?;
+    let first = bodies
+        .first()
+        .context("the validation split has no subjects")?;
+    let mesh = GomMesh::new(&first.topology, subdivide, device)?;
+    let (w, h) = (dataset.img_size.0, dataset.img_size.1);
+    let crop_size = thuman_crop_size(h as usize, w as usize);
+    let mut rng = Rng::new(0);
+    let mut views = Vec::new();
+    let mut images = MetricImages::default();
+    let max_subjects = settings.max_subjects.unwrap_or(usize::MAX);
+    for i in 0..dataset.len() {
+        let Some(index) = dataset.index(i, &mut rng) else {
+            break;
+        };
+        if index.subject >= max_subjects {
+            continue;
+        }
+        let sample = dataset.sample(i, &mut rng)?;
+        let body = &bodies[index.subject];
+        let inputs = model_inputs(body, &sample, w, h, device)?;
+        // Mean colour of the source foreground: the best constant colour a template can have.
+        let mask = inputs.source_masks.clone();
+        let fg = (inputs.sources.images.clone() * mask.clone())
+            .sum_dim(0)
+            .sum_dim(2)
+            .sum_dim(3);
+        let count = mask
+            .sum()
+            .into_data()
+            .try_into_vec_as::<f64>()
+            .ok()
+            .and_then(|v| v.first().copied())
+            .unwrap_or(0.0)
+            .max(1.0);
+        let color: Vec<f32> = fg.into_data().try_into_vec_as::<f32>().unwrap_or_default();
+        let mut params = lifegom_render::gom::GomParams::init(mesh.num_gaussians(), device);
+        let c = Tensor::<1>::from_floats(
+            [
+                color.first().copied().unwrap_or(0.5) / count as f32,
+                color.get(1).copied().unwrap_or(0.5) / count as f32,
+                color.get(2).copied().unwrap_or(0.5) / count as f32,
+            ],
+            device,
+        );
+        params.colors = params.colors.zeros_like() + c.unsqueeze_dim(0);
+        let avatar = Avatar {
+            xyz: inputs.subject.canonical_vertices.clone(),
+            faces: params,
+            lbs_weights: inputs.subject.lbs_weights.clone(),
+            skeleton: inputs.subject.skeleton.clone(),
+            mesh: mesh.clone(),
+        };
+        let (pred, render_ms) = render_timed(
+            &avatar,
+            &inputs,
+            &inputs.target_camera,
+            &inputs.target_skinning,
+        )?;
+        let gt = Image::from_chw(inputs.target_rgb.clone()).quantized();
+        let pred = pred.quantized();
+        let shape = [h as usize, w as usize, 3];
+        let (p_img, g_img) = match (dataset.rule.protocol != Protocol::Aistpp)
+            .then(|| thuman_crop_box(ImageRef::new(&gt.data, shape).ok()?, crop_size).ok()?)
+            .flatten()
+        {
+            Some(bbox) => {
+                let (p, s) = crop(ImageRef::new(&pred.data, shape)?, bbox)?;
+                let (g, _) = crop(ImageRef::new(&gt.data, shape)?, bbox)?;
+                (
+                    Image {
+                        width: s[1],
+                        height: s[0],
+                        data: p,
+                    },
+                    Image {
+                        width: s[1],
+                        height: s[0],
+                        data: g,
+                    },
+                )
+            }
+            None => (pred.clone(), gt.clone()),
+        };
+        let m = full_image_metrics(
+            ImageRef::new(&p_img.data, [p_img.height, p_img.width, 3])?,
+            ImageRef::new(&g_img.data, [g_img.height, g_img.width, 3])?,
+        )?;
+        views.push(ViewScore {
+            subject: sample.subject.clone(),
+            frame_name: sample.frame_name.clone(),
+            psnr: m.psnr,
+            ssim: m.ssim,
+            lpips_alex: None,
+            lpips_vgg: None,
+            recon_ms: 0.0,
+            render_ms,
+        });
+        images.pred.push(p_img);
+        images.gt.push(g_img);
+    }
+    Ok(SplitScores {
+        views,
+        images,
+        num_gaussians: mesh.num_gaussians(),
+        iterations: 0,
+        subdivide,
+    })
+}

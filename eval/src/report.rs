@@ -1,0 +1,365 @@
+//! Evaluation outputs: `per_subject.csv`, `per_view.csv`, `summary.json` and `report.md`, plus
+//! the accuracy-vs-time table and Pareto plot of a sweep.
+//!
+//! LPIPS and FID appear only when computed from real weights; otherwise the report says
+//! "LPIPS/FID not computed: weights missing (see README)" and the fields are `null`, never a
+//! substitute number.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+
+use crate::evaluate::{SplitScores, ViewScore, mean_of, per_subject};
+use crate::plot::{Chart, PALETTE, Scale, Series, Style};
+
+/// The line printed and written when perceptual weights are absent.
+pub const WEIGHTS_MISSING: &str = "LPIPS/FID not computed: weights missing (see README)";
+
+/// Means over a split (the numbers of a results table row).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Summary {
+    /// Views scored.
+    pub views: usize,
+    /// Subjects scored.
+    pub subjects: usize,
+    /// Mean PSNR (dB).
+    pub psnr: f64,
+    /// Mean SSIM.
+    pub ssim: f64,
+    /// Mean LPIPS-Alex ×1000 (LPIPS*), when computed.
+    pub lpips_alex_x1000: Option<f64>,
+    /// Mean LPIPS-VGG ×1000, when computed.
+    pub lpips_vgg_x1000: Option<f64>,
+    /// FID between the prediction and ground-truth crops, when computed.
+    pub fid: Option<f64>,
+    /// Mean reconstruction time per subject (ms).
+    pub recon_ms: f64,
+    /// Mean render time per view (ms).
+    pub render_ms: f64,
+    /// Gaussians per rendered view.
+    pub num_gaussians: usize,
+    /// Feedback steps.
+    pub iterations: usize,
+    /// Subdivisions.
+    pub subdivide: u32,
+}
+
+impl Summary {
+    /// Summarises a split's scores (`fid` computed elsewhere).
+    pub fn of(scores: &SplitScores, fid: Option<f64>) -> Self {
+        let subjects = per_subject(&scores.views);
+        let recon: Vec<f64> = subjects
+            .iter()
+            .filter_map(|(_, v)| v.first().map(|x| x.recon_ms))
+            .collect();
+        Self {
+            views: scores.views.len(),
+            subjects: subjects.len(),
+            psnr: mean_of(&scores.views, |v| Some(v.psnr)).unwrap_or(f64::NAN),
+            ssim: mean_of(&scores.views, |v| Some(v.ssim)).unwrap_or(f64::NAN),
+            lpips_alex_x1000: mean_of(&scores.views, |v| v.lpips_alex).map(|x| x * 1000.0),
+            lpips_vgg_x1000: mean_of(&scores.views, |v| v.lpips_vgg).map(|x| x * 1000.0),
+            fid,
+            recon_ms: if recon.is_empty() {
+                f64::NAN
+            } else {
+                recon.iter().sum::<f64>() / recon.len() as f64
+            },
+            render_ms: mean_of(&scores.views, |v| Some(v.render_ms)).unwrap_or(f64::NAN),
+            num_gaussians: scores.num_gaussians,
+            iterations: scores.iterations,
+            subdivide: scores.subdivide,
+        }
+    }
+}
+
+fn opt(v: Option<f64>, digits: usize) -> String {
+    v.map_or("n/a".into(), |x| format!("{x:.digits$}"))
+}
+
+/// Writes `per_view.csv` and `per_subject.csv`.
+pub fn write_csvs(out: &Path, views: &[ViewScore]) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out)?;
+    let mut s = String::from("subject,frame,psnr,ssim,lpips_alex,lpips_vgg,recon_ms,render_ms\n");
+    for v in views {
+        let _ = writeln!(
+            s,
+            "{},{},{:.4},{:.5},{},{},{:.1},{:.2}",
+            v.subject,
+            v.frame_name,
+            v.psnr,
+            v.ssim,
+            opt(v.lpips_alex, 5),
+            opt(v.lpips_vgg, 5),
+            v.recon_ms,
+            v.render_ms
+        );
+    }
+    let path = out.join("per_view.csv");
+    std::fs::write(&path, s).with_context(|| format!("writing {}", path.display()))?;
+    let mut s = String::from(
+        "subject,views,psnr,ssim,lpips_alex_x1000,lpips_vgg_x1000,recon_ms,render_ms\n",
+    );
+    for (subject, vs) in per_subject(views) {
+        let _ = writeln!(
+            s,
+            "{},{},{:.4},{:.5},{},{},{:.1},{:.2}",
+            subject,
+            vs.len(),
+            mean_of(&vs, |v| Some(v.psnr)).unwrap_or(f64::NAN),
+            mean_of(&vs, |v| Some(v.ssim)).unwrap_or(f64::NAN),
+            opt(mean_of(&vs, |v| v.lpips_alex).map(|x| x * 1000.0), 2),
+            opt(mean_of(&vs, |v| v.lpips_vgg).map(|x| x * 1000.0), 2),
+            vs.first().map_or(f64::NAN, |v| v.recon_ms),
+            mean_of(&vs, |v| Some(v.render_ms)).unwrap_or(f64::NAN),
+        );
+    }
+    let path = out.join("per_subject.csv");
+    std::fs::write(&path, s).with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}
+
+/// One row of the accuracy-vs-time sweep.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SweepRow {
+    /// Image side (px) the sweep point ran at.
+    pub size: u32,
+    /// The summary at this setting.
+    pub summary: Summary,
+}
+
+/// Everything `report.md` shows.
+#[derive(Debug, Clone, Default)]
+pub struct Report {
+    /// Heading.
+    pub title: String,
+    /// Free lines under the heading (command, checkpoint, machine, backend).
+    pub context: Vec<String>,
+    /// The model's summary.
+    pub summary: Option<Summary>,
+    /// The template-only baseline, if evaluated.
+    pub baseline: Option<Summary>,
+    /// Notes (e.g. [`WEIGHTS_MISSING`], random encoder init).
+    pub notes: Vec<String>,
+    /// Comparison sheets (relative paths under the report's folder).
+    pub sheets: Vec<PathBuf>,
+    /// Animations and other pictures (relative paths), with captions.
+    pub pictures: Vec<(String, PathBuf)>,
+    /// Accuracy-vs-time sweep rows.
+    pub sweep: Vec<SweepRow>,
+}
+
+fn table_row(name: &str, s: &Summary) -> String {
+    format!(
+        "| {name} | {} | {} | {:.2} | {:.4} | {} | {} | {} | {:.0} | {:.1} |",
+        s.iterations,
+        s.subdivide,
+        s.psnr,
+        s.ssim,
+        opt(s.lpips_alex_x1000, 1),
+        opt(s.lpips_vgg_x1000, 1),
+        opt(s.fid, 2),
+        s.recon_ms,
+        s.render_ms
+    )
+}
+
+const TABLE_HEAD: &str = "| | T | subdiv | PSNR ↑ | SSIM ↑ | LPIPS*-alex ↓ | LPIPS*-vgg ↓ | FID ↓ | recon ms | render ms |\n|---|---|---|---|---|---|---|---|---|---|";
+
+impl Report {
+    /// Renders the markdown.
+    pub fn markdown(&self) -> String {
+        let mut md = format!("# {}\n\n", self.title);
+        for line in &self.context {
+            let _ = writeln!(md, "- {line}");
+        }
+        md.push('\n');
+        for note in &self.notes {
+            let _ = writeln!(md, "> {note}\n");
+        }
+        if self.summary.is_some() || self.baseline.is_some() {
+            md.push_str("## Results\n\n");
+            md.push_str(TABLE_HEAD);
+            md.push('\n');
+            if let Some(s) = &self.summary {
+                md.push_str(&table_row("model", s));
+                md.push('\n');
+            }
+            if let Some(b) = &self.baseline {
+                md.push_str(&table_row("template baseline", b));
+                md.push('\n');
+            }
+            if let Some(s) = &self.summary {
+                let _ = writeln!(
+                    md,
+                    "\n{} views of {} subjects, {} Gaussians per view. PSNR/SSIM on the protocol's region (THuman: GT bounding box grown to 1000×500 at 1024², scaled); recon ms per subject, render ms per view (host wall clock).",
+                    s.views, s.subjects, s.num_gaussians
+                );
+            }
+        }
+        if !self.sweep.is_empty() {
+            md.push_str("\n## What accuracy costs in time\n\n");
+            md.push_str("| size | T | subdiv | Gaussians | PSNR ↑ | SSIM ↑ | LPIPS*-vgg ↓ | recon ms | render ms |\n|---|---|---|---|---|---|---|---|---|\n");
+            for r in &self.sweep {
+                let s = &r.summary;
+                let _ = writeln!(
+                    md,
+                    "| {} | {} | {} | {} | {:.2} | {:.4} | {} | {:.0} | {:.1} |",
+                    r.size,
+                    s.iterations,
+                    s.subdivide,
+                    s.num_gaussians,
+                    s.psnr,
+                    s.ssim,
+                    opt(s.lpips_vgg_x1000, 1),
+                    s.recon_ms,
+                    s.render_ms
+                );
+            }
+            md.push_str("\n![accuracy vs time](pareto.png)\n");
+        }
+        if !self.sheets.is_empty() {
+            md.push_str("\n## Ground truth | prediction | error (×4)\n\n");
+            for s in &self.sheets {
+                let _ = writeln!(md, "![{}]({})\n", s.display(), s.display());
+            }
+        }
+        for (caption, path) in &self.pictures {
+            let _ = writeln!(md, "\n### {caption}\n\n![{caption}]({})\n", path.display());
+        }
+        md
+    }
+
+    /// Writes `report.md` (and `pareto.png` when there is a sweep) into `out`.
+    pub fn write(&self, out: &Path) -> anyhow::Result<()> {
+        std::fs::create_dir_all(out)?;
+        if !self.sweep.is_empty() {
+            pareto_chart(&self.sweep)
+                .render(760, 460)
+                .save(&out.join("pareto.png"))
+                .context("writing pareto.png")?;
+        }
+        let path = out.join("report.md");
+        std::fs::write(&path, self.markdown())
+            .with_context(|| format!("writing {}", path.display()))
+    }
+}
+
+/// PSNR against reconstruction time, one series per subdivision level, points labelled
+/// `T<n>` (and the size when several sizes were swept).
+pub fn pareto_chart(rows: &[SweepRow]) -> Chart {
+    let sizes: std::collections::BTreeSet<u32> = rows.iter().map(|r| r.size).collect();
+    let mut levels: Vec<u32> = rows.iter().map(|r| r.summary.subdivide).collect();
+    levels.sort_unstable();
+    levels.dedup();
+    let series = levels
+        .iter()
+        .enumerate()
+        .map(|(k, level)| {
+            let pts: Vec<&SweepRow> = rows
+                .iter()
+                .filter(|r| r.summary.subdivide == *level)
+                .collect();
+            Series {
+                name: format!("subdiv {level}"),
+                points: pts
+                    .iter()
+                    .map(|r| (r.summary.recon_ms, r.summary.psnr))
+                    .collect(),
+                labels: pts
+                    .iter()
+                    .map(|r| {
+                        if sizes.len() > 1 {
+                            format!("T{} {}PX", r.summary.iterations, r.size)
+                        } else {
+                            format!("T{}", r.summary.iterations)
+                        }
+                    })
+                    .collect(),
+                color: PALETTE[k % PALETTE.len()],
+            }
+        })
+        .collect();
+    Chart {
+        title: "PSNR vs reconstruction time".into(),
+        x_label: "reconstruction ms".into(),
+        y_label: "PSNR dB".into(),
+        x_scale: Scale::Log10,
+        y_scale: Scale::Linear,
+        series,
+        style: Style::Markers,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::evaluate::MetricImages;
+
+    fn view(subject: &str, psnr: f64, lpips: Option<f64>) -> ViewScore {
+        ViewScore {
+            subject: subject.into(),
+            frame_name: format!("scene_{subject}_x"),
+            psnr,
+            ssim: 0.9,
+            lpips_alex: lpips,
+            lpips_vgg: None,
+            recon_ms: 100.0,
+            render_ms: 5.0,
+        }
+    }
+
+    #[test]
+    fn summary_means_and_missing_perceptual_metrics_stay_missing() {
+        let scores = SplitScores {
+            views: vec![
+                view("a", 20.0, None),
+                view("a", 22.0, None),
+                view("b", 30.0, None),
+            ],
+            images: MetricImages::default(),
+            num_gaussians: 10,
+            iterations: 3,
+            subdivide: 1,
+        };
+        let s = Summary::of(&scores, None);
+        assert_eq!((s.views, s.subjects), (3, 2));
+        assert!((s.psnr - 24.0).abs() < 1e-12);
+        assert_eq!(s.lpips_alex_x1000, None);
+        let md = Report {
+            title: "t".into(),
+            summary: Some(s),
+            notes: vec![WEIGHTS_MISSING.into()],
+            ..Default::default()
+        }
+        .markdown();
+        assert!(md.contains(WEIGHTS_MISSING));
+        assert!(md.contains("| n/a |"), "{md}");
+        let with = SplitScores {
+            views: vec![view("a", 20.0, Some(0.1)), view("b", 20.0, Some(0.3))],
+            ..scores
+        };
+        assert!((Summary::of(&with, None).lpips_alex_x1000.unwrap() - 200.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn csvs_have_one_line_per_view_and_subject() {
+        let dir = std::env::temp_dir().join(format!("lifegom-report-{}", std::process::id()));
+        write_csvs(
+            &dir,
+            &[
+                view("a", 20.0, None),
+                view("a", 22.0, None),
+                view("b", 30.0, None),
+            ],
+        )
+        .unwrap();
+        let per_subject = std::fs::read_to_string(dir.join("per_subject.csv")).unwrap();
+        assert_eq!(per_subject.lines().count(), 3);
+        assert!(per_subject.contains("a,2,21.0000"), "{per_subject}");
+        let per_view = std::fs::read_to_string(dir.join("per_view.csv")).unwrap();
+        assert_eq!(per_view.lines().count(), 4);
+    }
+}

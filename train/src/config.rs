@@ -1,0 +1,299 @@
+//! Experiment configs: one TOML file per experiment (`configs/*.toml`).
+//!
+//! `lifegom-data` reads `[data]` (and `[synthetic]`); this module adds `[model]` and `[train]`.
+//! Both sections are optional: the defaults are the reference's THuman view3 settings (spec §0:
+//! T = 3, subdivisions 1 in training and 2 at test, lr 1e-4 encoder / 5e-5 reconstructor, losses
+//! 1/5/1/0/100, seed 42) with the paper network. Unknown keys are errors, so a typo never
+//! silently falls back to a default.
+
+use std::path::{Path, PathBuf};
+
+use lifegom_data::config::ConfigFile;
+use lifegom_model::feedback::ReconstructorConfig;
+use serde::{Deserialize, Serialize};
+
+use crate::losses::LossWeights;
+
+/// Errors reading an experiment config; each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The `[data]` part.
+    #[error(transparent)]
+    Data(#[from] lifegom_data::DataError),
+    /// The `[model]` or `[train]` part.
+    #[error("{path}: {reason}")]
+    Invalid {
+        /// The config file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// Which network size.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Preset {
+    /// Every component at toy width: tests and the 2-core quickstart.
+    Tiny,
+    /// ¼-width encoder with the paper's fusion and Point Transformer.
+    Cpu,
+    /// The paper's network (1152 channels).
+    #[default]
+    Paper,
+}
+
+/// `[model]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ModelSection {
+    /// Network size.
+    pub preset: Preset,
+    /// Feedback steps T.
+    pub iterations: usize,
+    /// Subdivisions of the Gaussians' mesh while training.
+    pub subdivide_train: u32,
+    /// Subdivisions at inference.
+    pub subdivide_test: u32,
+    /// Optional torchvision ResNet-18 weights for the encoder (`.pth` / `.safetensors`).
+    pub encoder_weights: Option<PathBuf>,
+}
+
+impl Default for ModelSection {
+    fn default() -> Self {
+        Self {
+            preset: Preset::Paper,
+            iterations: 3,
+            subdivide_train: 1,
+            subdivide_test: 2,
+            encoder_weights: None,
+        }
+    }
+}
+
+impl ModelSection {
+    /// The reconstructor config for `num_views` source views.
+    pub fn reconstructor(&self, num_views: usize) -> ReconstructorConfig {
+        let base = match self.preset {
+            Preset::Tiny => ReconstructorConfig::tiny(num_views),
+            Preset::Cpu => ReconstructorConfig::cpu(num_views),
+            Preset::Paper => ReconstructorConfig::paper(num_views),
+        };
+        base.with_iterations(self.iterations)
+            .with_subdivide_train(self.subdivide_train)
+            .with_subdivide_test(self.subdivide_test)
+    }
+}
+
+/// `[train]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainSection {
+    /// Optimiser steps (one sample each: the reference's batch size is 1).
+    pub steps: u64,
+    /// Adam learning rate of the image encoder.
+    pub lr_encoder: f64,
+    /// Adam learning rate of everything else (fusion, Point Transformer, heads, embeddings).
+    pub lr_reconstructor: f64,
+    /// Seed of the data order, the backgrounds, the source-view choice and dropout.
+    pub seed: u64,
+    /// Loss weight of the RGB L1.
+    pub loss_rgb: f64,
+    /// Loss weight of the mask L1.
+    pub loss_mask: f64,
+    /// Loss weight of 1 − SSIM.
+    pub loss_ssim: f64,
+    /// Loss weight of LPIPS-VGG (needs the LPIPS weights).
+    pub loss_lpips: f64,
+    /// Loss weight of the uniform Laplacian.
+    pub loss_laplacian: f64,
+    /// Write a checkpoint every this many steps (and at the end).
+    pub checkpoint_every: u64,
+    /// Write a snapshot PNG every this many steps.
+    pub snapshot_every: u64,
+    /// Append a line to `metrics.jsonl` every this many steps.
+    pub log_every: u64,
+}
+
+impl Default for TrainSection {
+    fn default() -> Self {
+        Self {
+            steps: 200_000,
+            lr_encoder: 1e-4,
+            lr_reconstructor: 5e-5,
+            seed: 42,
+            loss_rgb: 1.0,
+            loss_mask: 5.0,
+            loss_ssim: 1.0,
+            loss_lpips: 0.0,
+            loss_laplacian: 100.0,
+            checkpoint_every: 10_000,
+            snapshot_every: 1_000,
+            log_every: 10,
+        }
+    }
+}
+
+impl TrainSection {
+    /// The loss weights.
+    pub fn loss_weights(&self) -> LossWeights {
+        LossWeights::new()
+            .with_rgb(self.loss_rgb)
+            .with_mask(self.loss_mask)
+            .with_ssim(self.loss_ssim)
+            .with_lpips(self.loss_lpips)
+            .with_laplacian(self.loss_laplacian)
+    }
+}
+
+#[derive(Deserialize)]
+struct Sections {
+    #[serde(default)]
+    model: ModelSection,
+    #[serde(default)]
+    train: TrainSection,
+}
+
+/// A whole experiment: data, model and training settings.
+#[derive(Debug, Clone)]
+pub struct ExperimentConfig {
+    /// `[data]` and `[synthetic]`.
+    pub file: ConfigFile,
+    /// `[model]`.
+    pub model: ModelSection,
+    /// `[train]`.
+    pub train: TrainSection,
+}
+
+impl ExperimentConfig {
+    /// Reads and validates a config file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let file = ConfigFile::load(path)?;
+        let text = std::fs::read_to_string(path).map_err(|e| ConfigError::Invalid {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+        Self::parse_sections(file, &text, path)
+    }
+
+    fn parse_sections(file: ConfigFile, text: &str, path: &Path) -> Result<Self, ConfigError> {
+        let invalid = |reason: String| ConfigError::Invalid {
+            path: path.to_path_buf(),
+            reason,
+        };
+        let sections: Sections = toml::from_str(text).map_err(|e| invalid(e.to_string()))?;
+        let (model, train) = (sections.model, sections.train);
+        if model.iterations == 0 {
+            return Err(invalid("[model] iterations must be ≥ 1".into()));
+        }
+        if model.subdivide_train > 3 || model.subdivide_test > 3 {
+            return Err(invalid(
+                "[model] subdivisions above 3 (≥ 7M Gaussians on SMPL-X) are not supported".into(),
+            ));
+        }
+        for (name, lr) in [
+            ("lr_encoder", train.lr_encoder),
+            ("lr_reconstructor", train.lr_reconstructor),
+        ] {
+            if !(lr.is_finite() && lr >= 0.0) {
+                return Err(invalid(format!("[train] {name} = {lr} must be ≥ 0")));
+            }
+        }
+        for (name, w) in [
+            ("loss_rgb", train.loss_rgb),
+            ("loss_mask", train.loss_mask),
+            ("loss_ssim", train.loss_ssim),
+            ("loss_lpips", train.loss_lpips),
+            ("loss_laplacian", train.loss_laplacian),
+        ] {
+            if !(w.is_finite() && w >= 0.0) {
+                return Err(invalid(format!("[train] {name} = {w} must be ≥ 0")));
+            }
+        }
+        for (name, n) in [
+            ("checkpoint_every", train.checkpoint_every),
+            ("snapshot_every", train.snapshot_every),
+            ("log_every", train.log_every),
+        ] {
+            if n == 0 {
+                return Err(invalid(format!("[train] {name} must be ≥ 1")));
+            }
+        }
+        Ok(Self { file, model, train })
+    }
+
+    /// The reconstructor config for this experiment.
+    pub fn reconstructor(&self) -> ReconstructorConfig {
+        self.model.reconstructor(self.file.data.n_input_frames)
+    }
+
+    /// The same experiment with another data root.
+    pub fn with_root(mut self, root: impl Into<PathBuf>) -> Self {
+        self.file = self.file.with_root(root);
+        self
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn configs_dir() -> PathBuf {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs")
+    }
+
+    #[test]
+    fn every_shipped_config_parses_as_an_experiment() {
+        let mut n = 0;
+        for entry in std::fs::read_dir(configs_dir()).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                ExperimentConfig::load(&path).unwrap_or_else(|e| panic!("{e}"));
+                n += 1;
+            }
+        }
+        assert!(n >= 6);
+    }
+
+    #[test]
+    fn defaults_are_the_thuman_view3_reference() {
+        let cfg = ExperimentConfig::load(&configs_dir().join("thuman2.0-view3.toml")).unwrap();
+        assert_eq!(cfg.model, ModelSection::default());
+        let r = cfg.reconstructor();
+        assert_eq!(
+            (r.iterations, r.subdivide_train, r.subdivide_test),
+            (3, 1, 2)
+        );
+        assert_eq!(r.feature_dim(), 1152);
+        let w = cfg.train.loss_weights();
+        assert_eq!(
+            (w.rgb, w.mask, w.ssim, w.lpips, w.laplacian),
+            (1.0, 5.0, 1.0, 0.0, 100.0)
+        );
+        assert_eq!(
+            (cfg.train.lr_encoder, cfg.train.lr_reconstructor),
+            (1e-4, 5e-5)
+        );
+    }
+
+    #[test]
+    fn typos_and_bad_values_are_errors_naming_the_file() {
+        let base = ConfigFile::load(&configs_dir().join("synthetic-tiny.toml")).unwrap();
+        let path = Path::new("configs/x.toml");
+        for (text, needle) in [
+            ("[model]\niteration = 3\n", "iteration"),
+            ("[train]\nlr_encoder = -1.0\n", "lr_encoder"),
+            ("[model]\niterations = 0\n", "iterations"),
+            ("[train]\nlog_every = 0\n", "log_every"),
+            ("[model]\npreset = \"huge\"\n", "huge"),
+        ] {
+            let err = ExperimentConfig::parse_sections(base.clone(), text, path)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains("configs/x.toml") && err.contains(needle),
+                "{err}"
+            );
+        }
+    }
+}

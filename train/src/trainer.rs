@@ -1,0 +1,379 @@
+//! The training loop's step, its data schedule, and checkpoints that resume exactly.
+//!
+//! One step (spec §6.1–6.3, batch size 1): run the reconstructor's T feedback steps on the N
+//! sources; render every step's state in the target view too; supervise the T·(N+1) composited
+//! renders and alphas against the (broadcast) ground truth with L1 + λ(1−SSIM) + λ·mask L1, plus
+//! λ·uniform Laplacian of the T low-res canonical meshes; one Adam step with the encoder's
+//! learning rate on the encoder's parameters and the reconstructor's on the rest.
+//!
+//! **Exact resume.** Nothing random depends on history: sample `s` is drawn from the permutation
+//! of epoch `s / len` (seeded by `(seed, epoch)`), its backgrounds and source views from
+//! `Rng(seed).fork(s)`, and Burn's RNG (dropout) is re-seeded from `(seed, s)` before the forward.
+//! A checkpoint stores the weights (with their parameter ids), Adam's moments and the step, so a
+//! resumed run computes the same losses as an uninterrupted one on the same backend.
+
+use std::time::Instant;
+
+use burn::module::{Module, ParamGroup};
+use burn::optim::lr_scheduler::LrSchedulerConfig;
+use burn::optim::lr_scheduler::module_lr_scheduler::{ModuleLearningRate, ModuleLrSchedulerConfig};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::{Bytes, Device, Tensor};
+use lifegom_data::dataset::Dataset;
+use lifegom_data::rng::Rng;
+use lifegom_model::feedback::{Reconstructor, ReconstructorConfig, render_views};
+use lifegom_model::inputs::ModelInputs;
+use lifegom_model::trained::{self, TrainedError};
+use lifegom_render::gom::GomMesh;
+use serde::{Deserialize, Serialize};
+
+use crate::config::TrainSection;
+use crate::losses::{LossTerms, LossWeights, UniformLaplacian, l1, mask_l1, ssim_loss};
+
+/// Errors of a training step or checkpoint.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// The model failed (bad inputs, rendering).
+    #[error(transparent)]
+    Model(#[from] lifegom_model::error::ModelError),
+    /// Loss assembly failed.
+    #[error(transparent)]
+    Loss(#[from] crate::losses::LossError),
+    /// Reading or writing a checkpoint failed.
+    #[error(transparent)]
+    Checkpoint(#[from] TrainedError),
+    /// Anything else, with context.
+    #[error("{0}")]
+    Other(String),
+}
+
+/// What one step measured (host values, read after the step).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct StepStats {
+    /// The step that was taken (1-based count of optimiser steps after it).
+    pub step: u64,
+    /// Weighted loss terms and `total`.
+    pub losses: Vec<(String, f64)>,
+    /// PSNR of the last feedback step's target-view render against the target (dB).
+    pub psnr_target: f64,
+    /// Wall time of the step (s).
+    pub seconds: f64,
+}
+
+/// A step's statistics and its last-iteration target render (detached, `[3, H, W]`).
+#[derive(Debug, Clone)]
+pub struct StepOutput {
+    /// The statistics.
+    pub stats: StepStats,
+    /// What the model rendered in the target view after the last feedback step.
+    pub target_render: Tensor<3>,
+}
+
+/// Trainer state that is not in the weights or the optimiser.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct TrainerMeta {
+    step: u64,
+    seed: u64,
+}
+
+/// The model, its optimiser and the step counter.
+pub struct Trainer {
+    /// The network, on an autodiff device.
+    pub model: Reconstructor,
+    /// The config it was built from.
+    pub config: ReconstructorConfig,
+    optim: ModuleOptimizer,
+    lr: ModuleLearningRate,
+    weights: LossWeights,
+    /// Optimiser steps taken so far.
+    pub step: u64,
+    seed: u64,
+    device: Device,
+}
+
+/// A 64-bit mix (splitmix64 finaliser) so nearby seeds and steps give unrelated streams.
+fn mix(a: u64, b: u64) -> u64 {
+    let mut z = a ^ b.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476C_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The sample index and sampling RNG of step `step` (module docs: a pure function of the seed).
+pub fn schedule(seed: u64, step: u64, len: usize) -> (usize, Rng) {
+    let len = len.max(1);
+    let epoch = step / len as u64;
+    let mut order: Vec<usize> = (0..len).collect();
+    let mut rng = Rng::new(mix(seed, epoch));
+    for i in (1..len).rev() {
+        order.swap(i, rng.below(i + 1));
+    }
+    (
+        order[(step % len as u64) as usize],
+        Rng::new(seed).fork(step),
+    )
+}
+
+/// Loads step `step`'s sample from `dataset`.
+pub fn sample_for_step(
+    dataset: &Dataset,
+    seed: u64,
+    step: u64,
+) -> Result<lifegom_data::dataset::Sample, lifegom_data::DataError> {
+    let (index, mut rng) = schedule(seed, step, dataset.len());
+    dataset.sample(index, &mut rng)
+}
+
+fn learning_rates(
+    model: &Reconstructor,
+    train: &TrainSection,
+) -> Result<ModuleLearningRate, TrainError> {
+    // Groups by parameter id, not path: robust to renames, and ids survive checkpoints.
+    let encoder = ParamGroup::ids_from_module(model.encoder.clone());
+    let mut scheduler =
+        ModuleLrSchedulerConfig::new(LrSchedulerConfig::Constant(train.lr_reconstructor))
+            .with_group(encoder, LrSchedulerConfig::Constant(train.lr_encoder))
+            .init()
+            .map_err(TrainError::Other)?;
+    Ok(scheduler.step())
+}
+
+fn scalar(t: Tensor<1>) -> f64 {
+    t.into_data()
+        .try_into_vec_as::<f64>()
+        .ok()
+        .and_then(|v| v.first().copied())
+        .unwrap_or(f64::NAN)
+}
+
+impl Trainer {
+    /// A fresh model (Burn's RNG seeded from `train.seed`) on `device` (made autodiff here).
+    pub fn new(
+        config: ReconstructorConfig,
+        num_vertices: usize,
+        train: &TrainSection,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        let device = device.clone().autodiff();
+        device.seed(train.seed);
+        let model = config.init(num_vertices, &device)?;
+        Self::assemble(
+            model,
+            config,
+            ModuleOptimizer::from(AdamConfig::new().build()),
+            0,
+            train,
+            device,
+        )
+    }
+
+    fn assemble(
+        model: Reconstructor,
+        config: ReconstructorConfig,
+        optim: ModuleOptimizer,
+        step: u64,
+        train: &TrainSection,
+        device: Device,
+    ) -> Result<Self, TrainError> {
+        Ok(Self {
+            lr: learning_rates(&model, train)?,
+            model,
+            config,
+            optim,
+            weights: train.loss_weights(),
+            step,
+            seed: train.seed,
+            device,
+        })
+    }
+
+    /// Resumes from a checkpoint written by [`Trainer::save`]. The `[train]` section supplies
+    /// learning rates and loss weights (so they may be changed on resume); the seed is the
+    /// checkpoint's.
+    pub fn resume(
+        path: &std::path::Path,
+        train: &TrainSection,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        let device = device.clone().autodiff();
+        let loaded = trained::load(path, &device)?;
+        let bad = |reason: String| {
+            TrainError::Checkpoint(TrainedError::Format {
+                path: path.to_path_buf(),
+                reason,
+            })
+        };
+        let payload = &loaded.payload;
+        if payload.len() < 8 {
+            return Err(bad(
+                "no trainer state (an inference-only model file?)".into()
+            ));
+        }
+        let n = u64::from_le_bytes(payload[..8].try_into().unwrap_or_default()) as usize;
+        if payload.len() < 8 + n {
+            return Err(bad("truncated trainer state".into()));
+        }
+        let meta: TrainerMeta = serde_json::from_slice(&payload[8..8 + n])
+            .map_err(|e| bad(format!("trainer state: {e}")))?;
+        let optim = ModuleOptimizer::from(AdamConfig::new().build())
+            .from_bytes(Bytes::from_bytes_vec(payload[8 + n..].to_vec()))
+            .map_err(|e| bad(format!("optimizer state: {e}")))?;
+        let train = TrainSection {
+            seed: meta.seed,
+            ..train.clone()
+        };
+        Self::assemble(
+            loaded.model,
+            loaded.config,
+            optim,
+            meta.step,
+            &train,
+            device,
+        )
+    }
+
+    /// Writes weights, config, optimiser state and step to `path` atomically.
+    pub fn save(&self, path: &std::path::Path, meta: serde_json::Value) -> Result<(), TrainError> {
+        let state = serde_json::to_vec(&TrainerMeta {
+            step: self.step,
+            seed: self.seed,
+        })
+        .map_err(|e| TrainError::Other(e.to_string()))?;
+        let optim = self
+            .optim
+            .into_bytes()
+            .map_err(|e| TrainError::Other(format!("serialising the optimizer: {e}")))?;
+        let mut payload = Vec::with_capacity(8 + state.len() + optim.len());
+        payload.extend_from_slice(&(state.len() as u64).to_le_bytes());
+        payload.extend_from_slice(&state);
+        payload.extend_from_slice(&optim);
+        let mut meta = meta;
+        if let serde_json::Value::Object(m) = &mut meta {
+            m.insert("step".into(), self.step.into());
+        }
+        trained::save(path, &self.model, &self.config, meta, &payload)?;
+        Ok(())
+    }
+
+    /// The autodiff device the model lives on.
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// The seed the data schedule uses.
+    pub fn seed(&self) -> u64 {
+        self.seed
+    }
+
+    /// Loads torchvision ResNet-18 weights into the encoder; returns the loader's report.
+    pub fn load_encoder_weights(&mut self, path: &std::path::Path) -> Result<String, TrainError> {
+        let (encoder, report) = self
+            .model
+            .encoder
+            .clone()
+            .load_torchvision(path)
+            .map_err(lifegom_model::error::ModelError::from)?;
+        self.model.encoder = encoder;
+        Ok(report.to_string())
+    }
+
+    /// One optimiser step on `inputs` (built on [`Trainer::device`]).
+    pub fn train_step(
+        &mut self,
+        inputs: &ModelInputs,
+        mesh: &GomMesh,
+        laplacian: &UniformLaplacian,
+    ) -> Result<StepStats, TrainError> {
+        Ok(self.train_step_with_render(inputs, mesh, laplacian)?.stats)
+    }
+
+    /// [`Trainer::train_step`], also returning the last iteration's target render.
+    pub fn train_step_with_render(
+        &mut self,
+        inputs: &ModelInputs,
+        mesh: &GomMesh,
+        laplacian: &UniformLaplacian,
+    ) -> Result<StepOutput, TrainError> {
+        let _span = tracing::info_span!("train_step", step = self.step).entered();
+        let start = Instant::now();
+        self.device.seed(mix(self.seed, self.step));
+        let rec = self.model.forward(&inputs.subject, mesh, &inputs.sources)?;
+        let t = rec.states.len();
+        let mut preds = Vec::with_capacity(t);
+        let mut alphas = Vec::with_capacity(t);
+        let mut last_target = None;
+        for (state, source) in rec.states.iter().zip(&rec.renders) {
+            let target = render_views(
+                mesh,
+                &state.xyz,
+                &state.faces,
+                &inputs.subject,
+                std::slice::from_ref(&inputs.target_camera),
+                std::slice::from_ref(&inputs.target_skinning),
+                inputs.sources.background,
+            )?;
+            last_target = Some(target.rgb.clone());
+            preds.push(Tensor::cat(vec![source.rgb.clone(), target.rgb], 0));
+            alphas.push(Tensor::cat(vec![source.alpha.clone(), target.alpha], 0));
+        }
+        let gt_rgb = Tensor::cat(
+            vec![
+                inputs.sources.images.clone(),
+                inputs.target_rgb.clone().unsqueeze_dim(0),
+            ],
+            0,
+        );
+        let gt_mask = Tensor::cat(
+            vec![
+                inputs.source_masks.clone(),
+                inputs.target_mask.clone().unsqueeze_dim(0),
+            ],
+            0,
+        );
+        let pred = Tensor::cat(preds, 0);
+        let alpha = Tensor::cat(alphas, 0);
+        let gt_rgb = gt_rgb.repeat_dim(0, t);
+        let gt_mask = gt_mask.repeat_dim(0, t);
+        let meshes = Tensor::stack(rec.states.iter().map(|s| s.xyz.clone()).collect(), 0);
+        let terms = LossTerms {
+            rgb: l1(pred.clone(), gt_rgb.clone()),
+            mask: mask_l1(alpha, gt_mask),
+            ssim: ssim_loss(pred, gt_rgb),
+            lpips: None,
+            laplacian: laplacian.loss(meshes),
+        };
+        let loss = self.weights.total(terms)?;
+        let grads = GradientsParams::from_grads(loss.total.backward(), &self.model);
+        self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
+        self.step += 1;
+
+        let target_render = last_target
+            .ok_or_else(|| TrainError::Other("the reconstructor ran no feedback step".into()))?
+            .detach()
+            .squeeze_dim::<3>(0);
+        let mse = scalar(
+            (target_render.clone() - inputs.target_rgb.clone())
+                .powf_scalar(2.0)
+                .mean(),
+        );
+        let stats = StepStats {
+            step: self.step,
+            losses: loss
+                .scalars()
+                .into_iter()
+                .map(|(n, v)| (n.to_string(), v))
+                .collect(),
+            psnr_target: 10.0 * (1.0 / mse).log10(),
+            seconds: start.elapsed().as_secs_f64(),
+        };
+        Ok(StepOutput {
+            stats,
+            target_render,
+        })
+    }
+}
+
+/// The parameter count of a module.
+pub fn num_params<M: Module>(m: &M) -> usize {
+    m.num_params()
+}

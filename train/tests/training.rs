@@ -1,0 +1,182 @@
+//! End-to-end training tests on the tiny synthetic split (tiny network, ndarray, 64 px):
+//! the loss goes down on a fixed batch, a resumed run equals an uninterrupted one, Ctrl-C-style
+//! stops leave a loadable checkpoint, and bad checkpoints are clear errors.
+
+#![allow(deprecated)] // Device::ndarray(): the card's CI backend.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
+
+use burn::tensor::Device;
+use lifegom_data::config::ConfigFile;
+use lifegom_data::dataset::{Dataset, Phase};
+use lifegom_data::synth;
+use lifegom_model::feedback::Phase as MeshPhase;
+use lifegom_model::inputs::model_inputs;
+use lifegom_train::config::ExperimentConfig;
+use lifegom_train::losses::UniformLaplacian;
+use lifegom_train::run::{RunOptions, StopReason, subject_bodies, train};
+use lifegom_train::trainer::{Trainer, sample_for_step};
+
+fn config_path() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic-tiny.toml")
+}
+
+/// The tiny split, generated once per test binary.
+fn data_root() -> &'static Path {
+    static ROOT: OnceLock<PathBuf> = OnceLock::new();
+    ROOT.get_or_init(|| {
+        let root = std::env::temp_dir().join(format!("lifegom-train-data-{}", std::process::id()));
+        let cfg = ConfigFile::load(&config_path()).unwrap().with_root(&root);
+        let s = cfg.synthetic.clone().unwrap();
+        synth::generate_split(&s, &cfg.data, &root, s.seed, &|| {}).unwrap();
+        root
+    })
+}
+
+/// Burn's RNG is process-wide and these tests compare seeded runs: one test at a time.
+fn serial() -> MutexGuard<'static, ()> {
+    static LOCK: Mutex<()> = Mutex::new(());
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn experiment() -> ExperimentConfig {
+    ExperimentConfig::load(&config_path())
+        .unwrap()
+        .with_root(data_root())
+}
+
+fn out_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("lifegom-train-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+fn total(stats: &lifegom_train::trainer::StepStats) -> f64 {
+    stats.losses.iter().find(|(n, _)| n == "total").unwrap().1
+}
+
+#[test]
+fn a_few_steps_lower_the_loss_on_a_fixed_batch() {
+    let _serial = serial();
+    let cfg = experiment();
+    let device = Device::ndarray();
+    let data = Dataset::open(&cfg.file.data, Phase::Train).unwrap();
+    let bodies = subject_bodies(&data).unwrap();
+    let mut section = cfg.train.clone();
+    section.lr_reconstructor = 1e-3;
+    section.lr_encoder = 1e-3;
+    let mut trainer = Trainer::new(
+        cfg.reconstructor().with_iterations(1),
+        bodies[0].num_vertices(),
+        &section,
+        &device,
+    )
+    .unwrap();
+    let mesh = trainer
+        .config
+        .mesh(&bodies[0].topology, MeshPhase::Train, trainer.device())
+        .unwrap();
+    let lap = UniformLaplacian::new(&bodies[0].topology.faces, bodies[0].num_vertices()).unwrap();
+    let sample = sample_for_step(&data, 7, 0).unwrap();
+    let body = bodies.iter().find(|b| b.name == sample.subject).unwrap();
+    let inputs = model_inputs(body, &sample, 64, 64, trainer.device()).unwrap();
+    let losses: Vec<f64> = (0..6)
+        .map(|_| total(&trainer.train_step(&inputs, &mesh, &lap).unwrap()))
+        .collect();
+    assert!(losses.iter().all(|l| l.is_finite()), "{losses:?}");
+    assert!(
+        losses[5] < 0.9 * losses[0],
+        "6 Adam steps on one sample should lower its loss by 10 %: {losses:?}"
+    );
+    assert_eq!(trainer.step, 6);
+}
+
+fn logged_totals(out: &Path) -> Vec<(u64, f64)> {
+    std::fs::read_to_string(out.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            (v["step"].as_u64().unwrap(), v["total"].as_f64().unwrap())
+        })
+        .collect()
+}
+
+#[test]
+fn resume_equals_an_uninterrupted_run() {
+    let _serial = serial();
+    let cfg = experiment();
+    let opts = |out: PathBuf, steps: u64, resume: bool| RunOptions {
+        out,
+        resume,
+        max_minutes: None,
+        steps: Some(steps),
+        device: Device::ndarray(),
+        progress: false,
+    };
+    let never = || Arc::new(AtomicBool::new(false));
+
+    let straight = out_dir("straight");
+    let full = train(&cfg, &opts(straight.clone(), 4, false), never()).unwrap();
+    assert_eq!((full.step, full.stop), (4, StopReason::Finished));
+
+    let split = out_dir("split");
+    let first = train(&cfg, &opts(split.clone(), 2, false), never()).unwrap();
+    assert_eq!(first.step, 2);
+    let second = train(&cfg, &opts(split.clone(), 4, true), never()).unwrap();
+    assert_eq!((second.step, second.steps_this_run), (4, 2));
+
+    let a = logged_totals(&straight);
+    let b = logged_totals(&split);
+    assert_eq!(a.len(), 4, "{a:?}");
+    assert_eq!(
+        a.iter().map(|x| x.0).collect::<Vec<_>>(),
+        b.iter().map(|x| x.0).collect::<Vec<_>>()
+    );
+    for ((step, la), (_, lb)) in a.iter().zip(&b) {
+        assert!(
+            (la - lb).abs() <= 1e-6 * la.abs().max(1.0),
+            "step {step}: uninterrupted {la} vs resumed {lb}"
+        );
+    }
+    for dir in ["snapshots"] {
+        assert!(straight.join(dir).exists());
+    }
+    assert!(straight.join("loss_curve.png").exists());
+    assert!(straight.join("checkpoints/latest.lgck").exists());
+}
+
+#[test]
+fn a_stop_request_saves_a_checkpoint_and_bad_checkpoints_are_errors() {
+    let _serial = serial();
+    let cfg = experiment();
+    let out = out_dir("stop");
+    let stop = Arc::new(AtomicBool::new(true));
+    let summary = train(
+        &cfg,
+        &RunOptions {
+            out: out.clone(),
+            resume: false,
+            max_minutes: None,
+            steps: Some(10),
+            device: Device::ndarray(),
+            progress: false,
+        },
+        stop,
+    )
+    .unwrap();
+    assert_eq!(summary.stop, StopReason::Interrupted);
+    assert_eq!(summary.step, 0);
+    let resumed = Trainer::resume(&summary.checkpoint, &cfg.train, &Device::ndarray()).unwrap();
+    assert_eq!(resumed.step, 0);
+
+    let bad = out.join("bad.lgck");
+    std::fs::write(&bad, b"LGOMCKPT garbage").unwrap();
+    let err = Trainer::resume(&bad, &cfg.train, &Device::ndarray())
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("bad.lgck"), "{err}");
+}
