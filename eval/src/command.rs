@@ -1,0 +1,290 @@
+//! The `lifegom-eval` command as a library function (the quickstart calls it too).
+//!
+//! Loads a trained-model file, opens the config's validation split, scores every target
+//! ([`crate::evaluate`]), optionally the template-only baseline, a free-view turntable, the
+//! procedural motions and the accuracy-vs-time sweep, and writes CSVs, `summary.json` and
+//! `report.md` with pictures into `--out`.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use burn::tensor::Device;
+use lifegom_data::dataset::{DataConfig, Dataset, Phase};
+use lifegom_data::rng::Rng;
+use lifegom_model::feedback::Reconstructor;
+use lifegom_model::inputs::{SubjectBody, model_inputs};
+use lifegom_model::trained;
+use lifegom_render::gom::GomMesh;
+
+use crate::animate::{JointRoles, Motion, orbit_camera, posed_joint};
+use crate::evaluate::{
+    EvalSettings, SplitScores, evaluate_split, reconstruct_timed, render_timed,
+    template_baseline_scores,
+};
+use crate::images::save_gif;
+use crate::perceptual_scores::{PerceptualOutcome, score_perceptual};
+use crate::report::{Report, Summary, SweepRow, write_csvs};
+
+/// Options of one evaluation.
+#[derive(Debug, Clone)]
+pub struct EvalOptions {
+    /// The `[data]` section (root already overridden).
+    pub data: DataConfig,
+    /// Trained-model file (`.lgck`).
+    pub checkpoint: PathBuf,
+    /// Output folder.
+    pub out: PathBuf,
+    /// Device (no autodiff needed).
+    pub device: Device,
+    /// Subdivisions override.
+    pub subdivide: Option<u32>,
+    /// Feedback steps override.
+    pub iterations: Option<usize>,
+    /// Comparison sheets to write.
+    pub sheets: usize,
+    /// Frames of the free-view turntable (0 = none).
+    pub freeview_frames: usize,
+    /// Write the procedural motions.
+    pub motion: bool,
+    /// Run the accuracy-vs-time sweep over T ∈ 1..=5 and subdivisions 0..=2.
+    pub sweep: bool,
+    /// Extra image sides for the sweep (empty = the config's size only).
+    pub sweep_sizes: Vec<u32>,
+    /// Subjects used by the sweep (it multiplies the evaluation cost by 15 per size).
+    pub sweep_subjects: usize,
+    /// Also score the template-only baseline.
+    pub baseline: bool,
+    /// Evaluate at most this many subjects.
+    pub max_subjects: Option<usize>,
+    /// Folder with the converted LPIPS/Inception weights.
+    pub weights_dir: PathBuf,
+    /// Lines to put under the report heading (command line, machine).
+    pub context: Vec<String>,
+}
+
+/// Result of [`run`].
+#[derive(Debug, Clone)]
+pub struct EvalOutcome {
+    /// The model's summary.
+    pub summary: Summary,
+    /// The baseline's summary, if asked.
+    pub baseline: Option<Summary>,
+    /// Sweep rows, if asked.
+    pub sweep: Vec<SweepRow>,
+    /// The report that was written.
+    pub report: PathBuf,
+}
+
+fn settings(opts: &EvalOptions, out: &Path) -> EvalSettings {
+    EvalSettings {
+        out: out.to_path_buf(),
+        subdivide: opts.subdivide,
+        iterations: opts.iterations,
+        save_predictions: true,
+        sheets: opts.sheets,
+        max_subjects: opts.max_subjects,
+    }
+}
+
+/// Runs the evaluation (module docs).
+pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
+    let _span = tracing::info_span!("eval", out = %opts.out.display()).entered();
+    std::fs::create_dir_all(&opts.out)
+        .with_context(|| format!("creating {}", opts.out.display()))?;
+    let loaded = trained::load(&opts.checkpoint, &opts.device)?;
+    let (model, config) = (loaded.model, loaded.config);
+    let dataset = Dataset::open(&opts.data, Phase::Val)?;
+    let mut report = Report {
+        title: "LIFe-GoM evaluation".into(),
+        context: opts.context.clone(),
+        ..Default::default()
+    };
+    report.context.push(format!(
+        "checkpoint `{}` (step {}), split `{}` ({} subjects, {:?}), {}×{} px",
+        opts.checkpoint.display(),
+        loaded.header.meta["step"],
+        opts.data.split_paths(Phase::Val).0.display(),
+        dataset.subjects.len(),
+        dataset.rule.protocol,
+        dataset.img_size.0,
+        dataset.img_size.1
+    ));
+
+    let perceptual = crate::perceptual_scores::load_models(&opts.weights_dir, &opts.device);
+    if let Some(note) = perceptual.note() {
+        eprintln!("{note}");
+        report.notes.push(note);
+    }
+
+    let mut scores = evaluate_split(&model, &config, &dataset, &settings(opts, &opts.out), &opts.device)?;
+    let PerceptualOutcome { fid } = score_perceptual(&perceptual, &mut scores, &opts.device)?;
+    let summary = Summary::of(&scores, fid);
+    write_csvs(&opts.out, &scores.views)?;
+    report.summary = Some(summary.clone());
+    report.sheets = list_relative(&opts.out, "sheets");
+
+    let baseline = if opts.baseline {
+        let mut b = template_baseline_scores(
+            &dataset,
+            &EvalSettings {
+                sheets: 0,
+                save_predictions: false,
+                ..settings(opts, &opts.out)
+            },
+            opts.subdivide.unwrap_or(config.subdivide_test),
+            &opts.device,
+        )?;
+        let PerceptualOutcome { fid } = score_perceptual(&perceptual, &mut b, &opts.device)?;
+        let s = Summary::of(&b, fid);
+        report.baseline = Some(s.clone());
+        Some(s)
+    } else {
+        None
+    };
+
+    if opts.freeview_frames > 0 || opts.motion {
+        let pictures = animations(opts, &model, &dataset, config.subdivide_test)?;
+        report.pictures.extend(pictures);
+    }
+
+    let mut sweep = Vec::new();
+    if opts.sweep {
+        sweep = run_sweep(opts, &model, &config, &perceptual)?;
+        report.sweep = sweep.clone();
+    }
+
+    let json = serde_json::json!({
+        "model": summary,
+        "baseline": baseline,
+        "sweep": sweep,
+        "checkpoint": opts.checkpoint.display().to_string(),
+        "perceptual": perceptual.note().unwrap_or_else(|| "computed".into()),
+    });
+    let path = opts.out.join("summary.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    report.write(&opts.out)?;
+    Ok(EvalOutcome {
+        summary,
+        baseline,
+        sweep,
+        report: opts.out.join("report.md"),
+    })
+}
+
+fn list_relative(out: &Path, dir: &str) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(out.join(dir))
+        .map(|rd| {
+            rd.filter_map(|e| e.ok())
+                .map(|e| PathBuf::from(dir).join(e.file_name()))
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+/// Free-view turntable and procedural motions of the first validation subject.
+fn animations(
+    opts: &EvalOptions,
+    model: &Reconstructor,
+    dataset: &Dataset,
+    subdivide: u32,
+) -> anyhow::Result<Vec<(String, PathBuf)>> {
+    let mut rng = Rng::new(0);
+    let sample = dataset.sample(0, &mut rng)?;
+    let subject = &dataset.subjects[0];
+    let body = SubjectBody::new(&subject.name, &subject.canonical)?;
+    let (w, h) = dataset.img_size;
+    let inputs = model_inputs(&body, &sample, w, h, &opts.device)?;
+    let mesh = GomMesh::new(&body.topology, opts.subdivide.unwrap_or(subdivide), &opts.device)?;
+    let rec = reconstruct_timed(model, &mesh, &inputs)?;
+    let mut pictures = Vec::new();
+    if opts.freeview_frames > 0 {
+        let pivot = posed_joint(&inputs.target_skinning, body.skeleton.rest_joints[0], 0);
+        let mut frames = Vec::new();
+        for k in 0..opts.freeview_frames {
+            let cam = orbit_camera(&inputs.target_camera, pivot, k, opts.freeview_frames);
+            let (img, _) = render_timed(&rec.avatar, &inputs, &cam, &inputs.target_skinning)?;
+            img.save_png(&opts.out.join("freeview").join(format!("frame_{k:04}.png")))?;
+            frames.push(img);
+        }
+        save_gif(&opts.out.join("freeview.gif"), &frames, 80)?;
+        pictures.push((format!("Free view of {}", subject.name), PathBuf::from("freeview.gif")));
+    }
+    if opts.motion {
+        let j = body.skeleton.num_joints();
+        match JointRoles::for_rig(j) {
+            None => eprintln!("--motion: no joint roles for a {j}-joint rig (SMPL, SMPL-X or Anny expected); skipped"),
+            Some(roles) => {
+                for motion in Motion::ALL {
+                    let mut frames = Vec::new();
+                    let n = 24;
+                    for k in 0..n {
+                        let pose = motion.pose(&roles, j, k as f32 / n as f32);
+                        let skinning = body.skeleton.skinning_transforms(&pose)?;
+                        let cam = &inputs.sources.cameras[0];
+                        let (img, _) = render_timed(&rec.avatar, &inputs, cam, &skinning)?;
+                        img.save_png(
+                            &opts
+                                .out
+                                .join("motion")
+                                .join(motion.name())
+                                .join(format!("frame_{k:04}.png")),
+                        )?;
+                        frames.push(img);
+                    }
+                    let gif = PathBuf::from(format!("motion_{}.gif", motion.name()));
+                    save_gif(&opts.out.join(&gif), &frames, 80)?;
+                    pictures.push((format!("Novel pose: {}", motion.name()), gif));
+                }
+            }
+        }
+    }
+    Ok(pictures)
+}
+
+/// T ∈ 1..=5 × subdivisions 0..=2 (× sizes) on the first `sweep_subjects` subjects.
+fn run_sweep(
+    opts: &EvalOptions,
+    model: &Reconstructor,
+    config: &lifegom_model::feedback::ReconstructorConfig,
+    perceptual: &crate::perceptual_scores::Models,
+) -> anyhow::Result<Vec<SweepRow>> {
+    let mut sizes = vec![opts.data.img_size[0]];
+    for s in &opts.sweep_sizes {
+        if !sizes.contains(s) {
+            sizes.push(*s);
+        }
+    }
+    let mut rows = Vec::new();
+    for size in sizes {
+        let mut data = opts.data.clone();
+        let aspect = opts.data.img_size[1] as f64 / opts.data.img_size[0] as f64;
+        data.img_size = [size, ((size as f64 * aspect).round() as u32).max(1)];
+        let dataset = Dataset::open(&data, Phase::Val)?;
+        for subdivide in 0..=2u32 {
+            for t in 1..=5usize {
+                let settings = EvalSettings {
+                    out: opts.out.join("sweep"),
+                    subdivide: Some(subdivide),
+                    iterations: Some(t),
+                    save_predictions: false,
+                    sheets: 0,
+                    max_subjects: Some(opts.sweep_subjects.max(1)),
+                };
+                let mut scores: SplitScores =
+                    evaluate_split(model, config, &dataset, &settings, &opts.device)?;
+                let PerceptualOutcome { fid: _ } =
+                    score_perceptual(perceptual, &mut scores, &opts.device)?;
+                let summary = Summary::of(&scores, None);
+                eprintln!(
+                    "sweep size {size} T={t} subdiv={subdivide}: PSNR {:.2} recon {:.0} ms render {:.1} ms",
+                    summary.psnr, summary.recon_ms, summary.render_ms
+                );
+                rows.push(SweepRow { size, summary });
+            }
+        }
+    }
+    Ok(rows)
+}

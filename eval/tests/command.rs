@@ -1,0 +1,106 @@
+//! `lifegom-eval` end to end on the tiny synthetic split (tiny network, ndarray, 64 px): every
+//! output file is written, LPIPS/FID say plainly that weights are missing, and the numbers in
+//! the files agree with each other.
+
+#![allow(deprecated)] // Device::ndarray(): the card's CI backend.
+
+use std::path::PathBuf;
+
+use burn::tensor::Device;
+use lifegom_data::config::ConfigFile;
+use lifegom_data::synth;
+use lifegom_eval::command::{EvalOptions, run};
+use lifegom_eval::report::WEIGHTS_MISSING;
+use lifegom_model::feedback::ReconstructorConfig;
+use lifegom_model::trained;
+
+#[test]
+fn eval_on_a_tiny_split_writes_every_file() {
+    let tmp = std::env::temp_dir().join(format!("lifegom-eval-cmd-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    let config = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic-tiny.toml");
+    let root = tmp.join("data");
+    let cfg = ConfigFile::load(&config).unwrap().with_root(&root);
+    let s = cfg.synthetic.clone().unwrap();
+    synth::generate_split(&s, &cfg.data, &root, s.seed, &|| {}).unwrap();
+
+    // An untrained tiny model stands in for a checkpoint: this test is about the files.
+    let device = Device::ndarray();
+    let model_cfg = ReconstructorConfig::tiny(3)
+        .with_iterations(2)
+        .with_subdivide_test(1);
+    let model = model_cfg.init(1229, &device).unwrap();
+    let ckpt = tmp.join("model.lgck");
+    trained::save(&ckpt, &model, &model_cfg, serde_json::json!({"step": 0}), &[]).unwrap();
+
+    let out = tmp.join("out");
+    let outcome = run(&EvalOptions {
+        data: cfg.data.clone(),
+        checkpoint: ckpt,
+        out: out.clone(),
+        device,
+        subdivide: None,
+        iterations: None,
+        sheets: 2,
+        freeview_frames: 3,
+        motion: true,
+        sweep: true,
+        sweep_sizes: vec![],
+        sweep_subjects: 1,
+        baseline: true,
+        max_subjects: None,
+        weights_dir: tmp.join("no-weights"),
+        context: vec!["test".into()],
+    })
+    .unwrap();
+
+    for file in [
+        "per_view.csv",
+        "per_subject.csv",
+        "summary.json",
+        "report.md",
+        "freeview.gif",
+        "motion_walk.gif",
+        "motion_arm-raise.gif",
+        "motion_squat.gif",
+        "pareto.png",
+        "freeview/frame_0002.png",
+    ] {
+        assert!(out.join(file).is_file(), "{file} missing");
+    }
+    let preds = std::fs::read_dir(out.join("preds")).unwrap().count();
+    let sheets = std::fs::read_dir(out.join("sheets")).unwrap().count();
+    assert_eq!(preds, outcome.summary.views);
+    assert_eq!(sheets, 2);
+    // The tiny split has 1 validation subject with 3 targets.
+    assert_eq!((outcome.summary.subjects, outcome.summary.views), (1, 3));
+    assert!(outcome.summary.psnr.is_finite() && outcome.summary.psnr > 0.0);
+    assert!(outcome.summary.recon_ms > 0.0 && outcome.summary.render_ms > 0.0);
+    assert_eq!(outcome.summary.lpips_vgg_x1000, None);
+    assert_eq!(outcome.summary.fid, None);
+    assert!(outcome.baseline.as_ref().unwrap().psnr.is_finite());
+    assert_eq!(outcome.sweep.len(), 15, "T 1..5 × subdivisions 0..2");
+    let gaussians: Vec<usize> = outcome.sweep.iter().map(|r| r.summary.num_gaussians).collect();
+    assert!(gaussians[0] < gaussians[5] && gaussians[5] < gaussians[10], "{gaussians:?}");
+
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains(WEIGHTS_MISSING), "{report}");
+    assert!(report.contains("template baseline"));
+    assert!(report.contains("What accuracy costs in time"));
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert!((summary["model"]["psnr"].as_f64().unwrap() - outcome.summary.psnr).abs() < 1e-9);
+    assert!(summary["model"]["fid"].is_null());
+    let per_view = std::fs::read_to_string(out.join("per_view.csv")).unwrap();
+    assert_eq!(per_view.lines().count(), 1 + outcome.summary.views);
+}
+
+#[test]
+fn crop_size_scales_the_thuman_protocol() {
+    use lifegom_eval::evaluate::thuman_crop_size;
+    assert_eq!(thuman_crop_size(1024, 1024), [1000, 500]);
+    assert_eq!(thuman_crop_size(512, 512), [500, 250]);
+    assert_eq!(thuman_crop_size(256, 256), [250, 125]);
+    assert_eq!(thuman_crop_size(64, 64), [63, 31]);
+    assert_eq!(thuman_crop_size(10, 4), [10, 2]);
+}
