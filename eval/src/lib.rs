@@ -9,6 +9,9 @@
 //! ## Module map
 //!
 //! - [`metrics`]: host-side PSNR, skimage-compatible SSIM and the THuman 1000×500 foreground
-//!   crop (spec §7.2–§7.3). LPIPS and FID are not implemented yet.
+//!   crop (spec §7.2–§7.3).
+//! - [`perceptual`]: LPIPS v0.1 (AlexNet, VGG16) and pytorch-fid's Inception pool3 features
+//!   and Fréchet distance, as Burn modules loading converted weights.
 
 pub mod metrics;
+pub mod perceptual;
