@@ -1,14 +1,40 @@
 //! # lifegom-eval
 //!
-//! The evaluation command for THuman-style splits (spec §7): novel-view and novel-pose
-//! renders, PSNR, SSIM, LPIPS-style and FID metrics.
+//! Evaluation of LIFe-GoM avatars on THuman-style splits (spec §7): novel-view renders scored
+//! with PSNR, SSIM, LPIPS (alex, vgg) and FID under the THuman/XHuman crop protocol or the
+//! AIST++ full-image protocol; comparison sheets; free-view turntables and procedural novel-pose
+//! animations; and the accuracy-vs-time sweep (quality against reconstruction and render time
+//! over T and subdivision levels, the paper's Tables 4–5).
 //!
-//! Not implemented yet: this crate is the home of the `lifegom-eval` binary (issue "Train and
-//! eval commands"). It builds so the workspace layout is in place.
+//! ```no_run
+//! use lifegom_eval::metrics::{ImageRef, psnr};
+//! # fn main() -> Result<(), lifegom_eval::metrics::MetricsError> {
+//! let (pred, gt) = (vec![0.5f32; 8 * 8 * 3], vec![0.25f32; 8 * 8 * 3]);
+//! let db = psnr(ImageRef::new(&pred, [8, 8, 3])?, ImageRef::new(&gt, [8, 8, 3])?, 1.0)?;
+//! assert!((db - 12.04).abs() < 0.01);
+//! # Ok(()) }
+//! ```
 //!
 //! ## Module map
 //!
 //! - [`metrics`]: host-side PSNR, skimage-compatible SSIM and the THuman 1000×500 foreground
-//!   crop (spec §7.2–§7.3). LPIPS and FID are not implemented yet.
+//!   crop (spec §7.2–§7.3).
+//! - [`evaluate`]: reconstruct each validation subject once, render its targets, score them;
+//!   the template-only baseline.
+//! - [`animate`]: free-view orbits and the procedural motions (walk, arm-raise, squat).
+//! - [`report`]: CSVs, `summary.json`, `report.md`, the Pareto plot.
+//! - [`command`]: the `lifegom-eval` command as a function.
+//! - [`images`], [`plot`]: PNG/GIF writing, sheets, error maps, dependency-free charts.
+//! - [`perceptual`]: LPIPS v0.1 (AlexNet, VGG16) and pytorch-fid's Inception pool3 features and
+//!   Fréchet distance, as Burn modules loading converted weights; [`perceptual_scores`]: how the
+//!   evaluation uses them.
 
+pub mod animate;
+pub mod command;
+pub mod evaluate;
+pub mod images;
 pub mod metrics;
+pub mod perceptual;
+pub mod perceptual_scores;
+pub mod plot;
+pub mod report;

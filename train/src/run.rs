@@ -160,6 +160,13 @@ pub fn train(
     let _span = tracing::info_span!("train", out = %opts.out.display()).entered();
     std::fs::create_dir_all(opts.out.join("snapshots"))
         .with_context(|| format!("creating {}", opts.out.display()))?;
+    if cfg.train.loss_lpips > 0.0 {
+        bail!(
+            "{}: [train] loss_lpips = {} but the LPIPS training loss (the AIST++ setting, spec §6.2) is not wired into the trainer yet; set it to 0",
+            cfg.file.source.display(),
+            cfg.train.loss_lpips
+        );
+    }
     let dataset = Dataset::open(&cfg.file.data, Phase::Train)?;
     if dataset.is_empty() {
         bail!(
