@@ -97,7 +97,7 @@ fn write_safetensors(path: &Path, tensors: &Named) {
         offset = end;
     }
     let mut json = serde_json::to_vec(&header).unwrap();
-    while json.len() % 8 != 0 {
+    while !json.len().is_multiple_of(8) {
         json.push(b' ');
     }
     let mut bytes = Vec::with_capacity(8 + json.len() + offset);

@@ -56,7 +56,7 @@ impl FeatureStats {
                 reason: "must be at least 1".into(),
             });
         }
-        if rows.len() % dim != 0 {
+        if !rows.len().is_multiple_of(dim) {
             return Err(PerceptualError::Stats {
                 field: "rows",
                 reason: format!("has {} values, not a multiple of dim = {dim}", rows.len()),
@@ -219,13 +219,13 @@ mod tests {
 
     #[test]
     fn cov_matches_np_cov() {
-        // np.cov([[1,2],[3,5],[4,4]], rowvar=False) = [[2.3333, 1.6667], [1.6667, 2.3333]].
+        // np.cov([[1,2],[3,5],[4,4]], rowvar=False) = [[7/3, 11/6], [11/6, 7/3]].
         let s = FeatureStats::from_features(&[1.0, 2.0, 3.0, 5.0, 4.0, 4.0], 2).unwrap();
         assert_eq!(s.count, 3);
         for (g, w) in s.mean.iter().zip([8.0 / 3.0, 11.0 / 3.0]) {
             assert!((g - w).abs() < 1e-12, "{:?}", s.mean);
         }
-        let want = [7.0 / 3.0, 5.0 / 3.0, 5.0 / 3.0, 7.0 / 3.0];
+        let want = [7.0 / 3.0, 11.0 / 6.0, 11.0 / 6.0, 7.0 / 3.0];
         for (g, w) in s.cov.iter().zip(want) {
             assert!((g - w).abs() < 1e-12, "{:?}", s.cov);
         }
