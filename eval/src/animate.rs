@@ -179,18 +179,19 @@ mod tests {
             let start = m.pose(&roles, 24, 0.0);
             let end = m.pose(&roles, 24, 1.0);
             let mid = m.pose(&roles, 24, 0.5);
+            let quarter = m.pose(&roles, 24, 0.25);
             for (a, b) in start.joint_rotations.iter().zip(&end.joint_rotations) {
                 assert!((*a - *b).length() < 1e-5, "{m:?} is a cycle");
             }
             assert!(mid.joint_rotations.iter().all(|v| v.is_finite()));
-            assert!(
+            let moved = |p: &BodyPose| {
                 start
                     .joint_rotations
                     .iter()
-                    .zip(&mid.joint_rotations)
-                    .any(|(a, b)| (*a - *b).length() > 0.3),
-                "{m:?} moves"
-            );
+                    .zip(&p.joint_rotations)
+                    .any(|(a, b)| (*a - *b).length() > 0.3)
+            };
+            assert!(moved(&mid) || moved(&quarter), "{m:?} moves");
             assert_eq!(m.name().parse::<Motion>().unwrap(), m);
         }
         assert!("dance".parse::<Motion>().is_err());

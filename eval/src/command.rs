@@ -116,7 +116,13 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         report.notes.push(note);
     }
 
-    let mut scores = evaluate_split(&model, &config, &dataset, &settings(opts, &opts.out), &opts.device)?;
+    let mut scores = evaluate_split(
+        &model,
+        &config,
+        &dataset,
+        &settings(opts, &opts.out),
+        &opts.device,
+    )?;
     let PerceptualOutcome { fid } = score_perceptual(&perceptual, &mut scores, &opts.device)?;
     let summary = Summary::of(&scores, fid);
     write_csvs(&opts.out, &scores.views)?;
@@ -197,7 +203,11 @@ fn animations(
     let body = SubjectBody::new(&subject.name, &subject.canonical)?;
     let (w, h) = dataset.img_size;
     let inputs = model_inputs(&body, &sample, w, h, &opts.device)?;
-    let mesh = GomMesh::new(&body.topology, opts.subdivide.unwrap_or(subdivide), &opts.device)?;
+    let mesh = GomMesh::new(
+        &body.topology,
+        opts.subdivide.unwrap_or(subdivide),
+        &opts.device,
+    )?;
     let rec = reconstruct_timed(model, &mesh, &inputs)?;
     let mut pictures = Vec::new();
     if opts.freeview_frames > 0 {
@@ -210,12 +220,17 @@ fn animations(
             frames.push(img);
         }
         save_gif(&opts.out.join("freeview.gif"), &frames, 80)?;
-        pictures.push((format!("Free view of {}", subject.name), PathBuf::from("freeview.gif")));
+        pictures.push((
+            format!("Free view of {}", subject.name),
+            PathBuf::from("freeview.gif"),
+        ));
     }
     if opts.motion {
         let j = body.skeleton.num_joints();
         match JointRoles::for_rig(j) {
-            None => eprintln!("--motion: no joint roles for a {j}-joint rig (SMPL, SMPL-X or Anny expected); skipped"),
+            None => eprintln!(
+                "--motion: no joint roles for a {j}-joint rig (SMPL, SMPL-X or Anny expected); skipped"
+            ),
             Some(roles) => {
                 for motion in Motion::ALL {
                     let mut frames = Vec::new();

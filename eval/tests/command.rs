@@ -31,7 +31,14 @@ fn eval_on_a_tiny_split_writes_every_file() {
         .with_subdivide_test(1);
     let model = model_cfg.init(1229, &device).unwrap();
     let ckpt = tmp.join("model.lgck");
-    trained::save(&ckpt, &model, &model_cfg, serde_json::json!({"step": 0}), &[]).unwrap();
+    trained::save(
+        &ckpt,
+        &model,
+        &model_cfg,
+        serde_json::json!({"step": 0}),
+        &[],
+    )
+    .unwrap();
 
     let out = tmp.join("out");
     let outcome = run(&EvalOptions {
@@ -80,8 +87,15 @@ fn eval_on_a_tiny_split_writes_every_file() {
     assert_eq!(outcome.summary.fid, None);
     assert!(outcome.baseline.as_ref().unwrap().psnr.is_finite());
     assert_eq!(outcome.sweep.len(), 15, "T 1..5 × subdivisions 0..2");
-    let gaussians: Vec<usize> = outcome.sweep.iter().map(|r| r.summary.num_gaussians).collect();
-    assert!(gaussians[0] < gaussians[5] && gaussians[5] < gaussians[10], "{gaussians:?}");
+    let gaussians: Vec<usize> = outcome
+        .sweep
+        .iter()
+        .map(|r| r.summary.num_gaussians)
+        .collect();
+    assert!(
+        gaussians[0] < gaussians[5] && gaussians[5] < gaussians[10],
+        "{gaussians:?}"
+    );
 
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(report.contains(WEIGHTS_MISSING), "{report}");

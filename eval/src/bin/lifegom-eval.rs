@@ -18,7 +18,10 @@ use lifegom_eval::perceptual::PerceptualModels;
 use lifegom_render::device::DeviceChoice;
 
 #[derive(Parser, Debug)]
-#[command(about = "Evaluate a trained LIFe-GoM model on a validation split", version)]
+#[command(
+    about = "Evaluate a trained LIFe-GoM model on a validation split",
+    version
+)]
 struct Args {
     /// Experiment config (its `[data]` section names the split).
     #[arg(long)]
@@ -96,7 +99,10 @@ fn main() -> anyhow::Result<()> {
         sweep_subjects: args.sweep_subjects,
         baseline: args.baseline,
         max_subjects: args.max_subjects,
-        weights_dir: args.weights.clone().unwrap_or_else(PerceptualModels::default_dir),
+        weights_dir: args
+            .weights
+            .clone()
+            .unwrap_or_else(PerceptualModels::default_dir),
         context: vec![format!("`{}` on {}", command.join(" "), args.device.name())],
     })?;
     println!(

@@ -27,7 +27,10 @@ use lifegom_train::config::ExperimentConfig;
 use lifegom_train::run::{RunOptions, train};
 
 #[derive(Parser, Debug)]
-#[command(about = "Generate synthetic data, train for a bounded time, evaluate, report", version)]
+#[command(
+    about = "Generate synthetic data, train for a bounded time, evaluate, report",
+    version
+)]
 struct Args {
     /// Experiment config.
     #[arg(long, default_value = "configs/quickstart.toml")]
@@ -58,13 +61,20 @@ fn main() -> anyhow::Result<()> {
     let started = Instant::now();
     let cfg = ExperimentConfig::load(&args.config)?;
     let root = cfg.file.data.root.clone();
-    if !root.join(&cfg.file.data.train_dir).join(&cfg.file.data.train_split).exists() {
+    if !root
+        .join(&cfg.file.data.train_dir)
+        .join(&cfg.file.data.train_split)
+        .exists()
+    {
         let synth_cfg = cfg
             .file
             .synthetic
             .clone()
             .context("the quickstart config needs a [synthetic] section")?;
-        eprintln!("[1/3] generating the synthetic split into {}", root.display());
+        eprintln!(
+            "[1/3] generating the synthetic split into {}",
+            root.display()
+        );
         let s = synth::generate_split(&synth_cfg, &cfg.file.data, &root, synth_cfg.seed, &|| {})?;
         eprintln!(
             "      {} train + {} val subjects, {} frames",
