@@ -243,8 +243,11 @@ pub fn front_camera(width: u32, height: u32) -> Camera {
     )
 }
 
+/// Three corners (or, for per-face parameters, three 3-vectors: so3, scale, offset).
+pub type Triangle = [[f32; 3]; 3];
+
 /// The degenerate triangles of the hard suite (`hard_cases.rs`), each as the corner list.
-pub fn hard_triangles() -> Vec<(&'static str, Vec<[[f32; 3]; 3]>)> {
+pub fn hard_triangles() -> Vec<(&'static str, Vec<Triangle>)> {
     let eq_h = 3.0f32.sqrt() / 2.0 * 0.2;
     vec![
         ("point triangle", vec![[[0.1, 0.2, 0.0]; 3]]),
@@ -384,7 +387,7 @@ pub fn raster_hard_cases() -> Vec<Scene> {
     let cpu = Device::ndarray();
     let gom_settings = RasterSettings::new(front_camera(48, 40)).with_depth();
     let tri = vec![[[-0.1, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.15, 0.02]]];
-    let mut geometry: Vec<(String, Vec<[[f32; 3]; 3]>, Option<[[f32; 3]; 3]>)> = hard_triangles()
+    let mut geometry: Vec<(String, Vec<Triangle>, Option<Triangle>)> = hard_triangles()
         .into_iter()
         .map(|(name, tris)| (name.to_string(), tris, None))
         .collect();

@@ -10,6 +10,10 @@
 //! Guards are worded so that NaN fails them (`!(x <= MAX)` is true for NaN and ±Inf), matching
 //! the CPU's `is_finite` checks without relying on NaN-aware builtins.
 
+// `!(a <= b)` is the deliberate NaN-failing guard form (as in `cpu.rs`); `(a + b - 1) / b` stays
+// spelled out because `#[cube]` traces the arithmetic operators, not `u32::div_ceil`.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::manual_div_ceil)]
+
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 
