@@ -3,10 +3,17 @@
 //! Model and render code never name a backend: they take a [`burn::tensor::Device`]. Binaries
 //! take `--device` and call [`DeviceChoice::device`]. The default CPU device is Flex: measured on
 //! the 2-core development machine it renders and trains faster than ndarray (BENCHMARKS.md).
+//!
+//! wgpu is compiled in, which makes it Burn's `Device::default()`: nothing here (or anywhere in
+//! the workspace) relies on the default; every caller names its device. On a machine without a
+//! GPU, wgpu runs on Mesa's software Vulkan (lavapipe) when it is installed; [`wgpu_available`]
+//! tells callers whether any adapter comes up at all.
 
 #![allow(deprecated)] // `Device::ndarray()` is deprecated in Burn 0.22 in favour of Flex; the card asks for ndarray.
 
-use burn::tensor::Device;
+use std::sync::OnceLock;
+
+use burn::tensor::{Device, DeviceKind, Tensor};
 
 /// A backend the binaries can run on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -16,6 +23,8 @@ pub enum DeviceChoice {
     /// Burn's Flex CPU backend (the faster CPU backend; the default).
     #[default]
     Flex,
+    /// Burn's CubeCL backend on wgpu's default adapter (a GPU, or lavapipe on the CPU).
+    Wgpu,
 }
 
 impl DeviceChoice {
@@ -24,6 +33,7 @@ impl DeviceChoice {
         match self {
             DeviceChoice::NdArray => Device::ndarray(),
             DeviceChoice::Flex => Device::flex(),
+            DeviceChoice::Wgpu => Device::wgpu(DeviceKind::DefaultDevice),
         }
     }
 
@@ -32,6 +42,7 @@ impl DeviceChoice {
         match self {
             DeviceChoice::NdArray => "ndarray",
             DeviceChoice::Flex => "flex",
+            DeviceChoice::Wgpu => "wgpu",
         }
     }
 
@@ -45,9 +56,40 @@ impl std::str::FromStr for DeviceChoice {
         match s {
             "ndarray" => Ok(DeviceChoice::NdArray),
             "flex" => Ok(DeviceChoice::Flex),
+            "wgpu" => Ok(DeviceChoice::Wgpu),
             other => Err(format!(
-                "unknown device `{other}` (expected ndarray or flex)"
+                "unknown device `{other}` (expected ndarray, flex or wgpu)"
             )),
         }
     }
+}
+
+/// Whether a wgpu adapter comes up (a GPU, or lavapipe): creates and reads back one tiny tensor
+/// on [`DeviceChoice::Wgpu`], catching the panic CubeCL raises when no adapter exists. Checked
+/// once per process; the first call prints the outcome to stderr so logs say what ran.
+pub fn wgpu_available() -> bool {
+    static AVAILABLE: OnceLock<bool> = OnceLock::new();
+    *AVAILABLE.get_or_init(|| {
+        let probe = std::panic::catch_unwind(|| {
+            let device = DeviceChoice::Wgpu.device();
+            let name = format!("{device:?}");
+            let t = Tensor::<1>::from_floats([1.0, 2.0], &device);
+            let sum: f32 = t.sum().into_scalar();
+            (sum == 3.0, name)
+        });
+        match probe {
+            Ok((true, name)) => {
+                eprintln!("wgpu adapter available: {name}");
+                true
+            }
+            Ok((false, name)) => {
+                eprintln!("wgpu adapter {name} computed a wrong sum; treating wgpu as unavailable");
+                false
+            }
+            Err(_) => {
+                eprintln!("no wgpu adapter (no GPU and no Mesa lavapipe)");
+                false
+            }
+        }
+    })
 }

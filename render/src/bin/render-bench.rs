@@ -35,7 +35,7 @@ struct Args {
     /// Midpoint subdivision levels applied to the template (each ×4 Gaussians).
     #[arg(long, default_value_t = 2)]
     subdiv: u32,
-    /// Backend: ndarray or flex.
+    /// Backend: ndarray, flex or wgpu (a GPU, or Mesa lavapipe on the CPU).
     #[arg(long, default_value = "flex")]
     device: DeviceChoice,
     /// Timed runs per measurement (the median is reported).
@@ -68,6 +68,11 @@ fn main() -> anyhow::Result<()> {
     let template_path = args.template.clone().unwrap_or_else(full_template_path);
     let body = BodyTemplate::load(&template_path)
         .with_context(|| format!("loading {}", template_path.display()))?;
+    if args.device == DeviceChoice::Wgpu && !lifegom_render::device::wgpu_available() {
+        anyhow::bail!(
+            "--device wgpu: no wgpu adapter (no GPU, and Mesa lavapipe is not installed)"
+        );
+    }
     let device: Device = args.device.device();
     let size = args.size;
     let f = 0.8 * size as f32;

@@ -2,8 +2,9 @@
 //!
 //! [`GaussianRasterOps`] is a Burn backend extension: `#[backend_extension]` generates its
 //! `Dispatch` implementation, so model code calls it on a plain `Tensor` and the backend is the
-//! one the tensors live on. Implemented for NdArray and Flex (both run [`super::cpu`]) and for
-//! `Autodiff<B, C>` over any backend that also implements [`RasterKernels`].
+//! one the tensors live on. Implemented for NdArray and Flex (both run [`super::cpu`]), for
+//! Burn's CubeCL backend (wgpu; the `cube` module) and for `Autodiff<B, C>` over any backend
+//! that also implements [`RasterKernels`].
 //!
 //! Only the forward is public through dispatch. The autodiff implementation calls the hidden
 //! [`RasterKernels`] trait: a forward that also hands back its intermediates (tile lists, final
@@ -34,7 +35,7 @@ use super::cpu::{self, GaussianSlices, RasterConfig};
 /// opacities `[N]`. Output: `[H, W, C]`, premultiplied RGB, alpha, and depth when
 /// `config.channels` asks for it. Callers validate shapes and finiteness first (see
 /// [`super::rasterize`]); the kernels themselves cull anything non-finite rather than panic.
-#[backend_extension(NdArray, Flex, Autodiff)]
+#[backend_extension(NdArray, Flex, Cube, Autodiff)]
 pub trait GaussianRasterOps: Backend {
     /// Renders the Gaussians.
     fn rasterize_gaussians(

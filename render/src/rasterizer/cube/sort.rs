@@ -1,0 +1,207 @@
+//! GPU exclusive prefix sum and stable LSD radix sort of `u32` keys with `u32` values.
+//!
+//! Both are built from one idea: a thread owns a contiguous *chunk* of the input and walks it
+//! serially, so the order inside a chunk is the input order for free, and only the per-chunk
+//! totals need a parallel step.
+//!
+//! - **Scan** (`exclusive_scan`): each thread turns its chunk of `SCAN_CHUNK` values into an
+//!   exclusive scan in place and writes the chunk total; the totals are scanned recursively (each
+//!   level is `SCAN_CHUNK` times shorter); then every value adds the scanned total of its chunk.
+//! - **Radix sort** (`radix_sort_pairs`): 4 bits per pass, least significant digit first. Per pass,
+//!   each thread counts the 16 digits of its chunk into `counts[digit * num_chunks + chunk]`
+//!   (digit-major), the counts are scanned, and each thread walks its chunk again writing every
+//!   element to `scanned[digit * num_chunks + chunk] + (elements of that digit seen so far in the
+//!   chunk)`. Digit-major order puts all of digit 0 first, chunk by chunk, so each pass is stable
+//!   and the whole sort is stable: equal keys keep their input order. The rasterizer relies on
+//!   that twice (ties in depth break by index; the tile sort keeps each tile's depth order).
+//!
+//! Keys above `bits` are assumed zero: a pass is only run for digits that can be non-zero.
+
+use burn_cubecl::cubecl;
+use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::cubecl::server::Handle;
+
+/// Elements a scan thread walks serially.
+const SCAN_CHUNK: u32 = 256;
+/// Elements a radix-sort thread walks serially.
+const SORT_CHUNK: u32 = 64;
+/// Threads per cube of the 1D kernels.
+pub(crate) const THREADS_1D: u32 = 256;
+
+/// A 1D launch of `units` threads, split over a 2D grid of cubes where one row would exceed the
+/// 65535-cube dispatch limit. Kernels index with `ABSOLUTE_POS` and guard `< units`.
+pub(crate) fn count_1d(units: usize) -> CubeCount {
+    let cubes = units.div_ceil(THREADS_1D as usize).max(1) as u32;
+    let x = cubes.min(65_535);
+    CubeCount::Static(x, cubes.div_ceil(x), 1)
+}
+
+/// A buffer of `len` u32 (at least one element: zero-sized bindings are invalid).
+pub(crate) fn empty_u32(client: &ComputeClient, len: usize) -> Handle {
+    client.empty(4 * len.max(1))
+}
+
+/// The kernel argument for the first `len` elements of `handle`.
+pub(crate) fn arg(handle: &Handle, len: usize) -> BufferArg {
+    // SAFETY: every handle passed here was allocated with at least `max(len, 1)` 4-byte elements.
+    unsafe { BufferArg::from_raw_parts(handle.clone(), len.max(1)) }
+}
+
+/// Client type used by the host functions.
+pub(crate) type ComputeClient = burn_cubecl::cubecl::client::Client;
+
+#[cube(launch)]
+fn scan_chunks(data: &mut [u32], totals: &mut [u32], n: u32) {
+    let chunk = ABSOLUTE_POS as u32;
+    let start = chunk * SCAN_CHUNK;
+    if start < n {
+        let end = min(start + SCAN_CHUNK, n);
+        let mut running = 0u32;
+        for i in start..end {
+            let value = data[i as usize];
+            data[i as usize] = running;
+            running += value;
+        }
+        totals[chunk as usize] = running;
+    }
+}
+
+#[cube(launch)]
+fn scan_add(data: &mut [u32], scanned_totals: &[u32], n: u32) {
+    let i = ABSOLUTE_POS as u32;
+    if i < n {
+        data[i as usize] += scanned_totals[(i / SCAN_CHUNK) as usize];
+    }
+}
+
+/// Replaces the first `n` values of `data` by their exclusive prefix sum.
+pub(crate) fn exclusive_scan(client: &ComputeClient, data: &Handle, n: usize) {
+    if n == 0 {
+        return;
+    }
+    let chunks = n.div_ceil(SCAN_CHUNK as usize);
+    let totals = empty_u32(client, chunks);
+    scan_chunks::launch(
+        client,
+        count_1d(chunks),
+        CubeDim::new_1d(THREADS_1D),
+        arg(data, n),
+        arg(&totals, chunks),
+        n as u32,
+    );
+    if chunks > 1 {
+        exclusive_scan(client, &totals, chunks);
+        scan_add::launch(
+            client,
+            count_1d(n),
+            CubeDim::new_1d(THREADS_1D),
+            arg(data, n),
+            arg(&totals, chunks),
+            n as u32,
+        );
+    }
+}
+
+#[cube(launch)]
+fn radix_count(keys: &[u32], counts: &mut [u32], n: u32, shift: u32, num_chunks: u32) {
+    let chunk = ABSOLUTE_POS as u32;
+    if chunk < num_chunks {
+        let mut hist = Array::<u32>::new(16usize);
+        for d in 0..16u32 {
+            hist[d as usize] = 0u32;
+        }
+        let start = chunk * SORT_CHUNK;
+        let end = min(start + SORT_CHUNK, n);
+        for i in start..end {
+            let digit = (keys[i as usize] >> shift) & 15u32;
+            hist[digit as usize] += 1u32;
+        }
+        for d in 0..16u32 {
+            counts[(d * num_chunks + chunk) as usize] = hist[d as usize];
+        }
+    }
+}
+
+#[cube(launch)]
+fn radix_scatter(
+    keys_in: &[u32],
+    values_in: &[u32],
+    offsets: &[u32],
+    keys_out: &mut [u32],
+    values_out: &mut [u32],
+    n: u32,
+    shift: u32,
+    num_chunks: u32,
+) {
+    let chunk = ABSOLUTE_POS as u32;
+    if chunk < num_chunks {
+        let mut next = Array::<u32>::new(16usize);
+        for d in 0..16u32 {
+            next[d as usize] = offsets[(d * num_chunks + chunk) as usize];
+        }
+        let start = chunk * SORT_CHUNK;
+        let end = min(start + SORT_CHUNK, n);
+        for i in start..end {
+            let key = keys_in[i as usize];
+            let digit = (key >> shift) & 15u32;
+            let at = next[digit as usize];
+            keys_out[at as usize] = key;
+            values_out[at as usize] = values_in[i as usize];
+            next[digit as usize] = at + 1u32;
+        }
+    }
+}
+
+/// Stably sorts the first `n` `(key, value)` pairs by the low `bits` bits of the key. Returns
+/// the handles holding the sorted keys and values (the inputs, or fresh buffers).
+pub(crate) fn radix_sort_pairs(
+    client: &ComputeClient,
+    keys: Handle,
+    values: Handle,
+    n: usize,
+    bits: u32,
+) -> (Handle, Handle) {
+    if n <= 1 || bits == 0 {
+        return (keys, values);
+    }
+    let num_chunks = n.div_ceil(SORT_CHUNK as usize);
+    let counts_len = 16 * num_chunks;
+    let counts = empty_u32(client, counts_len);
+    let (mut keys, mut values) = (keys, values);
+    let (mut keys_alt, mut values_alt) = (empty_u32(client, n), empty_u32(client, n));
+    for pass in 0..bits.div_ceil(4) {
+        let shift = 4 * pass;
+        radix_count::launch(
+            client,
+            count_1d(num_chunks),
+            CubeDim::new_1d(THREADS_1D),
+            arg(&keys, n),
+            arg(&counts, counts_len),
+            n as u32,
+            shift,
+            num_chunks as u32,
+        );
+        exclusive_scan(client, &counts, counts_len);
+        radix_scatter::launch(
+            client,
+            count_1d(num_chunks),
+            CubeDim::new_1d(THREADS_1D),
+            arg(&keys, n),
+            arg(&values, n),
+            arg(&counts, counts_len),
+            arg(&keys_alt, n),
+            arg(&values_alt, n),
+            n as u32,
+            shift,
+            num_chunks as u32,
+        );
+        std::mem::swap(&mut keys, &mut keys_alt);
+        std::mem::swap(&mut values, &mut values_alt);
+    }
+    (keys, values)
+}
+
+/// Number of bits needed to hold every value in `0..=max`.
+pub(crate) fn bits_for(max: u32) -> u32 {
+    32 - max.leading_zeros()
+}

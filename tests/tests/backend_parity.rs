@@ -1,0 +1,158 @@
+//! Backend parity of the rasterizer op: one test body ([`assert_parity`]) run on every backend
+//! against the CPU op on ndarray — forward within 1e-4 absolute, all four input gradients within
+//! 1e-3 relative — over seeded random scenes and every rasterizer-level hard case.
+//!
+//! The wgpu runs need a Vulkan adapter: a GPU, or Mesa's software lavapipe on the CPU (what CI
+//! installs, see `.ci/run`). Without one they print `WGPU TESTS SKIPPED` and pass, unless
+//! `LIFEGOM_REQUIRE_WGPU` is set (CI sets it), in which case they fail.
+
+#![allow(deprecated)] // Device::ndarray() is deprecated in Burn 0.22; it is the reference here.
+
+use burn::tensor::{Device, Tensor};
+use lifegom_render::device::{DeviceChoice, wgpu_available};
+use lifegom_render::gom::{GomParams, gaussians_from_triangles};
+use lifegom_render::rasterizer::{AlphaCutoff, RasterSettings, rasterize};
+use lifegom_tests::{
+    Rng, Scene, assert_parity, front_camera, random_scene, raster_hard_cases, read, tensor2,
+};
+
+/// The wgpu device, or `None` (after saying so loudly) when no adapter exists.
+fn wgpu_device() -> Option<Device> {
+    if wgpu_available() {
+        return Some(DeviceChoice::Wgpu.device());
+    }
+    assert!(
+        std::env::var_os("LIFEGOM_REQUIRE_WGPU").is_none(),
+        "LIFEGOM_REQUIRE_WGPU is set but no wgpu adapter exists: \
+         install mesa-vulkan-drivers and libvulkan1 (lavapipe)"
+    );
+    eprintln!(
+        "WGPU TESTS SKIPPED: no Vulkan adapter (install mesa-vulkan-drivers and libvulkan1 \
+         for Mesa lavapipe)"
+    );
+    None
+}
+
+/// Seeded random scenes: small ones, one with the depth channel, one with the smooth cutoff,
+/// and one dense enough that tiles hold more than one 256-splat batch and pixels saturate.
+fn random_scenes() -> Vec<Scene> {
+    let mut scenes = vec![random_scene(1, 40, 64, 48), random_scene(2, 25, 37, 29)];
+    let mut depth = random_scene(3, 40, 48, 48);
+    depth.settings = depth.settings.with_depth();
+    depth.name += ", depth";
+    scenes.push(depth);
+    let mut smooth = random_scene(4, 30, 40, 32);
+    smooth.settings = smooth
+        .settings
+        .with_cutoff(AlphaCutoff::Smooth)
+        .with_depth();
+    smooth.name += ", smooth cutoff";
+    scenes.push(smooth);
+    let mut dense = random_scene(5, 700, 32, 32);
+    dense.name += ", dense";
+    scenes.push(dense);
+    scenes
+}
+
+fn all_scenes() -> Vec<Scene> {
+    let mut scenes = random_scenes();
+    scenes.extend(raster_hard_cases());
+    scenes
+}
+
+#[test]
+fn flex_matches_the_cpu_op() {
+    for scene in all_scenes() {
+        assert_parity(&scene, &Device::flex(), "flex");
+    }
+}
+
+#[test]
+fn wgpu_matches_the_cpu_op_on_random_scenes() {
+    let Some(device) = wgpu_device() else { return };
+    for scene in random_scenes() {
+        assert_parity(&scene, &device, "wgpu");
+    }
+}
+
+#[test]
+fn wgpu_matches_the_cpu_op_on_every_hard_case() {
+    let Some(device) = wgpu_device() else { return };
+    for scene in raster_hard_cases() {
+        assert_parity(&scene, &device, "wgpu");
+    }
+}
+
+/// Model code runs unchanged on wgpu: triangles and per-face parameters → GoM Gaussians →
+/// image → loss → gradients of every input, compared with the same code on ndarray.
+#[test]
+fn gom_render_gradients_on_wgpu_match_ndarray() {
+    let Some(wgpu) = wgpu_device() else { return };
+    let mut rng = Rng::new(11);
+    let f = 12;
+    let corners: Vec<Vec<f32>> = (0..3)
+        .map(|_| (0..3 * f).map(|_| rng.range(-0.4, 0.4)).collect())
+        .collect();
+    let so3: Vec<f32> = (0..3 * f).map(|_| rng.range(-1.0, 1.0)).collect();
+    let scales: Vec<f32> = (0..3 * f).map(|_| rng.range(0.2, 1.0)).collect();
+    let colors: Vec<f32> = (0..3 * f).map(|_| rng.next_f32()).collect();
+    let run = |device: &Device| {
+        let ad = device.clone().autodiff();
+        let v: Vec<Tensor<2>> = corners
+            .iter()
+            .map(|c| tensor2(c.clone(), 3, &ad).require_grad())
+            .collect();
+        let mut p = GomParams::init(f, &ad);
+        p.so3 = tensor2(so3.clone(), 3, &ad).require_grad();
+        p.scales = tensor2(scales.clone(), 3, &ad).require_grad();
+        p.colors = tensor2(colors.clone(), 3, &ad).require_grad();
+        let g = gaussians_from_triangles(v[0].clone(), v[1].clone(), v[2].clone(), &p);
+        let out =
+            rasterize(&g, &RasterSettings::new(front_camera(40, 36)).with_depth()).expect("render");
+        let image = read(out.image.clone());
+        let grads = (out.image.clone() * out.image).sum().backward();
+        let mut all = vec![image];
+        for t in [&v[0], &v[1], &v[2], &p.so3, &p.scales, &p.colors] {
+            all.push(read(t.grad(&grads).expect("gradient reached every input")));
+        }
+        all
+    };
+    let want = run(&Device::ndarray());
+    let got = run(&wgpu);
+    let names = ["image", "v0", "v1", "v2", "so3", "scales", "colors"];
+    for ((name, g), w) in names.iter().zip(&got).zip(&want) {
+        let scale = w.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+        for (i, (a, b)) in g.iter().zip(w).enumerate() {
+            // The image is compared absolutely; gradients with the parity suite's relative rule.
+            let tol = if *name == "image" {
+                1e-4
+            } else {
+                1e-3 * (b.abs() + 1e-2 * scale)
+            };
+            assert!(
+                (a - b).abs() <= tol,
+                "{name}[{i}]: wgpu {a}, ndarray {b} (tolerance {tol:e})"
+            );
+        }
+    }
+}
+
+/// The backward's compare-and-swap float atomics, forced where the device has native ones (so
+/// both paths are covered on any device; where it has none, every wgpu test above already ran
+/// the CAS path and this one repeats a scene).
+#[test]
+fn wgpu_cas_atomics_match_the_cpu_op() {
+    let Some(device) = wgpu_device() else { return };
+    let native = lifegom_render::rasterizer::native_float_atomics(&device);
+    eprintln!("wgpu backward: native float atomics {native}; forcing compare-and-swap");
+    lifegom_render::rasterizer::force_cas_atomics(true);
+    let result = std::panic::catch_unwind(|| {
+        for scene in [random_scene(21, 60, 48, 40), random_scene(22, 400, 32, 32)] {
+            assert_parity(&scene, &device, "wgpu (CAS atomics)");
+        }
+    });
+    lifegom_render::rasterizer::force_cas_atomics(false);
+    if let Err(panic) = result {
+        std::panic::resume_unwind(panic);
+    }
+}
