@@ -30,7 +30,7 @@ use lifegom_render::gom::GomMesh;
 use serde::{Deserialize, Serialize};
 
 use crate::images::{Image, error_map, grid};
-use crate::metrics::{ImageRef, crop, full_image_metrics, thuman_crop_box};
+use crate::metrics::{ImageMetrics, ImageRef, crop, full_image_metrics, thuman_crop_box};
 
 /// What to evaluate and where to write it.
 #[derive(Debug, Clone)]
@@ -99,6 +99,50 @@ pub fn thuman_crop_size(h: usize, w: usize) -> [usize; 2] {
     let ch = (1000.0 * h as f64 / 1024.0).round() as usize;
     let cw = (500.0 * w as f64 / 1024.0).round() as usize;
     [ch.clamp(1, h), cw.clamp(1, w)]
+}
+
+/// The protocol's metric region of a prediction/ground-truth pair, after the uint8 round trip
+/// the reference scores (THuman/XHuman: the GT box grown to `crop_size`; AIST++ or an all-black
+/// GT: the full image), and PSNR/SSIM on it.
+fn score_region(
+    pred: &Image,
+    gt: &Image,
+    crop_protocol: bool,
+    crop_size: [usize; 2],
+    frame: &str,
+) -> anyhow::Result<(ImageMetrics, Image, Image)> {
+    let (pred_q, gt_q) = (pred.quantized(), gt.quantized());
+    let shape = [gt.height, gt.width, 3];
+    let bbox = if crop_protocol {
+        let bbox = thuman_crop_box(ImageRef::new(&gt_q.data, shape)?, crop_size)?;
+        if bbox.is_none() {
+            tracing::warn!(
+                frame,
+                "ground truth is all black: no crop, scored on the full image"
+            );
+        }
+        bbox
+    } else {
+        None
+    };
+    let (p_img, g_img) = match bbox {
+        Some(bbox) => {
+            let (p, s) = crop(ImageRef::new(&pred_q.data, shape)?, bbox)?;
+            let (g, _) = crop(ImageRef::new(&gt_q.data, shape)?, bbox)?;
+            let image = |data| Image {
+                width: s[1],
+                height: s[0],
+                data,
+            };
+            (image(p), image(g))
+        }
+        None => (pred_q, gt_q),
+    };
+    let m = full_image_metrics(
+        ImageRef::new(&p_img.data, [p_img.height, p_img.width, 3])?,
+        ImageRef::new(&g_img.data, [g_img.height, g_img.width, 3])?,
+    )?;
+    Ok((m, p_img, g_img))
 }
 
 /// A reconstructed avatar and how long it took.
@@ -209,40 +253,8 @@ pub fn evaluate_split(
             &inputs.target_skinning,
         )?;
         let gt = Image::from_chw(inputs.target_rgb.clone());
-        // Metrics on what the reference scores: the uint8 PNG dump of the prediction.
-        let pred_q = pred.quantized();
-        let gt_q = gt.quantized();
-        let shape = [h as usize, w as usize, 3];
-        let (p_img, g_img) = if crop_protocol {
-            match thuman_crop_box(ImageRef::new(&gt_q.data, shape)?, crop_size)? {
-                Some(bbox) => {
-                    let (p, s) = crop(ImageRef::new(&pred_q.data, shape)?, bbox)?;
-                    let (g, _) = crop(ImageRef::new(&gt_q.data, shape)?, bbox)?;
-                    (
-                        Image {
-                            width: s[1],
-                            height: s[0],
-                            data: p,
-                        },
-                        Image {
-                            width: s[1],
-                            height: s[0],
-                            data: g,
-                        },
-                    )
-                }
-                None => {
-                    tracing::warn!(frame = %sample.frame_name, "ground truth is all black: no crop, scored on the full image");
-                    (pred_q.clone(), gt_q.clone())
-                }
-            }
-        } else {
-            (pred_q.clone(), gt_q.clone())
-        };
-        let m = full_image_metrics(
-            ImageRef::new(&p_img.data, [p_img.height, p_img.width, 3])?,
-            ImageRef::new(&g_img.data, [g_img.height, g_img.width, 3])?,
-        )?;
+        let (m, p_img, g_img) =
+            score_region(&pred, &gt, crop_protocol, crop_size, &sample.frame_name)?;
         if settings.save_predictions {
             pred.save_png(
                 &settings
@@ -384,35 +396,10 @@ pub fn template_baseline_scores(
             &inputs.target_camera,
             &inputs.target_skinning,
         )?;
-        let gt = Image::from_chw(inputs.target_rgb.clone()).quantized();
-        let pred = pred.quantized();
-        let shape = [h as usize, w as usize, 3];
-        let (p_img, g_img) = match (dataset.rule.protocol != Protocol::Aistpp)
-            .then(|| thuman_crop_box(ImageRef::new(&gt.data, shape).ok()?, crop_size).ok()?)
-            .flatten()
-        {
-            Some(bbox) => {
-                let (p, s) = crop(ImageRef::new(&pred.data, shape)?, bbox)?;
-                let (g, _) = crop(ImageRef::new(&gt.data, shape)?, bbox)?;
-                (
-                    Image {
-                        width: s[1],
-                        height: s[0],
-                        data: p,
-                    },
-                    Image {
-                        width: s[1],
-                        height: s[0],
-                        data: g,
-                    },
-                )
-            }
-            None => (pred.clone(), gt.clone()),
-        };
-        let m = full_image_metrics(
-            ImageRef::new(&p_img.data, [p_img.height, p_img.width, 3])?,
-            ImageRef::new(&g_img.data, [g_img.height, g_img.width, 3])?,
-        )?;
+        let gt = Image::from_chw(inputs.target_rgb.clone());
+        let crop_protocol = dataset.rule.protocol != Protocol::Aistpp;
+        let (m, p_img, g_img) =
+            score_region(&pred, &gt, crop_protocol, crop_size, &sample.frame_name)?;
         views.push(ViewScore {
             subject: sample.subject.clone(),
             frame_name: sample.frame_name.clone(),

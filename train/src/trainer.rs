@@ -14,7 +14,7 @@
 
 use std::time::Instant;
 
-use burn::module::{Module, ParamGroup};
+use burn::module::ParamGroup;
 use burn::optim::lr_scheduler::LrSchedulerConfig;
 use burn::optim::lr_scheduler::module_lr_scheduler::{ModuleLearningRate, ModuleLrSchedulerConfig};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
@@ -371,9 +371,4 @@ impl Trainer {
             target_render,
         })
     }
-}
-
-/// The parameter count of a module.
-pub fn num_params<M: Module>(m: &M) -> usize {
-    m.num_params()
 }
