@@ -162,7 +162,7 @@ pub fn reconstruct_timed(
     let start = Instant::now();
     let avatar = model.reconstruct(&inputs.subject, mesh, &inputs.sources)?;
     // Force the result to exist before stopping the clock (matters on lazy backends).
-    let _ = avatar.xyz.clone().sum().into_data();
+    lifegom_render::device::wait_for_values(avatar.xyz.clone().sum());
     Ok(Reconstructed {
         avatar,
         ms: start.elapsed().as_secs_f64() * 1e3,

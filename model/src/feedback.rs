@@ -23,8 +23,8 @@
 
 use burn::config::Config;
 use burn::module::{Module, Param};
-use burn::tensor::{Device, Distribution, Tensor, TensorData};
-use glam::{Affine3A, Vec3};
+use burn::tensor::{Device, Distribution, Tensor};
+use glam::Affine3A;
 
 use lifegom_render::camera::Camera;
 use lifegom_render::gom::{GomMesh, GomParams};
@@ -32,7 +32,7 @@ use lifegom_render::mesh::MeshTopology;
 use lifegom_render::rasterizer::{RasterSettings, rasterize};
 use lifegom_render::skeleton::Skeleton;
 use lifegom_render::skinning::skin_vertices;
-use lifegom_render::visibility::{rasterize_triangle_ids, visible_vertices};
+use lifegom_render::visibility::rasterize_on_device;
 
 use crate::avatar::Avatar;
 use crate::encoder::{EncodedViews, ImageEncoder, ImageEncoderConfig};
@@ -324,13 +324,6 @@ pub fn render_views(
     })
 }
 
-fn host_points(t: Tensor<2>) -> Vec<Vec3> {
-    let v = t.into_data().try_into_vec_as::<f32>().unwrap_or_default();
-    v.chunks_exact(3)
-        .map(|c| Vec3::new(c[0], c[1], c[2]))
-        .collect()
-}
-
 impl Reconstructor {
     /// Number of feedback steps.
     pub fn iterations(&self) -> usize {
@@ -469,7 +462,6 @@ impl Reconstructor {
         let n = sources.cameras.len();
         let [v, _] = state.xyz.dims();
         let d = self.visibility_embed.dims()[0];
-        let device = state.xyz.device();
 
         // Pose the current vertices into each view and project them.
         let posed: Vec<Tensor<2>> = sources
@@ -479,25 +471,37 @@ impl Reconstructor {
             .collect::<std::result::Result<_, _>>()?;
         let proj = project_points(Tensor::stack(posed.clone(), 0), &sources.cameras)?;
 
-        // Discrete visibility of the high-res mesh in each view (no gradient).
-        let highres_faces = &mesh.subdivision.highres.faces;
-        let mut vis_lowres = vec![0.0f32; v * n];
-        let mut vis_highres: Vec<Vec<bool>> = Vec::with_capacity(n);
-        {
+        // Discrete visibility of the high-res mesh in each view (no gradient), computed on the
+        // device the mesh lives on: the CPU reference on ndarray/Flex, the GPU kernels on wgpu.
+        // A face counts as visible when all three of its corners are.
+        let tables = mesh.tables();
+        let faces_flat = mesh.highres_faces().clone();
+        let f = mesh.num_gaussians();
+        let faces_hr = faces_flat.clone().reshape([f, 3]);
+        let num_hr_vertices = mesh.subdivision.highres.num_vertices;
+        let posed_hr: Vec<Tensor<2>> = posed.iter().map(|p| tables.apply(p.clone())).collect();
+        let (vis, face_vis) = {
             let _span = tracing::debug_span!("visibility").entered();
-            for (view, (p, cam)) in posed.iter().zip(&sources.cameras).enumerate() {
-                let hr = mesh
-                    .subdivision
-                    .highres_vertices_cpu(&host_points(p.clone().detach()));
-                let ids = rasterize_triangle_ids(&hr, highres_faces, cam)?;
-                let visible = visible_vertices(&ids, highres_faces, hr.len());
-                for (i, vis) in visible[..v].iter().enumerate() {
-                    vis_lowres[i * n + view] = f32::from(u8::from(*vis));
-                }
-                vis_highres.push(visible);
+            let mut vis_lowres = Vec::with_capacity(n);
+            let mut face_vis = Vec::with_capacity(n);
+            for (p, cam) in posed_hr.iter().zip(&sources.cameras) {
+                let ids = rasterize_on_device(p.clone().detach(), faces_hr.clone(), cam)?;
+                let visible = ids
+                    .visible_vertices(faces_hr.clone(), num_hr_vertices)
+                    .float();
+                vis_lowres.push(visible.clone().slice(0..v));
+                face_vis.push(
+                    visible
+                        .select(0, faces_flat.clone())
+                        .reshape([f, 3])
+                        .min_dim(1),
+                );
             }
-        }
-        let vis = Tensor::<3>::from_data(TensorData::new(vis_lowres, [v, n, 1]), &device);
+            (
+                Tensor::stack::<2>(vis_lowres, 1).reshape([v, n, 1]),
+                Tensor::cat(face_vis, 1),
+            )
+        };
         let e_vis = self.visibility_embed.val().reshape([1, 1, d]);
 
         // Source branch, blended with e_vis where the vertex is hidden.
@@ -521,10 +525,6 @@ impl Reconstructor {
 
         // Faces: source features at the projected centroid of each high-res face of the current
         // (pre-update) mesh, zeroed where the face is not fully visible in that view.
-        let tables = mesh.tables();
-        let faces_flat = mesh.highres_faces().clone();
-        let f = mesh.num_gaussians();
-        let posed_hr: Vec<Tensor<2>> = posed.iter().map(|p| tables.apply(p.clone())).collect();
         let proj_hr = project_points(Tensor::stack(posed_hr, 0), &sources.cameras)?;
         let uv_faces = proj_hr
             .uv
@@ -533,15 +533,6 @@ impl Reconstructor {
             .mean_dim(2)
             .reshape([n, f, 2]);
         let face_feats = feats_src.sample(uv_faces, w, h)?; // [F, N, D]
-        let mut face_vis = vec![0.0f32; f * n];
-        for (view, visible) in vis_highres.iter().enumerate() {
-            for (face, corners) in highres_faces.iter().enumerate() {
-                if corners.iter().all(|c| visible[*c as usize]) {
-                    face_vis[face * n + view] = 1.0;
-                }
-            }
-        }
-        let face_vis = Tensor::<2>::from_data(TensorData::new(face_vis, [f, n]), &device);
         let inputs = face_inputs(
             h_pt,
             tables.index.clone(),
@@ -563,6 +554,7 @@ impl Reconstructor {
 mod tests {
     #![allow(deprecated)]
     use super::*;
+    use glam::Vec3;
     use lifegom_render::camera::Intrinsics;
     use lifegom_render::skeleton::BodyPose;
     use lifegom_render::template::{BodyTemplate, lowres_template_path};
@@ -715,6 +707,15 @@ mod tests {
     }
 
     lifegom_render::cpu_backend_tests!(end_to_end => end_to_end);
+
+    /// Model code runs unchanged on wgpu (lavapipe on CI): the same reconstruction and backward,
+    /// with visibility and rasterization in the GPU kernels.
+    #[test]
+    fn end_to_end_wgpu() {
+        if let Some(device) = lifegom_render::testing::wgpu_test_device() {
+            end_to_end(&device);
+        }
+    }
 
     #[test]
     fn mismatched_inputs_are_errors() {

@@ -93,3 +93,14 @@ pub fn wgpu_available() -> bool {
         }
     })
 }
+
+/// Waits until `t` is computed and its values are on the host; returns the element count.
+///
+/// For timing code. `Tensor::into_data` alone is not enough on the CubeCL backends: it returns
+/// as soon as the readback is *queued*, and the bytes are fetched (waiting for every kernel
+/// the tensor depends on) only when first touched. This touches them.
+pub fn wait_for_values<const D: usize>(t: Tensor<D>) -> usize {
+    let data = t.into_data();
+    std::hint::black_box(data.as_bytes());
+    data.num_elements()
+}

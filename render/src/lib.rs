@@ -1,7 +1,8 @@
 //! # lifegom-render
 //!
 //! Gaussians-on-Mesh (GoM) geometry and a differentiable Gaussian rasterizer, as one custom Burn
-//! op that runs on Burn's ndarray and Flex CPU backends (and their `.autodiff()`).
+//! op that runs on Burn's ndarray and Flex CPU backends and on wgpu (CubeCL kernels), and their
+//! `.autodiff()`.
 //!
 //! Crate map, in the order data flows:
 //!
@@ -14,7 +15,7 @@
 //! | [`steiner`] | the face-local Steiner-inellipse frame `A` |
 //! | [`gom`] | per-face Gaussian parameters → world Gaussians (mean, covariance, colour, opacity) |
 //! | [`rasterizer`] | the differentiable EWA splatting op (forward, backward, Burn glue) |
-//! | [`visibility`] | a triangle-ID z-buffer for visibility (no gradient) |
+//! | [`visibility`] | a triangle-ID z-buffer for visibility (no gradient), CPU and GPU |
 //!
 //! ```
 //! use burn::tensor::Device;

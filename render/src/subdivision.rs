@@ -241,6 +241,7 @@ fn too_large(reason: String) -> RenderError {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testing::octahedron;
 
     fn tetrahedron() -> (MeshTopology, Vec<Vec3>) {
         let faces = vec![[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]];
@@ -251,22 +252,6 @@ mod tests {
             Vec3::new(-1.0, -1.0, 1.0),
         ];
         (MeshTopology::new(faces, 4).unwrap(), verts)
-    }
-
-    fn octahedron() -> (MeshTopology, Vec<Vec3>) {
-        // +x, -x, +y, -y, +z, -z
-        let verts = vec![Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z, -Vec3::Z];
-        let faces = vec![
-            [0, 2, 4],
-            [2, 1, 4],
-            [1, 3, 4],
-            [3, 0, 4],
-            [2, 0, 5],
-            [1, 2, 5],
-            [3, 1, 5],
-            [0, 3, 5],
-        ];
-        (MeshTopology::new(faces, 6).unwrap(), verts)
     }
 
     /// Direct recursive construction: subdivide geometry level by level, placing each new vertex

@@ -5,6 +5,9 @@
 //!   determinism across platforms.
 //! - [`cpu_backend_tests!`](crate::cpu_backend_tests): one test body, run once per CPU backend
 //!   (ndarray, which CI covers, and Flex).
+//! - [`wgpu_test_device`]: the wgpu device for GPU-kernel tests, or a loud skip.
+//! - [`octahedron`] and [`pixel_camera`]: the small closed mesh and the screen-aligned camera
+//!   several suites build scenes from.
 
 /// A seeded linear congruential generator (MMIX constants).
 #[derive(Debug, Clone)]
@@ -83,4 +86,64 @@ macro_rules! cpu_backend_tests {
             )+
         }
     };
+}
+
+/// The wgpu device for tests of the GPU kernels, or `None` after saying loudly that they are
+/// skipped because no Vulkan adapter exists. With `LIFEGOM_REQUIRE_WGPU` set (CI sets it, and
+/// installs Mesa's software lavapipe) a missing adapter is a test failure instead.
+///
+/// # Panics
+///
+/// When `LIFEGOM_REQUIRE_WGPU` is set and no adapter exists.
+pub fn wgpu_test_device() -> Option<burn::tensor::Device> {
+    if crate::device::wgpu_available() {
+        return Some(crate::device::DeviceChoice::Wgpu.device());
+    }
+    assert!(
+        std::env::var_os("LIFEGOM_REQUIRE_WGPU").is_none(),
+        "LIFEGOM_REQUIRE_WGPU is set but no wgpu adapter exists: \
+         install mesa-vulkan-drivers and libvulkan1 (lavapipe)"
+    );
+    eprintln!(
+        "WGPU TESTS SKIPPED: no Vulkan adapter (install mesa-vulkan-drivers and libvulkan1 \
+         for Mesa lavapipe)"
+    );
+    None
+}
+
+/// The unit octahedron (vertices `±x, ±y, ±z` in that order), faces wound outwards: the
+/// smallest closed mesh whose every vertex has a different neighbourhood.
+pub fn octahedron() -> (crate::mesh::MeshTopology, Vec<glam::Vec3>) {
+    use glam::Vec3;
+    let verts = vec![Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z, -Vec3::Z];
+    let faces = vec![
+        [0, 2, 4],
+        [2, 1, 4],
+        [1, 3, 4],
+        [3, 0, 4],
+        [2, 0, 5],
+        [1, 2, 5],
+        [3, 1, 5],
+        [0, 3, 5],
+    ];
+    let mesh = crate::mesh::MeshTopology::new(faces, 6).expect("the octahedron is a valid mesh");
+    (mesh, verts)
+}
+
+/// A camera at the origin looking down `+z` with unit focal length and the principal point at
+/// pixel corner `(0, 0)`: the world point `(u·z, v·z, z)` lands at pixel coordinates `(u, v)`,
+/// so scenes can be written in pixels.
+pub fn pixel_camera(width: u32, height: u32) -> crate::camera::Camera {
+    crate::camera::Camera::new(
+        crate::camera::Intrinsics {
+            fx: 1.0,
+            fy: 1.0,
+            cx: 0.0,
+            cy: 0.0,
+        },
+        glam::Affine3A::IDENTITY,
+        width,
+        height,
+    )
+    .expect("a valid camera")
 }

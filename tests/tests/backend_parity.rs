@@ -9,29 +9,12 @@
 #![allow(deprecated)] // Device::ndarray() is deprecated in Burn 0.22; it is the reference here.
 
 use burn::tensor::{Device, Tensor};
-use lifegom_render::device::{DeviceChoice, wgpu_available};
 use lifegom_render::gom::{GomParams, gaussians_from_triangles};
 use lifegom_render::rasterizer::{AlphaCutoff, RasterSettings, rasterize};
+use lifegom_render::testing::wgpu_test_device;
 use lifegom_tests::{
     Rng, Scene, assert_parity, front_camera, random_scene, raster_hard_cases, read, tensor2,
 };
-
-/// The wgpu device, or `None` (after saying so loudly) when no adapter exists.
-fn wgpu_device() -> Option<Device> {
-    if wgpu_available() {
-        return Some(DeviceChoice::Wgpu.device());
-    }
-    assert!(
-        std::env::var_os("LIFEGOM_REQUIRE_WGPU").is_none(),
-        "LIFEGOM_REQUIRE_WGPU is set but no wgpu adapter exists: \
-         install mesa-vulkan-drivers and libvulkan1 (lavapipe)"
-    );
-    eprintln!(
-        "WGPU TESTS SKIPPED: no Vulkan adapter (install mesa-vulkan-drivers and libvulkan1 \
-         for Mesa lavapipe)"
-    );
-    None
-}
 
 /// Seeded random scenes: small ones, one with the depth channel, one with the smooth cutoff,
 /// and one dense enough that tiles hold more than one 256-splat batch and pixels saturate.
@@ -69,7 +52,9 @@ fn flex_matches_the_cpu_op() {
 
 #[test]
 fn wgpu_matches_the_cpu_op_on_random_scenes() {
-    let Some(device) = wgpu_device() else { return };
+    let Some(device) = wgpu_test_device() else {
+        return;
+    };
     for scene in random_scenes() {
         assert_parity(&scene, &device, "wgpu");
     }
@@ -77,7 +62,9 @@ fn wgpu_matches_the_cpu_op_on_random_scenes() {
 
 #[test]
 fn wgpu_matches_the_cpu_op_on_every_hard_case() {
-    let Some(device) = wgpu_device() else { return };
+    let Some(device) = wgpu_test_device() else {
+        return;
+    };
     for scene in raster_hard_cases() {
         assert_parity(&scene, &device, "wgpu");
     }
@@ -87,7 +74,9 @@ fn wgpu_matches_the_cpu_op_on_every_hard_case() {
 /// image → loss → gradients of every input, compared with the same code on ndarray.
 #[test]
 fn gom_render_gradients_on_wgpu_match_ndarray() {
-    let Some(wgpu) = wgpu_device() else { return };
+    let Some(wgpu) = wgpu_test_device() else {
+        return;
+    };
     let mut rng = Rng::new(11);
     let f = 12;
     let corners: Vec<Vec<f32>> = (0..3)
@@ -137,21 +126,23 @@ fn gom_render_gradients_on_wgpu_match_ndarray() {
     }
 }
 
-/// The backward's compare-and-swap float atomics, forced where the device has native ones (so
-/// both paths are covered on any device; where it has none, every wgpu test above already ran
-/// the CAS path and this one repeats a scene).
+/// The backward's emulated float atomics (atomic exchange on `u32` bits), forced where the
+/// device has native ones, so both paths are covered on any device. Where it has none (WGSL on
+/// lavapipe), every wgpu test above already ran the emulation and this one repeats a scene.
 #[test]
-fn wgpu_cas_atomics_match_the_cpu_op() {
-    let Some(device) = wgpu_device() else { return };
+fn wgpu_emulated_float_atomics_match_the_cpu_op() {
+    let Some(device) = wgpu_test_device() else {
+        return;
+    };
     let native = lifegom_render::rasterizer::native_float_atomics(&device);
-    eprintln!("wgpu backward: native float atomics {native}; forcing compare-and-swap");
-    lifegom_render::rasterizer::force_cas_atomics(true);
+    eprintln!("wgpu backward: native float atomics {native}; forcing the exchange emulation");
+    lifegom_render::rasterizer::force_emulated_float_atomics(true);
     let result = std::panic::catch_unwind(|| {
         for scene in [random_scene(21, 60, 48, 40), random_scene(22, 400, 32, 32)] {
-            assert_parity(&scene, &device, "wgpu (CAS atomics)");
+            assert_parity(&scene, &device, "wgpu (emulated float atomics)");
         }
     });
-    lifegom_render::rasterizer::force_cas_atomics(false);
+    lifegom_render::rasterizer::force_emulated_float_atomics(false);
     if let Err(panic) = result {
         std::panic::resume_unwind(panic);
     }

@@ -11,29 +11,12 @@ use lifegom_tests::{Rng, camera, cpu_devices, read, tensor2};
 
 /// An octahedron of radius ~0.25 m, slightly irregular so no face is special.
 fn octahedron(rng: &mut Rng) -> (MeshTopology, Vec<f32>) {
-    let dirs = [
-        [1.0, 0.0, 0.0],
-        [-1.0, 0.0, 0.0],
-        [0.0, 1.0, 0.0],
-        [0.0, -1.0, 0.0],
-        [0.0, 0.0, 1.0],
-        [0.0, 0.0, -1.0],
-    ];
-    let vertices = dirs
+    let (mesh, unit) = lifegom_render::testing::octahedron();
+    let vertices = unit
         .iter()
-        .flat_map(|d: &[f32; 3]| d.map(|c| c * 0.25 + rng.range(-0.03, 0.03)))
+        .flat_map(|d| d.to_array().map(|c| c * 0.25 + rng.range(-0.03, 0.03)))
         .collect();
-    let faces = vec![
-        [0, 2, 4],
-        [2, 1, 4],
-        [1, 3, 4],
-        [3, 0, 4],
-        [2, 0, 5],
-        [1, 2, 5],
-        [3, 1, 5],
-        [0, 3, 5],
-    ];
-    (MeshTopology::new(faces, 6).unwrap(), vertices)
+    (mesh, vertices)
 }
 
 fn check(device: &Device) {

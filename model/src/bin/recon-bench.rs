@@ -129,7 +129,7 @@ fn main() -> anyhow::Result<()> {
         let start = Instant::now();
         let rec = model.forward(&subject, &mesh, &sources)?;
         // Reading the final colours back makes the time include all queued work.
-        let _ = rec.last().faces.colors.clone().into_data();
+        lifegom_render::device::wait_for_values(rec.last().faces.colors.clone());
         let total = start.elapsed().as_secs_f64() * 1e3;
         if run > 0 {
             runs.push((total, rec.timings));

@@ -1,5 +1,7 @@
 //! `render-bench`: how long the Gaussian rasterizer takes on a body template, and what each
-//! optional piece of work costs (input validation, the depth channel, the backward pass).
+//! optional piece of work costs (input validation, the depth channel, the backward pass); also
+//! the triangle-ID visibility pass over the same subdivided mesh, as the feedback loop runs it
+//! once per source view.
 //!
 //! ```text
 //! cargo run --release -p lifegom-render --bin render-bench -- --size 512 --subdiv 2 --json
@@ -8,7 +10,8 @@
 //! Renders the template's Gaussians in the initial GoM state (rotation 0, scale 1, offset 0,
 //! opacity 1) from one camera 2.5 m in front of the body with `fx = 0.8·W`, and prints one JSON
 //! line. Every time is the median of `--runs` runs after one warm-up, and includes reading the
-//! result back to the host, so lazy backends cannot hide work.
+//! result back to the host (touching the bytes: see `device::wait_for_values`), so lazy
+//! backends cannot hide work.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -22,6 +25,7 @@ use lifegom_render::device::DeviceChoice;
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::rasterizer::{Gaussians, RasterSettings, Validation, rasterize};
 use lifegom_render::template::{BodyTemplate, full_template_path};
+use lifegom_render::visibility::rasterize_on_device;
 
 #[derive(Parser, Debug)]
 #[command(about = "Benchmark the Gaussian rasterizer on a body template")]
@@ -60,7 +64,7 @@ fn median_ms(runs: usize, mut f: impl FnMut()) -> f64 {
 }
 
 fn sync<const D: usize>(t: Tensor<D>) -> usize {
-    t.into_data().num_elements()
+    lifegom_render::device::wait_for_values(t)
 }
 
 fn main() -> anyhow::Result<()> {
@@ -114,6 +118,24 @@ fn main() -> anyhow::Result<()> {
         );
     });
 
+    // Visibility as the feedback loop computes it: triangle IDs of the high-res mesh, then the
+    // per-vertex mask, on the device.
+    let highres = mesh.highres_vertices(vertices.clone());
+    let faces = mesh.highres_faces().clone().reshape([n, 3]);
+    let num_highres = mesh.subdivision.highres.num_vertices;
+    let visibility_ms = median_ms(args.runs, || {
+        let ids = rasterize_on_device(highres.clone(), faces.clone(), &camera).expect("ids");
+        let visible = ids.visible_vertices(faces.clone(), num_highres);
+        sync(visible.float());
+    });
+    // Sanity figure, comparable across backends: how many high-res vertices this view sees.
+    let visible_vertices: i64 = {
+        let ids = rasterize_on_device(highres.clone(), faces.clone(), &camera)?;
+        ids.visible_vertices(faces.clone(), num_highres)
+            .sum()
+            .into_scalar::<i64>()
+    };
+
     let ad = device.clone().autodiff();
     let leaf = |t: Tensor<2>| Tensor::<2>::from_data(t.into_data(), &ad).require_grad();
     let tracked = Gaussians {
@@ -162,10 +184,13 @@ fn main() -> anyhow::Result<()> {
         "depth_extra_ms": round(forward_depth_ms - forward_ms),
         "gom_geometry_ms": round(gom_ms),
         "gom_render_fwd_bwd_ms": round(gom_fwd_bwd_ms),
+        "visibility_ms": round(visibility_ms),
+        "visible_vertices": visible_vertices,
     });
     if !args.json {
         eprintln!(
-            "{n} Gaussians at {size}² on {}: forward {forward_ms:.1} ms, forward+backward {fwd_bwd_ms:.1} ms",
+            "{n} Gaussians at {size}² on {}: forward {forward_ms:.1} ms, forward+backward \
+             {fwd_bwd_ms:.1} ms, visibility {visibility_ms:.1} ms",
             args.device.name()
         );
     }

@@ -15,7 +15,7 @@
 //! ```
 
 pub mod cpu;
-mod cube;
+pub(crate) mod cube;
 pub mod op;
 
 use burn::tensor::{Tensor, s};
@@ -236,15 +236,15 @@ pub fn rasterize(gaussians: &Gaussians, settings: &RasterSettings) -> Result<Ren
     })
 }
 
-/// Makes the GPU backward use its compare-and-swap float atomics even where the device has
+/// Makes the GPU backward use its emulated (atomic-exchange) float adds even where the device has
 /// native ones (process-wide; both paths compute the same sums). For tests and benchmarks.
 #[doc(hidden)]
-pub fn force_cas_atomics(force: bool) {
-    cube::FORCE_CAS.store(force, std::sync::atomic::Ordering::Relaxed);
+pub fn force_emulated_float_atomics(force: bool) {
+    cube::FORCE_EMULATED.store(force, std::sync::atomic::Ordering::Relaxed);
 }
 
 /// Whether the GPU backward on `device` would use native float atomic adds (`false` on CPU
-/// devices, and where [`force_cas_atomics`] is set).
+/// devices, and where [`force_emulated_float_atomics`] is set).
 #[doc(hidden)]
 pub fn native_float_atomics(device: &burn::tensor::Device) -> bool {
     cube::native_float_atomics(device)

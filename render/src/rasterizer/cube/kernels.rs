@@ -509,8 +509,8 @@ pub(crate) fn rasterize_kernel(
 }
 
 /// `*slot += value` for an `f32` held in an atomic slot of type `Self`: `f32` slots use the
-/// native float atomic add; `u32` slots hold the bit pattern and add by compare-and-swap, for
-/// runtimes without float atomics (WGSL has none).
+/// native float atomic add; `u32` slots hold the bit pattern and emulate it with atomic
+/// exchanges, for runtimes without float atomics (WGSL has none).
 #[cube]
 pub(crate) trait AtomicAddF32: CubePrimitive {
     /// Adds `value` to `slot`.
@@ -524,17 +524,25 @@ impl AtomicAddF32 for f32 {
     }
 }
 
+/// The emulation takes the slot's value (leaving `+0.0`), adds its own and puts the sum back.
+/// The put returns whatever another thread deposited in the meantime; that amount goes round
+/// again until a put lands on an empty slot. No addend is ever dropped. The textbook
+/// compare-and-swap loop is not safe here: WGSL only has a *weak* compare-exchange, which may
+/// fail spuriously, and CubeCL returns only its old value, not the `exchanged` flag, so a
+/// spurious failure would look like success and lose the addend (Metal, through naga, really
+/// is weak).
 #[cube]
 impl AtomicAddF32 for u32 {
     fn atomic_add_f32(slot: &Atomic<Self>, value: f32) {
-        let mut old = slot.load();
+        let mut pending = value;
         loop {
-            let new = u32::reinterpret(f32::reinterpret(old) + value);
-            let seen = slot.compare_exchange_weak(old, new);
-            if seen == old {
+            let taken = slot.exchange(0u32);
+            let sum = f32::reinterpret(taken) + pending;
+            let back = slot.exchange(u32::reinterpret(sum));
+            if back == 0u32 {
                 break;
             }
-            old = seen;
+            pending = f32::reinterpret(back);
         }
     }
 }
@@ -551,7 +559,7 @@ impl AtomicAddF32 for u32 {
 /// `grad2d`.
 ///
 /// Generic over the slot type `A` (see [`AtomicAddF32`]): `f32` where the runtime has float
-/// atomic add, `u32` (compare-and-swap) otherwise. A type parameter rather than a comptime flag
+/// atomic add, `u32` (exchange emulation) otherwise. A type parameter rather than a comptime flag
 /// because the buffer's declared type itself (`array<atomic<f32>>`) is invalid where float
 /// atomics are missing, used or not.
 #[cube(launch)]

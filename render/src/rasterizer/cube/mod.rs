@@ -25,14 +25,14 @@
 //!
 //! `rasterize_backward_kernel` replays each tile back to front, one thread per splat and one
 //! atomic add per gradient component per batch (native float atomics where the runtime has
-//! them, compare-and-swap otherwise), into dense per-Gaussian 2D gradients;
+//! them, an atomic-exchange emulation otherwise), into dense per-Gaussian 2D gradients;
 //! `project_backward_kernel` then chains them to the 3D inputs, one thread per Gaussian.
 //!
 //! Everything the backward needs stays on the device in [`CubeSaved`]: nothing is recomputed.
 //! The kernels mirror [`super::cpu`] formula by formula; `tests` compare the two.
 
 mod kernels;
-mod sort;
+pub(crate) mod sort;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -304,14 +304,14 @@ fn forward(
     (image, saved)
 }
 
-/// Set by [`super::force_cas_atomics`]: use the compare-and-swap path even where native float
-/// atomics exist, so tests cover both paths on one machine.
-pub(crate) static FORCE_CAS: AtomicBool = AtomicBool::new(false);
+/// Set by [`super::force_emulated_float_atomics`]: use the exchange emulation even where
+/// native float atomics exist, so tests cover both paths on one machine.
+pub(crate) static FORCE_EMULATED: AtomicBool = AtomicBool::new(false);
 
 /// Whether the backward adds `f32` atomically in hardware: the runtime supports it (WGSL has no
-/// float atomics; some Vulkan devices do) and the CAS path is not forced.
+/// float atomics; some Vulkan devices do) and the emulation is not forced.
 fn use_native_float_atomics(client: &ComputeClient) -> bool {
-    !FORCE_CAS.load(Ordering::Relaxed)
+    !FORCE_EMULATED.load(Ordering::Relaxed)
         && client
             .properties()
             .atomic_type_usage(Type::atomic(ElemType::Float(FloatKind::F32)))

@@ -1,8 +1,9 @@
-//! A triangle-ID z-buffer: which face is nearest at each pixel, for visibility only (spec §5.3).
+//! The CPU reference of the triangle-ID z-buffer: which face is nearest at each pixel, for
+//! visibility only (spec §5.3).
 //!
-//! The reference rasterises the posed high-res mesh with nvdiffrast per source view and calls a
-//! vertex visible if any face containing it owns at least one pixel. This module does the same on
-//! the CPU, without gradients.
+//! The official code rasterises the posed high-res mesh with nvdiffrast per source view and calls
+//! a vertex visible if any face containing it owns at least one pixel. This module does the same
+//! on the CPU, without gradients; the GPU kernels (`super::cube`) follow it step by step in `f32`.
 //!
 //! # Pipeline
 //!
@@ -122,6 +123,17 @@ pub fn rasterize_triangle_ids(
         }
     }
 
+    Ok(rasterize_unchecked(vertices, faces, camera))
+}
+
+/// [`rasterize_triangle_ids`] without the input checks, for callers that cannot return an error
+/// (the Burn op): a face with a vertex index past the list or a non-finite corner covers
+/// nothing. The camera must be valid.
+pub(crate) fn rasterize_unchecked(
+    vertices: &[Vec3],
+    faces: &[[u32; 3]],
+    camera: &Camera,
+) -> TriangleIdBuffer {
     let (width, height) = (camera.width, camera.height);
     let cam: Vec<DVec3> = vertices
         .par_iter()
@@ -131,10 +143,16 @@ pub fn rasterize_triangle_ids(
     let tris: Vec<ScreenTri> = faces
         .par_iter()
         .enumerate()
-        .flat_map_iter(|(f, face)| {
-            let corners = face.map(|v| cam[v as usize]);
-            clip_and_project(f as u32, corners, &projector)
+        .filter_map(|(f, face)| {
+            let corners = face.map(|v| cam.get(v as usize).copied());
+            match corners {
+                [Some(a), Some(b), Some(c)] if a.is_finite() && b.is_finite() && c.is_finite() => {
+                    Some((f, [a, b, c]))
+                }
+                _ => None,
+            }
         })
+        .flat_map_iter(|(f, corners)| clip_and_project(f as u32, corners, &projector))
         .collect();
 
     let num_bands = height.div_ceil(BAND_ROWS) as usize;
@@ -162,12 +180,12 @@ pub fn rasterize_triangle_ids(
                 raster_into_band(&tris[t as usize], rows, width, ids, depths);
             }
         });
-    Ok(TriangleIdBuffer {
+    TriangleIdBuffer {
         width,
         height,
         face_ids,
         depth,
-    })
+    }
 }
 
 /// Faces that own at least one pixel of `buffer`. Ids `≥ num_faces` are ignored.
@@ -409,26 +427,10 @@ mod tests {
 
     use super::*;
     use crate::camera::Intrinsics;
-    use crate::mesh::MeshTopology;
     use crate::subdivision::Subdivision;
+    use crate::testing::{octahedron, pixel_camera};
 
-    /// Identity extrinsics with `f = 1`, `c = 0`: the world point `(u·z, v·z, z)` lands on pixel
-    /// coordinates `(u, v)` at depth `z`.
-    fn screen_camera(width: u32, height: u32) -> Camera {
-        Camera::new(
-            Intrinsics {
-                fx: 1.0,
-                fy: 1.0,
-                cx: 0.0,
-                cy: 0.0,
-            },
-            Affine3A::IDENTITY,
-            width,
-            height,
-        )
-        .unwrap()
-    }
-
+    /// The corners at pixel coordinates `uv` and depth `z`, for [`pixel_camera`].
     fn at_depth(uv: [(f32, f32); 3], z: f32) -> Vec<Vec3> {
         uv.iter()
             .map(|&(u, v)| Vec3::new(u * z, v * z, z))
@@ -453,7 +455,7 @@ mod tests {
         let uv = [(2.3, 1.7), (33.1, 9.2), (11.4, 26.9)];
         for (z, winding) in [(1.0, [0, 1, 2]), (2.5, [0, 2, 1])] {
             let verts = at_depth(uv, z);
-            let buf = rasterize_triangle_ids(&verts, &[winding], &screen_camera(w, h)).unwrap();
+            let buf = rasterize_triangle_ids(&verts, &[winding], &pixel_camera(w, h)).unwrap();
             let p = uv.map(|(u, v)| (u as f64, v as f64));
             let mut n = 0;
             for j in 0..h {
@@ -478,13 +480,13 @@ mod tests {
         let mut verts = at_depth(big, 3.0);
         verts.extend(at_depth([(1.0, 1.0), (20.0, 1.0), (1.0, 20.0)], 2.0));
         // Face 0 is the far one; face 1 (near) must win where they overlap.
-        let buf = rasterize_triangle_ids(&verts, &[[0, 1, 2], [3, 4, 5]], &screen_camera(32, 32))
-            .unwrap();
+        let buf =
+            rasterize_triangle_ids(&verts, &[[0, 1, 2], [3, 4, 5]], &pixel_camera(32, 32)).unwrap();
         assert_eq!(buf.face_at(5, 5), Some(1));
         assert_eq!(buf.face_at(25, 2), Some(0));
         // Same triangles, near one listed first: same answer (order independent).
-        let buf2 = rasterize_triangle_ids(&verts, &[[3, 4, 5], [0, 1, 2]], &screen_camera(32, 32))
-            .unwrap();
+        let buf2 =
+            rasterize_triangle_ids(&verts, &[[3, 4, 5], [0, 1, 2]], &pixel_camera(32, 32)).unwrap();
         assert_eq!(buf2.face_at(5, 5), Some(0));
         assert_eq!(count(&buf2, 0), count(&buf, 1));
 
@@ -533,7 +535,7 @@ mod tests {
         let buf = rasterize_triangle_ids(
             &verts,
             &[[0, 1, 2], [0, 2, 1], [2, 1, 0]],
-            &screen_camera(16, 16),
+            &pixel_camera(16, 16),
         )
         .unwrap();
         assert!(count(&buf, 0) > 0);
@@ -551,7 +553,7 @@ mod tests {
         ];
         for quad in quads {
             let verts: Vec<Vec3> = quad.iter().map(|&(u, v)| Vec3::new(u, v, 1.0)).collect();
-            let cam = screen_camera(16, 16);
+            let cam = pixel_camera(16, 16);
             let halves = [[0u32, 1, 2], [0, 2, 3]];
             let mut hits = vec![0u32; 256];
             for half in halves {
@@ -633,7 +635,7 @@ mod tests {
                 }
             }
         }
-        let cam = screen_camera(24, 24);
+        let cam = pixel_camera(24, 24);
         let mut hits = vec![0u32; 24 * 24];
         for face in &faces {
             let buf = rasterize_triangle_ids(&verts, &[*face], &cam).unwrap();
@@ -666,7 +668,7 @@ mod tests {
         let mut verts = vec![c];
         verts.extend(ring);
         let faces: Vec<[u32; 3]> = (0..8).map(|k| [0, 1 + k, 1 + (k + 1) % 8]).collect();
-        let cam = screen_camera(17, 17);
+        let cam = pixel_camera(17, 17);
         let mut hits = vec![0u32; 17 * 17];
         for face in &faces {
             let buf = rasterize_triangle_ids(&verts, &[*face], &cam).unwrap();
@@ -760,7 +762,7 @@ mod tests {
 
     #[test]
     fn triangle_fully_behind_covers_nothing() {
-        let cam = screen_camera(8, 8);
+        let cam = pixel_camera(8, 8);
         let verts = at_depth([(1.0, 1.0), (6.0, 1.0), (1.0, 6.0)], -1.0);
         let buf = rasterize_triangle_ids(&verts, &[[0, 1, 2]], &cam).unwrap();
         assert_eq!(count(&buf, -1), 64);
@@ -770,24 +772,10 @@ mod tests {
         assert_eq!(count(&buf, -1), 64);
     }
 
-    fn octahedron() -> (Vec<Vec3>, Vec<[u32; 3]>) {
-        let verts = vec![Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z, -Vec3::Z];
-        let faces = vec![
-            [0, 2, 4],
-            [2, 1, 4],
-            [1, 3, 4],
-            [3, 0, 4],
-            [2, 0, 5],
-            [1, 2, 5],
-            [3, 1, 5],
-            [0, 3, 5],
-        ];
-        (verts, faces)
-    }
-
     #[test]
     fn closed_mesh_hides_its_back_vertex() {
-        let (verts, faces) = octahedron();
+        let (mesh, verts) = octahedron();
+        let faces = mesh.faces.clone();
         // Slightly off-axis so the silhouette vertices (±x, ±y) are seen at a grazing angle but
         // still own pixels; non-square image with an off-centre principal point.
         let intr = Intrinsics {
@@ -816,7 +804,6 @@ mod tests {
 
         // Subdivided: low-res visibility is the prefix; no high-res vertex behind the equator
         // (z < 0) is visible, and the front pole region is.
-        let mesh = MeshTopology::new(faces, 6).unwrap();
         let sub = Subdivision::new(&mesh, 2).unwrap();
         let hv = sub.highres_vertices_cpu(&verts);
         let buf = rasterize_triangle_ids(&hv, &sub.highres.faces, &cam).unwrap();
@@ -895,7 +882,7 @@ mod tests {
 
     #[test]
     fn one_by_one_image() {
-        let cam = screen_camera(1, 1);
+        let cam = pixel_camera(1, 1);
         let covering = at_depth([(-1.0, -1.0), (3.0, -1.0), (-1.0, 3.0)], 1.5);
         let buf = rasterize_triangle_ids(&covering, &[[0, 1, 2]], &cam).unwrap();
         assert_eq!(buf.face_ids, vec![0]);
@@ -908,8 +895,7 @@ mod tests {
 
     #[test]
     fn output_is_deterministic_across_thread_counts() {
-        let (verts, faces) = octahedron();
-        let mesh = MeshTopology::new(faces, 6).unwrap();
+        let (mesh, verts) = octahedron();
         let sub = Subdivision::new(&mesh, 3).unwrap();
         let hv = sub.highres_vertices_cpu(&verts);
         let cam = Camera::look_at(
@@ -940,7 +926,7 @@ mod tests {
 
     #[test]
     fn bad_inputs_are_reported() {
-        let cam = screen_camera(4, 4);
+        let cam = pixel_camera(4, 4);
         let verts = vec![Vec3::ZERO, Vec3::new(1.0, f32::NAN, 1.0), Vec3::ONE];
         match rasterize_triangle_ids(&verts, &[[0, 1, 2]], &cam) {
             Err(RenderError::NonFinite {

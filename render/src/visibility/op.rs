@@ -1,0 +1,157 @@
+//! The triangle-ID rasterizer as a Burn backend extension, so visibility runs where the mesh
+//! already lives: the CPU backends call [`super::cpu`], Burn's CubeCL backend (wgpu) runs the
+//! kernels of [`super::cube`], and `Autodiff<B>` forwards to `B` on the primal values (nothing
+//! here has a gradient).
+//!
+//! The op cannot return an error, so it is lenient where the checked CPU entry point
+//! ([`super::rasterize_triangle_ids`]) is strict: a face with an index outside the vertex list
+//! or a non-finite corner covers nothing. Shapes are checked by the tensor-level wrappers in
+//! [`super`] before dispatch.
+
+#![allow(deprecated)] // NdArray is deprecated in Burn 0.22 in favour of Flex; the card asks for both.
+
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::tensor::{FloatTensor, IntTensor};
+use burn::backend::{
+    Autodiff, AutodiffBackend, Backend, Flex, NdArray, TensorMetadata, backend_extension,
+};
+use burn::tensor::TensorData;
+use glam::Vec3;
+
+use super::cpu::{self, TriangleIdBuffer};
+use crate::camera::Camera;
+
+/// Triangle-ID rasterization and the per-vertex visibility derived from it.
+#[backend_extension(NdArray, Flex, Cube, Autodiff)]
+pub trait TriangleIdOps: Backend {
+    /// Rasterizes `faces` (`[F, 3]`, vertex indices) over world-space `vertices` (`[V, 3]`).
+    /// Returns the owning face per pixel (`[H, W]`, `-1` where empty) and its camera-space
+    /// depth (`[H, W]`, `+inf` where empty).
+    fn rasterize_triangle_ids(
+        vertices: FloatTensor<Self>,
+        faces: IntTensor<Self>,
+        camera: Camera,
+    ) -> (IntTensor<Self>, FloatTensor<Self>);
+
+    /// `[num_vertices]`, 1 for every vertex of a face that owns a pixel of `face_ids`, else 0.
+    fn visible_vertices(
+        face_ids: IntTensor<Self>,
+        faces: IntTensor<Self>,
+        num_vertices: usize,
+    ) -> IntTensor<Self>;
+}
+
+fn read_f32<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
+    burn::tensor::read_sync(B::float_into_data(t))
+        .expect("reading a CPU tensor cannot fail")
+        .iter::<f32>()
+        .collect()
+}
+
+fn read_i64<B: Backend>(t: IntTensor<B>) -> Vec<i64> {
+    burn::tensor::read_sync(B::int_into_data(t))
+        .expect("reading a CPU tensor cannot fail")
+        .iter::<i64>()
+        .collect()
+}
+
+/// Face triples from a flat index list; negative or oversized indices become `u32::MAX`, which
+/// the lenient rasterizer skips as out of range.
+fn face_triples(flat: &[i64]) -> Vec<[u32; 3]> {
+    let to_u32 = |i: i64| u32::try_from(i).unwrap_or(u32::MAX);
+    flat.chunks_exact(3)
+        .map(|c| [to_u32(c[0]), to_u32(c[1]), to_u32(c[2])])
+        .collect()
+}
+
+fn cpu_rasterize<B: Backend>(
+    vertices: FloatTensor<B>,
+    faces: IntTensor<B>,
+    camera: Camera,
+) -> (IntTensor<B>, FloatTensor<B>) {
+    let device = vertices.device();
+    let points: Vec<Vec3> = read_f32::<B>(vertices)
+        .chunks_exact(3)
+        .map(Vec3::from_slice)
+        .collect();
+    let faces = face_triples(&read_i64::<B>(faces));
+    let TriangleIdBuffer {
+        width,
+        height,
+        face_ids,
+        depth,
+    } = cpu::rasterize_unchecked(&points, &faces, &camera);
+    let shape = [height as usize, width as usize];
+    let ids: Vec<i64> = face_ids.into_iter().map(i64::from).collect();
+    (
+        B::int_from_data(TensorData::new(ids, shape), &device),
+        B::float_from_data(TensorData::new(depth, shape), &device),
+    )
+}
+
+fn cpu_visible_vertices<B: Backend>(
+    face_ids: IntTensor<B>,
+    faces: IntTensor<B>,
+    num_vertices: usize,
+) -> IntTensor<B> {
+    let device = faces.device();
+    let faces = face_triples(&read_i64::<B>(faces));
+    let mut visible = vec![0i64; num_vertices];
+    let mut face_seen = vec![false; faces.len()];
+    for id in read_i64::<B>(face_ids) {
+        let Ok(f) = usize::try_from(id) else { continue };
+        if f >= faces.len() || std::mem::replace(&mut face_seen[f], true) {
+            continue;
+        }
+        for &v in &faces[f] {
+            if let Some(slot) = visible.get_mut(v as usize) {
+                *slot = 1;
+            }
+        }
+    }
+    B::int_from_data(TensorData::new(visible, [num_vertices]), &device)
+}
+
+macro_rules! cpu_triangle_id_backend {
+    ($backend:ty) => {
+        impl TriangleIdOps for $backend {
+            fn rasterize_triangle_ids(
+                vertices: FloatTensor<Self>,
+                faces: IntTensor<Self>,
+                camera: Camera,
+            ) -> (IntTensor<Self>, FloatTensor<Self>) {
+                cpu_rasterize::<Self>(vertices, faces, camera)
+            }
+
+            fn visible_vertices(
+                face_ids: IntTensor<Self>,
+                faces: IntTensor<Self>,
+                num_vertices: usize,
+            ) -> IntTensor<Self> {
+                cpu_visible_vertices::<Self>(face_ids, faces, num_vertices)
+            }
+        }
+    };
+}
+
+cpu_triangle_id_backend!(NdArray);
+cpu_triangle_id_backend!(Flex);
+
+impl<B: TriangleIdOps, C: CheckpointStrategy> TriangleIdOps for Autodiff<B, C> {
+    fn rasterize_triangle_ids(
+        vertices: FloatTensor<Self>,
+        faces: IntTensor<Self>,
+        camera: Camera,
+    ) -> (IntTensor<Self>, FloatTensor<Self>) {
+        let (ids, depth) = B::rasterize_triangle_ids(Self::inner(vertices), faces, camera);
+        (ids, Self::from_inner(depth))
+    }
+
+    fn visible_vertices(
+        face_ids: IntTensor<Self>,
+        faces: IntTensor<Self>,
+        num_vertices: usize,
+    ) -> IntTensor<Self> {
+        B::visible_vertices(face_ids, faces, num_vertices)
+    }
+}
