@@ -153,13 +153,15 @@ fn project(view: &[f32], p: &P3) -> P3 {
     }
 }
 
-/// First and last pixel (along one axis) whose centre lies in `[lo, hi]`, clamped to the image;
-/// `first > last` when there is none.
+/// The first pixel (along one axis) whose centre `i + ½` is at or after `lo`, clamped at 0.
+/// With [`last_pixel_plus_one`] this is the CPU's `pixel_range`; the range is empty when the
+/// first is not below the end.
 #[cube]
 fn first_pixel(lo: f32) -> u32 {
     u32::cast_from(max((lo - 0.5).ceil(), 0.0f32))
 }
 
+/// One past the last pixel whose centre is at or before `hi`, clamped to the image.
 #[cube]
 fn last_pixel_plus_one(hi: f32, size: u32) -> u32 {
     // `min` keeps the cast defined for coordinates far off-screen.
