@@ -274,6 +274,45 @@ pub fn hard_triangles() -> Vec<(&'static str, Vec<Triangle>)> {
     ]
 }
 
+/// Single Gaussians in awkward places for [`front_camera`]`(40, 32)` (view depth = 2.5 − z):
+/// `(name, mean, covariance)`. Shared by the hard suite (`hard_cases.rs`, which asserts what each
+/// must cover) and the backend parity suite.
+pub const AWKWARD_GAUSSIANS: [(&str, [f32; 3], [f32; 6]); 9] = [
+    ("behind the camera", [0.0, 0.0, 4.0], ISO),
+    (
+        "at the near plane (view z = 0.2 up to rounding)",
+        [0.0, 0.0, 2.3],
+        ISO,
+    ),
+    ("just past the near plane", [0.0, 0.0, 2.2999], ISO),
+    ("far off-screen", [1e4, -1e4, 0.0], ISO),
+    (
+        "centre off-screen, extent reaching in",
+        [30.0, 0.0, 0.0],
+        [900.0, 0.0, 0.0, 900.0, 0.0, 900.0],
+    ),
+    (
+        "covering the whole image",
+        [0.0, 0.0, 2.0],
+        [4.0, 0.0, 0.0, 4.0, 0.0, 4.0],
+    ),
+    (
+        "very large scale",
+        [0.0, 0.0, 0.0],
+        [1e8, 0.0, 0.0, 1e8, 0.0, 1e8],
+    ),
+    (
+        "very small scale",
+        [0.0, 0.0, 0.0],
+        [1e-14, 0.0, 0.0, 1e-14, 0.0, 1e-14],
+    ),
+    (
+        "degenerate (rank-1) covariance",
+        [0.0, 0.1, 0.0],
+        [0.04, 0.04, 0.0, 0.04, 0.0, 0.0],
+    ),
+];
+
 /// Every rasterizer-level scene of the hard suite (`hard_cases.rs`), as host data: Gaussians in
 /// awkward places, coincident and many opaque layers, empty/tiny/odd images, off-centre
 /// principal points, and the Gaussians GoM builds from degenerate triangles (computed here on
@@ -290,37 +329,7 @@ pub fn raster_hard_cases() -> Vec<Scene> {
         settings,
     };
     let s = RasterSettings::new(front_camera(40, 32)).with_depth();
-    for (name, mean, cov) in [
-        ("behind the camera", [0.0, 0.0, 4.0], ISO),
-        ("at the near plane", [0.0, 0.0, 2.3], ISO),
-        ("just past the near plane", [0.0, 0.0, 2.2999], ISO),
-        ("far off-screen", [1e4, -1e4, 0.0], ISO),
-        (
-            "centre off-screen, extent reaching in",
-            [30.0, 0.0, 0.0],
-            [900.0, 0.0, 0.0, 900.0, 0.0, 900.0],
-        ),
-        (
-            "covering the whole image",
-            [0.0, 0.0, 2.0],
-            [4.0, 0.0, 0.0, 4.0, 0.0, 4.0],
-        ),
-        (
-            "very large scale",
-            [0.0, 0.0, 0.0],
-            [1e8, 0.0, 0.0, 1e8, 0.0, 1e8],
-        ),
-        (
-            "very small scale",
-            [0.0, 0.0, 0.0],
-            [1e-14, 0.0, 0.0, 1e-14, 0.0, 1e-14],
-        ),
-        (
-            "degenerate (rank-1) covariance",
-            [0.0, 0.1, 0.0],
-            [0.04, 0.04, 0.0, 0.04, 0.0, 0.0],
-        ),
-    ] {
+    for (name, mean, cov) in AWKWARD_GAUSSIANS {
         scenes.push(one(name, mean, cov, s));
     }
     scenes.push(Scene {

@@ -15,13 +15,10 @@ use lifegom_render::rasterizer::{RasterSettings, rasterize};
 use lifegom_render::skeleton::BodyPose;
 use lifegom_render::skinning::skin_vertices;
 use lifegom_render::template::{BodyTemplate, lowres_template_path};
-use lifegom_tests::{assert_finite, camera, cpu_devices, read, render_finite, tensor2};
-
-const ISO: [f32; 6] = [0.01, 0.0, 0.0, 0.01, 0.0, 0.01];
-
-fn front_camera(w: u32, h: u32) -> Camera {
-    camera(Vec3::new(0.0, 0.0, 2.5), w, h, 0.8 * w as f32)
-}
+use lifegom_tests::{
+    AWKWARD_GAUSSIANS, ISO, assert_finite, cpu_devices, front_camera, hard_triangles, read,
+    render_finite, tensor2,
+};
 
 /// Triangles → GoM Gaussians → render → backward, asserting finite values and gradients for
 /// the corners and every per-face parameter.
@@ -79,32 +76,8 @@ fn gom_finite(
 
 #[test]
 fn zero_area_sliver_and_circle_triangles() {
-    let eq_h = 3.0f32.sqrt() / 2.0 * 0.2;
     for (name, device) in cpu_devices() {
-        let cases: [(&str, Vec<[[f32; 3]; 3]>); 6] = [
-            ("point triangle", vec![[[0.1, 0.2, 0.0]; 3]]),
-            (
-                "collinear triangle",
-                vec![[[0.0, 0.0, 0.0], [0.1, 0.1, 0.0], [0.2, 0.2, 0.0]]],
-            ),
-            (
-                "two equal corners",
-                vec![[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.2, 0.1, 0.0]]],
-            ),
-            (
-                "sliver 1e-6 high",
-                vec![[[-0.3, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, 1e-6, 0.0]]],
-            ),
-            (
-                "equilateral (inellipse is a circle)",
-                vec![[[-0.1, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, eq_h, 0.0]]],
-            ),
-            (
-                "micro triangle 1e-7 m",
-                vec![[[0.0, 0.0, 0.0], [1e-7, 0.0, 0.0], [0.0, 1e-7, 0.0]]],
-            ),
-        ];
-        for (case, tris) in cases {
+        for (case, tris) in hard_triangles() {
             gom_finite(&format!("{name}/{case}"), &device, &tris, None);
         }
         // Parameters at their own singular points: so3 = 0 (θ floor), negative and zero scales.
@@ -134,42 +107,7 @@ fn gaussians_in_awkward_places() {
         let cam = front_camera(40, 32);
         let s = RasterSettings::new(cam).with_depth();
         // Camera at z = 2.5 looking at the origin: view depth = 2.5 − z.
-        let cases: [(&str, [f32; 3], [f32; 6]); 9] = [
-            ("behind the camera", [0.0, 0.0, 4.0], ISO),
-            (
-                "at the near plane (view z = 0.2 up to rounding)",
-                [0.0, 0.0, 2.3],
-                ISO,
-            ),
-            ("just past the near plane", [0.0, 0.0, 2.2999], ISO),
-            ("far off-screen", [1e4, -1e4, 0.0], ISO),
-            (
-                "centre off-screen, extent reaching in",
-                [30.0, 0.0, 0.0],
-                [900.0, 0.0, 0.0, 900.0, 0.0, 900.0],
-            ),
-            (
-                "covering the whole image",
-                [0.0, 0.0, 2.0],
-                [4.0, 0.0, 0.0, 4.0, 0.0, 4.0],
-            ),
-            (
-                "very large scale",
-                [0.0, 0.0, 0.0],
-                [1e8, 0.0, 0.0, 1e8, 0.0, 1e8],
-            ),
-            (
-                "very small scale",
-                [0.0, 0.0, 0.0],
-                [1e-14, 0.0, 0.0, 1e-14, 0.0, 1e-14],
-            ),
-            (
-                "degenerate (rank-1) covariance",
-                [0.0, 0.1, 0.0],
-                [0.04, 0.04, 0.0, 0.04, 0.0, 0.0],
-            ),
-        ];
-        for (case, mean, cov) in cases {
+        for (case, mean, cov) in AWKWARD_GAUSSIANS {
             let img = render_finite(
                 &format!("{name}/{case}"),
                 &device,

@@ -32,19 +32,20 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 use burn::backend::TensorMetadata;
-use burn::backend::ops::{FloatTensorOps, IntTensorOps};
+use burn::backend::ops::IntTensorOps;
 use burn::backend::tensor::{FloatTensor, IntTensor};
-use burn::tensor::{DType, FloatDType, IntDType, Shape};
+use burn::tensor::{DType, IntDType};
+use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::cubecl::server::Handle;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::tensor::CubeTensor;
-use burn_cubecl::{CubeBackend, CubeDevice};
 
 use super::op::TriangleIdOps;
 use crate::camera::Camera;
 use crate::rasterizer::cube::sort::{ComputeClient, THREADS_1D, arg, count_1d, empty_u32};
+use crate::rasterizer::cube::{f32_bytes, prepare, tensor_of};
 
 /// `ids` entry of a pixel no face covers.
 const EMPTY_ID: u32 = u32::MAX;
@@ -374,15 +375,6 @@ fn mark_visible_kernel(
     }
 }
 
-fn f32_contiguous(t: FloatTensor<CubeBackend>) -> CubeTensor {
-    let t = if t.dtype() == DType::F32 {
-        t
-    } else {
-        CubeBackend::float_cast(t, FloatDType::F32)
-    };
-    into_contiguous(t)
-}
-
 fn i32_contiguous(t: IntTensor<CubeBackend>) -> CubeTensor {
     let t = if t.dtype() == DType::I32 {
         t
@@ -403,22 +395,6 @@ fn fill(client: &ComputeClient, handle: &Handle, value: u32, len: usize) {
     );
 }
 
-fn output(
-    client: &ComputeClient,
-    device: &CubeDevice,
-    handle: Handle,
-    shape: &[usize],
-    dtype: DType,
-) -> CubeTensor {
-    CubeTensor::new_contiguous(
-        client.clone(),
-        device.clone(),
-        Shape::from(shape.to_vec()),
-        handle,
-        dtype,
-    )
-}
-
 impl TriangleIdOps for CubeBackend {
     fn rasterize_triangle_ids(
         vertices: FloatTensor<Self>,
@@ -426,7 +402,7 @@ impl TriangleIdOps for CubeBackend {
         camera: Camera,
     ) -> (IntTensor<Self>, FloatTensor<Self>) {
         let _span = tracing::trace_span!("cube_triangle_ids").entered();
-        let vertices = f32_contiguous(vertices);
+        let vertices = prepare(vertices);
         let faces = i32_contiguous(faces);
         let client = vertices.client.clone();
         let device = vertices.device.clone();
@@ -438,8 +414,7 @@ impl TriangleIdOps for CubeBackend {
         let k = camera.intrinsics;
         let mut params = camera.view_matrix().to_vec();
         params.extend([k.fx, k.fy, k.cx, k.cy]);
-        let bytes: Vec<u8> = params.iter().flat_map(|v| v.to_le_bytes()).collect();
-        let view = client.create_from_slice(&bytes);
+        let view = client.create_from_slice(&f32_bytes(&params));
 
         let depth_bits = empty_u32(&client, pixels);
         let ids = empty_u32(&client, pixels);
@@ -478,8 +453,8 @@ impl TriangleIdOps for CubeBackend {
         );
         let shape = [height as usize, width as usize];
         (
-            output(&client, &device, face_ids, &shape, DType::I32),
-            output(&client, &device, depth, &shape, DType::F32),
+            tensor_of(&client, &device, face_ids, &shape, DType::I32),
+            tensor_of(&client, &device, depth, &shape, DType::F32),
         )
     }
 
@@ -510,6 +485,6 @@ impl TriangleIdOps for CubeBackend {
                 num_vertices as u32,
             );
         }
-        output(&client, &device, visible, &[num_vertices], DType::I32)
+        tensor_of(&client, &device, visible, &[num_vertices], DType::I32)
     }
 }

@@ -74,7 +74,7 @@ struct CubeSaved {
 }
 
 /// f32 and contiguous, the layout every kernel indexes.
-fn prepare(t: FloatTensor<CubeBackend>) -> CubeTensor {
+pub(crate) fn prepare(t: FloatTensor<CubeBackend>) -> CubeTensor {
     let t = if t.dtype() == DType::F32 {
         t
     } else {
@@ -83,7 +83,7 @@ fn prepare(t: FloatTensor<CubeBackend>) -> CubeTensor {
     into_contiguous(t)
 }
 
-fn f32_bytes(values: &[f32]) -> Vec<u8> {
+pub(crate) fn f32_bytes(values: &[f32]) -> Vec<u8> {
     values.iter().flat_map(|v| v.to_le_bytes()).collect()
 }
 
@@ -91,18 +91,30 @@ fn u32_bytes(values: &[u32]) -> Vec<u8> {
     values.iter().flat_map(|v| v.to_le_bytes()).collect()
 }
 
+/// An f32 tensor over a kernel's output buffer.
 fn tensor(
     client: &ComputeClient,
     device: &CubeDevice,
     handle: Handle,
     shape: &[usize],
 ) -> CubeTensor {
+    tensor_of(client, device, handle, shape, DType::F32)
+}
+
+/// A contiguous tensor of `dtype` over a kernel's output buffer.
+pub(crate) fn tensor_of(
+    client: &ComputeClient,
+    device: &CubeDevice,
+    handle: Handle,
+    shape: &[usize],
+    dtype: DType,
+) -> CubeTensor {
     CubeTensor::new_contiguous(
         client.clone(),
         device.clone(),
         Shape::from(shape.to_vec()),
         handle,
-        DType::F32,
+        dtype,
     )
 }
 
