@@ -42,6 +42,7 @@ pub mod error;
 pub mod gom;
 pub mod mesh;
 pub mod rasterizer;
+pub mod readback;
 pub mod skeleton;
 pub mod skinning;
 pub mod steiner;
