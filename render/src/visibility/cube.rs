@@ -32,20 +32,20 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 use burn::backend::TensorMetadata;
-use burn::backend::ops::IntTensorOps;
 use burn::backend::tensor::{FloatTensor, IntTensor};
-use burn::tensor::{DType, IntDType};
+use burn::tensor::DType;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::cubecl::server::Handle;
-use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::tensor::CubeTensor;
 
 use super::op::TriangleIdOps;
 use crate::camera::Camera;
-use crate::rasterizer::cube::sort::{ComputeClient, THREADS_1D, arg, count_1d, empty_u32};
-use crate::rasterizer::cube::{f32_bytes, prepare, tensor_of};
+use crate::camera::ViewParams;
+use crate::cube::host::{
+    ComputeClient, THREADS_1D, arg, count_1d, empty_u32, prepare, prepare_i32, tensor_of,
+};
+use crate::cube::view::{ViewArgs, view_args};
 
 /// `ids` entry of a pixel no face covers.
 const EMPTY_ID: u32 = u32::MAX;
@@ -119,17 +119,17 @@ fn covered(e: &Edge, w: f32) -> bool {
     w > 0.0 || (w == 0.0 && e.owns_ties)
 }
 
-/// Camera-space position of vertex `v` (`view` is the row-major 3×4 `[R | t]`).
+/// Camera-space position of vertex `v` (`[R | t]` applied to it).
 #[cube]
-fn to_camera(view: &[f32], vertices: &[f32], v: u32) -> P3 {
+fn to_camera(view: &ViewArgs, vertices: &[f32], v: u32) -> P3 {
     let b = (3 * v) as usize;
     let x = vertices[b];
     let y = vertices[b + 1];
     let z = vertices[b + 2];
     P3 {
-        x: view[0] * x + view[1] * y + view[2] * z + view[3],
-        y: view[4] * x + view[5] * y + view[6] * z + view[7],
-        z: view[8] * x + view[9] * y + view[10] * z + view[11],
+        x: view.camera_x(x, y, z),
+        y: view.camera_y(x, y, z),
+        z: view.camera_z(x, y, z),
     }
 }
 
@@ -144,12 +144,12 @@ fn clip_point(inside: &P3, outside: &P3) -> P3 {
     }
 }
 
-/// Pixel coordinates and `1/z` (`view[12..16]` is `fx, fy, cx, cy`).
+/// Pixel coordinates and `1/z` of a camera-space point.
 #[cube]
-fn project(view: &[f32], p: &P3) -> P3 {
+fn project(view: &ViewArgs, p: &P3) -> P3 {
     P3 {
-        x: view[12] * p.x / p.z + view[14],
-        y: view[13] * p.y / p.z + view[15],
+        x: view.fx * p.x / p.z + view.cx,
+        y: view.fy * p.y / p.z + view.cy,
         z: 1.0 / p.z,
     }
 }
@@ -232,16 +232,16 @@ fn raster_screen_tri(
 fn raster_faces_kernel(
     vertices: &[f32],
     faces: &[i32],
-    view: &[f32],
+    view: &ViewArgs,
     depth_bits: &[Atomic<u32>],
     ids: &[Atomic<u32>],
     num_vertices: u32,
     num_faces: u32,
-    width: u32,
-    height: u32,
     #[comptime] ids_pass: bool,
 ) {
     let face = ABSOLUTE_POS as u32;
+    let width = view.width;
+    let height = view.height;
     if face < num_faces {
         let f = (3 * face) as usize;
         let ia = faces[f];
@@ -375,15 +375,6 @@ fn mark_visible_kernel(
     }
 }
 
-fn i32_contiguous(t: IntTensor<CubeBackend>) -> CubeTensor {
-    let t = if t.dtype() == DType::I32 {
-        t
-    } else {
-        CubeBackend::int_cast(t, IntDType::I32)
-    };
-    into_contiguous(t)
-}
-
 fn fill(client: &ComputeClient, handle: &Handle, value: u32, len: usize) {
     fill_kernel::launch(
         client,
@@ -403,7 +394,7 @@ impl TriangleIdOps for CubeBackend {
     ) -> (IntTensor<Self>, FloatTensor<Self>) {
         let _span = tracing::trace_span!("cube_triangle_ids").entered();
         let vertices = prepare(vertices);
-        let faces = i32_contiguous(faces);
+        let faces = prepare_i32(faces);
         let client = vertices.client.clone();
         let device = vertices.device.clone();
         let num_vertices = vertices.shape().num_elements() / 3;
@@ -412,9 +403,15 @@ impl TriangleIdOps for CubeBackend {
         let pixels = width as usize * height as usize;
 
         let k = camera.intrinsics;
-        let mut params = camera.view_matrix().to_vec();
-        params.extend([k.fx, k.fy, k.cx, k.cy]);
-        let view = client.create_from_slice(&f32_bytes(&params));
+        let view = ViewParams {
+            view: camera.view_matrix(),
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            width,
+            height,
+        };
 
         let depth_bits = empty_u32(&client, pixels);
         let ids = empty_u32(&client, pixels);
@@ -428,13 +425,11 @@ impl TriangleIdOps for CubeBackend {
                     CubeDim::new_1d(THREADS_1D),
                     vertices.clone().into_buffer_arg(),
                     faces.clone().into_buffer_arg(),
-                    arg(&view, 16),
+                    view_args(&view),
                     arg(&depth_bits, pixels),
                     arg(&ids, pixels),
                     num_vertices as u32,
                     num_faces as u32,
-                    width,
-                    height,
                     ids_pass,
                 );
             }
@@ -464,8 +459,8 @@ impl TriangleIdOps for CubeBackend {
         num_vertices: usize,
     ) -> IntTensor<Self> {
         let _span = tracing::trace_span!("cube_visible_vertices").entered();
-        let face_ids = i32_contiguous(face_ids);
-        let faces = i32_contiguous(faces);
+        let face_ids = prepare_i32(face_ids);
+        let faces = prepare_i32(faces);
         let client = faces.client.clone();
         let device = faces.device.clone();
         let pixels = face_ids.shape().num_elements();

@@ -1,5 +1,21 @@
 //! The rasterizer op on Burn's CubeCL backend (wgpu, and any other CubeCL runtime).
 //!
+//! This file is the host side: buffers, launches, and the state saved for the backward. The
+//! kernels live one file per stage, as in Brush:
+//!
+//! | module | holds |
+//! |---|---|
+//! | `common` | tile geometry, the per-Gaussian record layouts (`splats`, `rects`, `grad2d`), alpha evaluation |
+//! | `project` | 1. projection |
+//! | [`sort`] | 2. and 5. exclusive scan, stable radix sort |
+//! | `intersections` | 3., 4. and 6. binning: offsets, intersection map, tile ranges |
+//! | `rasterize` | 7. the blend |
+//! | `rasterize_backward` | the blend's backward (and the float atomic add) |
+//! | `project_backward` | the projection's backward |
+//!
+//! Generic host helpers are in [`crate::cube::host`]; the camera record every projecting kernel
+//! takes is [`crate::cube::view::ViewArgs`].
+//!
 //! # Forward pipeline
 //!
 //! 1. **Project** (`project_kernel`, one thread per Gaussian): the CPU's `project_one` —
@@ -31,28 +47,36 @@
 //! Everything the backward needs stays on the device in [`CubeSaved`]: nothing is recomputed.
 //! The kernels mirror [`super::cpu`] formula by formula; `tests` compare the two.
 
-mod kernels;
-pub(crate) mod sort;
+mod common;
+mod intersections;
+mod project;
+mod project_backward;
+mod rasterize;
+mod rasterize_backward;
+mod sort;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use burn::backend::TensorMetadata;
-use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
-use burn::tensor::{DType, FloatDType, Shape};
 use burn_cubecl::cubecl::features::AtomicUsage;
 use burn_cubecl::cubecl::ir::{ElemType, FloatKind};
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::cubecl::server::Handle;
-use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::tensor::CubeTensor;
 use burn_cubecl::{CubeBackend, CubeDevice};
 
-use self::kernels::{BWD_BATCH, GRAD_LANES, SPLAT_LANES, TILE_SIDE};
-use self::sort::{ComputeClient, arg, bits_for, count_1d, empty_u32, exclusive_scan};
+use self::common::{GRAD_LANES, RECT_LANES, SPLAT_LANES, TILE_SIDE};
+use self::rasterize_backward::BWD_BATCH;
+use self::sort::{bits_for, exclusive_scan, radix_sort_pairs};
 use super::cpu::{AlphaCutoff, RasterConfig, TILE};
 use super::op::{GaussianRasterOps, RasterKernels, SavedRaster};
+use crate::cube::host::{
+    ComputeClient, THREADS_1D, arg, count_1d, empty_u32, prepare, read_u32, tensor_arg, tensor_f32,
+    u32_bytes, zeros_f32,
+};
+use crate::cube::view::view_args;
 
 /// What the Cube forward keeps for the backward: inputs and intermediates, all on the device.
 struct CubeSaved {
@@ -64,80 +88,12 @@ struct CubeSaved {
     means: CubeTensor,
     covariances: CubeTensor,
     colors: CubeTensor,
-    view: Handle,
     splats: Handle,
     tile_counts: Handle,
     gid_from_isect: Handle,
     tile_offsets: Handle,
     final_t: Handle,
     last_contrib: Handle,
-}
-
-/// f32 and contiguous, the layout every kernel indexes.
-pub(crate) fn prepare(t: FloatTensor<CubeBackend>) -> CubeTensor {
-    let t = if t.dtype() == DType::F32 {
-        t
-    } else {
-        CubeBackend::float_cast(t, FloatDType::F32)
-    };
-    into_contiguous(t)
-}
-
-pub(crate) fn f32_bytes(values: &[f32]) -> Vec<u8> {
-    values.iter().flat_map(|v| v.to_le_bytes()).collect()
-}
-
-fn u32_bytes(values: &[u32]) -> Vec<u8> {
-    values.iter().flat_map(|v| v.to_le_bytes()).collect()
-}
-
-/// An f32 tensor over a kernel's output buffer.
-fn tensor(
-    client: &ComputeClient,
-    device: &CubeDevice,
-    handle: Handle,
-    shape: &[usize],
-) -> CubeTensor {
-    tensor_of(client, device, handle, shape, DType::F32)
-}
-
-/// A contiguous tensor of `dtype` over a kernel's output buffer.
-pub(crate) fn tensor_of(
-    client: &ComputeClient,
-    device: &CubeDevice,
-    handle: Handle,
-    shape: &[usize],
-    dtype: DType,
-) -> CubeTensor {
-    CubeTensor::new_contiguous(
-        client.clone(),
-        device.clone(),
-        Shape::from(shape.to_vec()),
-        handle,
-        dtype,
-    )
-}
-
-fn tensor_arg(t: &CubeTensor) -> BufferArg {
-    t.clone().into_buffer_arg()
-}
-
-/// A zero-filled f32 buffer of `len` elements.
-fn zeros_f32(client: &ComputeClient, device: &CubeDevice, len: usize) -> Handle {
-    burn_cubecl::ops::numeric::zeros_client(
-        client.clone(),
-        device.clone(),
-        Shape::from(vec![len.max(1)]),
-        DType::F32,
-    )
-    .handle
-}
-
-fn read_u32(client: &ComputeClient, handle: Handle) -> u32 {
-    let bytes = client
-        .read_one(handle)
-        .expect("reading the intersection count back from the device");
-    u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]])
 }
 
 fn forward(
@@ -161,11 +117,7 @@ fn forward(
     let num_tiles = tiles_x * tiles_y;
     let smooth = cfg.cutoff == AlphaCutoff::Smooth;
 
-    let mut params = v.view.to_vec();
-    params.extend([v.fx, v.fy, v.cx, v.cy]);
-    let view = client.create_from_slice(&f32_bytes(&params));
-
-    let splats = client.empty(4 * (n * SPLAT_LANES as usize).max(1));
+    let splats = client.empty(4 * (n * SPLAT_LANES).max(1));
     let tile_counts = empty_u32(&client, n);
     let mut num_isects = 0usize;
     let mut rects = None;
@@ -173,34 +125,32 @@ fn forward(
     let mut isect_offsets = None;
     if n > 0 {
         let _span = tracing::trace_span!("project_and_depth_sort").entered();
-        let rect_buf = empty_u32(&client, 4 * n);
+        let rect_buf = empty_u32(&client, RECT_LANES * n);
         let depth_keys = empty_u32(&client, n);
-        kernels::project_kernel::launch(
+        project::project_kernel::launch(
             &client,
             count_1d(n),
-            CubeDim::new_1d(sort::THREADS_1D),
+            CubeDim::new_1d(THREADS_1D),
             tensor_arg(&means),
             tensor_arg(&covariances),
             tensor_arg(&colors),
             tensor_arg(&opacities),
-            arg(&view, 16),
-            arg(&splats, n * SPLAT_LANES as usize),
-            arg(&rect_buf, 4 * n),
+            view_args(v),
+            arg(&splats, n * SPLAT_LANES),
+            arg(&rect_buf, RECT_LANES * n),
             arg(&tile_counts, n),
             arg(&depth_keys, n),
             n as u32,
-            width,
-            height,
             smooth,
         );
         let ids: Vec<u32> = (0..n as u32).collect();
         let ids = client.create_from_slice(&u32_bytes(&ids));
-        let (_, order) = sort::radix_sort_pairs(&client, depth_keys, ids, n, 32);
+        let (_, order) = radix_sort_pairs(&client, depth_keys, ids, n, 32);
         let offsets = empty_u32(&client, n + 1);
-        kernels::gather_counts::launch(
+        intersections::gather_counts::launch(
             &client,
             count_1d(n + 1),
-            CubeDim::new_1d(sort::THREADS_1D),
+            CubeDim::new_1d(THREADS_1D),
             arg(&order, n),
             arg(&tile_counts, n),
             arg(&offsets, n + 1),
@@ -208,7 +158,7 @@ fn forward(
         );
         exclusive_scan(&client, &offsets, n + 1);
         let total = empty_u32(&client, 1);
-        kernels::copy_one::launch(
+        intersections::copy_one::launch(
             &client,
             CubeCount::Static(1, 1, 1),
             CubeDim::new_1d(1),
@@ -216,7 +166,7 @@ fn forward(
             arg(&total, 1),
             n as u32,
         );
-        num_isects = read_u32(&client, total) as usize;
+        num_isects = read_u32(&client, total, "the intersection count") as usize;
         rects = Some(rect_buf);
         gid_from_depth_rank = Some(order);
         isect_offsets = Some(offsets);
@@ -227,12 +177,12 @@ fn forward(
             let _span = tracing::trace_span!("bin").entered();
             let tile_keys = empty_u32(&client, num_isects);
             let gids = empty_u32(&client, num_isects);
-            kernels::map_intersections::launch(
+            intersections::map_intersections::launch(
                 &client,
                 count_1d(n),
-                CubeDim::new_1d(sort::THREADS_1D),
+                CubeDim::new_1d(THREADS_1D),
                 arg(&order, n),
-                arg(&rects, 4 * n),
+                arg(&rects, RECT_LANES * n),
                 arg(&offsets, n + 1),
                 arg(&tile_keys, num_isects),
                 arg(&gids, num_isects),
@@ -240,13 +190,12 @@ fn forward(
                 tiles_x as u32,
             );
             let bits = bits_for(num_tiles as u32 - 1);
-            let (tile_keys, gids) =
-                sort::radix_sort_pairs(&client, tile_keys, gids, num_isects, bits);
+            let (tile_keys, gids) = radix_sort_pairs(&client, tile_keys, gids, num_isects, bits);
             let tile_offsets = empty_u32(&client, num_tiles + 1);
-            kernels::tile_offsets_kernel::launch(
+            intersections::tile_offsets_kernel::launch(
                 &client,
                 count_1d(num_isects),
-                CubeDim::new_1d(sort::THREADS_1D),
+                CubeDim::new_1d(THREADS_1D),
                 arg(&tile_keys, num_isects),
                 arg(&tile_offsets, num_tiles + 1),
                 num_isects as u32,
@@ -272,11 +221,11 @@ fn forward(
         } else {
             arg(&splats, 1)
         };
-        kernels::rasterize_kernel::launch(
+        rasterize::rasterize_kernel::launch(
             &client,
             CubeCount::Static(tiles_x as u32, tiles_y as u32, 1),
             CubeDim::new_2d(TILE_SIDE, TILE_SIDE),
-            arg(&splats, n * SPLAT_LANES as usize),
+            arg(&splats, n * SPLAT_LANES),
             colors_arg,
             arg(&gid_from_isect, num_isects),
             arg(&tile_offsets, num_tiles + 1),
@@ -290,7 +239,7 @@ fn forward(
             smooth,
         );
     }
-    let image = tensor(
+    let image = tensor_f32(
         &client,
         &device,
         image,
@@ -305,7 +254,6 @@ fn forward(
         means,
         covariances,
         colors,
-        view,
         splats,
         tile_counts,
         gid_from_isect,
@@ -349,17 +297,17 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
     let d_opacities = client.empty(4 * n.max(1));
     if n > 0 {
         let grad_image = prepare(grad_image);
-        let grad2d = zeros_f32(client, device, n * GRAD_LANES as usize);
+        let grad_len = n * GRAD_LANES;
+        let grad2d = zeros_f32(client, device, grad_len);
         let native = use_native_float_atomics(client);
-        let grad_len = n * GRAD_LANES as usize;
-        // One kernel, two slot types: see `kernels::AtomicAddF32`.
+        // One kernel, two slot types: see `rasterize_backward::AtomicAddF32`.
         macro_rules! launch_backward {
             ($slot:ty) => {
-                kernels::rasterize_backward_kernel::launch::<$slot>(
+                rasterize_backward::rasterize_backward_kernel::launch::<$slot>(
                     client,
                     CubeCount::Static(tiles_x as u32, tiles_y as u32, 1),
                     CubeDim::new_1d(BWD_BATCH),
-                    arg(&saved.splats, n * SPLAT_LANES as usize),
+                    arg(&saved.splats, n * SPLAT_LANES),
                     tensor_arg(&saved.colors),
                     arg(&saved.gid_from_isect, saved.num_isects),
                     arg(&saved.tile_offsets, num_tiles + 1),
@@ -380,14 +328,14 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
         } else {
             launch_backward!(u32);
         }
-        kernels::project_backward_kernel::launch(
+        project_backward::project_backward_kernel::launch(
             client,
             count_1d(n),
-            CubeDim::new_1d(sort::THREADS_1D),
+            CubeDim::new_1d(THREADS_1D),
             tensor_arg(&saved.means),
             tensor_arg(&saved.covariances),
-            arg(&saved.view, 16),
-            arg(&saved.splats, n * SPLAT_LANES as usize),
+            view_args(&cfg.view),
+            arg(&saved.splats, n * SPLAT_LANES),
             arg(&saved.tile_counts, n),
             arg(&grad2d, grad_len),
             arg(&d_means, 3 * n),
@@ -395,15 +343,13 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
             arg(&d_colors, 3 * n),
             arg(&d_opacities, n),
             n as u32,
-            width,
-            height,
         );
     }
     [
-        tensor(client, device, d_means, &[n, 3]),
-        tensor(client, device, d_covs, &[n, 6]),
-        tensor(client, device, d_colors, &[n, 3]),
-        tensor(client, device, d_opacities, &[n]),
+        tensor_f32(client, device, d_means, &[n, 3]),
+        tensor_f32(client, device, d_covs, &[n, 6]),
+        tensor_f32(client, device, d_colors, &[n, 3]),
+        tensor_f32(client, device, d_opacities, &[n]),
     ]
 }
 

@@ -21,34 +21,20 @@ use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::cubecl::server::Handle;
 
+use crate::cube::host::{ComputeClient, THREADS_1D, arg, count_1d, empty_u32};
+
 /// Elements a scan thread walks serially.
 const SCAN_CHUNK: u32 = 256;
 /// Elements a radix-sort thread walks serially.
 const SORT_CHUNK: u32 = 64;
-/// Threads per cube of the 1D kernels.
-pub(crate) const THREADS_1D: u32 = 256;
-
-/// A 1D launch of `units` threads, split over a 2D grid of cubes where one row would exceed the
-/// 65535-cube dispatch limit. Kernels index with `ABSOLUTE_POS` and guard `< units`.
-pub(crate) fn count_1d(units: usize) -> CubeCount {
-    let cubes = units.div_ceil(THREADS_1D as usize).max(1) as u32;
-    let x = cubes.min(65_535);
-    CubeCount::Static(x, cubes.div_ceil(x), 1)
-}
-
-/// A buffer of `len` u32 (at least one element: zero-sized bindings are invalid).
-pub(crate) fn empty_u32(client: &ComputeClient, len: usize) -> Handle {
-    client.empty(4 * len.max(1))
-}
-
-/// The kernel argument for the first `len` elements of `handle`.
-pub(crate) fn arg(handle: &Handle, len: usize) -> BufferArg {
-    // SAFETY: every handle passed here was allocated with at least `max(len, 1)` 4-byte elements.
-    unsafe { BufferArg::from_raw_parts(handle.clone(), len.max(1)) }
-}
-
-/// Client type used by the host functions.
-pub(crate) type ComputeClient = burn_cubecl::cubecl::client::Client;
+/// Bits of the key one radix-sort pass sorts on.
+const RADIX_BITS: u32 = 4;
+/// Digits per pass: `2^RADIX_BITS`, the length of a chunk's histogram.
+const RADIX_DIGITS: u32 = 1 << RADIX_BITS;
+/// `RADIX_DIGITS` as an array length.
+const HIST_LEN: usize = RADIX_DIGITS as usize;
+/// Masks one digit out of a shifted key.
+const DIGIT_MASK: u32 = RADIX_DIGITS - 1;
 
 #[cube(launch)]
 fn scan_chunks(data: &mut [u32], totals: &mut [u32], n: u32) {
@@ -106,17 +92,17 @@ pub(crate) fn exclusive_scan(client: &ComputeClient, data: &Handle, n: usize) {
 fn radix_count(keys: &[u32], counts: &mut [u32], n: u32, shift: u32, num_chunks: u32) {
     let chunk = ABSOLUTE_POS as u32;
     if chunk < num_chunks {
-        let mut hist = Array::<u32>::new(16usize);
-        for d in 0..16u32 {
+        let mut hist = Array::<u32>::new(HIST_LEN);
+        for d in 0..RADIX_DIGITS {
             hist[d as usize] = 0u32;
         }
         let start = chunk * SORT_CHUNK;
         let end = min(start + SORT_CHUNK, n);
         for i in start..end {
-            let digit = (keys[i as usize] >> shift) & 15u32;
+            let digit = (keys[i as usize] >> shift) & DIGIT_MASK;
             hist[digit as usize] += 1u32;
         }
-        for d in 0..16u32 {
+        for d in 0..RADIX_DIGITS {
             counts[(d * num_chunks + chunk) as usize] = hist[d as usize];
         }
     }
@@ -135,15 +121,15 @@ fn radix_scatter(
 ) {
     let chunk = ABSOLUTE_POS as u32;
     if chunk < num_chunks {
-        let mut next = Array::<u32>::new(16usize);
-        for d in 0..16u32 {
+        let mut next = Array::<u32>::new(HIST_LEN);
+        for d in 0..RADIX_DIGITS {
             next[d as usize] = offsets[(d * num_chunks + chunk) as usize];
         }
         let start = chunk * SORT_CHUNK;
         let end = min(start + SORT_CHUNK, n);
         for i in start..end {
             let key = keys_in[i as usize];
-            let digit = (key >> shift) & 15u32;
+            let digit = (key >> shift) & DIGIT_MASK;
             let at = next[digit as usize];
             keys_out[at as usize] = key;
             values_out[at as usize] = values_in[i as usize];
@@ -165,12 +151,12 @@ pub(crate) fn radix_sort_pairs(
         return (keys, values);
     }
     let num_chunks = n.div_ceil(SORT_CHUNK as usize);
-    let counts_len = 16 * num_chunks;
+    let counts_len = RADIX_DIGITS as usize * num_chunks;
     let counts = empty_u32(client, counts_len);
     let (mut keys, mut values) = (keys, values);
     let (mut keys_alt, mut values_alt) = (empty_u32(client, n), empty_u32(client, n));
-    for pass in 0..bits.div_ceil(4) {
-        let shift = 4 * pass;
+    for pass in 0..bits.div_ceil(RADIX_BITS) {
+        let shift = RADIX_BITS * pass;
         radix_count::launch(
             client,
             count_1d(num_chunks),

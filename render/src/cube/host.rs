@@ -1,0 +1,129 @@
+//! Host-side helpers for launching CubeCL kernels on Burn's CubeCL backend, shared by the
+//! rasterizer (`rasterizer::cube`) and the triangle-ID rasterizer (`visibility::cube`).
+//!
+//! The kernels index flat, contiguous buffers, so the helpers here do three things:
+//! - bring Burn tensors into that layout ([`prepare`], [`prepare_i32`]) and wrap kernel outputs
+//!   back into tensors ([`tensor_of`], [`tensor_f32`]);
+//! - allocate buffers and turn them into kernel arguments ([`empty_u32`], [`zeros_f32`],
+//!   [`arg`], [`tensor_arg`], [`u32_bytes`] for uploads);
+//! - shape 1D launches ([`THREADS_1D`], [`count_1d`]) and read single values back
+//!   ([`read_u32`]).
+//!
+//! Zero-sized bindings are invalid on some runtimes, so every allocation and argument here is
+//! at least one element long; kernels guard their thread index against the real length.
+
+use burn::backend::TensorMetadata;
+use burn::backend::ops::{FloatTensorOps, IntTensorOps};
+use burn::backend::tensor::{FloatTensor, IntTensor};
+use burn::tensor::{DType, FloatDType, IntDType, Shape};
+use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::cubecl::server::Handle;
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::tensor::CubeTensor;
+use burn_cubecl::{CubeBackend, CubeDevice};
+
+/// Client type used by the host functions.
+pub(crate) type ComputeClient = burn_cubecl::cubecl::client::Client;
+
+/// Threads per cube of the 1D kernels (one thread per Gaussian, face, pixel, chunk, ...).
+pub(crate) const THREADS_1D: u32 = 256;
+
+/// Largest number of cubes along one dispatch dimension.
+const MAX_CUBES_PER_DIM: u32 = 65_535;
+
+/// A 1D launch of `units` threads, split over a 2D grid of cubes where one row would exceed the
+/// 65535-cube dispatch limit. Kernels index with `ABSOLUTE_POS` and guard `< units`.
+pub(crate) fn count_1d(units: usize) -> CubeCount {
+    let cubes = units.div_ceil(THREADS_1D as usize).max(1) as u32;
+    let x = cubes.min(MAX_CUBES_PER_DIM);
+    CubeCount::Static(x, cubes.div_ceil(x), 1)
+}
+
+/// f32 and contiguous, the layout every float kernel argument is indexed in.
+pub(crate) fn prepare(t: FloatTensor<CubeBackend>) -> CubeTensor {
+    let t = if t.dtype() == DType::F32 {
+        t
+    } else {
+        CubeBackend::float_cast(t, FloatDType::F32)
+    };
+    into_contiguous(t)
+}
+
+/// i32 and contiguous, the layout every int kernel argument is indexed in.
+pub(crate) fn prepare_i32(t: IntTensor<CubeBackend>) -> CubeTensor {
+    let t = if t.dtype() == DType::I32 {
+        t
+    } else {
+        CubeBackend::int_cast(t, IntDType::I32)
+    };
+    into_contiguous(t)
+}
+
+/// Little-endian bytes of `values`, for `client.create_from_slice`.
+pub(crate) fn u32_bytes(values: &[u32]) -> Vec<u8> {
+    values.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+/// A contiguous tensor of `dtype` over a kernel's output buffer.
+pub(crate) fn tensor_of(
+    client: &ComputeClient,
+    device: &CubeDevice,
+    handle: Handle,
+    shape: &[usize],
+    dtype: DType,
+) -> CubeTensor {
+    CubeTensor::new_contiguous(
+        client.clone(),
+        device.clone(),
+        Shape::from(shape.to_vec()),
+        handle,
+        dtype,
+    )
+}
+
+/// An f32 tensor over a kernel's output buffer.
+pub(crate) fn tensor_f32(
+    client: &ComputeClient,
+    device: &CubeDevice,
+    handle: Handle,
+    shape: &[usize],
+) -> CubeTensor {
+    tensor_of(client, device, handle, shape, DType::F32)
+}
+
+/// The kernel argument for a whole (prepared, contiguous) tensor.
+pub(crate) fn tensor_arg(t: &CubeTensor) -> BufferArg {
+    t.clone().into_buffer_arg()
+}
+
+/// A buffer of `len` u32 (or any other 4-byte element; at least one element).
+pub(crate) fn empty_u32(client: &ComputeClient, len: usize) -> Handle {
+    client.empty(4 * len.max(1))
+}
+
+/// A zero-filled f32 buffer of `len` elements (at least one).
+pub(crate) fn zeros_f32(client: &ComputeClient, device: &CubeDevice, len: usize) -> Handle {
+    burn_cubecl::ops::numeric::zeros_client(
+        client.clone(),
+        device.clone(),
+        Shape::from(vec![len.max(1)]),
+        DType::F32,
+    )
+    .handle
+}
+
+/// The kernel argument for the first `len` elements of `handle`.
+pub(crate) fn arg(handle: &Handle, len: usize) -> BufferArg {
+    // SAFETY: every handle passed here was allocated with at least `max(len, 1)` 4-byte elements.
+    unsafe { BufferArg::from_raw_parts(handle.clone(), len.max(1)) }
+}
+
+/// Reads the first `u32` of `handle` back to the host: a device sync. `what` names the value
+/// for the panic message; the callers are backend-extension ops, which cannot return errors,
+/// and a failed read here means the device itself is gone.
+pub(crate) fn read_u32(client: &ComputeClient, handle: Handle, what: &str) -> u32 {
+    let bytes = client
+        .read_one(handle)
+        .unwrap_or_else(|e| panic!("reading {what} back from the device: {e:?}"));
+    u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]])
+}
