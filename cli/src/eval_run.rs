@@ -1,7 +1,7 @@
 //! The `lifegom-eval` command as a library function (the quickstart calls it too).
 //!
 //! Loads a trained-model file, opens the config's validation split, scores every target
-//! ([`crate::evaluate`]), optionally the template-only baseline, a free-view turntable, the
+//! ([`lifegom_eval::evaluate`]), optionally the template-only baseline, a free-view turntable, the
 //! procedural motions and the accuracy-vs-time sweep, and writes CSVs, `summary.json` and
 //! `report.md` with pictures into `--out`.
 
@@ -9,21 +9,20 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use burn::tensor::Device;
-use lifegom_data::dataset::{DataConfig, Dataset, Phase};
-use lifegom_data::rng::Rng;
-use lifegom_model::feedback::Reconstructor;
-use lifegom_model::inputs::{SubjectBody, model_inputs};
+use lifegom_data::dataset::{DataConfig, Dataset, Split};
+use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_model::reconstructor::Reconstructor;
 use lifegom_model::trained;
 use lifegom_render::gom::GomMesh;
+use lifegom_render::rng::Rng;
 
-use crate::animate::{JointRoles, Motion, orbit_camera, posed_joint};
-use crate::evaluate::{
-    EvalSettings, SplitScores, evaluate_split, reconstruct_timed, render_timed,
-    template_baseline_scores,
+use lifegom_eval::animate::{JointRoles, Motion, orbit_camera, posed_joint};
+use lifegom_eval::evaluate::{
+    EvalSettings, Method, SplitScores, evaluate_split, reconstruct_timed, render_timed,
 };
-use crate::images::save_gif;
-use crate::perceptual_scores::{PerceptualOutcome, score_perceptual};
-use crate::report::{Report, Summary, SweepRow, write_csvs};
+use lifegom_eval::images::save_gif;
+use lifegom_eval::perceptual_scores::{PerceptualOutcome, score_perceptual};
+use lifegom_eval::report::{Report, Summary, SweepRow, write_csvs};
 
 /// Options of one evaluation.
 #[derive(Debug, Clone)]
@@ -93,7 +92,7 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         .with_context(|| format!("creating {}", opts.out.display()))?;
     let loaded = trained::load(&opts.checkpoint, &opts.device)?;
     let (model, config) = (loaded.model, loaded.config);
-    let dataset = Dataset::open(&opts.data, Phase::Val)?;
+    let dataset = Dataset::open(&opts.data, Split::Val)?;
     let mut report = Report {
         title: "LIFe-GoM evaluation".into(),
         context: opts.context.clone(),
@@ -103,22 +102,24 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         "checkpoint `{}` (step {}), split `{}` ({} subjects, {:?}), {}×{} px",
         opts.checkpoint.display(),
         loaded.header.meta["step"],
-        opts.data.split_paths(Phase::Val).0.display(),
+        opts.data.split_paths(Split::Val).0.display(),
         dataset.subjects.len(),
         dataset.rule.protocol,
         dataset.img_size.0,
         dataset.img_size.1
     ));
 
-    let perceptual = crate::perceptual_scores::load_models(&opts.weights_dir, &opts.device);
+    let perceptual = lifegom_eval::perceptual_scores::load_models(&opts.weights_dir, &opts.device);
     if let Some(note) = perceptual.note() {
         eprintln!("{note}");
         report.notes.push(note);
     }
 
     let mut scores = evaluate_split(
-        &model,
-        &config,
+        &Method::Model {
+            model: &model,
+            config: &config,
+        },
         &dataset,
         &settings(opts, &opts.out),
         &opts.device,
@@ -130,14 +131,12 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
     report.sheets = list_relative(&opts.out, "sheets");
 
     let baseline = if opts.baseline {
-        let mut b = template_baseline_scores(
-            &dataset,
-            &EvalSettings {
-                sheets: 0,
-                save_predictions: false,
-                ..settings(opts, &opts.out)
+        let mut b = evaluate_split(
+            &Method::TemplateBaseline {
+                subdivide: opts.subdivide.unwrap_or(config.subdivide_test),
             },
-            opts.subdivide.unwrap_or(config.subdivide_test),
+            &dataset,
+            &settings(opts, &opts.out),
             &opts.device,
         )?;
         let PerceptualOutcome { fid } = score_perceptual(&perceptual, &mut b, &opts.device)?;
@@ -200,7 +199,7 @@ fn animations(
     let mut rng = Rng::new(0);
     let sample = dataset.sample(0, &mut rng)?;
     let subject = &dataset.subjects[0];
-    let body = SubjectBody::new(&subject.name, &subject.canonical)?;
+    let body = SubjectRig::new(&subject.name, &subject.canonical)?;
     let (w, h) = dataset.img_size;
     let inputs = model_inputs(&body, &sample, w, h, &opts.device)?;
     let mesh = GomMesh::new(
@@ -263,8 +262,8 @@ fn animations(
 fn run_sweep(
     opts: &EvalOptions,
     model: &Reconstructor,
-    config: &lifegom_model::feedback::ReconstructorConfig,
-    perceptual: &crate::perceptual_scores::Models,
+    config: &lifegom_model::reconstructor::ReconstructorConfig,
+    perceptual: &lifegom_eval::perceptual_scores::Models,
 ) -> anyhow::Result<Vec<SweepRow>> {
     let mut sizes = vec![opts.data.img_size[0]];
     for s in &opts.sweep_sizes {
@@ -277,7 +276,7 @@ fn run_sweep(
         let mut data = opts.data.clone();
         let aspect = opts.data.img_size[1] as f64 / opts.data.img_size[0] as f64;
         data.img_size = [size, ((size as f64 * aspect).round() as u32).max(1)];
-        let dataset = Dataset::open(&data, Phase::Val)?;
+        let dataset = Dataset::open(&data, Split::Val)?;
         for subdivide in 0..=2u32 {
             for t in 1..=5usize {
                 let settings = EvalSettings {
@@ -288,8 +287,12 @@ fn run_sweep(
                     sheets: 0,
                     max_subjects: Some(opts.sweep_subjects.max(1)),
                 };
-                let mut scores: SplitScores =
-                    evaluate_split(model, config, &dataset, &settings, &opts.device)?;
+                let mut scores: SplitScores = evaluate_split(
+                    &Method::Model { model, config },
+                    &dataset,
+                    &settings,
+                    &opts.device,
+                )?;
                 let PerceptualOutcome { fid: _ } =
                     score_perceptual(perceptual, &mut scores, &opts.device)?;
                 let summary = Summary::of(&scores, None);

@@ -21,15 +21,15 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use burn::tensor::Device;
-use lifegom_data::dataset::{Dataset, Phase};
+use lifegom_data::dataset::{Dataset, Split};
 use lifegom_eval::images::{Image, error_map, grid};
 use lifegom_eval::plot::{Chart, PALETTE, Scale, Series, Style};
-use lifegom_model::feedback::Phase as MeshPhase;
-use lifegom_model::inputs::{SubjectBody, model_inputs};
+use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_model::reconstructor::MeshPurpose;
 
-use crate::config::ExperimentConfig;
-use crate::losses::UniformLaplacian;
-use crate::trainer::{StepStats, Trainer, sample_for_step};
+use lifegom_train::config::ExperimentConfig;
+use lifegom_train::losses::UniformLaplacian;
+use lifegom_train::trainer::{StepStats, Trainer, sample_for_step};
 
 /// Options of a training run (the command line).
 #[derive(Debug, Clone)]
@@ -79,30 +79,6 @@ pub struct RunSummary {
 /// The checkpoint a run in `out` writes and resumes from.
 pub fn latest_checkpoint(out: &Path) -> PathBuf {
     out.join("checkpoints").join("latest.lgck")
-}
-
-/// Bodies of every subject of a split, checked to share one low-res topology.
-pub fn subject_bodies(dataset: &Dataset) -> anyhow::Result<Vec<SubjectBody>> {
-    let bodies = dataset
-        .subjects
-        .iter()
-        .map(|s| SubjectBody::new(&s.name, &s.canonical))
-        .collect::<Result<Vec<_>, _>>()?;
-    let Some(first) = bodies.first() else {
-        bail!("the split has no subjects");
-    };
-    for b in &bodies {
-        if b.topology.faces != first.topology.faces || b.num_vertices() != first.num_vertices() {
-            bail!(
-                "subject {} has another low-res topology than {} ({} vs {} vertices): one model serves one template",
-                b.name,
-                first.name,
-                b.num_vertices(),
-                first.num_vertices()
-            );
-        }
-    }
-    Ok(bodies)
 }
 
 fn read_history(path: &Path, up_to: u64) -> Vec<serde_json::Value> {
@@ -162,19 +138,19 @@ pub fn train(
         .with_context(|| format!("creating {}", opts.out.display()))?;
     if cfg.train.loss_lpips > 0.0 {
         bail!(
-            "{}: [train] loss_lpips = {} but the LPIPS training loss (the AIST++ setting, spec §6.2) is not wired into the trainer yet; set it to 0",
+            "{}: [train] loss_lpips = {} but the LPIPS training loss (the AIST++ setting, docs/design.md §9.2) is not wired into the trainer yet; set it to 0",
             cfg.file.source.display(),
             cfg.train.loss_lpips
         );
     }
-    let dataset = Dataset::open(&cfg.file.data, Phase::Train)?;
+    let dataset = Dataset::open(&cfg.file.data, Split::Train)?;
     if dataset.is_empty() {
         bail!(
             "the training split of {} is empty",
             cfg.file.source.display()
         );
     }
-    let bodies = subject_bodies(&dataset)?;
+    let bodies = SubjectRig::for_split(&dataset)?;
     let num_vertices = bodies[0].num_vertices();
     let ckpt = latest_checkpoint(&opts.out);
     let mut trainer = if opts.resume && ckpt.exists() {
@@ -214,7 +190,7 @@ pub fn train(
     }
     let mesh = trainer
         .config
-        .mesh(&bodies[0].topology, MeshPhase::Train, trainer.device())?;
+        .mesh(&bodies[0].topology, MeshPurpose::Training, trainer.device())?;
     let laplacian = UniformLaplacian::new(&bodies[0].topology.faces, num_vertices)?;
     let total_steps = opts.steps.unwrap_or(cfg.train.steps);
     let (w, h) = (cfg.file.data.img_size[0], cfg.file.data.img_size[1]);
@@ -304,8 +280,8 @@ pub fn train(
             log.flush()?;
         }
         if trainer.step.is_multiple_of(cfg.train.snapshot_every) {
-            let gt = Image::from_chw(inputs.target_rgb.clone());
-            let pred = Image::from_chw(out.target_render);
+            let gt = Image::from_chw(inputs.target_rgb.clone())?;
+            let pred = Image::from_chw(out.target_render)?;
             let err = error_map(&pred, &gt, 4.0)?;
             let path = opts
                 .out

@@ -2,16 +2,16 @@
 //! output file is written, LPIPS/FID say plainly that weights are missing, and the numbers in
 //! the files agree with each other.
 
-#![allow(deprecated)] // Device::ndarray(): the card's CI backend.
+#![allow(deprecated)] // Device::ndarray(): ndarray is the CI backend the project requires (design.md §1.4).
 
 use std::path::PathBuf;
 
 use burn::tensor::Device;
+use lifegom_cli::eval_run::{EvalOptions, run};
 use lifegom_data::config::ConfigFile;
 use lifegom_data::synth;
-use lifegom_eval::command::{EvalOptions, run};
 use lifegom_eval::report::WEIGHTS_MISSING;
-use lifegom_model::feedback::ReconstructorConfig;
+use lifegom_model::reconstructor::ReconstructorConfig;
 use lifegom_model::trained;
 
 #[test]

@@ -1,9 +1,9 @@
-//! Splits, frame-indexing rules and per-sample loading (spec §1.5–1.7): what train and eval
+//! Splits, frame-indexing rules and per-sample loading (design.md §8.3–§8.6): what train and eval
 //! iterate over.
 //!
-//! # Frame-indexing rules ([`Protocol`] × [`Phase`])
+//! # Frame-indexing rules ([`Protocol`] × [`Split`])
 //!
-//! | protocol / phase | samples per subject | inputs | target |
+//! | protocol / split | samples per subject | inputs | target |
 //! |---|---|---|---|
 //! | THuman view3 and XHuman, train | 48 | `i0 ~ U{0..15}`, `i_{k+1} = (i_k + {5 or 6}) mod 16` | `16 + s` |
 //! | THuman view3 and XHuman, val | N (3) | `0..N` | `N + s` |
@@ -28,26 +28,26 @@ use crate::error::{DataError, Location, Result};
 use crate::format::{Subject, read_split};
 use crate::kinematics::KinematicTree;
 use crate::preprocess::{self, Kernel};
-use crate::rng::Rng;
+use lifegom_render::rng::Rng;
 
 /// Which experiment's frame-indexing rules apply (module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Protocol {
-    /// THuman2.0, 3 source views (`LG:datasets/thuman_view3.py`).
+    /// THuman2.0, 3 source views (official `datasets/thuman_view3.py`; design.md §8.4).
     ThumanView3,
-    /// THuman2.0, 5 source views (`LG:datasets/thuman_view5.py`).
+    /// THuman2.0, 5 source views (official `datasets/thuman_view5.py`; design.md §8.4).
     ThumanView5,
     /// XHuman evaluation: the view3 rules on `xhuman/view3_val`.
     Xhuman,
-    /// AIST++ (`LG:datasets/aistpp.py` for val, the default dataset for train).
+    /// AIST++ (official `datasets/aistpp.py` for val, the default dataset for train; design.md §8.4).
     Aistpp,
 }
 
 /// Training or evaluation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum Phase {
+pub enum Split {
     /// Training split, random choices enabled.
     Train,
     /// Validation / test split, deterministic.
@@ -97,14 +97,14 @@ pub struct DataConfig {
 }
 
 impl DataConfig {
-    /// The subject folder and split file of `phase`.
-    pub fn split_paths(&self, phase: Phase) -> (PathBuf, PathBuf) {
-        match phase {
-            Phase::Train => (
+    /// The subject folder and split file of `split`.
+    pub fn split_paths(&self, split: Split) -> (PathBuf, PathBuf) {
+        match split {
+            Split::Train => (
                 self.root.join(&self.train_dir),
                 self.root.join(&self.train_split),
             ),
-            Phase::Val => (
+            Split::Val => (
                 self.root.join(&self.val_dir),
                 self.root.join(&self.val_split),
             ),
@@ -149,13 +149,13 @@ pub struct SampleIndex {
     pub target: usize,
 }
 
-/// The frame rule of a protocol and phase (module docs), independent of any files.
+/// The frame rule of a protocol and split (module docs), independent of any files.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FrameRule {
     /// The protocol.
     pub protocol: Protocol,
-    /// The phase.
-    pub phase: Phase,
+    /// The split.
+    pub split: Split,
     /// N.
     pub n_inputs: usize,
 }
@@ -169,25 +169,25 @@ impl FrameRule {
     /// Samples a subject with `num_frames` frames contributes (0 if it has too few frames).
     pub fn samples_per_subject(&self, num_frames: usize) -> usize {
         let n = self.n_inputs;
-        match (self.protocol, self.phase) {
-            (Protocol::ThumanView3 | Protocol::Xhuman, Phase::Train) => {
+        match (self.protocol, self.split) {
+            (Protocol::ThumanView3 | Protocol::Xhuman, Split::Train) => {
                 if num_frames >= RING_FRAMES + RING_TARGETS {
                     RING_TARGETS
                 } else {
                     0
                 }
             }
-            (Protocol::ThumanView3 | Protocol::Xhuman, Phase::Val) => {
+            (Protocol::ThumanView3 | Protocol::Xhuman, Split::Val) => {
                 if num_frames >= 2 * n {
                     n
                 } else {
                     0
                 }
             }
-            (Protocol::ThumanView5, _) | (Protocol::Aistpp, Phase::Val) => {
+            (Protocol::ThumanView5, _) | (Protocol::Aistpp, Split::Val) => {
                 num_frames.saturating_sub(n)
             }
-            (Protocol::Aistpp, Phase::Train) => {
+            (Protocol::Aistpp, Split::Train) => {
                 if num_frames > n {
                     num_frames
                 } else {
@@ -200,9 +200,9 @@ impl FrameRule {
     /// Minimum frame count a subject needs under this rule.
     pub fn min_frames(&self) -> usize {
         let n = self.n_inputs;
-        match (self.protocol, self.phase) {
-            (Protocol::ThumanView3 | Protocol::Xhuman, Phase::Train) => RING_FRAMES + RING_TARGETS,
-            (Protocol::ThumanView3 | Protocol::Xhuman, Phase::Val) => 2 * n,
+        match (self.protocol, self.split) {
+            (Protocol::ThumanView3 | Protocol::Xhuman, Split::Train) => RING_FRAMES + RING_TARGETS,
+            (Protocol::ThumanView3 | Protocol::Xhuman, Split::Val) => 2 * n,
             _ => n + 1,
         }
     }
@@ -210,8 +210,8 @@ impl FrameRule {
     /// Inputs and target of sample `s` of a subject with `num_frames` frames.
     pub fn frames(&self, s: usize, num_frames: usize, rng: &mut Rng) -> (Vec<usize>, usize) {
         let n = self.n_inputs;
-        match (self.protocol, self.phase) {
-            (Protocol::ThumanView3 | Protocol::Xhuman, Phase::Train) => {
+        match (self.protocol, self.split) {
+            (Protocol::ThumanView3 | Protocol::Xhuman, Split::Train) => {
                 let mut i = rng.below(RING_FRAMES);
                 let mut inputs = Vec::with_capacity(n);
                 for _ in 0..n {
@@ -220,7 +220,7 @@ impl FrameRule {
                 }
                 (inputs, RING_FRAMES + s)
             }
-            (Protocol::Aistpp, Phase::Train) => {
+            (Protocol::Aistpp, Split::Train) => {
                 let pool: Vec<usize> = (0..num_frames).filter(|&f| f != s).collect();
                 (rng.sample_distinct(&pool, n), s)
             }
@@ -241,7 +241,7 @@ pub struct View {
     /// Intrinsics scaled to the output size.
     pub k: [[f32; 3]; 3],
     /// World→camera extrinsics with the body's global transform folded in:
-    /// `E' = E·[R(Rh) | Th]` (spec §2.3), so points stay in the body frame.
+    /// `E' = E·[R(Rh) | Th]` (design.md §3.4), so points stay in the body frame.
     pub e: [[f32; 4]; 4],
     /// The frame's axis-angle pose, flat `3J`.
     pub poses: Vec<f32>,
@@ -273,24 +273,24 @@ pub struct Dataset {
     pub rule: FrameRule,
     /// Output size `(W, H)`.
     pub img_size: (u32, u32),
-    /// Background policy of this phase.
+    /// Background policy of this split.
     pub background: Background,
     /// Samples before each subject (prefix sums), plus the total at the end.
     offsets: Vec<usize>,
 }
 
 impl Dataset {
-    /// Opens the split of `phase` described by `config`: reads the split file and every
+    /// Opens `split` as described by `config`: reads the split file and every
     /// subject's pickles (images are read per sample).
-    pub fn open(config: &DataConfig, phase: Phase) -> Result<Self> {
-        let (dir, split) = config.split_paths(phase);
-        let names = match (&config.val_subjects, phase) {
-            (Some(list), Phase::Val) => list.clone(),
-            _ => read_split(&split)?,
+    pub fn open(config: &DataConfig, split: Split) -> Result<Self> {
+        let (dir, split_file) = config.split_paths(split);
+        let names = match (&config.val_subjects, split) {
+            (Some(list), Split::Val) => list.clone(),
+            _ => read_split(&split_file)?,
         };
         let rule = FrameRule {
             protocol: config.protocol,
-            phase,
+            split,
             n_inputs: config.n_input_frames,
         };
         let mut subjects = Vec::with_capacity(names.len());
@@ -303,16 +303,16 @@ impl Dataset {
                         "{} frames, but the {:?} {:?} rule needs at least {}",
                         subject.frames.len(),
                         rule.protocol,
-                        phase,
+                        split,
                         rule.min_frames()
                     ),
                 ));
             }
             subjects.push(subject);
         }
-        let background = match phase {
-            Phase::Train => config.train_background,
-            Phase::Val => config.test_background,
+        let background = match split {
+            Split::Train => config.train_background,
+            Split::Val => config.test_background,
         };
         Ok(Self::from_subjects(
             subjects,
@@ -404,7 +404,7 @@ impl Dataset {
     }
 }
 
-/// Reads, undistorts, composites and resizes frame `f` of `subject` (spec §1.5).
+/// Reads, undistorts, composites and resizes frame `f` of `subject` (design.md §8.3).
 pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) -> Result<View> {
     let frame = &subject.frames[f];
     let at = |path: &Path, field: &str| {
@@ -453,7 +453,7 @@ pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) ->
     })
 }
 
-/// `E · [R(rh) | th]` (spec §2.3), row-major, computed in f64.
+/// `E · [R(rh) | th]` (design.md §3.4), row-major, computed in f64.
 pub fn fold_body_transform(e: &[[f64; 4]; 4], rh: glam::Vec3, th: glam::Vec3) -> [[f32; 4]; 4] {
     let r = lifegom_render::skeleton::rodrigues(rh);
     let mut body = [[0.0f64; 4]; 4];
@@ -477,17 +477,17 @@ pub fn fold_body_transform(e: &[[f64; 4]; 4], rh: glam::Vec3, th: glam::Vec3) ->
 mod tests {
     use super::*;
 
-    fn rule(protocol: Protocol, phase: Phase, n: usize) -> FrameRule {
+    fn rule(protocol: Protocol, split: Split, n: usize) -> FrameRule {
         FrameRule {
             protocol,
-            phase,
+            split,
             n_inputs: n,
         }
     }
 
     #[test]
     fn thuman_view3_train_ring() {
-        let r = rule(Protocol::ThumanView3, Phase::Train, 3);
+        let r = rule(Protocol::ThumanView3, Split::Train, 3);
         assert_eq!(r.samples_per_subject(64), 48);
         assert_eq!(r.samples_per_subject(63), 0);
         let mut rng = Rng::new(3);
@@ -512,25 +512,25 @@ mod tests {
     #[test]
     fn deterministic_rules() {
         let mut rng = Rng::new(0);
-        let v3 = rule(Protocol::ThumanView3, Phase::Val, 3);
+        let v3 = rule(Protocol::ThumanView3, Split::Val, 3);
         assert_eq!(v3.samples_per_subject(6), 3);
         assert_eq!(v3.frames(2, 6, &mut rng), (vec![0, 1, 2], 5));
-        let xh = rule(Protocol::Xhuman, Phase::Val, 3);
+        let xh = rule(Protocol::Xhuman, Split::Val, 3);
         assert_eq!(xh.frames(0, 6, &mut rng), (vec![0, 1, 2], 3));
-        for phase in [Phase::Train, Phase::Val] {
-            let v5 = rule(Protocol::ThumanView5, phase, 5);
+        for split in [Split::Train, Split::Val] {
+            let v5 = rule(Protocol::ThumanView5, split, 5);
             assert_eq!(v5.samples_per_subject(64), 59);
             assert_eq!(v5.frames(0, 64, &mut rng), (vec![0, 1, 2, 3, 4], 5));
             assert_eq!(v5.frames(58, 64, &mut rng).1, 63);
         }
-        let a = rule(Protocol::Aistpp, Phase::Val, 5);
+        let a = rule(Protocol::Aistpp, Split::Val, 5);
         assert_eq!(a.samples_per_subject(100), 95);
         assert_eq!(a.frames(3, 100, &mut rng), (vec![0, 1, 2, 3, 4], 8));
     }
 
     #[test]
     fn aistpp_train_draws_distinct_inputs_without_the_target() {
-        let r = rule(Protocol::Aistpp, Phase::Train, 5);
+        let r = rule(Protocol::Aistpp, Split::Train, 5);
         assert_eq!(r.samples_per_subject(30), 30);
         let mut rng = Rng::new(9);
         for s in 0..30 {

@@ -1,4 +1,4 @@
-//! The official processed per-subject format (spec §1.1–1.4), read and validated.
+//! The official processed per-subject format (design.md §8.1–§8.2), read and validated.
 //!
 //! ```text
 //! <subject>/images/<frame>.png     RGB

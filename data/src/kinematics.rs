@@ -1,4 +1,4 @@
-//! Kinematic trees of the body models the datasets use (spec §2.1).
+//! Kinematic trees of the body models the datasets use (design.md §4.5).
 //!
 //! The official data carries no parent table: the loader knows it from `use_smplx` (SMPL, 24
 //! joints, for AIST++; SMPL-X, 55 joints, for THuman2.0 and XHuman). The synthetic data uses the

@@ -6,20 +6,20 @@
 //! | module | concept |
 //! |---|---|
 //! | [`pickle`] | a pickle VM that rebuilds numpy arrays (protocols 2–5, numpy 1.x and 2.x), and a writer |
-//! | [`format`] | one subject folder: frames, `cameras.pkl`, `mesh_infos.pkl`, `canonical_joints.pkl`, validated |
+//! | [`format`](mod@format) | one subject folder: frames, `cameras.pkl`, `mesh_infos.pkl`, `canonical_joints.pkl`, validated |
 //! | [`dataset`] | splits, the frame-indexing rules of each experiment, per-sample loading |
 //! | [`preprocess`] | undistort → composite over the background → resize (Lanczos-4 / bilinear) → scale `K` |
 //! | [`kinematics`] | SMPL (24) and SMPL-X (55) parent tables |
 //! | [`config`] | `configs/*.toml`: the `[data]` and `[synthetic]` sections |
 //! | [`synth`] | the synthetic generator behind the `lifegom-synth` binary |
-//! | [`rng`] | the seeded RNG shared by sampling and generation |
 //! | [`error`] | one error type naming file / subject / frame / field |
 //!
 //! ```no_run
-//! use lifegom_data::{config::ConfigFile, dataset::{Dataset, Phase}, rng::Rng};
+//! use lifegom_data::{config::ConfigFile, dataset::{Dataset, Split}};
+//! use lifegom_render::rng::Rng;
 //! # fn main() -> Result<(), lifegom_data::DataError> {
 //! let cfg = ConfigFile::load("configs/synthetic-tiny.toml".as_ref())?.with_root("/tmp/synth-tiny");
-//! let train = Dataset::open(&cfg.data, Phase::Train)?;
+//! let train = Dataset::open(&cfg.data, Split::Train)?;
 //! let mut rng = Rng::new(0);
 //! let sample = train.sample(0, &mut rng)?; // N source views + the target, composited and resized
 //! assert_eq!(sample.views.len(), cfg.data.n_input_frames + 1);
@@ -33,7 +33,6 @@ pub mod format;
 pub mod kinematics;
 pub mod pickle;
 pub mod preprocess;
-pub mod rng;
 pub mod synth;
 
 pub use error::{DataError, Location, Result};

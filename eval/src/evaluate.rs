@@ -1,15 +1,15 @@
-//! Evaluating a trained reconstructor on a validation split (spec §7).
+//! Evaluating a trained reconstructor on a validation split (design.md §10).
 //!
 //! For every subject the avatar is reconstructed once from its deterministic inputs (the first
 //! N frames; every target of a subject shares them, so re-running per target as the reference
 //! does would give the same avatar), then every target view is rendered at the last iteration
 //! over the split's fixed background and scored:
 //!
-//! - **THuman2.0 / XHuman** (§7.2): the prediction and ground truth are cropped to the GT's
+//! - **THuman2.0 / XHuman** (design.md §10.2): the prediction and ground truth are cropped to the GT's
 //!   non-black bounding box grown to 1000×500 at 1024² (scaled proportionally for smaller images,
 //!   e.g. 250×125 at 256²), then PSNR and skimage SSIM on the float crop, LPIPS and FID on the
 //!   crops.
-//! - **AIST++** (§7.3): full images, white background.
+//! - **AIST++** (design.md §10.3): full images, white background.
 //!
 //! Timings are host wall clock around the reconstruction (encoder + T feedback steps + the final
 //! source render the reference always performs) and around the target render (skinning,
@@ -19,16 +19,17 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::Context;
-use burn::tensor::{Device, Tensor};
+use burn::tensor::Device;
 use lifegom_data::dataset::{Dataset, Protocol};
-use lifegom_data::rng::Rng;
 use lifegom_model::avatar::Avatar;
-use lifegom_model::feedback::{Reconstructor, ReconstructorConfig, render_views};
-use lifegom_model::inputs::{SubjectBody, model_inputs};
+use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_model::reconstructor::{Reconstructor, ReconstructorConfig, render_views};
 use lifegom_render::gom::GomMesh;
+use lifegom_render::readback;
+use lifegom_render::rng::Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::error::EvalError;
 use crate::images::{Image, error_map, grid};
 use crate::metrics::{ImageMetrics, ImageRef, crop, full_image_metrics, thuman_crop_box};
 
@@ -110,7 +111,7 @@ fn score_region(
     crop_protocol: bool,
     crop_size: [usize; 2],
     frame: &str,
-) -> anyhow::Result<(ImageMetrics, Image, Image)> {
+) -> Result<(ImageMetrics, Image, Image), EvalError> {
     let (pred_q, gt_q) = (pred.quantized(), gt.quantized());
     let shape = [gt.height, gt.width, 3];
     let bbox = if crop_protocol {
@@ -158,7 +159,7 @@ pub fn reconstruct_timed(
     model: &Reconstructor,
     mesh: &GomMesh,
     inputs: &lifegom_model::inputs::ModelInputs,
-) -> anyhow::Result<Reconstructed> {
+) -> Result<Reconstructed, EvalError> {
     let start = Instant::now();
     let avatar = model.reconstruct(&inputs.subject, mesh, &inputs.sources)?;
     // Force the result to exist before stopping the clock (matters on lazy backends).
@@ -176,9 +177,9 @@ pub fn render_timed(
     inputs: &lifegom_model::inputs::ModelInputs,
     camera: &lifegom_render::camera::Camera,
     skinning: &[glam::Affine3A],
-) -> anyhow::Result<(Image, f64)> {
+) -> Result<(Image, f64), EvalError> {
     let start = Instant::now();
-    let subject = lifegom_model::feedback::Subject {
+    let subject = lifegom_model::reconstructor::CanonicalSubject {
         canonical_vertices: avatar.xyz.clone(),
         lbs_weights: avatar.lbs_weights.clone(),
         skeleton: avatar.skeleton.clone(),
@@ -192,33 +193,50 @@ pub fn render_timed(
         &[skinning.to_vec()],
         inputs.sources.background,
     )?;
-    let img = Image::from_chw(rendered.rgb.squeeze_dim::<3>(0));
+    let img = Image::from_chw(rendered.rgb.squeeze_dim::<3>(0))?;
     Ok((img, start.elapsed().as_secs_f64() * 1e3))
 }
 
-/// Evaluates `model` on every target of `dataset` (a validation split).
+/// What produces the avatar that a split is scored on.
+pub enum Method<'a> {
+    /// A trained reconstructor (its `T` may be overridden by [`EvalSettings::iterations`]).
+    Model {
+        /// The network.
+        model: &'a Reconstructor,
+        /// Its configuration (for `subdivide_test`).
+        config: &'a ReconstructorConfig,
+    },
+    /// The template-only baseline: the canonical template with the Gaussians' initial
+    /// parameters, painted the mean colour of the source foreground (the best constant colour
+    /// a template can have), i.e. what the network starts from. Shows what training buys.
+    TemplateBaseline {
+        /// Subdivisions of its Gaussians' mesh.
+        subdivide: u32,
+    },
+}
+
+/// Evaluates `method` on every target of `dataset` (a validation split): one avatar per
+/// subject and input set, every target view rendered over the split's background and scored on
+/// the protocol's region. Predictions and sheets are written for [`Method::Model`] only.
 pub fn evaluate_split(
-    model: &Reconstructor,
-    config: &ReconstructorConfig,
+    method: &Method,
     dataset: &Dataset,
     settings: &EvalSettings,
     device: &Device,
-) -> anyhow::Result<SplitScores> {
+) -> Result<SplitScores, EvalError> {
     let _span = tracing::info_span!("evaluate_split", samples = dataset.len()).entered();
-    let model = match settings.iterations {
-        Some(t) => model.clone().with_iterations(t),
-        None => model.clone(),
+    let (model, subdivide) = match method {
+        Method::Model { model, config } => (
+            Some(match settings.iterations {
+                Some(t) => (*model).clone().with_iterations(t),
+                None => (*model).clone(),
+            }),
+            settings.subdivide.unwrap_or(config.subdivide_test),
+        ),
+        Method::TemplateBaseline { subdivide } => (None, *subdivide),
     };
-    let subdivide = settings.subdivide.unwrap_or(config.subdivide_test);
-    let bodies: Vec<SubjectBody> = dataset
-        .subjects
-        .iter()
-        .map(|s| SubjectBody::new(&s.name, &s.canonical))
-        .collect::<Result<_, _>>()?;
-    let first = bodies
-        .first()
-        .context("the validation split has no subjects")?;
-    let mesh = GomMesh::new(&first.topology, subdivide, device)?;
+    let bodies = SubjectRig::for_split(dataset)?;
+    let mesh = GomMesh::new(&bodies[0].topology, subdivide, device)?;
     let (w, h) = (dataset.img_size.0, dataset.img_size.1);
     let crop_size = thuman_crop_size(h as usize, w as usize);
     let crop_protocol = dataset.rule.protocol != Protocol::Aistpp;
@@ -240,8 +258,14 @@ pub fn evaluate_split(
         let inputs = model_inputs(body, &sample, w, h, device)?;
         let key = (index.subject, index.inputs.clone());
         if !cache.contains_key(&key) {
-            let rec = reconstruct_timed(&model, &mesh, &inputs)
-                .with_context(|| format!("reconstructing {}", sample.frame_name))?;
+            let rec = match &model {
+                Some(model) => reconstruct_timed(model, &mesh, &inputs),
+                None => template_baseline(&mesh, &inputs, device),
+            }
+            .map_err(|e| EvalError::Frame {
+                frame: sample.frame_name.clone(),
+                source: Box::new(e),
+            })?;
             cache.clear();
             cache.insert(key.clone(), rec);
         }
@@ -252,10 +276,10 @@ pub fn evaluate_split(
             &inputs.target_camera,
             &inputs.target_skinning,
         )?;
-        let gt = Image::from_chw(inputs.target_rgb.clone());
+        let gt = Image::from_chw(inputs.target_rgb.clone())?;
         let (m, p_img, g_img) =
             score_region(&pred, &gt, crop_protocol, crop_size, &sample.frame_name)?;
-        if settings.save_predictions {
+        if model.is_some() && settings.save_predictions {
             pred.save_png(
                 &settings
                     .out
@@ -263,7 +287,7 @@ pub fn evaluate_split(
                     .join(format!("{}.png", sample.frame_name)),
             )?;
         }
-        if sheets.len() < settings.sheets {
+        if model.is_some() && sheets.len() < settings.sheets {
             let err = error_map(&pred, &gt, 4.0)?;
             let sheet = grid(&[vec![gt.clone(), pred.clone(), err]], 2, [1.0; 3]);
             let path = settings
@@ -290,7 +314,7 @@ pub fn evaluate_split(
         views,
         images,
         num_gaussians: mesh.num_gaussians(),
-        iterations: model.iterations(),
+        iterations: model.as_ref().map_or(0, |m| m.iterations()),
         subdivide,
     })
 }
@@ -324,100 +348,30 @@ pub fn per_subject(views: &[ViewScore]) -> Vec<(String, Vec<ViewScore>)> {
         .collect()
 }
 
-/// A template-only baseline "model": the canonical template with the Gaussians' initial
-/// parameters and a constant grey colour, i.e. what the network starts from. Used to show what
-/// training buys.
-pub fn template_baseline_scores(
-    dataset: &Dataset,
-    settings: &EvalSettings,
-    subdivide: u32,
+/// The template-only baseline's avatar for `inputs` (see [`Method::TemplateBaseline`]).
+fn template_baseline(
+    mesh: &GomMesh,
+    inputs: &lifegom_model::inputs::ModelInputs,
     device: &Device,
-) -> anyhow::Result<SplitScores> {
-    let bodies: Vec<SubjectBody> = dataset
-        .subjects
-        .iter()
-        .map(|s| SubjectBody::new(&s.name, &s.canonical))
-        .collect::<Result<_, _>>()?;
-    let first = bodies
-        .first()
-        .context("the validation split has no subjects")?;
-    let mesh = GomMesh::new(&first.topology, subdivide, device)?;
-    let (w, h) = (dataset.img_size.0, dataset.img_size.1);
-    let crop_size = thuman_crop_size(h as usize, w as usize);
-    let mut rng = Rng::new(0);
-    let mut views = Vec::new();
-    let mut images = MetricImages::default();
-    let max_subjects = settings.max_subjects.unwrap_or(usize::MAX);
-    for i in 0..dataset.len() {
-        let Some(index) = dataset.index(i, &mut rng) else {
-            break;
-        };
-        if index.subject >= max_subjects {
-            continue;
-        }
-        let sample = dataset.sample(i, &mut rng)?;
-        let body = &bodies[index.subject];
-        let inputs = model_inputs(body, &sample, w, h, device)?;
-        // Mean colour of the source foreground: the best constant colour a template can have.
-        let mask = inputs.source_masks.clone();
-        let fg = (inputs.sources.images.clone() * mask.clone())
-            .sum_dim(0)
-            .sum_dim(2)
-            .sum_dim(3);
-        let count = mask
-            .sum()
-            .into_data()
-            .try_into_vec_as::<f64>()
-            .ok()
-            .and_then(|v| v.first().copied())
-            .unwrap_or(0.0)
-            .max(1.0);
-        let color: Vec<f32> = fg.into_data().try_into_vec_as::<f32>().unwrap_or_default();
-        let mut params = lifegom_render::gom::GomParams::init(mesh.num_gaussians(), device);
-        let c = Tensor::<1>::from_floats(
-            [
-                color.first().copied().unwrap_or(0.5) / count as f32,
-                color.get(1).copied().unwrap_or(0.5) / count as f32,
-                color.get(2).copied().unwrap_or(0.5) / count as f32,
-            ],
-            device,
-        );
-        params.colors = params.colors.zeros_like() + c.unsqueeze_dim(0);
-        let avatar = Avatar {
-            xyz: inputs.subject.canonical_vertices.clone(),
-            faces: params,
-            lbs_weights: inputs.subject.lbs_weights.clone(),
-            skeleton: inputs.subject.skeleton.clone(),
-            mesh: mesh.clone(),
-        };
-        let (pred, render_ms) = render_timed(
-            &avatar,
-            &inputs,
-            &inputs.target_camera,
-            &inputs.target_skinning,
-        )?;
-        let gt = Image::from_chw(inputs.target_rgb.clone());
-        let crop_protocol = dataset.rule.protocol != Protocol::Aistpp;
-        let (m, p_img, g_img) =
-            score_region(&pred, &gt, crop_protocol, crop_size, &sample.frame_name)?;
-        views.push(ViewScore {
-            subject: sample.subject.clone(),
-            frame_name: sample.frame_name.clone(),
-            psnr: m.psnr,
-            ssim: m.ssim,
-            lpips_alex: None,
-            lpips_vgg: None,
-            recon_ms: 0.0,
-            render_ms,
-        });
-        images.pred.push(p_img);
-        images.gt.push(g_img);
-    }
-    Ok(SplitScores {
-        views,
-        images,
-        num_gaussians: mesh.num_gaussians(),
-        iterations: 0,
-        subdivide,
+) -> Result<Reconstructed, EvalError> {
+    let mask = inputs.source_masks.clone();
+    let count = readback::read::<f64, 1, _>("source mask area", mask.clone().sum())?[0].max(1.0);
+    let fg = (inputs.sources.images.clone() * mask)
+        .sum_dim(0)
+        .sum_dim(2)
+        .sum_dim(3)
+        .reshape([3]);
+    let mut params = lifegom_render::gom::GomParams::init(mesh.num_gaussians(), device);
+    let mean = fg.div_scalar(count);
+    params.colors = params.colors.zeros_like() + mean.unsqueeze_dim(0);
+    Ok(Reconstructed {
+        avatar: Avatar::new(
+            inputs.subject.canonical_vertices.clone(),
+            params,
+            inputs.subject.lbs_weights.clone(),
+            inputs.subject.skeleton.clone(),
+            mesh.clone(),
+        ),
+        ms: 0.0,
     })
 }

@@ -1,7 +1,7 @@
 //! Images on the host: tensors to HWC floats, PNG/GIF writing, comparison sheets, error maps.
 //!
 //! Float images here are row-major `H × W × 3` in `[0, 1]`. PNGs are written the way the
-//! reference dumps predictions (spec §7.1): `uint8(255 · clip(x, 0, 1))`, truncating, so a
+//! reference dumps predictions (design.md §10.1): `uint8(255 · clip(x, 0, 1))`, truncating, so a
 //! metric computed on our PNGs matches one computed on the reference's.
 
 use std::path::Path;
@@ -33,6 +33,9 @@ pub enum ImageError {
     /// Images that should have one size do not.
     #[error("image sizes differ: {0}")]
     Size(String),
+    /// The tensor's values could not be read back.
+    #[error(transparent)]
+    Readback(#[from] lifegom_render::readback::ReadbackError),
 }
 
 impl Image {
@@ -46,19 +49,19 @@ impl Image {
     }
 
     /// From a `[3, H, W]` tensor (reads it back to the host).
-    pub fn from_chw(t: Tensor<3>) -> Self {
+    pub fn from_chw(t: Tensor<3>) -> Result<Self, ImageError> {
         let [_, h, w] = t.dims();
         Self::from_hwc(t.permute([1, 2, 0]), h, w)
     }
 
     /// From a `[H, W, 3]` tensor.
-    pub fn from_hwc(t: Tensor<3>, h: usize, w: usize) -> Self {
-        let data = t.into_data().try_into_vec_as::<f32>().unwrap_or_default();
-        Self {
+    pub fn from_hwc(t: Tensor<3>, h: usize, w: usize) -> Result<Self, ImageError> {
+        let data = lifegom_render::readback::read("image", t)?;
+        Ok(Self {
             width: w,
             height: h,
             data,
-        }
+        })
     }
 
     /// The reference's uint8 conversion (truncation after clipping).

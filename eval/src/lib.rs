@@ -1,6 +1,6 @@
 //! # lifegom-eval
 //!
-//! Evaluation of LIFe-GoM avatars on THuman-style splits (spec §7): novel-view renders scored
+//! Evaluation of LIFe-GoM avatars on THuman-style splits (design.md §10): novel-view renders scored
 //! with PSNR, SSIM, LPIPS (alex, vgg) and FID under the THuman/XHuman crop protocol or the
 //! AIST++ full-image protocol; comparison sheets; free-view turntables and procedural novel-pose
 //! animations; and the accuracy-vs-time sweep (quality against reconstruction and render time
@@ -18,19 +18,19 @@
 //! ## Module map
 //!
 //! - [`metrics`]: host-side PSNR, skimage-compatible SSIM and the THuman 1000×500 foreground
-//!   crop (spec §7.2–§7.3).
+//!   crop (design.md §10.2–§10.4).
 //! - [`evaluate`]: reconstruct each validation subject once, render its targets, score them;
-//!   the template-only baseline.
+//!   the same loop scores the template-only baseline.
 //! - [`animate`]: free-view orbits and the procedural motions (walk, arm-raise, squat).
 //! - [`report`]: CSVs, `summary.json`, `report.md`, the Pareto plot.
-//! - [`command`]: the `lifegom-eval` command as a function.
+//! - [`error`]: the library's one error type.
 //! - [`images`], [`plot`]: PNG/GIF writing, sheets, error maps, dependency-free charts.
 //! - [`perceptual`]: LPIPS v0.1 (AlexNet, VGG16) and pytorch-fid's Inception pool3 features and
 //!   Fréchet distance, as Burn modules loading converted weights; [`perceptual_scores`]: how the
 //!   evaluation uses them.
 
 pub mod animate;
-pub mod command;
+pub mod error;
 pub mod evaluate;
 pub mod images;
 pub mod metrics;

@@ -1,4 +1,4 @@
-//! Image metrics of the evaluation protocol (spec §7.2–§7.3), computed on the host in f64.
+//! Image metrics of the evaluation protocol (design.md §10.2–§10.4), computed on the host in f64.
 //!
 //! Images are row-major `H × W × C` slices of `f32` in [0, 1] (what a PNG divided by 255 gives),
 //! wrapped in [`ImageRef`] so the shape travels with the data and mismatches are errors rather
@@ -341,7 +341,7 @@ pub struct ImageMetrics {
     pub ssim: f64,
 }
 
-/// The AIST++ protocol (spec §7.3): PSNR and SSIM on the full images.
+/// The AIST++ protocol (design.md §10.3): PSNR and SSIM on the full images.
 pub fn full_image_metrics(pred: ImageRef, gt: ImageRef) -> Result<ImageMetrics, MetricsError> {
     Ok(ImageMetrics {
         psnr: psnr(pred, gt, 1.0)?,
@@ -349,7 +349,7 @@ pub fn full_image_metrics(pred: ImageRef, gt: ImageRef) -> Result<ImageMetrics, 
     })
 }
 
-/// The THuman2.0 / XHuman protocol (spec §7.2): crop both images to `crop` (normally
+/// The THuman2.0 / XHuman protocol (design.md §10.2): crop both images to `crop` (normally
 /// [`THUMAN_CROP`]) around the GT foreground, then PSNR and SSIM. `None` when the GT is
 /// entirely black (the script skips such views).
 pub fn thuman_metrics(
@@ -370,19 +370,10 @@ pub fn thuman_metrics(
 mod tests {
     use super::*;
 
-    /// Deterministic values in [0, 1) (a small LCG; the tests need no statistical quality).
+    /// Deterministic values in [0, 1) from the workspace's seeded generator.
     fn pseudo_random(n: usize, seed: u64) -> Vec<f32> {
-        let mut state = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (0..n)
-            .map(|_| {
-                state = state
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                ((state >> 40) as f64 / (1u64 << 24) as f64) as f32
-            })
-            .collect()
+        let mut rng = lifegom_render::rng::Rng::new(seed);
+        (0..n).map(|_| rng.next_f32()).collect()
     }
 
     fn img(data: &[f32], shape: [usize; 3]) -> ImageRef<'_> {

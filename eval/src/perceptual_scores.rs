@@ -5,13 +5,15 @@
 //! report carries [`crate::report::WEIGHTS_MISSING`] naming the missing files — no number is
 //! ever substituted.
 //!
-//! LPIPS is computed per view on the same uint8-quantised crop PSNR uses (inputs in [0,1], the
+//! LPIPS is computed per view on the same uint8-quantised crop PSNR uses (inputs in \[0, 1\], the
 //! 2x−1 mapping happens inside the network, as the pip `lpips` package with `normalize=True`).
 //! FID compares the Inception pool3 statistics of all prediction crops with those of all
 //! ground-truth crops (pytorch-fid on the two PNG folders). With fewer images than the 2048
 //! feature dimensions the covariances are rank-deficient; the value is still what pytorch-fid
 //! reports on such folders, but it is biased high and only comparable at equal image counts.
 
+use crate::error::EvalError;
+use lifegom_render::readback;
 use std::path::Path;
 
 use burn::tensor::{Device, Tensor, TensorData};
@@ -69,11 +71,10 @@ fn batch(img: &Image, device: &Device) -> Tensor<4> {
     .unsqueeze_dim(0)
 }
 
-fn first(t: Tensor<1>) -> Option<f64> {
-    t.into_data()
-        .try_into_vec_as::<f64>()
-        .ok()
-        .and_then(|v| v.first().copied())
+fn first(t: Tensor<1>) -> Result<Option<f64>, EvalError> {
+    Ok(readback::read::<f64, 1, _>("LPIPS distance", t)?
+        .first()
+        .copied())
 }
 
 /// Fills `lpips_alex` / `lpips_vgg` of every view and computes FID, with whatever weights exist.
@@ -81,7 +82,7 @@ pub fn score_perceptual(
     models: &Models,
     scores: &mut SplitScores,
     device: &Device,
-) -> anyhow::Result<PerceptualOutcome> {
+) -> Result<PerceptualOutcome, EvalError> {
     let Some(m) = &models.models else {
         return Ok(PerceptualOutcome::default());
     };
@@ -89,19 +90,19 @@ pub fn score_perceptual(
     for (k, view) in scores.views.iter_mut().enumerate() {
         let (p, g) = (&scores.images.pred[k], &scores.images.gt[k]);
         if let Some(net) = &m.lpips_alex {
-            view.lpips_alex = first(net.try_distance(batch(p, device), batch(g, device))?);
+            view.lpips_alex = first(net.try_distance(batch(p, device), batch(g, device))?)?;
         }
         if let Some(net) = &m.lpips_vgg {
-            view.lpips_vgg = first(net.try_distance(batch(p, device), batch(g, device))?);
+            view.lpips_vgg = first(net.try_distance(batch(p, device), batch(g, device))?)?;
         }
     }
     let fid = match &m.inception {
         Some(net) if scores.images.pred.len() >= 2 => {
-            let features = |imgs: &[Image]| -> anyhow::Result<Vec<f32>> {
+            let features = |imgs: &[Image]| -> Result<Vec<f32>, EvalError> {
                 let mut rows = Vec::with_capacity(imgs.len() * 2048);
                 for img in imgs {
                     let f = net.try_features(batch(img, device))?;
-                    rows.extend(f.into_data().try_into_vec_as::<f32>()?);
+                    rows.extend(readback::read::<f32, 2, _>("Inception features", f)?);
                 }
                 Ok(rows)
             };

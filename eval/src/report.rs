@@ -5,10 +5,11 @@
 //! "LPIPS/FID not computed: weights missing (see README)" and the fields are `null`, never a
 //! substitute number.
 
+use crate::error::EvalError;
+use lifegom_render::atomic_file::write_atomic;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
 use crate::evaluate::{SplitScores, ViewScore, mean_of, per_subject};
@@ -80,8 +81,8 @@ fn opt(v: Option<f64>, digits: usize) -> String {
 }
 
 /// Writes `per_view.csv` and `per_subject.csv`.
-pub fn write_csvs(out: &Path, views: &[ViewScore]) -> anyhow::Result<()> {
-    std::fs::create_dir_all(out)?;
+pub fn write_csvs(out: &Path, views: &[ViewScore]) -> Result<(), EvalError> {
+    std::fs::create_dir_all(out).map_err(|e| EvalError::write(out, e))?;
     let mut s = String::from("subject,frame,psnr,ssim,lpips_alex,lpips_vgg,recon_ms,render_ms\n");
     for v in views {
         let _ = writeln!(
@@ -98,7 +99,7 @@ pub fn write_csvs(out: &Path, views: &[ViewScore]) -> anyhow::Result<()> {
         );
     }
     let path = out.join("per_view.csv");
-    std::fs::write(&path, s).with_context(|| format!("writing {}", path.display()))?;
+    write_atomic(&path, s.as_bytes()).map_err(|e| EvalError::write(&path, e))?;
     let mut s = String::from(
         "subject,views,psnr,ssim,lpips_alex_x1000,lpips_vgg_x1000,recon_ms,render_ms\n",
     );
@@ -117,7 +118,7 @@ pub fn write_csvs(out: &Path, views: &[ViewScore]) -> anyhow::Result<()> {
         );
     }
     let path = out.join("per_subject.csv");
-    std::fs::write(&path, s).with_context(|| format!("writing {}", path.display()))?;
+    write_atomic(&path, s.as_bytes()).map_err(|e| EvalError::write(&path, e))?;
     Ok(())
 }
 
@@ -233,17 +234,17 @@ impl Report {
     }
 
     /// Writes `report.md` (and `pareto.png` when there is a sweep) into `out`.
-    pub fn write(&self, out: &Path) -> anyhow::Result<()> {
-        std::fs::create_dir_all(out)?;
+    pub fn write(&self, out: &Path) -> Result<(), EvalError> {
+        std::fs::create_dir_all(out).map_err(|e| EvalError::write(out, e))?;
         if !self.sweep.is_empty() {
+            let path = out.join("pareto.png");
             pareto_chart(&self.sweep)
                 .render(760, 460)
-                .save(&out.join("pareto.png"))
-                .context("writing pareto.png")?;
+                .save(&path)
+                .map_err(|e| EvalError::write(&path, e))?;
         }
         let path = out.join("report.md");
-        std::fs::write(&path, self.markdown())
-            .with_context(|| format!("writing {}", path.display()))
+        write_atomic(&path, self.markdown().as_bytes()).map_err(|e| EvalError::write(&path, e))
     }
 }
 

@@ -311,8 +311,10 @@ fn default_dir_is_weights_unless_overridden() {
     // SAFETY: no other test in this binary reads or writes LIFEGOM_WEIGHTS.
     unsafe { std::env::remove_var("LIFEGOM_WEIGHTS") };
     assert_eq!(PerceptualModels::default_dir(), PathBuf::from("weights"));
+    // SAFETY: as above.
     unsafe { std::env::set_var("LIFEGOM_WEIGHTS", "/opt/w") };
     assert_eq!(PerceptualModels::default_dir(), PathBuf::from("/opt/w"));
+    // SAFETY: as above.
     unsafe { std::env::remove_var("LIFEGOM_WEIGHTS") };
 }
 

@@ -13,7 +13,7 @@ use std::path::PathBuf;
 
 use burn::tensor::{Device, Tensor};
 use glam::Vec3;
-use lifegom_model::feedback::{ReconstructorConfig, SourceViews, Subject};
+use lifegom_model::reconstructor::{CanonicalSubject, ReconstructorConfig, SourceViews};
 use lifegom_render::camera::{Camera, Intrinsics};
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::rasterizer::{RasterSettings, rasterize};
@@ -95,7 +95,7 @@ fn main() -> anyhow::Result<()> {
             .permute([1, 2, 0]),
     )?;
 
-    let subject = Subject {
+    let subject = CanonicalSubject {
         canonical_vertices: body.vertex_tensor(&device),
         lbs_weights: body.skin.tensor(&device),
         skeleton: body.skeleton.clone(),

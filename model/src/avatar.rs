@@ -20,10 +20,12 @@ use burn::tensor::{Device, Tensor, TensorData};
 use glam::{Mat3, Vec3};
 use serde::{Deserialize, Serialize};
 
+use lifegom_render::atomic_file::write_atomic;
 use lifegom_render::camera::Camera;
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::mesh::MeshTopology;
 use lifegom_render::rasterizer::{Gaussians, RasterSettings, Rendered, rasterize};
+use lifegom_render::readback;
 use lifegom_render::skeleton::{BodyPose, Skeleton};
 use lifegom_render::skinning::skin_vertices;
 
@@ -57,18 +59,8 @@ struct Header {
     tensors: Vec<(String, Vec<usize>)>,
 }
 
-fn host(t: &Tensor<2>) -> Vec<f32> {
-    t.clone()
-        .into_data()
-        .try_into_vec_as::<f32>()
-        .unwrap_or_default()
-}
-
-fn host1(t: &Tensor<1>) -> Vec<f32> {
-    t.clone()
-        .into_data()
-        .try_into_vec_as::<f32>()
-        .unwrap_or_default()
+fn host<const D: usize>(name: &'static str, t: &Tensor<D>) -> Result<Vec<f32>> {
+    Ok(readback::read(name, t.clone())?)
 }
 
 fn file_error(path: &Path, reason: impl Into<String>) -> ModelError {
@@ -79,6 +71,24 @@ fn file_error(path: &Path, reason: impl Into<String>) -> ModelError {
 }
 
 impl Avatar {
+    /// An avatar from its parts: the canonical low-res vertices `[V↓, 3]`, the per-face
+    /// Gaussian parameters of `mesh`, the dense skinning weights `[V↓, J]` and the skeleton.
+    pub fn new(
+        xyz: Tensor<2>,
+        faces: GomParams,
+        lbs_weights: Tensor<2>,
+        skeleton: Skeleton,
+        mesh: GomMesh,
+    ) -> Self {
+        Self {
+            xyz,
+            faces,
+            lbs_weights,
+            skeleton,
+            mesh,
+        }
+    }
+
     /// World-space Gaussians of the avatar in `pose` (axis-angles per joint, as the reference).
     pub fn gaussians(&self, pose: &BodyPose) -> Result<Gaussians> {
         let transforms = self.skeleton.skinning_transforms(pose)?;
@@ -98,32 +108,36 @@ impl Avatar {
     pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
         let path = path.as_ref();
         let tensors: Vec<(&str, Vec<usize>, Vec<f32>)> = vec![
-            ("xyz", self.xyz.dims().to_vec(), host(&self.xyz)),
+            ("xyz", self.xyz.dims().to_vec(), host("xyz", &self.xyz)?),
             (
                 "lbs_weights",
                 self.lbs_weights.dims().to_vec(),
-                host(&self.lbs_weights),
+                host("lbs_weights", &self.lbs_weights)?,
             ),
-            ("so3", self.faces.so3.dims().to_vec(), host(&self.faces.so3)),
+            (
+                "so3",
+                self.faces.so3.dims().to_vec(),
+                host("so3", &self.faces.so3)?,
+            ),
             (
                 "scales",
                 self.faces.scales.dims().to_vec(),
-                host(&self.faces.scales),
+                host("scales", &self.faces.scales)?,
             ),
             (
                 "offsets",
                 self.faces.offsets.dims().to_vec(),
-                host(&self.faces.offsets),
+                host("offsets", &self.faces.offsets)?,
             ),
             (
                 "colors",
                 self.faces.colors.dims().to_vec(),
-                host(&self.faces.colors),
+                host("colors", &self.faces.colors)?,
             ),
             (
                 "opacities",
                 self.faces.opacities.dims().to_vec(),
-                host1(&self.faces.opacities),
+                host("opacities", &self.faces.opacities)?,
             ),
         ];
         let header = Header {
@@ -160,7 +174,7 @@ impl Avatar {
                 bytes.extend_from_slice(&v.to_le_bytes());
             }
         }
-        write_atomic(path, &bytes)
+        write_atomic(path, &bytes).map_err(|e| file_error(path, e.to_string()))
     }
 
     /// Loads an avatar saved by [`Avatar::save`] onto `device`.
@@ -264,10 +278,10 @@ impl Avatar {
     pub fn export_ply(&self, pose: &BodyPose, path: impl AsRef<Path>) -> Result<()> {
         let path = path.as_ref();
         let g = self.gaussians(pose)?;
-        let means = host(&g.means);
-        let covs = host(&g.covariances);
-        let colors = host(&g.colors);
-        let opacities = host1(&g.opacities);
+        let means = host("means", &g.means)?;
+        let covs = host("covariances", &g.covariances)?;
+        let colors = host("colors", &g.colors)?;
+        let opacities = host("opacities", &g.opacities)?;
         let n = opacities.len();
         let mut out = Vec::new();
         let props = [
@@ -310,7 +324,7 @@ impl Avatar {
                 out.extend_from_slice(&v.to_le_bytes());
             }
         }
-        write_atomic(path, &out)
+        write_atomic(path, &out).map_err(|e| file_error(path, e.to_string()))
     }
 }
 
@@ -349,7 +363,7 @@ fn symmetric_eigen(m: Mat3) -> (Mat3, Vec3) {
                 a[p][k] = c * apk - s * aqk;
                 a[q][k] = s * apk + c * aqk;
             }
-            for row in v.iter_mut() {
+            for row in &mut v {
                 let (vp, vq) = (row[p], row[q]);
                 row[p] = c * vp - s * vq;
                 row[q] = s * vp + c * vq;
@@ -366,35 +380,97 @@ fn symmetric_eigen(m: Mat3) -> (Mat3, Vec3) {
     )
 }
 
-/// Writes `bytes` to a temporary file beside `path`, then renames it over `path`.
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = path
-        .parent()
-        .filter(|d| !d.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .ok_or_else(|| file_error(path, "not a file path"))?;
-    let tmp = dir.join(format!(
-        ".{}.tmp-{}",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
-    let result = (|| -> std::io::Result<()> {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    result.map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        file_error(path, e.to_string())
-    })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use lifegom_render::camera::Intrinsics;
+    use lifegom_render::template::{BodyTemplate, lowres_template_path};
+
+    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+        readback::read("test tensor", t).unwrap()
+    }
+
+    #[test]
+    fn avatar_renders_novel_poses_and_round_trips_through_files() {
+        let device = Device::flex();
+        let body = BodyTemplate::load(lowres_template_path()).unwrap();
+        let mesh = GomMesh::new(&body.topology, 1, &device).unwrap();
+        let avatar = Avatar::new(
+            body.vertex_tensor(&device),
+            GomParams::init(mesh.num_gaussians(), &device),
+            body.skin.tensor(&device),
+            body.skeleton.clone(),
+            mesh,
+        );
+        let skel = &avatar.skeleton;
+        let mut pose = BodyPose::rest(skel.names.len());
+        pose.joint_rotations[skel.joint_index("upperarm01.L").unwrap()] = Vec3::new(0.0, 0.0, 1.2);
+        let k = Intrinsics {
+            fx: 40.0,
+            fy: 40.0,
+            cx: 24.0,
+            cy: 24.0,
+        };
+        let cam =
+            Camera::look_at(Vec3::new(-1.5, 0.5, 2.0), Vec3::ZERO, Vec3::Y, k, 48, 48).unwrap();
+        let a = read(avatar.render(&pose, &cam).unwrap().image);
+        assert!(a.iter().all(|v| v.is_finite()) && a.chunks(4).any(|p| p[3] > 0.5));
+
+        let dir = std::env::temp_dir().join(format!("lifegom-avatar-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("a.lgom");
+        avatar.save(&file).unwrap();
+        let back = Avatar::load(&file, &device).unwrap();
+        assert_eq!(
+            a,
+            read(back.render(&pose, &cam).unwrap().image),
+            "a loaded avatar renders identically"
+        );
+        let leftovers: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .filter_map(|e| e.ok())
+            .filter(|e| e.file_name().to_string_lossy().contains("tmp"))
+            .collect();
+        assert!(leftovers.is_empty(), "atomic save leaves no temporary file");
+
+        let ply = dir.join("a.ply");
+        avatar.export_ply(&pose, &ply).unwrap();
+        let bytes = std::fs::read(&ply).unwrap();
+        let header_end = bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .unwrap()
+            + 11;
+        let header = String::from_utf8_lossy(&bytes[..header_end]);
+        let n = avatar.mesh.num_gaussians();
+        assert!(
+            header.contains(&format!("element vertex {n}"))
+                && header.contains("property float rot_3")
+        );
+        assert_eq!(bytes.len() - header_end, n * 17 * 4);
+        let body = &bytes[header_end..];
+        assert!(
+            body.chunks_exact(4)
+                .all(|c| f32::from_le_bytes(c.try_into().unwrap()).is_finite())
+        );
+
+        std::fs::write(
+            dir.join("bad.lgom"),
+            b"LGOMAVT1\x05\x00\x00\x00\x00\x00\x00\x00{",
+        )
+        .unwrap();
+        let err = Avatar::load(dir.join("bad.lgom"), &device)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("bad.lgom"), "{err}");
+        assert!(
+            Avatar::load(dir.join("missing.lgom"), &device)
+                .unwrap_err()
+                .to_string()
+                .contains("missing.lgom")
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn eigen_reconstructs_and_is_a_rotation() {

@@ -1,5 +1,5 @@
 //! Import of the official LIFe-GoM PyTorch checkpoint into the Burn [`Reconstructor`]
-//! (state-dict map: spec §10).
+//! (state-dict map: design.md §11).
 //!
 //! # Files
 //!
@@ -63,7 +63,6 @@
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::fmt;
-use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use burn::store::burn_pack::Tensor as PackTensor;
@@ -72,7 +71,7 @@ use burn::store::{
     ModuleStore, PyTorchToBurnAdapter, PytorchStore, SafetensorsStore,
 };
 
-use crate::feedback::Reconstructor;
+use crate::reconstructor::Reconstructor;
 
 /// The top-level key of the official training checkpoint that holds the state dict.
 pub const NETWORK_KEY: &str = "network";
@@ -91,22 +90,7 @@ pub enum VertexEmbed {
 }
 
 /// Container format of a checkpoint file.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum CheckpointFormat {
-    /// `torch.save` output (zip or legacy pickle).
-    PyTorch,
-    /// SafeTensors.
-    SafeTensors,
-}
-
-impl fmt::Display for CheckpointFormat {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Self::PyTorch => "PyTorch",
-            Self::SafeTensors => "SafeTensors",
-        })
-    }
-}
+pub use crate::weights_file::WeightsFormat as CheckpointFormat;
 
 /// One tensor whose shape differs between the file and the model.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -553,14 +537,7 @@ fn read_tensors(path: &Path) -> Result<(CheckpointFormat, bool, Vec<PackTensor>)
         path: path.to_path_buf(),
         source,
     };
-    let mut head = Vec::with_capacity(9);
-    std::fs::File::open(path)
-        .map_err(io)?
-        .take(9)
-        .read_to_end(&mut head)
-        .map_err(io)?;
-    // SafeTensors: u64 little-endian header length, then the JSON header.
-    if head.len() == 9 && head[8] == b'{' {
+    if CheckpointFormat::sniff(path).map_err(io)? == CheckpointFormat::SafeTensors {
         let format = CheckpointFormat::SafeTensors;
         let mut store = SafetensorsStore::from_file(path)
             .map_indices_contiguous(false)
@@ -794,10 +771,10 @@ pub fn load_official_checkpoint_with(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::feedback::ReconstructorConfig;
+    use crate::reconstructor::ReconstructorConfig;
     use burn::store::bridge;
     use burn::tensor::{Device, Tensor};
-    use lifegom_render::testing::Rng;
+    use lifegom_render::rng::Rng;
 
     /// Low-res vertex count of the small test models.
     const V: usize = 40;
@@ -877,7 +854,7 @@ mod tests {
 
     /// An official-format state dict for `model`: every key, official shapes, distinct values.
     fn official_state(model: &Reconstructor, seed: u64) -> StateDict {
-        let mut rng = Rng(seed);
+        let mut rng = Rng::new(seed);
         official_key_names(model)
             .unwrap()
             .into_iter()
@@ -909,7 +886,7 @@ mod tests {
             .clone()
     }
 
-    /// The names and PyTorch shapes the paper's network must have (spec §5, §10).
+    /// The names and PyTorch shapes the paper's network must have (design.md §7, §11).
     #[test]
     fn paper_model_has_the_official_keys_and_shapes() {
         let device = Device::flex();

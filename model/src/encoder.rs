@@ -1,4 +1,4 @@
-//! The image encoder (spec §5.1): a torchvision ResNet-18 cut into a feature pyramid, plus a
+//! The image encoder (design.md §7.1): a torchvision ResNet-18 cut into a feature pyramid, plus a
 //! 1×1 "rgb embedding" of the normalised image.
 //!
 //! For an image batch `[N, 3, H, W]` in `[0, 1]`:
@@ -48,7 +48,6 @@
 //! must say so plainly, because an ImageNet-free encoder is far from the paper's setting.
 
 use std::fmt;
-use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use burn::config::Config;
@@ -61,6 +60,7 @@ use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor, TensorData, s};
 
 use crate::sampling::{PreparedMaps, SamplingError};
+use crate::weights_file::WeightsFormat;
 
 /// ImageNet normalisation used by torchvision's ResNet weights.
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -498,14 +498,7 @@ impl ImageEncoder {
             path: path.to_path_buf(),
             source,
         };
-        let mut head = Vec::with_capacity(9);
-        std::fs::File::open(path)
-            .map_err(io)?
-            .take(9)
-            .read_to_end(&mut head)
-            .map_err(io)?;
-        // SafeTensors: u64 little-endian header length, then the JSON header.
-        let safetensors = head.len() == 9 && head[8] == b'{';
+        let safetensors = WeightsFormat::sniff(path).map_err(io)? == WeightsFormat::SafeTensors;
         let remapper = key_remapper();
         let (result, keys) = if safetensors {
             let mut store = SafetensorsStore::from_file(path)
@@ -599,7 +592,7 @@ impl EncodedViews {
         ch[..ch.len() - 1].iter().sum::<usize>() + self.rgb_projection.dims()[1]
     }
 
-    /// The same views detached from the autodiff graph (the feedback branch, spec §5.4).
+    /// The same views detached from the autodiff graph (the feedback branch, design.md §7.3).
     pub fn detach(self) -> Self {
         Self {
             maps: self.maps.detach(),
@@ -663,7 +656,9 @@ fn key_remapper() -> KeyRemapper {
 
 #[cfg(test)]
 mod tests {
-    #![allow(deprecated)] // `Device::ndarray()` is deprecated in Burn 0.22; the card tests it.
+    // `Device::ndarray()` is deprecated in Burn 0.22; ndarray is the CI backend the project
+    // requires (design.md §1.4).
+    #![allow(deprecated)]
     use super::*;
     use burn::module::RunningState;
     use burn::store::{BurnToPyTorchAdapter, bridge};

@@ -1,7 +1,6 @@
 //! Errors of the model crate: each wraps the failing stage's own error, so the message names
 //! the input at fault.
 
-use crate::checkpoint::CheckpointError;
 use crate::encoder::EncoderError;
 use crate::sampling::SamplingError;
 use lifegom_render::RenderError;
@@ -18,9 +17,9 @@ pub enum ModelError {
     /// The image encoder failed (weights file, width).
     #[error(transparent)]
     Encoder(#[from] EncoderError),
-    /// Importing an official checkpoint failed.
+    /// Tensor values could not be read back to the host.
     #[error(transparent)]
-    Checkpoint(#[from] CheckpointError),
+    Readback(#[from] lifegom_render::readback::ReadbackError),
     /// Inputs that do not fit together.
     #[error("invalid `{what}`: {reason}")]
     InvalidInput {

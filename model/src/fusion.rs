@@ -1,4 +1,4 @@
-//! Multi-source fusion (spec §5.5): per vertex, the features sampled from the N views are fused
+//! Multi-source fusion (design.md §7.4): per vertex, the features sampled from the N views are fused
 //! by two post-norm transformer layers with shared weights for the source and rendered branches.
 //!
 //! 1. **Across views**: self-attention over the N view tokens of each vertex (sequence length N,

@@ -1,4 +1,4 @@
-//! Update heads (spec §5.6): what one feedback step predicts from the Point Transformer's
+//! Update heads (design.md §7.7): what one feedback step predicts from the Point Transformer's
 //! per-vertex features `h` (`[V↓, 32]`).
 //!
 //! - **Low-res vertices** (coupled multi-resolution: only these move): a residual
@@ -156,7 +156,7 @@ impl UpdateHeads {
     }
 }
 
-/// Builds each high-res face's head input (spec §5.6).
+/// Builds each high-res face's head input (design.md §7.7).
 ///
 /// - `h` `[V↓, P]`: per low-res vertex features;
 /// - `highres_index` `[Vh·3]`, `highres_weight` `[Vh, 3]`: the subdivision's barycentric tables

@@ -1,11 +1,11 @@
-//! From a dataset sample to the reconstructor's inputs (spec §1.7 → §5).
+//! From a dataset sample to the reconstructor's inputs (design.md §8.6 → §2).
 //!
 //! `lifegom-data` yields host-side [`Sample`]s: N source views and one target, each with its
 //! image, mask, `K`, `E'` (body transform already folded in), axis-angle pose and the frame's
-//! zero-pose joints. The reconstructor takes tensors: a [`Subject`] (canonical low-res body with
+//! zero-pose joints. The reconstructor takes tensors: a [`CanonicalSubject`] (canonical low-res body with
 //! skinning weights and skeleton) and [`SourceViews`]. This module is that one-way bridge.
 //!
-//! Skinning follows the reference (`body_pose_to_body_RTs` + `get_global_RTs`, spec §2.3): the
+//! Skinning follows the reference (`body_pose_to_body_RTs` + `get_global_RTs`; design.md §4.4): the
 //! posed global transforms `G_i` are built from the *frame's* zero-pose joints, the canonical
 //! ones from the subject's `canonical_joints`, and `M_i = G_i · Trans(−J_i^cnl)`. Our
 //! [`Skeleton::skinning_transforms`] gives `G_i · Trans(−J_i^frame)`, so the bridge appends
@@ -13,7 +13,7 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{Affine3A, Vec3};
-use lifegom_data::dataset::{Sample, View};
+use lifegom_data::dataset::{Dataset, Sample, View};
 use lifegom_data::format::CanonicalBody;
 use lifegom_data::kinematics::parents_as_options;
 use lifegom_render::camera::Camera;
@@ -21,11 +21,11 @@ use lifegom_render::mesh::MeshTopology;
 use lifegom_render::skeleton::{BodyPose, Skeleton};
 
 use crate::error::{ModelError, Result};
-use crate::feedback::{SourceViews, Subject};
+use crate::reconstructor::{CanonicalSubject, SourceViews};
 
 /// A subject's body as the model sees it, built once per subject from `canonical_joints.pkl`.
 #[derive(Debug, Clone)]
-pub struct SubjectBody {
+pub struct SubjectRig {
     /// Subject name (for messages).
     pub name: String,
     /// Low-res topology (the template's faces).
@@ -42,7 +42,7 @@ fn invalid(what: &'static str, reason: String) -> ModelError {
     ModelError::InvalidInput { what, reason }
 }
 
-impl SubjectBody {
+impl SubjectRig {
     /// Validates the canonical body and builds the skeleton (joints named `joint_<i>`).
     pub fn new(name: &str, canonical: &CanonicalBody) -> Result<Self> {
         let v = canonical.vertices.len();
@@ -69,6 +69,35 @@ impl SubjectBody {
         })
     }
 
+    /// The rigs of every subject of a split, checked to share one low-res topology (one
+    /// model serves one template).
+    pub fn for_split(dataset: &Dataset) -> Result<Vec<Self>> {
+        let rigs = dataset
+            .subjects
+            .iter()
+            .map(|s| Self::new(&s.name, &s.canonical))
+            .collect::<Result<Vec<_>>>()?;
+        let Some(first) = rigs.first() else {
+            return Err(invalid("split", "the split has no subjects".into()));
+        };
+        for r in &rigs {
+            if r.topology.faces != first.topology.faces || r.num_vertices() != first.num_vertices()
+            {
+                return Err(invalid(
+                    "canonical vertices",
+                    format!(
+                        "subject {} has another low-res topology than {} ({} vs {} vertices): one model serves one template",
+                        r.name,
+                        first.name,
+                        r.num_vertices(),
+                        first.num_vertices()
+                    ),
+                ));
+            }
+        }
+        Ok(rigs)
+    }
+
     /// Number of low-res vertices.
     pub fn num_vertices(&self) -> usize {
         self.vertices.len()
@@ -76,7 +105,11 @@ impl SubjectBody {
 
     /// The subject as tensors on `device`, with `canonical_vertices` as given by the sample
     /// (they equal [`Self::vertices`] for the reference datasets).
-    pub fn subject(&self, canonical_vertices: &[[f32; 3]], device: &Device) -> Result<Subject> {
+    pub fn subject(
+        &self,
+        canonical_vertices: &[[f32; 3]],
+        device: &Device,
+    ) -> Result<CanonicalSubject> {
         if canonical_vertices.len() != self.num_vertices() {
             return Err(invalid(
                 "canonical_vertices",
@@ -90,7 +123,7 @@ impl SubjectBody {
         }
         let flat: Vec<f32> = canonical_vertices.iter().flatten().copied().collect();
         let j = self.skeleton.num_joints();
-        Ok(Subject {
+        Ok(CanonicalSubject {
             canonical_vertices: Tensor::from_data(
                 TensorData::new(flat, [self.num_vertices(), 3]),
                 device,
@@ -154,7 +187,7 @@ impl SubjectBody {
 #[derive(Debug, Clone)]
 pub struct ModelInputs {
     /// The subject's canonical body.
-    pub subject: Subject,
+    pub subject: CanonicalSubject,
     /// The N source views.
     pub sources: SourceViews,
     /// Target camera.
@@ -176,7 +209,7 @@ fn chw(rgb: &[f32], h: usize, w: usize, device: &Device) -> Tensor<3> {
 
 /// Converts a sample (N sources + target) for `body`, at image size `width × height`.
 pub fn model_inputs(
-    body: &SubjectBody,
+    body: &SubjectRig,
     sample: &Sample,
     width: u32,
     height: u32,

@@ -1,26 +1,45 @@
 //! Point-cloud neighbourhood queries on the host: farthest point sampling (FPS) and k-nearest
 //! neighbours (kNN), the two geometric ops the Point Transformer needs and Burn does not have
-//! (spec §11.4).
+//! (design.md §7.6).
 //!
 //! Both run on `[f32; 3]` slices read back from the device once per forward: the results are
 //! integer indices (and, for the interpolation weights, distances) that carry no gradient, so
 //! nothing is lost by leaving the autodiff graph for them. The features are then gathered on the
 //! device with `Tensor::select`, whose backward is a scatter-add.
 //!
-//! # Semantics (what the reference CUDA ops of Zhao et al.'s `pointops` do, for one batch)
+//! # Semantics (one batch)
 //!
 //! - **FPS** ([`farthest_point_sampling`]) starts from index 0 and repeatedly takes the point
-//!   whose squared distance to the already chosen set is largest; ties go to the lowest index.
-//!   Deterministic and `O(n·m)`. When all remaining points are at distance 0 (duplicates) it
-//!   may pick an already chosen point again, as the reference does; the caller never relies on
-//!   the chosen points being distinct.
+//!   whose squared distance to the already chosen set is largest; among exactly tied points it
+//!   takes the **lowest index**. Deterministic and `O(n·m)`. When all remaining points are at
+//!   distance 0 (duplicates) it may pick an already chosen point again, as the reference does;
+//!   the caller never relies on the chosen points being distinct.
 //! - **kNN** ([`knn`]) returns, for every query, the `k` reference points with the smallest
 //!   squared distance, sorted ascending by `(d², index)`: a query that is itself a reference
-//!   point finds itself first (distance 0), and ties are broken towards the lower index, so the
-//!   answer is unique and independent of the search structure. When `k` exceeds the number of
-//!   reference points the list is padded with index 0 at squared distance [`PAD_DIST2`], which
-//!   is exactly the reference kernel's initial heap content (`best_idx = start`,
-//!   `best_dist = 1e10`).
+//!   point finds itself first (distance 0), and among exactly equidistant candidates the
+//!   **lower index** is kept, so the answer is unique and independent of the search structure.
+//!   When `k` exceeds the number of reference points the list is padded with index 0 at squared
+//!   distance [`PAD_DIST2`], which is exactly the reference kernel's initial heap content
+//!   (`best_idx = start`, `best_dist = 1e10`).
+//!
+//! # Ties: where this differs from the reference CUDA ops (Zhao et al.'s `pointops`)
+//!
+//! Away from exact ties both ops return what `pointops` returns. At exact ties they can differ,
+//! and both answers are valid:
+//!
+//! - The reference kNN kernel keeps a max-heap of the `k` best and replaces its root only when a
+//!   candidate is *strictly* closer, so among exactly equidistant candidates the survivor depends
+//!   on the heap's internal order, not on the index. On the bit-exactly mirror-symmetric low-res
+//!   template this changes the neighbour sets of 14 vertices, and the Point Transformer output
+//!   moves by up to ~1e-2 of its scale at the first feedback step.
+//! - The reference FPS kernel scans the points in a thread-strided pattern and reduces across
+//!   threads keeping the lower thread slot on ties, so among exactly tied points it takes the one
+//!   with the smallest `index mod B` (`B`, the CUDA block size, is the largest power of two
+//!   `≤ n`, at most 1024), then the lowest index. That is the lowest index too whenever the tied
+//!   indices lie in one range `[m·B, (m+1)·B)`; otherwise the two may pick different points.
+//!
+//! lifegom keeps the index rule on purpose (design.md §13.1): it does not depend on a heap
+//! layout or a launch configuration.
 //!
 //! # Search structure
 //!
@@ -409,7 +428,7 @@ pub fn knn(reference: &[[f32; 3]], queries: &[[f32; 3]], k: usize) -> Neighbours
 #[cfg(test)]
 mod tests {
     use super::*;
-    use lifegom_render::testing::Rng;
+    use lifegom_render::rng::Rng;
 
     fn cloud(rng: &mut Rng, n: usize, scale: [f32; 3]) -> Vec<[f32; 3]> {
         (0..n)
@@ -435,7 +454,7 @@ mod tests {
 
     #[test]
     fn fps_is_deterministic_and_spread() {
-        let pts = cloud(&mut Rng(7), 3000, [1.0, 2.0, 0.5]);
+        let pts = cloud(&mut Rng::new(7), 3000, [1.0, 2.0, 0.5]);
         let a = farthest_point_sampling(&pts, 750);
         let b = farthest_point_sampling(&pts, 750);
         assert_eq!(a, b);
@@ -467,7 +486,7 @@ mod tests {
 
     #[test]
     fn knn_matches_brute_force() {
-        let mut rng = Rng(3);
+        let mut rng = Rng::new(3);
         for &(n, m, k, scale) in &[
             (2000usize, 2000usize, 16usize, [1.0f32, 2.0, 0.3]),
             (3000, 750, 16, [1.0, 1.0, 1.0]),

@@ -1,13 +1,13 @@
 //! # lifegom-model
 //!
-//! The LIFe-GoM reconstructor (spec §5): from N source images with cameras and body poses,
+//! The LIFe-GoM reconstructor (design.md §2): from N source images with cameras and body poses,
 //! predict a canonical T-pose Gaussians-on-Mesh, refined by T steps of learned feedback that
 //! compare re-renders of the current avatar with the inputs; then render it in any pose.
 //!
 //! ```
 //! use burn::tensor::{Device, Distribution, Tensor};
 //! use glam::Vec3;
-//! use lifegom_model::feedback::{ReconstructorConfig, SourceViews, Subject};
+//! use lifegom_model::reconstructor::{ReconstructorConfig, SourceViews, CanonicalSubject};
 //! use lifegom_render::{camera::{Camera, Intrinsics}, gom::GomMesh, skeleton::BodyPose};
 //! use lifegom_render::template::{BodyTemplate, lowres_template_path};
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -22,7 +22,7 @@
 //!     skinning: vec![rest],
 //!     background: [1.0; 3],
 //! };
-//! let subject = Subject {
+//! let subject = CanonicalSubject {
 //!     canonical_vertices: body.vertex_tensor(&device),
 //!     lbs_weights: body.skin.tensor(&device),
 //!     skeleton: body.skeleton.clone(),
@@ -41,25 +41,27 @@
 //! | [`fusion`] | multi-source fusion: self-attention over views, cross-attention with a per-vertex query |
 //! | [`knn`], [`point_transformer`] | farthest point sampling, kNN, the Point Transformer encoder–decoder |
 //! | [`heads`] | update heads: residual vertex update, new embedding, per-face Gaussian parameters |
-//! | [`feedback`] | the reconstructor: T steps of render → encode → fuse → update |
+//! | [`reconstructor`] | the reconstructor: T steps of render → encode → fuse → update |
 //! | [`avatar`] | the result: render in any pose and view, save/load, 3DGS `.ply` export |
-//! | [`checkpoint`] | import of the official LIFe-GoM PyTorch checkpoint (spec §10 key map) |
-//! | [`inputs`] | a `lifegom-data` sample → subject, source views and target (skinning per spec §2.3) |
+//! | [`checkpoint`] | import of the official LIFe-GoM PyTorch checkpoint (key map: design.md §11) |
+//! | [`inputs`] | a `lifegom-data` sample → subject, source views and target (skinning per design.md §4.4) |
 //! | [`trained`] | our trained-model files: weights + config + payload, written atomically |
+//! | [`weights_file`] | SafeTensors or PyTorch: a weights file's format from its first bytes |
 //!
-//! Model code has no backend generic: modules take a `burn::tensor::Device` and run on ndarray
-//! and Flex (wgpu once its kernels land), with `.autodiff()` for training. Without trained
+//! Model code has no backend generic: modules take a `burn::tensor::Device` and run on ndarray,
+//! Flex and wgpu (CubeCL kernels for the rasterizer and visibility), with `.autodiff()` for training. Without trained
 //! weights every network is randomly initialised; binaries say so when they print results.
 
 pub mod avatar;
 pub mod checkpoint;
 pub mod encoder;
 pub mod error;
-pub mod feedback;
 pub mod fusion;
 pub mod heads;
 pub mod inputs;
 pub mod knn;
 pub mod point_transformer;
+pub mod reconstructor;
 pub mod sampling;
 pub mod trained;
+pub mod weights_file;

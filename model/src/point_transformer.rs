@@ -1,4 +1,4 @@
-//! The Point Transformer encoder–decoder over the low-res body vertices (spec §5.6): Zhao et
+//! The Point Transformer encoder–decoder over the low-res body vertices (design.md §7.5): Zhao et
 //! al.'s segmentation network without its classifier, used by LIFe-GoM to turn the fused
 //! per-vertex features into a 32-d feature per vertex for the update heads.
 //!
@@ -24,8 +24,8 @@
 //!
 //! All Linear layers of the transitions-down and of the blocks have no bias; the PT layer's
 //! q/k/v and its two MLPs have biases, and so do the transition-up Linears (the reference
-//! builds them with `nn.Linear`'s default `bias=True`; spec §5.6's "without bias unless
-//! stated" does not cover them, so an importer should expect `dec*.0.linear{1,2}.0.bias`).
+//! builds them with `nn.Linear`'s default `bias=True`, so an importer should expect
+//! `dec*.0.linear{1,2}.0.bias`; design.md §7.5).
 //!
 //! - [`TransitionDown`], stride 1: `ReLU(BN(Linear(x)))`. Stride `s > 1`: FPS to `n/s` points;
 //!   for each sampled point its `k` nearest neighbours (itself included) in the previous level;
@@ -76,13 +76,15 @@
 //! | `dec{l}.1.*` | `dec.{l−1}.blocks.0.*` |
 //!
 //! Burn's `Linear` stores its weight `[in, out]` (PyTorch: `[out, in]`), so weights transpose on
-//! import; `enc1.0.linear.weight` is not imported (input width differs, spec §5.6).
+//! import. (The official code's ScanNet-pretrained initialisation skips `enc1.0.linear.weight`,
+//! whose input width differs; design.md §11.2.)
 
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::{relu, softmax};
 use burn::tensor::{Device, Int, Tensor, TensorData};
+use lifegom_render::readback::{self, ReadbackError};
 
 use crate::knn::{Neighbours, farthest_point_sampling, knn};
 
@@ -92,7 +94,7 @@ const PAPER_SHARE_PLANES: usize = 8;
 /// Neighbours used by the transition-up interpolation.
 const INTERP_K: usize = 3;
 
-/// Configuration of [`PointTransformer`]; the defaults are the paper's (spec §5.6).
+/// Configuration of [`PointTransformer`]; the defaults are the paper's (design.md §7.5).
 #[derive(Config, Debug)]
 pub struct PointTransformerConfig {
     /// Width of the first Linear: 3 (positions) + the feature width (module docs).
@@ -321,12 +323,16 @@ impl PointTransformer {
     /// # Panics
     ///
     /// If `V = 0` or the widths do not match the configuration.
-    pub fn forward(&self, positions: Tensor<2>, features: Tensor<2>) -> Tensor<2> {
+    pub fn forward(
+        &self,
+        positions: Tensor<2>,
+        features: Tensor<2>,
+    ) -> Result<Tensor<2>, ReadbackError> {
         let [v, three] = positions.dims();
         assert_eq!(three, 3, "positions must be [V, 3]");
         assert!(v > 0, "Point Transformer over zero points");
         assert_eq!(features.dims()[0], v, "one feature row per point");
-        let levels = self.hierarchy(positions.clone());
+        let levels = self.hierarchy(positions.clone())?;
 
         // Encoder. The first transition-down (stride 1) consumes cat(p, x).
         let mut x = self.enc[0].down.forward_input(positions, features);
@@ -356,17 +362,13 @@ impl PointTransformer {
                 y = block.forward(y, levels[l].rel.clone(), levels[l].nbr.clone());
             }
         }
-        y
+        Ok(y)
     }
 
     /// FPS levels and every kNN of one forward.
-    fn hierarchy(&self, positions: Tensor<2>) -> Vec<Level> {
+    fn hierarchy(&self, positions: Tensor<2>) -> Result<Vec<Level>, ReadbackError> {
         let device = positions.device();
-        let host: Vec<f32> = positions
-            .clone()
-            .into_data()
-            .try_into_vec_as::<f32>()
-            .expect("positions readback");
+        let host: Vec<f32> = readback::read("Point Transformer positions", positions.clone())?;
         let host: Vec<[f32; 3]> = host.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
         let mut levels: Vec<Level> = Vec::with_capacity(self.enc.len());
         for stage in &self.enc {
@@ -395,7 +397,7 @@ impl PointTransformer {
                 down,
             });
         }
-        levels
+        Ok(levels)
     }
 }
 
@@ -670,7 +672,7 @@ impl TransitionUp {
 mod tests {
     #![allow(deprecated)]
     use super::*;
-    use lifegom_render::testing::Rng;
+    use lifegom_render::rng::Rng;
 
     /// Values in [−½, ½) from the shared test generator.
     fn centred(rng: &mut Rng) -> f32 {
@@ -697,7 +699,7 @@ mod tests {
     }
 
     fn check_layer_shapes(device: &Device) {
-        let mut rng = Rng(1);
+        let mut rng = Rng::new(1);
         let (n, c, k) = (50, 16, 8);
         let layer = PointTransformerLayer::new(c, 8, 1e-5, device);
         let p = random_tensor(&mut rng, [n, 3], device);
@@ -726,7 +728,7 @@ mod tests {
 
     /// The first transition-down's split matmul equals Linear on the concatenation.
     fn check_input_split(device: &Device) {
-        let mut rng = Rng(8);
+        let mut rng = Rng::new(8);
         let down = &PointTransformerConfig::tiny(3 + 10).init(device).enc[0].down;
         let (p, x) = (
             random_tensor(&mut rng, [30, 3], device),
@@ -744,7 +746,7 @@ mod tests {
     /// A hand-computed PT layer output: with unit BN and identity-like weights the layer must
     /// follow the shared-plane formula of the module docs.
     fn check_layer_formula(device: &Device) {
-        let mut rng = Rng(5);
+        let mut rng = Rng::new(5);
         let (n, c, k, s) = (7, 8, 4, 4);
         let layer = PointTransformerLayer::new(c, s, 1e-5, device);
         let p = random_tensor(&mut rng, [n, 3], device);
@@ -822,14 +824,14 @@ mod tests {
         assert_eq!(v, 1229);
         let cfg = PointTransformerConfig::tiny(3 + 13);
         let net = cfg.init(device);
-        let x = random_tensor(&mut Rng(2), [v, 13], device);
-        let a = net.forward(p.clone(), x.clone());
+        let x = random_tensor(&mut Rng::new(2), [v, 13], device);
+        let a = net.forward(p.clone(), x.clone()).unwrap();
         assert_eq!(a.dims(), [v, 8]);
         let a = read(a);
         assert!(a.iter().all(|v| v.is_finite()));
         assert!(a.iter().any(|&v| v > 0.0), "not all dead");
         // Same input twice → same output (deterministic FPS/kNN, no batch statistics).
-        let b = read(net.forward(p, x));
+        let b = read(net.forward(p, x).unwrap());
         assert_eq!(a, b);
     }
 
@@ -839,17 +841,19 @@ mod tests {
         let net = PointTransformerConfig::tiny(3 + 4).init(device);
         // All points identical.
         let p = Tensor::<2>::ones([40, 3], device);
-        let x = random_tensor(&mut Rng(3), [40, 4], device);
-        let out = net.forward(p, x);
+        let x = random_tensor(&mut Rng::new(3), [40, 4], device);
+        let out = net.forward(p, x).unwrap();
         assert_eq!(out.dims(), [40, 8]);
         assert!(read(out).iter().all(|v| v.is_finite()));
         // Fewer points than nsample and than the strides' product.
         for v in [1, 5] {
-            let mut rng = Rng(4);
-            let out = net.forward(
-                random_tensor(&mut rng, [v, 3], device),
-                random_tensor(&mut rng, [v, 4], device),
-            );
+            let mut rng = Rng::new(4);
+            let out = net
+                .forward(
+                    random_tensor(&mut rng, [v, 3], device),
+                    random_tensor(&mut rng, [v, 4], device),
+                )
+                .unwrap();
             assert_eq!(out.dims(), [v, 8]);
             assert!(read(out).iter().all(|v| v.is_finite()));
         }
@@ -939,10 +943,10 @@ mod tests {
         let net = PointTransformerConfig::tiny(3 + 5)
             .init(&device)
             .map(&mut Reinit {
-                rng: Rng(11),
+                rng: Rng::new(11),
                 path: Vec::new(),
             });
-        let mut rng = Rng(6);
+        let mut rng = Rng::new(6);
         // 600 points: the coarsest level keeps 2, so its attention weights are not all equal
         // (a single point attending to padded copies of itself has a zero softmax gradient).
         let (v, c_out) = (600, 8);
@@ -950,10 +954,13 @@ mod tests {
         let x = random_tensor(&mut rng, [v, 5], &device).require_grad();
         let probe = random_tensor(&mut rng, [v, c_out], &device);
         let means_before = read(net.enc[1].blocks[0].bn1.running_mean.value());
-        let out = net.forward(p.clone(), x.clone());
+        let out = net.forward(p.clone(), x.clone()).unwrap();
         // Frozen BN: the autodiff forward equals the inference forward (running statistics,
         // not the batch's, which differ from the initial 0/1 for these inputs).
-        let out_inner = net.valid().forward(p.clone().inner(), x.clone().inner());
+        let out_inner = net
+            .valid()
+            .forward(p.clone().inner(), x.clone().inner())
+            .unwrap();
         let (a, b) = (read(out.clone()), read(out_inner));
         assert!(
             a.iter()
@@ -1047,7 +1054,7 @@ mod tests {
             let t = BodyTemplate::load(path).unwrap();
             let v: Vec<f32> = t.vertices.iter().flat_map(|p| p.to_array()).collect();
             let n = v.len() / 3;
-            let mut rng = Rng(9);
+            let mut rng = Rng::new(9);
             let p = Tensor::<2>::from_data(TensorData::new(v.clone(), [n, 3]), &device);
             let host: Vec<[f32; 3]> = v.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
             let t0 = Instant::now();
@@ -1071,7 +1078,7 @@ mod tests {
             let net = cfg.init(&device);
             println!("{name}: {} parameters", net.num_params());
             let t0 = Instant::now();
-            let levels = net.hierarchy(p.clone());
+            let levels = net.hierarchy(p.clone()).unwrap();
             let _ = read(levels.last().unwrap().rel.clone());
             println!("{name}: geometry of one forward {:?}", t0.elapsed());
             // Per-level cost of the first block and transition-down, at this level's size.
@@ -1105,7 +1112,7 @@ mod tests {
             let best = (0..5)
                 .map(|_| {
                     let t0 = Instant::now();
-                    let _ = read(net.forward(p.clone(), x.clone()));
+                    let _ = read(net.forward(p.clone(), x.clone()).unwrap());
                     t0.elapsed()
                 })
                 .min()
@@ -1118,7 +1125,11 @@ mod tests {
             let best = (0..5)
                 .map(|_| {
                     let t0 = Instant::now();
-                    let grads = net.forward(pa.clone(), xa.clone()).sum().backward();
+                    let grads = net
+                        .forward(pa.clone(), xa.clone())
+                        .unwrap()
+                        .sum()
+                        .backward();
                     let _ = read(xa.grad(&grads).unwrap());
                     t0.elapsed()
                 })

@@ -1,4 +1,4 @@
-//! The reconstructor with learned iterative feedback (spec §5.2–§5.7).
+//! The reconstructor with learned iterative feedback (design.md §2.3–§2.4, §7).
 //!
 //! ```text
 //! feats_src = Enc(I_src)                                   once, with gradients
@@ -47,11 +47,11 @@ fn encoder_feature_dim(cfg: &ImageEncoderConfig) -> usize {
     cfg.resnet_channels().iter().sum::<usize>() + cfg.rgb_embed_channels
 }
 
-/// Which subdivision level a mesh is built for.
+/// What a mesh is built for, which picks its subdivision level.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Phase {
+pub enum MeshPurpose {
     /// Training (`subdivide_train`).
-    Train,
+    Training,
     /// Inference and evaluation (`subdivide_test`).
     Inference,
 }
@@ -109,12 +109,17 @@ impl ReconstructorConfig {
         Self::new(encoder, PointTransformerConfig::paper(3 + 2 * d), num_views)
     }
 
-    /// The Gaussians' mesh for `phase`: the low-res template subdivided `subdivide_train` or
+    /// The Gaussians' mesh for `purpose`: the low-res template subdivided `subdivide_train` or
     /// `subdivide_test` times (coupled multi-resolution: one model serves both).
-    pub fn mesh(&self, lowres: &MeshTopology, phase: Phase, device: &Device) -> Result<GomMesh> {
-        let levels = match phase {
-            Phase::Train => self.subdivide_train,
-            Phase::Inference => self.subdivide_test,
+    pub fn mesh(
+        &self,
+        lowres: &MeshTopology,
+        purpose: MeshPurpose,
+        device: &Device,
+    ) -> Result<GomMesh> {
+        let levels = match purpose {
+            MeshPurpose::Training => self.subdivide_train,
+            MeshPurpose::Inference => self.subdivide_test,
         };
         Ok(GomMesh::new(lowres, levels, device)?)
     }
@@ -195,7 +200,7 @@ pub struct Reconstructor {
 
 /// The person's body in canonical T-pose: low-res vertices and skinning weights.
 #[derive(Debug, Clone)]
-pub struct Subject {
+pub struct CanonicalSubject {
     /// Canonical low-res vertices, `[V↓, 3]` (the estimated body shape, not the clothed surface).
     pub canonical_vertices: Tensor<2>,
     /// Dense skinning weights, `[V↓, J]`.
@@ -304,7 +309,7 @@ pub fn render_views(
     mesh: &GomMesh,
     state_xyz: &Tensor<2>,
     faces: &GomParams,
-    subject: &Subject,
+    subject: &CanonicalSubject,
     cameras: &[Camera],
     skinning: &[Vec<Affine3A>],
     background: [f32; 3],
@@ -340,7 +345,7 @@ impl Reconstructor {
     /// Reconstructs the avatar (inference): the forward pass, keeping only the final state.
     pub fn reconstruct(
         &self,
-        subject: &Subject,
+        subject: &CanonicalSubject,
         mesh: &GomMesh,
         sources: &SourceViews,
     ) -> Result<Avatar> {
@@ -349,20 +354,20 @@ impl Reconstructor {
             .states
             .pop()
             .expect("T ≥ 1 steps");
-        Ok(Avatar {
-            xyz: last.xyz,
-            faces: last.faces,
-            lbs_weights: subject.lbs_weights.clone(),
-            skeleton: subject.skeleton.clone(),
-            mesh: mesh.clone(),
-        })
+        Ok(Avatar::new(
+            last.xyz,
+            last.faces,
+            subject.lbs_weights.clone(),
+            subject.skeleton.clone(),
+            mesh.clone(),
+        ))
     }
 
     /// Runs the encoder and `T` feedback steps; `mesh` fixes the subdivision level of the
     /// Gaussians (its low-res topology must be the subject's).
     pub fn forward(
         &self,
-        subject: &Subject,
+        subject: &CanonicalSubject,
         mesh: &GomMesh,
         sources: &SourceViews,
     ) -> Result<Reconstruction> {
@@ -418,7 +423,7 @@ impl Reconstructor {
         };
         for step in 0..self.iterations {
             let _span = tracing::debug_span!("feedback_step", step).entered();
-            // The rendered branch carries no gradient into the encoder (spec §5.4, §9.6).
+            // The rendered branch carries no gradient into the encoder (design.md §7.3, §12).
             let feats_ren = self.encoder.encode(renders.rgb.clone().detach())?.detach();
             state = self.update(
                 subject,
@@ -450,7 +455,7 @@ impl Reconstructor {
     #[allow(clippy::too_many_arguments)]
     fn update(
         &self,
-        subject: &Subject,
+        subject: &CanonicalSubject,
         mesh: &GomMesh,
         sources: &SourceViews,
         feats_src: &EncodedViews,
@@ -519,7 +524,7 @@ impl Reconstructor {
             self.point_transformer.forward(
                 state.xyz.clone(),
                 Tensor::cat(vec![fused_src, fused_ren], 1),
-            )
+            )?
         };
         let vertex = self.heads.vertices(h_pt.clone());
 
@@ -564,7 +569,7 @@ mod tests {
     }
 
     struct Fixture {
-        subject: Subject,
+        subject: CanonicalSubject,
         mesh: GomMesh,
         sources: SourceViews,
         vertices: usize,
@@ -590,7 +595,7 @@ mod tests {
             .skinning_transforms(&BodyPose::rest(body.num_joints()))
             .unwrap();
         Fixture {
-            subject: Subject {
+            subject: CanonicalSubject {
                 canonical_vertices: body.vertex_tensor(device),
                 lbs_weights: body.skin.tensor(device),
                 skeleton: body.skeleton.clone(),
@@ -748,87 +753,6 @@ mod tests {
         );
     }
 
-    #[test]
-    fn avatar_renders_novel_poses_and_round_trips_through_files() {
-        let device = Device::flex();
-        let fx = fixture(&device, 32);
-        let model = ReconstructorConfig::tiny(2)
-            .with_iterations(1)
-            .init(fx.vertices, &device)
-            .unwrap();
-        let avatar = model
-            .reconstruct(&fx.subject, &fx.mesh, &fx.sources)
-            .unwrap();
-        let skel = &avatar.skeleton;
-        let mut pose = BodyPose::rest(skel.names.len());
-        pose.joint_rotations[skel.joint_index("upperarm01.L").unwrap()] = Vec3::new(0.0, 0.0, 1.2);
-        let k = Intrinsics {
-            fx: 40.0,
-            fy: 40.0,
-            cx: 24.0,
-            cy: 24.0,
-        };
-        let cam =
-            Camera::look_at(Vec3::new(-1.5, 0.5, 2.0), Vec3::ZERO, Vec3::Y, k, 48, 48).unwrap();
-        let a = read(avatar.render(&pose, &cam).unwrap().image);
-        assert!(a.iter().all(|v| v.is_finite()) && a.chunks(4).any(|p| p[3] > 0.5));
-
-        let dir = std::env::temp_dir().join(format!("lifegom-avatar-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let file = dir.join("a.lgom");
-        avatar.save(&file).unwrap();
-        let back = crate::avatar::Avatar::load(&file, &device).unwrap();
-        assert_eq!(
-            a,
-            read(back.render(&pose, &cam).unwrap().image),
-            "a loaded avatar renders identically"
-        );
-        let leftovers: Vec<_> = std::fs::read_dir(&dir)
-            .unwrap()
-            .filter_map(|e| e.ok())
-            .filter(|e| e.file_name().to_string_lossy().contains("tmp"))
-            .collect();
-        assert!(leftovers.is_empty(), "atomic save leaves no temporary file");
-
-        let ply = dir.join("a.ply");
-        avatar.export_ply(&pose, &ply).unwrap();
-        let bytes = std::fs::read(&ply).unwrap();
-        let header_end = bytes
-            .windows(11)
-            .position(|w| w == b"end_header\n")
-            .unwrap()
-            + 11;
-        let header = String::from_utf8_lossy(&bytes[..header_end]);
-        let n = fx.mesh.num_gaussians();
-        assert!(
-            header.contains(&format!("element vertex {n}"))
-                && header.contains("property float rot_3")
-        );
-        assert_eq!(bytes.len() - header_end, n * 17 * 4);
-        let body = &bytes[header_end..];
-        assert!(
-            body.chunks_exact(4)
-                .all(|c| f32::from_le_bytes(c.try_into().unwrap()).is_finite())
-        );
-
-        std::fs::write(
-            dir.join("bad.lgom"),
-            b"LGOMAVT1\x05\x00\x00\x00\x00\x00\x00\x00{",
-        )
-        .unwrap();
-        let err = crate::avatar::Avatar::load(dir.join("bad.lgom"), &device)
-            .unwrap_err()
-            .to_string();
-        assert!(err.contains("bad.lgom"), "{err}");
-        assert!(
-            crate::avatar::Avatar::load(dir.join("missing.lgom"), &device)
-                .unwrap_err()
-                .to_string()
-                .contains("missing.lgom")
-        );
-        std::fs::remove_dir_all(&dir).unwrap();
-    }
-
     /// T = 3 with one view looking away from the body (it sees nothing) and every joint turned
     /// 180° in the other (a degenerate, self-intersecting pose): everything stays finite.
     #[test]
@@ -889,8 +813,12 @@ mod tests {
         let device = Device::flex();
         let body = BodyTemplate::load(lowres_template_path()).unwrap();
         let cfg = ReconstructorConfig::tiny(2);
-        let train = cfg.mesh(&body.topology, Phase::Train, &device).unwrap();
-        let test = cfg.mesh(&body.topology, Phase::Inference, &device).unwrap();
+        let train = cfg
+            .mesh(&body.topology, MeshPurpose::Training, &device)
+            .unwrap();
+        let test = cfg
+            .mesh(&body.topology, MeshPurpose::Inference, &device)
+            .unwrap();
         let f = body.topology.faces.len();
         assert_eq!(
             (train.num_gaussians(), test.num_gaussians()),

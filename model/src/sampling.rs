@@ -1,5 +1,5 @@
-//! Projecting mesh vertices into the source views and sampling feature maps there (spec §5.2,
-//! §5.4).
+//! Projecting mesh vertices into the source views and sampling feature maps there (design.md §7.2,
+//! §7.3).
 //!
 //! # Projection
 //!
@@ -318,7 +318,7 @@ pub fn sample_maps(
     PreparedMaps::new(maps)?.sample(uv, width, height)
 }
 
-/// Samples a one-channel map (the rendered alpha of the feedback branch, spec §5.4) at `uv`:
+/// Samples a one-channel map (the rendered alpha of the feedback branch, design.md §7.3) at `uv`:
 /// `[N, 1, H, W]`, `[N, V, 2]` → `[V, N]`.
 pub fn sample_single(
     map: Tensor<4>,
@@ -337,13 +337,15 @@ pub fn sample_single(
 
 #[cfg(test)]
 mod tests {
-    #![allow(deprecated)] // `Device::ndarray()` is deprecated in Burn 0.22; the card tests it.
+    // `Device::ndarray()` is deprecated in Burn 0.22; ndarray is the CI backend the project
+    // requires (design.md §1.4).
+    #![allow(deprecated)]
     use super::*;
     use burn::tensor::ops::GridSampleOptions;
     use burn::tensor::{DType, Device};
     use glam::Vec3;
     use lifegom_render::camera::Intrinsics;
-    use lifegom_render::testing::Rng;
+    use lifegom_render::rng::Rng;
 
     fn tensor<const D: usize>(v: Vec<f64>, shape: [usize; D], device: &Device) -> Tensor<D> {
         Tensor::from_data(TensorData::new(v, shape), (device, DType::F64))
@@ -477,11 +479,7 @@ mod tests {
     ) -> (Vec<Vec<f64>>, Vec<Tensor<4>>) {
         let host: Vec<Vec<f64>> = shapes
             .iter()
-            .map(|&(c, h, w)| {
-                (0..n * c * h * w)
-                    .map(|_| rng.range_f64(-1.0, 1.0))
-                    .collect()
-            })
+            .map(|&(c, h, w)| (0..n * c * h * w).map(|_| rng.range(-1.0, 1.0)).collect())
             .collect();
         let maps = host
             .iter()
@@ -494,13 +492,13 @@ mod tests {
     /// Several levels and views at random points (some outside) against the scalar reference,
     /// and Burn's own `grid_sample_2d` on the normalised grid as a second opinion.
     fn random_reference(device: &Device) {
-        let mut rng = Rng(7);
+        let mut rng = Rng::new(7);
         let (width, height) = (40u32, 24u32);
         let (n, v) = (2, 37);
         let shapes = [(3, 24, 40), (2, 12, 20), (4, 3, 5), (1, 1, 1)];
         let (host, maps) = random_maps(&mut rng, n, &shapes, device);
         let uv_host: Vec<f64> = (0..n * v)
-            .flat_map(|_| [rng.range_f64(-3.0, 43.0), rng.range_f64(-3.0, 27.0)])
+            .flat_map(|_| [rng.range(-3.0, 43.0), rng.range(-3.0, 27.0)])
             .collect();
         let uv = tensor(uv_host.clone(), [n, v, 2], device);
         let got = read(sample_maps(&maps, uv.clone(), width, height).unwrap());
@@ -577,25 +575,19 @@ mod tests {
     /// Central differences in f64 against `backward()` for every map value and coordinate.
     fn gradients(device: &Device) {
         let ad = device.clone().autodiff();
-        let mut rng = Rng(11);
+        let mut rng = Rng::new(11);
         let n = 2;
         let shapes = [(2, 12, 20), (3, 3, 5), (1, 12, 20)];
         let maps: Vec<Vec<f64>> = shapes
             .iter()
-            .map(|&(c, h, w)| {
-                (0..n * c * h * w)
-                    .map(|_| rng.range_f64(-1.0, 1.0))
-                    .collect()
-            })
+            .map(|&(c, h, w)| (0..n * c * h * w).map(|_| rng.range(-1.0, 1.0)).collect())
             .collect();
         // 9 points per view, a few within a pixel of the border so zero padding is exercised.
         let uv: Vec<f64> = (0..n * 9)
-            .flat_map(|_| [rng.range_f64(-0.8, 20.8), rng.range_f64(-0.8, 12.8)])
+            .flat_map(|_| [rng.range(-0.8, 20.8), rng.range(-0.8, 12.8)])
             .collect();
         let total: usize = shapes.iter().map(|s| s.0).sum();
-        let weights: Vec<f64> = (0..9 * n * total)
-            .map(|_| rng.range_f64(-1.0, 1.0))
-            .collect();
+        let weights: Vec<f64> = (0..9 * n * total).map(|_| rng.range(-1.0, 1.0)).collect();
         let (loss, map_leaves, uv_leaf) = weighted_loss(&maps, &shapes, &uv, &weights, n, &ad);
         let grads = loss.backward();
         let eps = 1e-6;
@@ -659,10 +651,10 @@ mod tests {
     /// `project_points` agrees with `Camera::project`, and depth is the camera-space Z.
     fn projection(device: &Device) {
         let cams = cameras();
-        let mut rng = Rng(3);
+        let mut rng = Rng::new(3);
         let v = 10;
         let pts: Vec<f64> = (0..cams.len() * v * 3)
-            .map(|_| rng.range_f64(-0.4, 0.4))
+            .map(|_| rng.range(-0.4, 0.4))
             .collect();
         let proj = project_points(tensor(pts.clone(), [2, v, 3], device), &cams).unwrap();
         let (uv, depth) = (read(proj.uv), read(proj.depth));
@@ -699,13 +691,11 @@ mod tests {
     fn projection_gradients(device: &Device) {
         let ad = device.clone().autodiff();
         let cams = cameras();
-        let mut rng = Rng(5);
+        let mut rng = Rng::new(5);
         let (n, v, c) = (2, 6, 2);
-        let map: Vec<f64> = (0..n * c * 12 * 20)
-            .map(|_| rng.range_f64(-1.0, 1.0))
-            .collect();
-        let pts: Vec<f64> = (0..n * v * 3).map(|_| rng.range_f64(-0.3, 0.3)).collect();
-        let w: Vec<f64> = (0..v * n * c).map(|_| rng.range_f64(-1.0, 1.0)).collect();
+        let map: Vec<f64> = (0..n * c * 12 * 20).map(|_| rng.range(-1.0, 1.0)).collect();
+        let pts: Vec<f64> = (0..n * v * 3).map(|_| rng.range(-0.3, 0.3)).collect();
+        let w: Vec<f64> = (0..v * n * c).map(|_| rng.range(-1.0, 1.0)).collect();
         let loss = |pts: &[f64], device: &Device| {
             let p = tensor(pts.to_vec(), [n, v, 3], device).require_grad();
             let proj = project_points(p.clone(), &cams).unwrap();

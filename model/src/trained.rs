@@ -17,15 +17,15 @@
 //! has one row per template vertex) and free-form metadata. Burnpack keeps parameter ids, so an
 //! optimizer state saved alongside resumes against the same parameters.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use burn::module::Module;
 use burn::store::ModuleRecord;
 use burn::tensor::{Bytes, Device};
+use lifegom_render::atomic_file::write_atomic;
 use serde::{Deserialize, Serialize};
 
-use crate::feedback::{Reconstructor, ReconstructorConfig};
+use crate::reconstructor::{Reconstructor, ReconstructorConfig};
 
 const MAGIC: &[u8; 8] = b"LGOMCKPT";
 const VERSION: u32 = 1;
@@ -96,29 +96,6 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainedError + '_ {
         path: path.to_path_buf(),
         source,
     }
-}
-
-/// Writes `bytes` to `path` atomically (temp file in the same directory, fsync, rename).
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), std::io::Error> {
-    let dir = path.parent().filter(|p| !p.as_os_str().is_empty());
-    if let Some(dir) = dir {
-        std::fs::create_dir_all(dir)?;
-    }
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "checkpoint".into());
-    let tmp = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
-    let result = (|| {
-        let mut file = std::fs::File::create(&tmp)?;
-        file.write_all(bytes)?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
 }
 
 /// Serialises a model, its config and a payload into the file format (module docs).
@@ -303,19 +280,5 @@ mod tests {
         let missing = tmp("missing.lgck");
         let err = load(&missing, &device).unwrap_err().to_string();
         assert!(err.contains("missing.lgck"), "{err}");
-    }
-
-    #[test]
-    fn atomic_write_replaces_and_leaves_no_temp_file() {
-        let path = tmp("atomic.bin");
-        write_atomic(&path, b"one").unwrap();
-        write_atomic(&path, b"two").unwrap();
-        assert_eq!(std::fs::read(&path).unwrap(), b"two");
-        let leftovers: Vec<_> = std::fs::read_dir(path.parent().unwrap())
-            .unwrap()
-            .filter_map(|e| e.ok())
-            .filter(|e| e.file_name().to_string_lossy().contains(".tmp-"))
-            .collect();
-        assert!(leftovers.is_empty());
     }
 }

@@ -3,7 +3,7 @@
 
 use burn::tensor::{Device, Distribution, Tensor};
 use glam::Vec3;
-use lifegom_model::feedback::{ReconstructorConfig, SourceViews, Subject};
+use lifegom_model::reconstructor::{CanonicalSubject, ReconstructorConfig, SourceViews};
 use lifegom_render::camera::{Camera, Intrinsics};
 use lifegom_render::gom::GomMesh;
 use lifegom_render::skeleton::BodyPose;
@@ -31,7 +31,7 @@ fn reconstruct(device: &Device, seed: u64) -> Vec<f32> {
         .skeleton
         .skinning_transforms(&BodyPose::rest(body.num_joints()))
         .unwrap();
-    let subject = Subject {
+    let subject = CanonicalSubject {
         canonical_vertices: body.vertex_tensor(device),
         lbs_weights: body.skin.tensor(device),
         skeleton: body.skeleton.clone(),

@@ -8,7 +8,7 @@
 //! A point `x` projects to `(u, v) = (fx·X/Z + cx, fy·Y/Z + cy)` with `(X, Y, Z) = E·x`. Pixel
 //! `(i, j)` covers `[i, i+1) × [j, j+1)` in these coordinates, so its centre is `(i + ½, j + ½)`.
 //! This is exactly the reference rasterizer's convention (it shifts the projected centre by −½
-//! and samples pixels at integers; spec §4.3). The Gaussian rasterizer and the triangle-ID
+//! and samples pixels at integers; design.md §3.3). The Gaussian rasterizer and the triangle-ID
 //! rasterizer both sample at pixel centres.
 //!
 //! # Global body transform
@@ -87,6 +87,25 @@ pub struct Camera {
     pub height: u32,
 }
 
+/// Camera and image, flattened for the kernels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ViewParams {
+    /// Row-major 3×4 world-to-camera `[R | t]`.
+    pub view: [f32; 12],
+    /// Focal length x, pixels.
+    pub fx: f32,
+    /// Focal length y, pixels.
+    pub fy: f32,
+    /// Principal point x, pixels.
+    pub cx: f32,
+    /// Principal point y, pixels.
+    pub cy: f32,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+}
+
 impl Camera {
     /// Builds and validates a camera. Fails on a non-positive or non-finite focal length, a zero
     /// image size, a non-finite principal point, or an extrinsic whose linear part is not a
@@ -159,7 +178,7 @@ impl Camera {
     }
 
     /// Folds a global body transform into the extrinsic: `E' = E · [R(rh) | th]`, with `rh` an
-    /// axis-angle vector. Points then stay in the body frame (spec §2.3).
+    /// axis-angle vector. Points then stay in the body frame (design.md §3.4).
     pub fn with_body_transform(&self, rh: Vec3, th: Vec3) -> Result<Self> {
         if !rh.is_finite() || !th.is_finite() {
             return Err(invalid("body_transform", "non-finite Rh or Th"));

@@ -9,7 +9,9 @@
 //! GPU, wgpu runs on Mesa's software Vulkan (lavapipe) when it is installed; [`wgpu_available`]
 //! tells callers whether any adapter comes up at all.
 
-#![allow(deprecated)] // `Device::ndarray()` is deprecated in Burn 0.22 in favour of Flex; the card asks for ndarray.
+// `Device::ndarray()` is deprecated in Burn 0.22 in favour of Flex; ndarray is the CI backend
+// the project requires (design.md §1.4).
+#![allow(deprecated)]
 
 use std::sync::OnceLock;
 

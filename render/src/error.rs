@@ -53,6 +53,9 @@ pub enum RenderError {
         /// What is wrong with it.
         reason: String,
     },
+    /// Tensor values could not be read back to the host.
+    #[error(transparent)]
+    Readback(#[from] crate::readback::ReadbackError),
     /// An I/O failure, with the file it concerns.
     #[error("{path}: {source}")]
     Io {

@@ -1,5 +1,5 @@
 //! Gaussians-on-Mesh: one Gaussian per (high-res) face, riding on the face's Steiner frame
-//! (spec §3.4).
+//! (design.md §5.4).
 //!
 //! For face `j` with frame `A_j` and centroid `c_j` in the current (posed) space:
 //! - mean `μ = c + A·o` (offset `o` in frame units: in-plane inellipse units, normal in mm);
@@ -282,7 +282,7 @@ mod gradient_tests {
     //! GoM geometry: triangle corners (hence vertices), rotations, scales and offsets.
     #![allow(deprecated)]
     use super::*;
-    use crate::testing::Rng;
+    use crate::rng::Rng;
     use burn::tensor::{DType, TensorData};
 
     /// Inputs as f64 host vectors: [v0, v1, v2, so3, scales, offsets], each `[F*3]`.
@@ -326,23 +326,21 @@ mod gradient_tests {
 
     fn check(device: &Device) {
         let ad = device.clone().autodiff();
-        let mut rng = Rng(42);
+        let mut rng = Rng::new(42);
         let f = 6;
         let mut inputs: Inputs = Default::default();
         for (k, v) in inputs.iter_mut().enumerate() {
             *v = (0..3 * f)
                 .map(|_| match k {
-                    0..=2 => rng.range_f64(-0.3, 0.3),
-                    3 => rng.range_f64(-1.5, 1.5),
-                    4 => rng.range_f64(0.5, 2.0) * if rng.next_f64() < 0.2 { -1.0 } else { 1.0 },
-                    _ => rng.range_f64(-1.0, 1.0),
+                    0..=2 => rng.range(-0.3, 0.3),
+                    3 => rng.range(-1.5, 1.5),
+                    4 => rng.range(0.5, 2.0) * if rng.uniform() < 0.2 { -1.0 } else { 1.0 },
+                    _ => rng.range(-1.0, 1.0),
                 })
                 .collect();
         }
-        let wm: Vec<f64> = (0..3 * f).map(|_| rng.range_f64(-1.0, 1.0)).collect();
-        let wc: Vec<f64> = (0..6 * f)
-            .map(|_| rng.range_f64(-1.0, 1.0) * 50.0)
-            .collect();
+        let wm: Vec<f64> = (0..3 * f).map(|_| rng.range(-1.0, 1.0)).collect();
+        let wc: Vec<f64> = (0..6 * f).map(|_| rng.range(-1.0, 1.0) * 50.0).collect();
         let (l, leaves) = loss(&inputs, &wm, &wc, &ad);
         let grads = l.backward();
         let names = ["v0", "v1", "v2", "so3", "scales", "offsets"];

@@ -36,13 +36,16 @@
 //! # Ok(()) }
 //! ```
 
+pub mod atomic_file;
 pub mod camera;
+pub(crate) mod cube;
 pub mod device;
 pub mod error;
 pub mod gom;
 pub mod mesh;
 pub mod rasterizer;
 pub mod readback;
+pub mod rng;
 pub mod skeleton;
 pub mod skinning;
 pub mod steiner;

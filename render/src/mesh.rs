@@ -13,8 +13,8 @@
 //! [`MeshTopology::unique_edges`] numbers undirected edges in order of first appearance while
 //! scanning faces in order and, inside face `(a, b, c)`, its edges `(a,b), (b,c), (c,a)`. Each edge
 //! is stored sorted `(min, max)`. The reference deduplicates with a sort-based routine instead, so
-//! the numbering differs from it, but the spec (§3.2) notes that any deterministic numbering is
-//! fine: no learned tensor is indexed by edge or high-res vertex id.
+//! the numbering differs from it, but any deterministic numbering is fine (design.md §5.1):
+//! no learned tensor is indexed by edge or high-res vertex id.
 
 use std::collections::HashMap;
 

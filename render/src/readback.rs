@@ -20,11 +20,10 @@
 //! # Ok::<(), readback::ReadbackError>(())
 //! ```
 
-use burn::tensor::{
-    Element, Tensor,
-    backend::Backend,
-    ops::{FloatTensor, IntTensor},
-};
+use burn::backend::Backend;
+use burn::backend::tensor::{FloatTensor, IntTensor};
+use burn::tensor::kind::Basic;
+use burn::tensor::{Element, Tensor};
 
 /// A tensor whose values could not be brought to the host.
 #[derive(Debug, thiserror::Error)]
@@ -36,10 +35,11 @@ pub struct ReadbackError {
     pub reason: String,
 }
 
-/// The values of `t` in row-major order, converted to `E` when its dtype differs.
-pub fn read<E: Element, const D: usize>(
+/// The values of `t` (float, int or bool) in row-major order, converted to `E` when its dtype
+/// differs.
+pub fn read<E: Element, const D: usize, K: Basic>(
     tensor: &'static str,
-    t: Tensor<D>,
+    t: Tensor<D, K>,
 ) -> Result<Vec<E>, ReadbackError> {
     t.try_into_vec_as::<E>().map_err(|e| ReadbackError {
         tensor,
@@ -53,8 +53,10 @@ pub fn read_float_primitive<B: Backend>(
     t: FloatTensor<B>,
 ) -> Result<Vec<f32>, ReadbackError> {
     let fail = |reason: String| ReadbackError { tensor, reason };
-    let data = burn::tensor::read_sync(B::float_into_data(t)).map_err(|e| fail(format!("{e:?}")))?;
-    data.try_into_vec_as::<f32>().map_err(|e| fail(e.to_string()))
+    let data =
+        burn::tensor::read_sync(B::float_into_data(t)).map_err(|e| fail(format!("{e:?}")))?;
+    data.try_into_vec_as::<f32>()
+        .map_err(|e| fail(e.to_string()))
 }
 
 /// The values of an int primitive as `i64`.
@@ -64,7 +66,22 @@ pub fn read_int_primitive<B: Backend>(
 ) -> Result<Vec<i64>, ReadbackError> {
     let fail = |reason: String| ReadbackError { tensor, reason };
     let data = burn::tensor::read_sync(B::int_into_data(t)).map_err(|e| fail(format!("{e:?}")))?;
-    data.try_into_vec_as::<i64>().map_err(|e| fail(e.to_string()))
+    data.try_into_vec_as::<i64>()
+        .map_err(|e| fail(e.to_string()))
+}
+
+/// Why the CPU implementations of our backend extensions may `expect` a read-back: their
+/// tensors already live in host memory, so [`read_float_primitive`] cannot fail there.
+const CPU_READ: &str = "CPU backend tensors are in host memory: reading them back cannot fail";
+
+/// [`read_float_primitive`] for a CPU backend's op implementation, which cannot return errors.
+pub(crate) fn cpu_float<B: Backend>(tensor: &'static str, t: FloatTensor<B>) -> Vec<f32> {
+    read_float_primitive::<B>(tensor, t).expect(CPU_READ)
+}
+
+/// [`read_int_primitive`] for a CPU backend's op implementation, which cannot return errors.
+pub(crate) fn cpu_int<B: Backend>(tensor: &'static str, t: IntTensor<B>) -> Vec<i64> {
+    read_int_primitive::<B>(tensor, t).expect(CPU_READ)
 }
 
 #[cfg(test)]
@@ -76,8 +93,8 @@ mod tests {
     fn reads_float_and_int_tensors_with_conversion() {
         let device = Device::flex();
         let f = Tensor::<1>::from_floats([0.5, -1.0], &device);
-        assert_eq!(read::<f64, 1>("f", f).unwrap(), [0.5, -1.0]);
+        assert_eq!(read::<f64, 1, _>("f", f).unwrap(), [0.5, -1.0]);
         let i = Tensor::<1, Int>::from_ints([3, -2], &device);
-        assert_eq!(read::<i64, 1>("i", i).unwrap(), [3, -2]);
+        assert_eq!(read::<i64, 1, _>("i", i).unwrap(), [3, -2]);
     }
 }

@@ -1,6 +1,7 @@
-//! A small seeded random number generator (SplitMix64), so that training-sample draws and the
-//! synthetic generator are reproducible for a seed without pinning an external RNG crate whose
-//! streams may change between versions.
+//! The workspace's one seeded random number generator (SplitMix64): training-sample draws, the
+//! synthetic generator, evaluation and every test's random scenes use it, so they are
+//! reproducible for a seed without pinning an external RNG crate whose streams may change
+//! between versions.
 //!
 //! SplitMix64 passes BigCrush, needs 8 bytes of state and makes independent streams cheap:
 //! [`Rng::fork`] derives a child generator from a key (a subject index, a frame index), so
@@ -36,6 +37,16 @@ impl Rng {
         z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
         z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
         z ^ (z >> 31)
+    }
+
+    /// Uniform in [0, 1) with 24 random bits (every value exactly representable in `f32`).
+    pub fn next_f32(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 * (1.0 / (1u32 << 24) as f32)
+    }
+
+    /// Uniform in [lo, hi), in `f32`.
+    pub fn range_f32(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (hi - lo) * self.next_f32()
     }
 
     /// Uniform in `[0, 1)`.

@@ -1,5 +1,5 @@
 //! Skeletons and forward kinematics, SMPL-style, exactly as the reference code poses its body
-//! model (spec §2.2–2.3).
+//! model (design.md §4.1–§4.2).
 //!
 //! # Convention: world-aligned joint frames
 //!

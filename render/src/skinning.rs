@@ -1,4 +1,4 @@
-//! Linear blend skinning (LBS), as the reference applies it (spec §2.3, `apply_lbs`).
+//! Linear blend skinning (LBS), as the reference applies it (`apply_lbs`; design.md §4.3).
 //!
 //! A canonical point `x` with weights `w_j` moves to
 //!
@@ -8,7 +8,7 @@
 //!
 //! where `[R_j | t_j]` are the skinning transforms `M_j = G_j · Trans(−J_j)` of
 //! [`Skeleton::skinning_transforms`](crate::skeleton::Skeleton::skinning_transforms). There is
-//! **no division by Σ_j w_j**: the reference does not normalise (the paper does; spec §9.8). The
+//! **no division by Σ_j w_j**: the reference does not normalise (the paper does; design.md §4.3, §12). The
 //! template's weights sum to 1 within 1.2e-7, so the two agree on it, but a caller that edits
 //! weights gets exactly the reference behaviour.
 //!
@@ -227,15 +227,11 @@ mod tests {
     use crate::skeleton::BodyPose;
     use crate::template::{BodyTemplate, lowres_template_path};
 
-    /// Deterministic pseudo-random numbers in [-1, 1) (a 64-bit LCG), so tests need no crate.
-    struct Lcg(u64);
+    /// Deterministic pseudo-random numbers in [-1, 1) from the workspace's seeded generator.
+    struct Lcg(crate::rng::Rng);
     impl Lcg {
         fn next(&mut self) -> f32 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((self.0 >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+            self.0.range_f32(-1.0, 1.0)
         }
         fn vec3(&mut self, scale: f32) -> Vec3 {
             Vec3::new(self.next(), self.next(), self.next()) * scale
@@ -327,7 +323,7 @@ mod tests {
 
     fn check_tensor_matches_cpu(device: &Device) {
         let body = template();
-        let mut rng = Lcg(7);
+        let mut rng = Lcg(crate::rng::Rng::new(7));
         let pose = random_pose(body.skeleton.num_joints(), &mut rng);
         let m = body.skeleton.skinning_transforms(&pose).unwrap();
         let cpu = skin_points(&body.vertices, &body.skin, &m).unwrap();
@@ -361,7 +357,7 @@ mod tests {
         // Σ (x' − target)² is quadratic in the vertices and in the weights, so central
         // differences are exact up to f32 rounding.
         let device = Device::ndarray().autodiff();
-        let mut rng = Lcg(11);
+        let mut rng = Lcg(crate::rng::Rng::new(11));
         let (v, j) = (5usize, 3usize);
         let transforms: Vec<Affine3A> = (0..j)
             .map(|_| {

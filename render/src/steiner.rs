@@ -1,4 +1,4 @@
-//! The face-local Steiner frame `A` of a triangle (spec §3.3).
+//! The face-local Steiner frame `A` of a triangle (design.md §5.3).
 //!
 //! For a triangle `(v0, v1, v2)` with centroid `c`, the vectors `f1 = (v2 − c)/2` and
 //! `f2 = (v1 − v0)/(2√3)` are conjugate semi-diameters of its Steiner inellipse (the largest
@@ -23,7 +23,7 @@
 
 use burn::tensor::Tensor;
 
-/// Thickness of a Gaussian along the face normal, metres (`σ` in the spec).
+/// Thickness of a Gaussian along the face normal, metres (`σ` in design.md §5.3).
 pub const NORMAL_SCALE: f32 = 1e-3;
 
 /// Steiner frames of a batch of triangles.

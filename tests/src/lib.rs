@@ -13,7 +13,7 @@ pub fn cpu_devices() -> [(&'static str, Device); 2] {
     [("ndarray", Device::ndarray()), ("flex", Device::flex())]
 }
 
-pub use lifegom_render::testing::Rng;
+pub use lifegom_render::rng::Rng;
 
 /// A camera at `eye` looking at the origin with focal `f` and a centred principal point.
 pub fn camera(eye: glam::Vec3, width: u32, height: u32, f: f32) -> Camera {
@@ -202,18 +202,18 @@ pub fn random_scene(seed: u64, n: usize, width: u32, height: u32) -> Scene {
     let mut opacities = Vec::with_capacity(n);
     for _ in 0..n {
         means.extend([
-            rng.range(-0.6, 0.6),
-            rng.range(-0.5, 0.5),
-            rng.range(-0.8, 0.8),
+            rng.range_f32(-0.6, 0.6),
+            rng.range_f32(-0.5, 0.5),
+            rng.range_f32(-0.8, 0.8),
         ]);
-        let a: Vec<f32> = (0..9).map(|_| rng.range(-0.12, 0.12)).collect();
+        let a: Vec<f32> = (0..9).map(|_| rng.range_f32(-0.12, 0.12)).collect();
         let m = |i: usize, j: usize| {
             (0..3).map(|k| a[3 * i + k] * a[3 * j + k]).sum::<f32>()
                 + if i == j { 1e-4 } else { 0.0 }
         };
         covariances.extend([m(0, 0), m(0, 1), m(0, 2), m(1, 1), m(1, 2), m(2, 2)]);
-        colors.extend([rng.range(-0.2, 1.2), rng.next_f32(), rng.next_f32()]);
-        opacities.push(rng.range(0.05, 1.0));
+        colors.extend([rng.range_f32(-0.2, 1.2), rng.next_f32(), rng.next_f32()]);
+        opacities.push(rng.range_f32(0.05, 1.0));
     }
     Scene {
         name: format!("random scene {seed} ({n} Gaussians, {width}x{height})"),

@@ -80,10 +80,10 @@ fn gom_render_gradients_on_wgpu_match_ndarray() {
     let mut rng = Rng::new(11);
     let f = 12;
     let corners: Vec<Vec<f32>> = (0..3)
-        .map(|_| (0..3 * f).map(|_| rng.range(-0.4, 0.4)).collect())
+        .map(|_| (0..3 * f).map(|_| rng.range_f32(-0.4, 0.4)).collect())
         .collect();
-    let so3: Vec<f32> = (0..3 * f).map(|_| rng.range(-1.0, 1.0)).collect();
-    let scales: Vec<f32> = (0..3 * f).map(|_| rng.range(0.2, 1.0)).collect();
+    let so3: Vec<f32> = (0..3 * f).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+    let scales: Vec<f32> = (0..3 * f).map(|_| rng.range_f32(0.2, 1.0)).collect();
     let colors: Vec<f32> = (0..3 * f).map(|_| rng.next_f32()).collect();
     let run = |device: &Device| {
         let ad = device.clone().autodiff();

@@ -14,7 +14,7 @@ fn octahedron(rng: &mut Rng) -> (MeshTopology, Vec<f32>) {
     let (mesh, unit) = lifegom_render::testing::octahedron();
     let vertices = unit
         .iter()
-        .flat_map(|d| d.to_array().map(|c| c * 0.25 + rng.range(-0.03, 0.03)))
+        .flat_map(|d| d.to_array().map(|c| c * 0.25 + rng.range_f32(-0.03, 0.03)))
         .collect();
     (mesh, vertices)
 }
@@ -28,9 +28,9 @@ fn check(device: &Device) {
     let ad = device.clone().autodiff();
     let mesh = GomMesh::new(&topology, 1, &ad).unwrap();
     let f = mesh.num_gaussians();
-    let colors: Vec<f32> = (0..3 * f).map(|_| rng.range(0.1, 1.0)).collect();
+    let colors: Vec<f32> = (0..3 * f).map(|_| rng.range_f32(0.1, 1.0)).collect();
     let weights: Vec<f32> = (0..(w * h * 4) as usize)
-        .map(|_| rng.range(-1.0, 1.0))
+        .map(|_| rng.range_f32(-1.0, 1.0))
         .collect();
     let params = |dev: &Device| {
         let mut p = GomParams::init(f, dev);

@@ -122,7 +122,7 @@ fn gaussians_in_awkward_places() {
             match case {
                 // Culled: at or behind the near plane (view z ≤ 0.2), or entirely off-screen.
                 "behind the camera" | "far off-screen" => {
-                    assert_eq!(covered, 0, "{name}/{case}: must render nothing")
+                    assert_eq!(covered, 0, "{name}/{case}: must render nothing");
                 }
                 "covering the whole image"
                 | "very large scale"
@@ -132,7 +132,7 @@ fn gaussians_in_awkward_places() {
                         covered,
                         alpha.len(),
                         "{name}/{case}: must cover every pixel"
-                    )
+                    );
                 }
                 // Tiny: the 0.3 px² dilation still makes it a visible dot.
                 "very small scale" => assert!(

@@ -184,12 +184,12 @@ fn scenes() -> Vec<MeshScene> {
     let mut soup_v = Vec::new();
     let mut soup_f = Vec::new();
     for t in 0..60u32 {
-        let z = rng.range(1.0, 3.0);
+        let z = rng.range_f32(1.0, 3.0);
         for _ in 0..3 {
             soup_v.push(Vec3::new(
-                rng.range(-0.6, 0.6) * z,
-                rng.range(-0.6, 0.6) * z,
-                z + rng.range(-0.3, 0.3),
+                rng.range_f32(-0.6, 0.6) * z,
+                rng.range_f32(-0.6, 0.6) * z,
+                z + rng.range_f32(-0.3, 0.3),
             ));
         }
         soup_f.push([3 * t, 3 * t + 1, 3 * t + 2]);

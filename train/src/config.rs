@@ -1,7 +1,7 @@
 //! Experiment configs: one TOML file per experiment (`configs/*.toml`).
 //!
 //! `lifegom-data` reads `[data]` (and `[synthetic]`); this module adds `[model]` and `[train]`.
-//! Both sections are optional: the defaults are the reference's THuman view3 settings (spec §0:
+//! Both sections are optional: the defaults are the reference's THuman view3 settings (design.md §9.3:
 //! T = 3, subdivisions 1 in training and 2 at test, lr 1e-4 encoder / 5e-5 reconstructor, losses
 //! 1/5/1/0/100, seed 42) with the paper network. Unknown keys are errors, so a typo never
 //! silently falls back to a default.
@@ -9,7 +9,7 @@
 use std::path::{Path, PathBuf};
 
 use lifegom_data::config::ConfigFile;
-use lifegom_model::feedback::ReconstructorConfig;
+use lifegom_model::reconstructor::ReconstructorConfig;
 use serde::{Deserialize, Serialize};
 
 use crate::losses::LossWeights;

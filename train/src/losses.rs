@@ -1,4 +1,4 @@
-//! Training losses (spec §6.2), as differentiable Burn tensor ops.
+//! Training losses (design.md §9.2), as differentiable Burn tensor ops.
 //!
 //! Every feedback iteration is supervised: the caller stacks the T iterations' renders of the N
 //! source views and the target view into one image batch and the T low-res canonical meshes into
@@ -6,14 +6,14 @@
 //! reference.
 //!
 //! - **RGB** ([`l1`]) and **mask** ([`mask_l1`]): mean absolute error over everything.
-//! - **SSIM** ([`ssim_gaussian`]): the training SSIM copied by LIFe-GoM from GHG. Local means,
-//!   variances and covariance come from an 11×11 Gaussian window (σ = 1.5, normalised to sum 1)
-//!   applied per channel with **zero padding 5**, so the map has the input's size and the border
-//!   pixels see a window partly filled with zeros (their statistics are biased towards 0; this is
-//!   the reference's behaviour and we keep it). The map
-//!   `((2μxμy + C1)(2σxy + C2)) / ((μx² + μy² + C1)(σx² + σy² + C2))` with `C1 = 0.01²`,
-//!   `C2 = 0.03²` (data range 1) is averaged over all images, channels and pixels; the loss is
-//!   `1 − SSIM` ([`ssim_loss`]).
+//! - **SSIM** ([`ssim_gaussian`]): the training SSIM LIFe-GoM inherits from Generalizable Human
+//!   Gaussians (design.md §9.2). Local means, variances and covariance come from an 11×11 Gaussian
+//!   window (σ = 1.5, normalised to sum 1) applied per channel with **zero padding 5**, so the map
+//!   has the input's size and the border pixels see a window partly filled with zeros (their
+//!   statistics are biased towards 0; this is the reference's behaviour and we keep it). The map
+//!   `((2μxμy + C1)(2σxy + C2)) / ((μx² + μy² + C1)(σx² + σy² + C2))` with `C1 = 0.01²`, `C2 =
+//!   0.03²` (data range 1) is averaged over all images, channels and pixels; the loss is `1 − SSIM`
+//!   ([`ssim_loss`]).
 //!   The Gaussian window is the outer product of a 1-D Gaussian, so we filter with two 1-D
 //!   depthwise convolutions (11 taps each instead of 121). With zero padding this is exactly
 //!   the 2-D filter: the horizontal pass over the padded rows yields zeros, which is what the
@@ -40,6 +40,7 @@ use burn::config::Config;
 use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Int, Tensor, TensorData};
+use lifegom_render::readback::{self, ReadbackError};
 
 /// Errors of the loss helpers.
 #[derive(Debug, thiserror::Error)]
@@ -65,12 +66,12 @@ pub fn l1<const D: usize>(pred: Tensor<D>, gt: Tensor<D>) -> Tensor<1> {
 }
 
 /// Mean absolute error between the rendered alpha and the GT mask: the mask loss. Same maths as
-/// [`l1`]; a separate name so the training loop reads like the spec.
+/// [`l1`]; a separate name so the training loop reads like design.md §9.2.
 pub fn mask_l1<const D: usize>(pred_alpha: Tensor<D>, gt_mask: Tensor<D>) -> Tensor<1> {
     l1(pred_alpha, gt_mask)
 }
 
-/// Parameters of the Gaussian-window SSIM. The defaults are the training SSIM of spec §6.2.
+/// Parameters of the Gaussian-window SSIM. The defaults are the training SSIM of design.md §9.2.
 #[derive(Config, Debug)]
 pub struct SsimConfig {
     /// Window side (odd); the zero padding is `window_size / 2`.
@@ -162,7 +163,7 @@ impl SsimConfig {
     }
 }
 
-/// The training SSIM of spec §6.2 (window 11, σ 1.5, C1 0.01², C2 0.03², zero padding 5) on
+/// The training SSIM of design.md §9.2 (window 11, σ 1.5, C1 0.01², C2 0.03², zero padding 5) on
 /// `[B, C, H, W]` images in [0, 1], averaged over every image, channel and pixel. Renders are
 /// channel-last (`[…, H, W, 3]`): permute them to channel-first before calling.
 pub fn ssim_gaussian(pred: Tensor<4>, gt: Tensor<4>) -> Tensor<1> {
@@ -290,7 +291,7 @@ impl UniformLaplacian {
     }
 }
 
-/// The Laplacian smoothing loss of spec §6.2 for one mesh: mean over the `V` vertices
+/// The Laplacian smoothing loss of design.md §9.2 for one mesh: mean over the `V` vertices
 /// (`vertices` is `[V, 3]`) of `‖Σ_{j∈N(i)} v_j/deg(i) − v_i‖²`. Builds the neighbour structure
 /// on every call; a training loop should build a [`UniformLaplacian`] once instead.
 ///
@@ -302,7 +303,7 @@ pub fn laplacian_uniform(vertices: Tensor<2>, faces: &[[u32; 3]]) -> Tensor<1> {
     lap.loss(vertices.unsqueeze_dim(0))
 }
 
-/// Loss coefficients (spec §6.2). Defaults are THuman's; AIST++ uses mask 0 and lpips 1.
+/// Loss coefficients (design.md §9.3). Defaults are THuman's; AIST++ uses mask 0 and lpips 1.
 #[derive(Config, Debug)]
 pub struct LossWeights {
     /// Weight of the RGB L1 loss.
@@ -349,17 +350,14 @@ pub struct WeightedLoss {
 
 impl WeightedLoss {
     /// Reads the total and the parts to the host (a device sync; do it at the logging interval).
-    pub fn scalars(&self) -> Vec<(&'static str, f64)> {
-        let read = |t: &Tensor<1>| {
-            t.clone()
-                .into_data()
-                .try_into_vec_as::<f64>()
-                .ok()
-                .and_then(|v| v.first().copied())
-                .unwrap_or(f64::NAN)
-        };
-        std::iter::once(("total", read(&self.total)))
-            .chain(self.parts.iter().map(|(n, t)| (*n, read(t))))
+    pub fn scalars(&self) -> Result<Vec<(&'static str, f64)>, ReadbackError> {
+        let read =
+            |name: &'static str, t: &Tensor<1>| -> Result<(&'static str, f64), ReadbackError> {
+                let v = readback::read::<f64, 1, _>(name, t.clone())?;
+                Ok((name, v.first().copied().unwrap_or(f64::NAN)))
+            };
+        std::iter::once(read("total", &self.total))
+            .chain(self.parts.iter().map(|(n, t)| read(n, t)))
             .collect()
     }
 }
@@ -422,19 +420,10 @@ mod tests {
         Tensor::from_data(TensorData::new(values, shape), (device, DType::F64))
     }
 
-    /// Deterministic values in [0, 1) (a small LCG; the tests need no statistical quality).
+    /// Deterministic values in [0, 1) from the workspace's seeded generator.
     fn pseudo_random(n: usize, seed: u64) -> Vec<f64> {
-        let mut state = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (0..n)
-            .map(|_| {
-                state = state
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                (state >> 11) as f64 / (1u64 << 53) as f64
-            })
-            .collect()
+        let mut rng = lifegom_render::rng::Rng::new(seed);
+        (0..n).map(|_| rng.uniform()).collect()
     }
 
     /// Straightforward 2-D SSIM with the full 11×11 window and explicit zero padding, written
@@ -735,7 +724,7 @@ mod tests {
             laplacian: t(0.01),
         };
         let out = w.total(terms.clone()).unwrap();
-        let scalars = out.scalars();
+        let scalars = out.scalars().unwrap();
         let names: Vec<_> = scalars.iter().map(|(n, _)| *n).collect();
         assert_eq!(names, ["total", "rgb", "mask", "ssim", "laplacian"]);
         let expect = [2.4, 0.1, 1.0, 0.3, 1.0];

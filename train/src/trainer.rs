@@ -1,6 +1,6 @@
 //! The training loop's step, its data schedule, and checkpoints that resume exactly.
 //!
-//! One step (spec §6.1–6.3, batch size 1): run the reconstructor's T feedback steps on the N
+//! One step (design.md §9.1–§9.4, batch size 1): run the reconstructor's T feedback steps on the N
 //! sources; render every step's state in the target view too; supervise the T·(N+1) composited
 //! renders and alphas against the (broadcast) ground truth with L1 + λ(1−SSIM) + λ·mask L1, plus
 //! λ·uniform Laplacian of the T low-res canonical meshes; one Adam step with the encoder's
@@ -12,6 +12,7 @@
 //! A checkpoint stores the weights (with their parameter ids), Adam's moments and the step, so a
 //! resumed run computes the same losses as an uninterrupted one on the same backend.
 
+use lifegom_render::readback::{self, ReadbackError};
 use std::time::Instant;
 
 use burn::module::ParamGroup;
@@ -20,11 +21,11 @@ use burn::optim::lr_scheduler::module_lr_scheduler::{ModuleLearningRate, ModuleL
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Bytes, Device, Tensor};
 use lifegom_data::dataset::Dataset;
-use lifegom_data::rng::Rng;
-use lifegom_model::feedback::{Reconstructor, ReconstructorConfig, render_views};
 use lifegom_model::inputs::ModelInputs;
+use lifegom_model::reconstructor::{Reconstructor, ReconstructorConfig, render_views};
 use lifegom_model::trained::{self, TrainedError};
 use lifegom_render::gom::GomMesh;
+use lifegom_render::rng::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::config::TrainSection;
@@ -42,9 +43,21 @@ pub enum TrainError {
     /// Reading or writing a checkpoint failed.
     #[error(transparent)]
     Checkpoint(#[from] TrainedError),
-    /// Anything else, with context.
-    #[error("{0}")]
-    Other(String),
+    /// Loss values could not be read back to the host.
+    #[error(transparent)]
+    Readback(#[from] ReadbackError),
+    /// The learning-rate groups could not be built (a parameter in two groups).
+    #[error("learning-rate groups: {0}")]
+    LearningRates(String),
+    /// The optimiser state could not be serialised for a checkpoint.
+    #[error("serialising the optimizer state: {0}")]
+    OptimizerState(String),
+    /// The trainer's own metadata could not be serialised for a checkpoint.
+    #[error("serialising the trainer state: {0}")]
+    TrainerState(#[from] serde_json::Error),
+    /// A model configured with no feedback step has nothing to render or supervise.
+    #[error("the reconstructor ran no feedback step (iterations = 0)")]
+    NoFeedbackStep,
 }
 
 /// What one step measured (host values, read after the step).
@@ -74,6 +87,18 @@ pub struct StepOutput {
 struct TrainerMeta {
     step: u64,
     seed: u64,
+    /// Version of the data schedule ([`schedule`]) and the per-step seeding: a run resumes
+    /// exactly only under the schedule it started with. Files without the field are version 1
+    /// (an ad-hoc mixing function, replaced by [`Rng::fork`] in version 2).
+    #[serde(default = "schedule_v1")]
+    schedule_version: u32,
+}
+
+/// The data schedule and per-step seeding this trainer uses.
+const SCHEDULE_VERSION: u32 = 2;
+
+fn schedule_v1() -> u32 {
+    1
 }
 
 /// The model, its optimiser and the step counter.
@@ -91,20 +116,21 @@ pub struct Trainer {
     device: Device,
 }
 
-/// A 64-bit mix (splitmix64 finaliser) so nearby seeds and steps give unrelated streams.
-fn mix(a: u64, b: u64) -> u64 {
-    let mut z = a ^ b.wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476C_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
+/// A seed for `stream` of step-or-epoch `index`: unrelated for nearby seeds and indices.
+fn derived_seed(seed: u64, stream: u64, index: u64) -> u64 {
+    Rng::new(seed).fork(stream).fork(index).next_u64()
 }
+
+/// Stream keys of [`derived_seed`].
+const EPOCH_ORDER: u64 = 1;
+const DROPOUT: u64 = 2;
 
 /// The sample index and sampling RNG of step `step` (module docs: a pure function of the seed).
 pub fn schedule(seed: u64, step: u64, len: usize) -> (usize, Rng) {
     let len = len.max(1);
     let epoch = step / len as u64;
     let mut order: Vec<usize> = (0..len).collect();
-    let mut rng = Rng::new(mix(seed, epoch));
+    let mut rng = Rng::new(derived_seed(seed, EPOCH_ORDER, epoch));
     for i in (1..len).rev() {
         order.swap(i, rng.below(i + 1));
     }
@@ -134,16 +160,15 @@ fn learning_rates(
         ModuleLrSchedulerConfig::new(LrSchedulerConfig::Constant(train.lr_reconstructor))
             .with_group(encoder, LrSchedulerConfig::Constant(train.lr_encoder))
             .init()
-            .map_err(TrainError::Other)?;
+            .map_err(TrainError::LearningRates)?;
     Ok(scheduler.step())
 }
 
-fn scalar(t: Tensor<1>) -> f64 {
-    t.into_data()
-        .try_into_vec_as::<f64>()
-        .ok()
-        .and_then(|v| v.first().copied())
-        .unwrap_or(f64::NAN)
+fn scalar(name: &'static str, t: Tensor<1>) -> Result<f64, ReadbackError> {
+    Ok(readback::read::<f64, 1, _>(name, t)?
+        .first()
+        .copied()
+        .unwrap_or(f64::NAN))
 }
 
 impl Trainer {
@@ -215,6 +240,13 @@ impl Trainer {
         }
         let meta: TrainerMeta = serde_json::from_slice(&payload[8..8 + n])
             .map_err(|e| bad(format!("trainer state: {e}")))?;
+        if meta.schedule_version != SCHEDULE_VERSION {
+            return Err(bad(format!(
+                "written with data schedule version {}, this trainer uses version {SCHEDULE_VERSION}: \
+                 resuming would not continue the same run (start a new run; the weights still load for evaluation)",
+                meta.schedule_version
+            )));
+        }
         let optim = ModuleOptimizer::from(AdamConfig::new().build())
             .from_bytes(Bytes::from_bytes_vec(payload[8 + n..].to_vec()))
             .map_err(|e| bad(format!("optimizer state: {e}")))?;
@@ -237,12 +269,12 @@ impl Trainer {
         let state = serde_json::to_vec(&TrainerMeta {
             step: self.step,
             seed: self.seed,
-        })
-        .map_err(|e| TrainError::Other(e.to_string()))?;
+            schedule_version: SCHEDULE_VERSION,
+        })?;
         let optim = self
             .optim
             .into_bytes()
-            .map_err(|e| TrainError::Other(format!("serialising the optimizer: {e}")))?;
+            .map_err(|e| TrainError::OptimizerState(e.to_string()))?;
         let mut payload = Vec::with_capacity(8 + state.len() + optim.len());
         payload.extend_from_slice(&(state.len() as u64).to_le_bytes());
         payload.extend_from_slice(&state);
@@ -296,7 +328,8 @@ impl Trainer {
     ) -> Result<StepOutput, TrainError> {
         let _span = tracing::info_span!("train_step", step = self.step).entered();
         let start = Instant::now();
-        self.device.seed(mix(self.seed, self.step));
+        self.device
+            .seed(derived_seed(self.seed, DROPOUT, self.step));
         let rec = self.model.forward(&inputs.subject, mesh, &inputs.sources)?;
         let t = rec.states.len();
         let mut preds = Vec::with_capacity(t);
@@ -348,18 +381,19 @@ impl Trainer {
         self.step += 1;
 
         let target_render = last_target
-            .ok_or_else(|| TrainError::Other("the reconstructor ran no feedback step".into()))?
+            .ok_or(TrainError::NoFeedbackStep)?
             .detach()
             .squeeze_dim::<3>(0);
         let mse = scalar(
+            "target MSE",
             (target_render.clone() - inputs.target_rgb.clone())
                 .powf_scalar(2.0)
                 .mean(),
-        );
+        )?;
         let stats = StepStats {
             step: self.step,
             losses: loss
-                .scalars()
+                .scalars()?
                 .into_iter()
                 .map(|(n, v)| (n.to_string(), v))
                 .collect(),

@@ -13,7 +13,7 @@
 use std::path::PathBuf;
 
 use clap::Parser;
-use lifegom_eval::command::{EvalOptions, run};
+use lifegom_cli::eval_run::{EvalOptions, run};
 use lifegom_eval::perceptual::PerceptualModels;
 use lifegom_render::device::DeviceChoice;
 
@@ -74,10 +74,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
-        .with_writer(std::io::stderr)
-        .init();
+    lifegom_cli::init_tracing();
     let args = Args::parse();
     let mut cfg = lifegom_data::config::ConfigFile::load(&args.config)?;
     if let Some(root) = &args.data {

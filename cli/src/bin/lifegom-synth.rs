@@ -30,6 +30,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::init_tracing();
     let args = Args::parse();
     let cfg = ConfigFile::load(&args.config)?.with_root(&args.out);
     let Some(synth_cfg) = cfg.synthetic.clone() else {

@@ -8,14 +8,11 @@
 //! Ctrl-C finishes the current step, writes a checkpoint and exits; `--resume` continues it.
 
 use std::path::PathBuf;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
 
-use anyhow::Context;
 use clap::Parser;
+use lifegom_cli::train_run::{RunOptions, StopReason, train};
 use lifegom_render::device::DeviceChoice;
 use lifegom_train::config::ExperimentConfig;
-use lifegom_train::run::{RunOptions, StopReason, train};
 
 #[derive(Parser, Debug)]
 #[command(about = "Train the LIFe-GoM reconstructor", version)]
@@ -44,29 +41,13 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
-        .with_writer(std::io::stderr)
-        .init();
+    lifegom_cli::init_tracing();
     let args = Args::parse();
     let mut cfg = ExperimentConfig::load(&args.config)?;
     if let Some(root) = &args.data {
         cfg = cfg.with_root(root);
     }
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        ctrlc::set_handler(move || {
-            if stop.swap(true, Ordering::SeqCst) {
-                eprintln!("second Ctrl-C: exiting without a checkpoint");
-                std::process::exit(130);
-            }
-            eprintln!(
-                "Ctrl-C: finishing this step and writing a checkpoint (Ctrl-C again to abort)"
-            );
-        })
-        .context("installing the Ctrl-C handler")?;
-    }
+    let stop = lifegom_cli::stop_on_ctrl_c("finishing this step and writing a checkpoint")?;
     let opts = RunOptions {
         out: args.out.clone(),
         resume: args.resume,

@@ -1,7 +1,7 @@
 //! The README's main job: from a fresh clone to a trained avatar model and its report.
 //!
 //! ```text
-//! cargo run --release -p lifegom-train --bin quickstart [-- --minutes 20 --out runs/quickstart]
+//! cargo run --release -p lifegom-cli --bin quickstart [-- --minutes 20 --out runs/quickstart]
 //! ```
 //!
 //! 1. generates the synthetic THuman-style split of `configs/quickstart.toml` if it is missing;
@@ -13,18 +13,16 @@
 //! 4. writes `runs/quickstart/report.md` with the pictures.
 
 use std::path::PathBuf;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use anyhow::Context;
 use clap::Parser;
+use lifegom_cli::eval_run::{EvalOptions, run as run_eval};
+use lifegom_cli::train_run::{RunOptions, train};
 use lifegom_data::synth;
-use lifegom_eval::command::{EvalOptions, run as run_eval};
 use lifegom_eval::perceptual::PerceptualModels;
 use lifegom_render::device::DeviceChoice;
 use lifegom_train::config::ExperimentConfig;
-use lifegom_train::run::{RunOptions, train};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -53,10 +51,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
-        .with_writer(std::io::stderr)
-        .init();
+    lifegom_cli::init_tracing();
     let args = Args::parse();
     let started = Instant::now();
     let cfg = ExperimentConfig::load(&args.config)?;
@@ -86,17 +81,7 @@ fn main() -> anyhow::Result<()> {
         eprintln!("[1/3] using the existing split in {}", root.display());
     }
 
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        ctrlc::set_handler(move || {
-            if stop.swap(true, Ordering::SeqCst) {
-                std::process::exit(130);
-            }
-            eprintln!("Ctrl-C: stopping training with a checkpoint, then evaluating");
-        })
-        .context("installing the Ctrl-C handler")?;
-    }
+    let stop = lifegom_cli::stop_on_ctrl_c("stopping training with a checkpoint, then evaluating")?;
     eprintln!(
         "[2/3] training {} for {} min on {}",
         args.config.display(),
@@ -139,7 +124,7 @@ fn main() -> anyhow::Result<()> {
         weights_dir: PerceptualModels::default_dir(),
         context: vec![
             format!(
-                "`cargo run --release -p lifegom-train --bin quickstart -- --minutes {}` on {} ({} threads available)",
+                "`cargo run --release -p lifegom-cli --bin quickstart -- --minutes {}` on {} ({} threads available)",
                 args.minutes,
                 args.device.name(),
                 std::thread::available_parallelism().map_or(0, |n| n.get())

@@ -1,9 +1,9 @@
 //! `recon-bench`: how long reconstruction takes, per feedback step and in total.
 //!
 //! ```text
-//! cargo run --release -p lifegom-model --bin recon-bench -- --config tiny --json
-//! cargo run --release -p lifegom-model --bin recon-bench -- --config cpu --size 256 --json
-//! cargo run --release -p lifegom-model --bin recon-bench -- --config paper --size 1024 --subdiv 2 --json
+//! cargo run --release -p lifegom-cli --bin recon-bench -- --config tiny --json
+//! cargo run --release -p lifegom-cli --bin recon-bench -- --config cpu --size 256 --json
+//! cargo run --release -p lifegom-cli --bin recon-bench -- --config paper --size 1024 --subdiv 2 --json
 //! ```
 //!
 //! Random-initialised weights (timing does not depend on their values), source views rendered
@@ -19,7 +19,7 @@ use burn::module::Module;
 use burn::tensor::{Distribution, Tensor};
 use clap::{Parser, ValueEnum};
 use glam::Vec3;
-use lifegom_model::feedback::{ReconstructorConfig, SourceViews, Subject};
+use lifegom_model::reconstructor::{CanonicalSubject, ReconstructorConfig, SourceViews};
 use lifegom_render::camera::{Camera, Intrinsics};
 use lifegom_render::device::DeviceChoice;
 use lifegom_render::gom::GomMesh;
@@ -69,6 +69,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::init_tracing();
     let args = Args::parse();
     let device = args.device.device();
     let path = args.template.clone().unwrap_or_else(|| match args.config {
@@ -117,7 +118,7 @@ fn main() -> anyhow::Result<()> {
         skinning: vec![rest; args.views],
         background: [1.0; 3],
     };
-    let subject = Subject {
+    let subject = CanonicalSubject {
         canonical_vertices: body.vertex_tensor(&device),
         lbs_weights: body.skin.tensor(&device),
         skeleton: body.skeleton.clone(),

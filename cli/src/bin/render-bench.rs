@@ -4,7 +4,7 @@
 //! once per source view.
 //!
 //! ```text
-//! cargo run --release -p lifegom-render --bin render-bench -- --size 512 --subdiv 2 --json
+//! cargo run --release -p lifegom-cli --bin render-bench -- --size 512 --subdiv 2 --json
 //! ```
 //!
 //! Renders the template's Gaussians in the initial GoM state (rotation 0, scale 1, offset 0,
@@ -68,6 +68,7 @@ fn sync<const D: usize>(t: Tensor<D>) -> usize {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::init_tracing();
     let args = Args::parse();
     let template_path = args.template.clone().unwrap_or_else(full_template_path);
     let body = BodyTemplate::load(&template_path)

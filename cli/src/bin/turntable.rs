@@ -1,7 +1,7 @@
 //! `turntable`: renders the body template as Gaussians-on-Mesh from a ring of views, to PNGs.
 //!
 //! ```text
-//! cargo run --release -p lifegom-render --bin turntable -- --out out/turntable
+//! cargo run --release -p lifegom-cli --bin turntable -- --out out/turntable
 //! ```
 //!
 //! The whole forward path runs: the template is posed (arms lowered) by forward kinematics and
@@ -48,10 +48,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
-        .with_writer(std::io::stderr)
-        .init();
+    lifegom_cli::init_tracing();
     let args = Args::parse();
     let path = args.template.clone().unwrap_or_else(full_template_path);
     let body = BodyTemplate::load(&path).with_context(|| format!("loading {}", path.display()))?;
@@ -120,11 +117,8 @@ fn main() -> anyhow::Result<()> {
         params.colors = Tensor::from_data(TensorData::new(colors, [n, 3]), &device);
         let gaussians = mesh.gaussians(vertices.clone(), &params);
         let rendered = rasterize(&gaussians, &RasterSettings::new(camera))?;
-        let rgb = rendered
-            .over([1.0, 1.0, 1.0])
-            .into_data()
-            .try_into_vec_as::<f32>()
-            .context("reading the image")?;
+        let rgb: Vec<f32> =
+            lifegom_render::readback::read("turntable frame", rendered.over([1.0, 1.0, 1.0]))?;
         let pixels: Vec<u8> = rgb
             .iter()
             .map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)

@@ -16,7 +16,7 @@
 //! opcodes of protocols 2–5, the memo (`PUT`/`GET` in all widths and `MEMOIZE`), `GLOBAL` and
 //! `STACK_GLOBAL`, `REDUCE`, `NEWOBJ`, `BUILD`, `FRAME` (ignored: framing only helps buffered
 //! reads), `READONLY_BUFFER` (a no-op for in-band data). Calls are *not* executed generically:
-//! only a fixed table of globals is known (see [`Callable`]) — the numpy reconstructors of numpy
+//! only a fixed table of globals is known (the private `Callable` enum) — the numpy reconstructors of numpy
 //! 1.x (`numpy.core.*`) and 2.x (`numpy._core.*`), `numpy.dtype`, `_codecs.encode` (how protocol
 //! 2 stores `bytes`), `collections.OrderedDict`, `builtins.bytearray/set/frozenset`. Any other
 //! global is an error naming it. Out-of-band buffers (`NEXT_BUFFER`) are an error: a file cannot
@@ -278,9 +278,8 @@ impl<'a> Vm<'a> {
     fn run(mut self) -> R<Value> {
         loop {
             self.op_start = self.pos;
-            let op = match self.bytes.get(self.pos) {
-                Some(&op) => op,
-                None => return self.err("truncated: no STOP opcode"),
+            let Some(&op) = self.bytes.get(self.pos) else {
+                return self.err("truncated: no STOP opcode");
             };
             self.pos += 1;
             match op {
@@ -1028,15 +1027,12 @@ mod tests {
         // A self-referencing list (l.append(l)) is an error, not a stack overflow.
         let cyclic = b"\x80\x02]q\x00h\x00a.";
         assert!(from_slice(cyclic).is_err());
-        let mut state = 12345u64;
+        let mut rng = lifegom_render::rng::Rng::new(12345);
         for _ in 0..2000 {
-            let len = (state % 40) as usize;
+            let len = rng.below(40);
             let mut junk = vec![0x80, 4];
             for _ in 0..len {
-                state = state
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                junk.push((state >> 56) as u8);
+                junk.push((rng.next_u64() >> 56) as u8);
             }
             let _ = from_slice(&junk);
         }

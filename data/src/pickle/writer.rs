@@ -165,7 +165,7 @@ fn encode(a: &NdArray) -> Result<Vec<u8>, String> {
     let mut out = Vec::with_capacity(a.len() * a.dtype.size());
     match (&a.elements, a.dtype) {
         (Elements::Float(v), DType::F32) => {
-            v.iter().for_each(|&x| out.extend((x as f32).to_le_bytes()))
+            v.iter().for_each(|&x| out.extend((x as f32).to_le_bytes()));
         }
         (Elements::Float(v), DType::F64) => v.iter().for_each(|&x| out.extend(x.to_le_bytes())),
         (Elements::Int(v), DType::I64) => v.iter().for_each(|&x| out.extend(x.to_le_bytes())),

@@ -26,7 +26,7 @@ use glam::Vec3;
 use lifegom_render::skeleton::{BodyPose, Skeleton};
 
 use super::texture::Material;
-use crate::rng::Rng;
+use lifegom_render::rng::Rng;
 
 /// Body part of a vertex, from its dominant joint.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,5 +1,5 @@
 //! The synthetic THuman-style generator: subjects in exactly the official processed layout
-//! (spec §1), so the reader, training and evaluation run on it unchanged.
+//! (design.md §8), so the reader, training and evaluation run on it unchanged.
 //!
 //! # Per subject
 //!
@@ -12,11 +12,12 @@
 //! 3. **Pose**: one random plausible pose; global rotation `Rh` about the vertical axis, uniform;
 //!    `Th` puts the feet on the floor (y = 0) with a small x/z jitter. One pose for all frames,
 //!    as THuman scans are static.
-//! 4. **Cameras** (as GHG renders THuman): a ring of `source_views` (16) cameras 22.5° apart from
-//!    a random start azimuth, then `target_views` (48) at random azimuths in between (3 per gap),
-//!    all at `camera_radius` (2 m) from the look-at point (0, 0.85, 0), pitched −8°, `fx = fy =
-//!    focal_factor·W`, `cx = W/2`, `cy = H/2 + 25·H/1024`. Validation subjects get the
-//!    protocol's layout instead: N inputs spread over the ring, then `val_target_views` targets.
+//! 4. **Cameras** (the rig of the official THuman renders, design.md §8.7): a ring of
+//!    `source_views` (16) cameras 22.5° apart from a random start azimuth, then `target_views` (48)
+//!    at random azimuths in between (3 per gap), all at `camera_radius` (2 m) from the look-at
+//!    point (0, 0.85, 0), pitched −8°, `fx = fy = focal_factor·W`, `cx = W/2`, `cy = H/2 +
+//!    25·H/1024`. Validation subjects get the protocol's layout instead: N inputs spread over the
+//!    ring, then `val_target_views` targets.
 //! 5. **Ground truth**: the clothed, posed mesh through [`raster`] (a textured triangle
 //!    rasterizer with a z-buffer). The default is albedo at pixel centres; Lambert shading and
 //!    `supersample`×`supersample` anti-aliasing are computed only when the config asks for them.
@@ -41,8 +42,8 @@ use serde::{Deserialize, Serialize};
 use crate::dataset::{DataConfig, Protocol};
 use crate::error::{DataError, Location, Result};
 use crate::pickle::{self, DType, Elements, NdArray, Value};
-use crate::rng::Rng;
 use body::{Outfit, Surface};
+use lifegom_render::rng::Rng;
 
 /// Which body template (topology) subjects are built from and `canonical_joints` uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -170,7 +171,7 @@ fn default_supersample() -> u32 {
 /// Heights (metres, T-pose) accepted when sampling shapes.
 pub const HEIGHT_RANGE: std::ops::RangeInclusive<f32> = 1.55..=1.92;
 
-/// Look-at point of the camera ring (GHG: 0.85 m above the floor).
+/// Look-at point of the camera ring (0.85 m above the floor, as in the official THuman renders; design.md §8.7).
 pub const LOOK_AT: Vec3 = Vec3::new(0.0, 0.85, 0.0);
 
 impl SynthConfig {
@@ -287,7 +288,7 @@ fn val_azimuths(cfg: &SynthConfig, n_inputs: usize, rng: &mut Rng) -> Vec<f32> {
     az
 }
 
-/// The GHG-style camera at azimuth `az`.
+/// The THuman-rig camera (design.md §8.7) at azimuth `az`.
 pub fn ring_camera(cfg: &SynthConfig, az: f32) -> Result<Camera> {
     let size = cfg.image_size;
     let pitch = cfg.camera_pitch_deg.to_radians();
@@ -387,7 +388,7 @@ pub fn generate_subject(
     let at = |field: &str| Location::default().subject(name).field(field.to_owned());
     let basis = &template.shape_basis;
     let k = basis.num_components();
-    // Rejection-sample adult heights (GHG rescales its scans to 1.80 ± 0.05 m; the PCA's tails
+    // Rejection-sample adult heights (the official THuman renders rescale the scans to 1.80 ± 0.05 m; the PCA's tails
     // reach child-like and >2 m bodies that leave the 2 m camera ring's field of view).
     let mut coeffs = vec![0.0; k];
     for attempt in 0..64 {

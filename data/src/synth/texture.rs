@@ -8,7 +8,7 @@
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
-use crate::rng::Rng;
+use lifegom_render::rng::Rng;
 
 /// A procedural pattern over canonical space (metres).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

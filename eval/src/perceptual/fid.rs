@@ -205,7 +205,7 @@ pub fn frechet_distance(a: &FeatureStats, b: &FeatureStats) -> Result<f64, Perce
 #[cfg(test)]
 mod tests {
     use super::*;
-    use lifegom_render::testing::Rng;
+    use lifegom_render::rng::Rng;
 
     fn random_rows(rng: &mut Rng, n: usize, dim: usize, scale: f32, shift: f32) -> Vec<f32> {
         (0..n * dim)

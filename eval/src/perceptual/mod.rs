@@ -1,4 +1,4 @@
-//! Perceptual metrics of the evaluation protocol (spec §7.2–§7.3): LPIPS and FID, as Burn
+//! Perceptual metrics of the evaluation protocol (design.md §10.4): LPIPS and FID, as Burn
 //! modules with weights read from converted SafeTensors files.
 //!
 //! - [`Lpips`]: the pip `lpips` package, version 0.1, with the AlexNet or VGG16 backbone
@@ -29,17 +29,41 @@
 //! | `lpips_alex.safetensors` | `convs.{0..4}.{weight,bias}` (torchvision `features.{0,3,6,8,10}`), `lins.{0..4}.weight` (`lin{k}.model.1.weight`) |
 //! | `lpips_vgg.safetensors` | `convs.{0..12}.{weight,bias}` (`features.{0,2,5,7,10,12,14,17,19,21,24,26,28}`), `lins.{0..4}.weight` |
 //! | `pt_inception.safetensors` | `conv2d_1a_3x3.conv.weight`, `conv2d_1a_3x3.bn.{gamma,beta,running_mean,running_var}`, …, `mixed_7c.branch_pool.bn.running_var` (pytorch-fid's `Conv2d_*`/`Mixed_*` lower-cased, BN `weight`/`bias` → `gamma`/`beta`, `fc.*` dropped) |
+//!
+//! # Why not burn-train's `metric::vision`
+//!
+//! burn-train 0.22.1 ships LPIPS and FID modules behind its `vision` feature. We read them line
+//! by line against the reference packages and our parity fixtures and keep our own:
+//!
+//! - **Weights are downloaded at run time** (into `dirs::cache_dir()/burn-dataset/`) and no
+//!   local path can be given; loading uses `allow_partial(true)` and only logs a warning on a
+//!   bad file, so a corrupt download silently leaves random weights. The feature also turns on
+//!   `burn-std/network` (reqwest, tokio, rustls, aws-lc-sys) for the whole build.
+//! - **FID input normalisation**: ImageNet mean/std by default, where pytorch-fid maps to
+//!   `2x − 1` (`fid/metric.rs`).
+//! - **FID resize**: bilinear with `align_corners = true`, hard-coded; pytorch-fid resizes with
+//!   `align_corners = False` (`fid/inception.rs`). With this and the normalisation, the pool3
+//!   features differ far beyond our 1e-3 tolerance.
+//! - **Fréchet distance**: 50 coupled Newton–Schulz iterations in the tensor dtype (`f32` on
+//!   our backends), always adding `1e-6·mean variance·I` to both covariances. pytorch-fid takes
+//!   an `f64` `sqrtm` and adds an offset only when the result is not finite. On our
+//!   rank-deficient fixture (fewer images than 2048 features, the normal case for a
+//!   validation split) an emulation of that algorithm is off by 3.6e-4 relative in `f64` and
+//!   diverges to NaN in `f32`; ours is within 4e-11.
+//! - **LPIPS** matches lpips v0.1 (scaling layer, taps, heads, spatial mean) up to the norm's
+//!   epsilon form (`max(‖f‖, ε)` against `‖f‖ + ε`, negligible), but exposes no per-layer
+//!   output, which our parity test checks, and loads only through its downloader.
 
 pub mod fid;
 pub mod inception;
 pub mod lpips;
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use burn::module::Module;
 use burn::store::{ModuleSnapshot, SafetensorsStore};
 use burn::tensor::Device;
+use lifegom_model::weights_file::WeightsFormat;
 
 pub use fid::{FeatureStats, frechet_distance};
 pub use inception::InceptionPool3;
@@ -189,25 +213,14 @@ pub(crate) fn load_safetensors<M: Module>(
         path: path.to_path_buf(),
         source,
     };
-    // Check the SafeTensors framing ourselves first: u64 little-endian header length, then a
-    // JSON object. A truncated or foreign file then gets a clear message naming the file.
-    let mut head = Vec::with_capacity(9);
-    std::fs::File::open(path)
-        .map_err(io)?
-        .take(9)
-        .read_to_end(&mut head)
-        .map_err(io)?;
-    let len = std::fs::metadata(path).map_err(io)?.len();
-    let header_len =
-        (head.len() == 9).then(|| u64::from_le_bytes(head[..8].try_into().unwrap_or([0; 8])));
-    match header_len {
-        Some(h) if head[8] == b'{' && h.saturating_add(8) <= len => {}
-        _ => {
-            return Err(PerceptualError::Format {
-                path: path.to_path_buf(),
-                reason: format!("no SafeTensors header in its first bytes ({len} bytes long)"),
-            });
-        }
+    // Check the SafeTensors framing first, so a truncated or foreign file gets a clear message
+    // naming the file rather than a reader error.
+    if WeightsFormat::sniff(path).map_err(io)? != WeightsFormat::SafeTensors {
+        let len = std::fs::metadata(path).map_err(io)?.len();
+        return Err(PerceptualError::Format {
+            path: path.to_path_buf(),
+            reason: format!("no SafeTensors header in its first bytes ({len} bytes long)"),
+        });
     }
     let mut store = SafetensorsStore::from_file(path)
         .map_indices_contiguous(false)

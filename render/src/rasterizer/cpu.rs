@@ -40,6 +40,7 @@
 //! accumulated alpha `Σαᵢ Tᵢ = 1 − T_final` (the reference renders a constant 4th colour channel
 //! of 1 to get its mask), and optionally the expected depth `Σ zᵢαᵢTᵢ` (not normalised).
 
+use crate::camera::ViewParams;
 use rayon::prelude::*;
 
 /// Tile side, pixels.
@@ -93,25 +94,6 @@ impl Channels {
             Channels::RgbAlphaDepth => 5,
         }
     }
-}
-
-/// Camera and image, flattened for the kernels.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ViewParams {
-    /// Row-major 3×4 world-to-camera `[R | t]`.
-    pub view: [f32; 12],
-    /// Focal length x, pixels.
-    pub fx: f32,
-    /// Focal length y, pixels.
-    pub fy: f32,
-    /// Principal point x, pixels.
-    pub cx: f32,
-    /// Principal point y, pixels.
-    pub cy: f32,
-    /// Image width.
-    pub width: u32,
-    /// Image height.
-    pub height: u32,
 }
 
 /// Everything the op needs besides the Gaussians. Plain data, `Copy`, so it crosses Burn's
@@ -491,7 +473,7 @@ fn project_and_bin(
         }
     }
     let mut total = 0u64;
-    for offset in tile_offsets.iter_mut() {
+    for offset in &mut tile_offsets {
         total += *offset as u64;
         assert!(total < u32::MAX as u64, "more than 2^32 tile intersections");
         *offset = total as u32;
@@ -605,7 +587,7 @@ pub fn forward(cfg: &RasterConfig, g: &GaussianSlices) -> (Vec<f32>, ForwardStat
 
 /// Gradients of the four differentiable inputs.
 #[derive(Debug, Clone, Default, PartialEq)]
-pub struct Gradients {
+pub struct GaussianGradients {
     /// `[N*3]`.
     pub means: Vec<f32>,
     /// `[N*6]`, per stored entry (off-diagonals count both symmetric positions).
@@ -619,7 +601,7 @@ pub struct Gradients {
 /// Backpropagates `d_image` (`[H, W, C]`, the gradient of the loss w.r.t. the forward's output)
 /// through the forward that ran on `g` and produced `state`.
 #[tracing::instrument(level = "trace", skip_all)]
-pub fn backward(g: &GaussianSlices, state: &ForwardState, d_image: &[f32]) -> Gradients {
+pub fn backward(g: &GaussianSlices, state: &ForwardState, d_image: &[f32]) -> GaussianGradients {
     assert_eq!(
         g.len(),
         state.num_gaussians,
@@ -744,7 +726,7 @@ pub fn backward(g: &GaussianSlices, state: &ForwardState, d_image: &[f32]) -> Gr
     }
 
     let _span = tracing::trace_span!("project_backward").entered();
-    let mut grads = Gradients {
+    let mut grads = GaussianGradients {
         means: vec![0.0; n * 3],
         covariances: vec![0.0; n * 6],
         colors: vec![0.0; n * 3],

@@ -1,4 +1,4 @@
-//! Differentiable EWA splatting of 3D Gaussians, the renderer of LIFe-GoM (spec §4).
+//! Differentiable EWA splatting of 3D Gaussians, the renderer of LIFe-GoM (design.md §6).
 //!
 //! The official code uses the graphdeco 3DGS rasterizer with precomputed covariances and colours;
 //! this module reproduces its forward exactly (constants in [`cpu`]) and differentiates it
@@ -20,10 +20,12 @@ pub mod op;
 
 use burn::tensor::{Tensor, s};
 
-pub use cpu::{AlphaCutoff, Channels, RasterConfig, ViewParams};
+pub use crate::camera::ViewParams;
+pub use cpu::{AlphaCutoff, Channels, RasterConfig};
 
 use crate::camera::Camera;
 use crate::error::{RenderError, Result, check_finite};
+use crate::readback;
 
 /// A set of 3D Gaussians in world space, ready to render.
 #[derive(Debug, Clone)]
@@ -70,17 +72,15 @@ impl Gaussians {
     }
 
     /// Checks every value is finite (reads the tensors back). Opacities must also be in [0, 1].
+    /// A tensor that cannot be read back is a [`RenderError::Readback`], never "no values".
     pub fn check_values(&self) -> Result<()> {
-        let read = |t: Tensor<2>| t.into_data().try_into_vec_as::<f32>().unwrap_or_default();
-        check_finite("means", &read(self.means.clone()))?;
-        check_finite("covariances", &read(self.covariances.clone()))?;
-        check_finite("colors", &read(self.colors.clone()))?;
-        let opacities = self
-            .opacities
-            .clone()
-            .into_data()
-            .try_into_vec_as::<f32>()
-            .unwrap_or_default();
+        let means: Vec<f32> = readback::read("means", self.means.clone())?;
+        check_finite("means", &means)?;
+        let covariances: Vec<f32> = readback::read("covariances", self.covariances.clone())?;
+        check_finite("covariances", &covariances)?;
+        let colors: Vec<f32> = readback::read("colors", self.colors.clone())?;
+        check_finite("colors", &colors)?;
+        let opacities: Vec<f32> = readback::read("opacities", self.opacities.clone())?;
         check_finite("opacities", &opacities)?;
         if let Some(index) = opacities.iter().position(|o| !(0.0..=1.0).contains(o)) {
             return Err(RenderError::InvalidInput {
@@ -200,7 +200,7 @@ impl Rendered {
         self.rgb() + bg * (alpha.ones_like() - alpha)
     }
 
-    /// The official code's compositing, `rgb·α + bg·(1 − α)` (spec §4.4): the premultiplied
+    /// The official code's compositing, `rgb·α + bg·(1 − α)` (design.md §6.5): the premultiplied
     /// colour is multiplied by alpha a second time, darkening soft edges by `α²`.
     pub fn composite_reference(&self, background: [f32; 3]) -> Tensor<3> {
         let device = self.image.device();

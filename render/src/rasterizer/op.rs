@@ -12,7 +12,9 @@
 //! recomputes projection, sorting or binning (the op is marked compute-bound: no checkpointing
 //! recomputation either).
 
-#![allow(deprecated)] // NdArray is deprecated in Burn 0.22 in favour of Flex; the card asks for both.
+// NdArray is deprecated in Burn 0.22 in favour of Flex; ndarray is the CI backend the project
+// requires (design.md §1.4).
+#![allow(deprecated)]
 
 use std::any::Any;
 use std::fmt;
@@ -28,6 +30,7 @@ use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::TensorData;
 
 use super::cpu::{self, GaussianSlices, RasterConfig};
+use crate::readback;
 
 /// The differentiable Gaussian rasterizer, as a Burn backend extension.
 ///
@@ -76,15 +79,6 @@ pub trait RasterKernels: Backend {
     ) -> [FloatTensor<Self>; 4];
 }
 
-fn read_f32<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
-    let data =
-        burn::tensor::read_sync(B::float_into_data(t)).expect("reading a CPU tensor cannot fail");
-    match data.clone().into_vec::<f32>() {
-        Ok(v) => v,
-        Err(_) => data.try_into_vec_as::<f32>().expect("converted to f32"),
-    }
-}
-
 /// What a CPU backend saves for the backward: the inputs (moved, not copied) and the
 /// forward's intermediates.
 struct CpuSaved {
@@ -114,8 +108,10 @@ fn cpu_forward<B: Backend>(
     config: RasterConfig,
 ) -> (FloatTensor<B>, CpuSaved) {
     let device = means.device();
-    let (means, covariances) = (read_f32::<B>(means), read_f32::<B>(covariances));
-    let (colors, opacities) = (read_f32::<B>(colors), read_f32::<B>(opacities));
+    let means = readback::cpu_float::<B>("means", means);
+    let covariances = readback::cpu_float::<B>("covariances", covariances);
+    let colors = readback::cpu_float::<B>("colors", colors);
+    let opacities = readback::cpu_float::<B>("opacities", opacities);
     let slices = GaussianSlices {
         means: &means,
         covariances: &covariances,
@@ -150,7 +146,8 @@ fn cpu_backward<B: Backend>(
         .downcast_ref::<CpuSaved>()
         .expect("CPU backward given a CPU forward state");
     let device = grad_image.device();
-    let grads = cpu::backward(&saved.slices(), &saved.state, &read_f32::<B>(grad_image));
+    let grad_image = readback::cpu_float::<B>("grad_image", grad_image);
+    let grads = cpu::backward(&saved.slices(), &saved.state, &grad_image);
     let n = saved.state.num_gaussians;
     [
         B::float_from_data(TensorData::new(grads.means, [n, 3]), &device),

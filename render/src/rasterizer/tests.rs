@@ -8,7 +8,7 @@ use glam::Affine3A;
 use super::cpu::{self, GaussianSlices};
 use super::*;
 use crate::camera::{Camera, Intrinsics};
-use crate::testing::Rng;
+use crate::rng::Rng;
 
 crate::cpu_backend_tests!(
     isotropic_gaussian_renders_the_expected_bump,
@@ -49,18 +49,18 @@ impl Scene {
         };
         for _ in 0..n {
             s.means.extend([
-                rng.range(-0.4, 0.4),
-                rng.range(-0.3, 0.3),
-                rng.range(2.0, 4.0),
+                rng.range_f32(-0.4, 0.4),
+                rng.range_f32(-0.3, 0.3),
+                rng.range_f32(2.0, 4.0),
             ]);
             // Σ = L Lᵀ + small diagonal: symmetric positive definite, anisotropic.
             let l = [
-                rng.range(0.03, 0.15),
-                rng.range(-0.05, 0.05),
-                rng.range(0.03, 0.15),
-                rng.range(-0.05, 0.05),
-                rng.range(-0.05, 0.05),
-                rng.range(0.03, 0.15),
+                rng.range_f32(0.03, 0.15),
+                rng.range_f32(-0.05, 0.05),
+                rng.range_f32(0.03, 0.15),
+                rng.range_f32(-0.05, 0.05),
+                rng.range_f32(-0.05, 0.05),
+                rng.range_f32(0.03, 0.15),
             ];
             let m = [[l[0], 0.0, 0.0], [l[1], l[2], 0.0], [l[3], l[4], l[5]]];
             let dot = |i: usize, j: usize| (0..3).map(|k| m[i][k] * m[j][k]).sum::<f32>();
@@ -73,11 +73,11 @@ impl Scene {
                 dot(2, 2),
             ]);
             s.colors.extend([
-                rng.range(0.0, 1.0),
-                rng.range(0.0, 1.0),
-                rng.range(0.0, 1.0),
+                rng.range_f32(0.0, 1.0),
+                rng.range_f32(0.0, 1.0),
+                rng.range_f32(0.0, 1.0),
             ]);
-            s.opacities.push(rng.range(0.3, 0.8));
+            s.opacities.push(rng.range_f32(0.3, 0.8));
         }
         s
     }
@@ -256,13 +256,13 @@ fn gradients_match_central_differences(device: &Device) {
     for (seed, (w, h)) in [(1u64, (32u32, 24u32)), (2, (24, 36)), (3, (17, 9))] {
         let mut rng = Rng::new(seed);
         let mut cam = axis_camera(w, h, 30.0);
-        cam.intrinsics.cx += rng.range(-3.0, 3.0); // off-centre principal point
+        cam.intrinsics.cx += rng.range_f32(-3.0, 3.0); // off-centre principal point
         let scene = Scene::random(&mut rng, 5);
         let settings = RasterSettings::new(cam)
             .with_depth()
             .with_cutoff(AlphaCutoff::Smooth);
         let weights: Vec<f32> = (0..(w * h * 5) as usize)
-            .map(|_| rng.range(-1.0, 1.0))
+            .map(|_| rng.range_f32(-1.0, 1.0))
             .collect();
         check_gradients(device, &scene, &settings, &weights);
     }
@@ -303,6 +303,9 @@ pub(crate) fn check_gradients(
     };
     let names = ["means", "covariances", "colors", "opacities"];
     let mut worst = 0.0f64;
+    let mut skipped = Vec::new();
+    let total: usize =
+        scene.means.len() + scene.covs.len() + scene.colors.len() + scene.opacities.len();
     for (which, name) in names.iter().enumerate() {
         let len = [
             scene.means.len(),
@@ -329,10 +332,25 @@ pub(crate) fn check_gradients(
                 field(&mut minus, which)[i] -= h;
                 (loss(&plus) - loss(&minus)) / (2.0 * h as f64)
             };
-            let numeric = (4.0 * central(eps / 2.0) - central(eps)) / 3.0;
+            let (coarse, fine) = (central(eps), central(eps / 2.0));
+            let numeric = (4.0 * fine - coarse) / 3.0;
             let a = analytic[which][i] as f64;
             let err = (a - numeric).abs();
-            let tol = 2e-2 * a.abs().max(numeric.abs()) + 2e-3 * (1.0 + 1e-3 / eps as f64).min(5.0);
+            // The f32 forward rounds each pixel, which the difference quotient divides by `h`:
+            // how much the two step sizes disagree is a measured error bar of the estimate.
+            let noise = (fine - coarse).abs();
+            let base_tol =
+                2e-2 * a.abs().max(numeric.abs()) + 2e-3 * (1.0 + 1e-3 / eps as f64).min(5.0);
+            let tol = base_tol + 2.0 * noise;
+            // The forward has genuine jumps (two Gaussians swapping depth order, a pixel's
+            // transmittance crossing the early-stop threshold). A jump within `h` of the sample
+            // point makes the difference quotient grow like 1/h, so the two step sizes disagree
+            // wildly; there is no derivative to compare with there. Such parameters are counted
+            // and must stay rare.
+            if noise > 0.25 * fine.abs().max(coarse.abs()) + 10.0 * base_tol {
+                skipped.push(format!("{name}[{i}] ({coarse:.3} at h, {fine:.3} at h/2)"));
+                continue;
+            }
             assert!(
                 err <= tol,
                 "{name}[{i}]: analytic {a} vs numeric {numeric} (|err| {err:.2e} > {tol:.2e})"
@@ -346,7 +364,14 @@ pub(crate) fn check_gradients(
         analytic[0].iter().any(|v| v.abs() > 1e-3),
         "means got no gradient at all"
     );
-    eprintln!("finite differences: worst relative error {worst:.2e}");
+    eprintln!(
+        "finite differences: worst relative error {worst:.2e}; {} of {total} inputs at a jump of the forward: {skipped:?}",
+        skipped.len()
+    );
+    assert!(
+        skipped.len() * 20 <= total,
+        "more than 5 % of the inputs sit at a jump of the forward: {skipped:?}"
+    );
 }
 
 fn depth_channel_and_its_gradient(device: &Device) {

@@ -1,5 +1,5 @@
 //! The CPU reference of the triangle-ID z-buffer: which face is nearest at each pixel, for
-//! visibility only (spec §5.3).
+//! visibility only (design.md §6.7).
 //!
 //! The official code rasterises the posed high-res mesh with nvdiffrast per source view and calls
 //! a vertex visible if any face containing it owns at least one pixel. This module does the same
@@ -199,7 +199,7 @@ pub fn visible_faces(buffer: &TriangleIdBuffer, num_faces: usize) -> Vec<bool> {
     visible
 }
 
-/// Vertices of at least one face that owns a pixel of `buffer` (spec §5.3). For a subdivided
+/// Vertices of at least one face that owns a pixel of `buffer` (design.md §6.7). For a subdivided
 /// mesh, the first `V↓` entries are the low-res visibility.
 ///
 /// # Panics

@@ -1,5 +1,5 @@
 //! Discrete visibility: a triangle-ID z-buffer (which face is nearest at each pixel) and the
-//! vertices of the faces that own a pixel (spec §5.3). No gradient flows through it.
+//! vertices of the faces that own a pixel (design.md §6.7). No gradient flows through it.
 //!
 //! Two entry points over one algorithm:
 //!

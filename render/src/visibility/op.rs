@@ -1,14 +1,16 @@
 //! The triangle-ID rasterizer as a Burn backend extension, so visibility runs where the mesh
 //! already lives: the CPU backends call [`super::cpu`], Burn's CubeCL backend (wgpu) runs the
-//! kernels of [`super::cube`], and `Autodiff<B>` forwards to `B` on the primal values (nothing
-//! here has a gradient).
+//! kernels of the crate-private `visibility::cube` module, and `Autodiff<B>` forwards to `B` on
+//! the primal values (nothing here has a gradient).
 //!
 //! The op cannot return an error, so it is lenient where the checked CPU entry point
 //! ([`super::rasterize_triangle_ids`]) is strict: a face with an index outside the vertex list
 //! or a non-finite corner covers nothing. Shapes are checked by the tensor-level wrappers in
 //! [`super`] before dispatch.
 
-#![allow(deprecated)] // NdArray is deprecated in Burn 0.22 in favour of Flex; the card asks for both.
+// NdArray is deprecated in Burn 0.22 in favour of Flex; ndarray is the CI backend the project
+// requires (design.md §1.4).
+#![allow(deprecated)]
 
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::tensor::{FloatTensor, IntTensor};
@@ -20,6 +22,7 @@ use glam::Vec3;
 
 use super::cpu::{self, TriangleIdBuffer};
 use crate::camera::Camera;
+use crate::readback;
 
 /// Triangle-ID rasterization and the per-vertex visibility derived from it.
 #[backend_extension(NdArray, Flex, Cube, Autodiff)]
@@ -41,20 +44,6 @@ pub trait TriangleIdOps: Backend {
     ) -> IntTensor<Self>;
 }
 
-fn read_f32<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
-    burn::tensor::read_sync(B::float_into_data(t))
-        .expect("reading a CPU tensor cannot fail")
-        .iter::<f32>()
-        .collect()
-}
-
-fn read_i64<B: Backend>(t: IntTensor<B>) -> Vec<i64> {
-    burn::tensor::read_sync(B::int_into_data(t))
-        .expect("reading a CPU tensor cannot fail")
-        .iter::<i64>()
-        .collect()
-}
-
 /// Face triples from a flat index list; negative or oversized indices become `u32::MAX`, which
 /// the lenient rasterizer skips as out of range.
 fn face_triples(flat: &[i64]) -> Vec<[u32; 3]> {
@@ -70,11 +59,11 @@ fn cpu_rasterize<B: Backend>(
     camera: Camera,
 ) -> (IntTensor<B>, FloatTensor<B>) {
     let device = vertices.device();
-    let points: Vec<Vec3> = read_f32::<B>(vertices)
+    let points: Vec<Vec3> = readback::cpu_float::<B>("vertices", vertices)
         .chunks_exact(3)
         .map(Vec3::from_slice)
         .collect();
-    let faces = face_triples(&read_i64::<B>(faces));
+    let faces = face_triples(&readback::cpu_int::<B>("faces", faces));
     let TriangleIdBuffer {
         width,
         height,
@@ -95,10 +84,10 @@ fn cpu_visible_vertices<B: Backend>(
     num_vertices: usize,
 ) -> IntTensor<B> {
     let device = faces.device();
-    let faces = face_triples(&read_i64::<B>(faces));
+    let faces = face_triples(&readback::cpu_int::<B>("faces", faces));
     let mut visible = vec![0i64; num_vertices];
     let mut face_seen = vec![false; faces.len()];
-    for id in read_i64::<B>(face_ids) {
+    for id in readback::cpu_int::<B>("face_ids", face_ids) {
         let Ok(f) = usize::try_from(id) else { continue };
         if f >= faces.len() || std::mem::replace(&mut face_seen[f], true) {
             continue;

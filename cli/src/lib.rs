@@ -1,0 +1,60 @@
+//! # lifegom-cli
+//!
+//! The command-line programs of lifegom, kept apart from the libraries so that `lifegom-render`,
+//! `lifegom-model`, `lifegom-data`, `lifegom-train` and `lifegom-eval` depend on no CLI crate
+//! (clap, anyhow, indicatif, tracing-subscriber, ctrlc):
+//!
+//! | binary | what it does |
+//! |---|---|
+//! | `quickstart` | the README's main job: synthetic split → train → evaluate → report |
+//! | `lifegom-train` | the train command (checkpoints, `--resume`, Ctrl-C) |
+//! | `lifegom-eval` | the eval command on a THuman-style or AIST++ split |
+//! | `lifegom-synth` | the synthetic THuman-style data generator |
+//! | `turntable` | renders the body template as a Gaussians-on-Mesh turntable |
+//! | `render-bench`, `recon-bench` | benchmarks, one JSON line each (BENCHMARKS.md) |
+//!
+//! The library part holds what the binaries share: start-up ([`init_tracing`],
+//! [`stop_on_ctrl_c`]), the training loop behind the train command ([`train_run`]) and the
+//! evaluation behind the eval command ([`eval_run`]).
+//!
+//! ```no_run
+//! # fn main() -> anyhow::Result<()> {
+//! lifegom_cli::init_tracing();
+//! let stop = lifegom_cli::stop_on_ctrl_c("finishing this step and writing a checkpoint")?;
+//! assert!(!stop.load(std::sync::atomic::Ordering::SeqCst));
+//! # Ok(()) }
+//! ```
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::Context;
+
+pub mod eval_run;
+pub mod train_run;
+
+/// Logs `tracing` spans and events to stderr, filtered by `RUST_LOG` (nothing by default).
+pub fn init_tracing() {
+    // A second call (tests calling several mains) keeps the first subscriber.
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_writer(std::io::stderr)
+        .try_init();
+}
+
+/// A flag that the first Ctrl-C raises, so a long loop can stop cleanly at its next check
+/// (`first_press` says what it will do); a second Ctrl-C exits at once with status 130.
+pub fn stop_on_ctrl_c(first_press: &'static str) -> anyhow::Result<Arc<AtomicBool>> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    ctrlc::set_handler(move || {
+        if flag.swap(true, Ordering::SeqCst) {
+            eprintln!("second Ctrl-C: exiting now");
+            #[expect(clippy::exit, reason = "a second Ctrl-C means: stop now, like SIGINT")]
+            std::process::exit(130);
+        }
+        eprintln!("Ctrl-C: {first_press} (Ctrl-C again to abort)");
+    })
+    .context("installing the Ctrl-C handler")?;
+    Ok(stop)
+}
