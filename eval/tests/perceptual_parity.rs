@@ -139,9 +139,7 @@ fn image_tensor(spec: &Value, device: &Device) -> Tensor<4> {
     Tensor::from_data(TensorData::new(values, shape), device)
 }
 
-fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
-}
+use lifegom_render::testing::read;
 
 /// Largest |got − want| / max(|want|, floor).
 fn max_rel_err(got: &[f32], want: &[f64], floor: f64) -> f64 {

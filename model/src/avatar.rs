@@ -386,9 +386,7 @@ mod tests {
     use lifegom_render::camera::Intrinsics;
     use lifegom_render::template::{BodyTemplate, lowres_template_path};
 
-    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        readback::read("test tensor", t).unwrap()
-    }
+    use lifegom_render::testing::read;
 
     #[test]
     fn avatar_renders_novel_poses_and_round_trips_through_files() {

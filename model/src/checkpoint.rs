@@ -773,7 +773,7 @@ mod tests {
     use super::*;
     use crate::reconstructor::ReconstructorConfig;
     use burn::store::bridge;
-    use burn::tensor::{Device, Tensor};
+    use burn::tensor::Device;
     use lifegom_render::rng::Rng;
 
     /// Low-res vertex count of the small test models.
@@ -873,9 +873,7 @@ mod tests {
         }
     }
 
-    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
-    }
+    use lifegom_render::testing::read;
 
     fn shape_of(names: &[OfficialTensor], key: &str) -> Vec<usize> {
         names

@@ -678,9 +678,7 @@ mod tests {
         Tensor::from_data(TensorData::new(v, [n, 3, h, w]), device)
     }
 
-    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        t.into_data().convert::<f32>().to_vec::<f32>().unwrap()
-    }
+    use lifegom_render::testing::read;
 
     fn max_abs_diff<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> f32 {
         (a - b).abs().max().into_scalar::<f32>()

@@ -154,9 +154,7 @@ mod tests {
     use super::*;
     use burn::tensor::{Distribution, TensorData};
 
-    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        t.into_data().try_into_vec_as::<f32>().unwrap()
-    }
+    use lifegom_render::testing::read;
 
     fn shapes_and_view_permutation(device: &Device) {
         let fusion = FusionConfig::new(24).with_n_heads(3).init(device);

@@ -18,6 +18,7 @@ use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::activation::relu;
+use burn::tensor::module::linear;
 use burn::tensor::{Device, Int, Tensor};
 
 use lifegom_render::gom::GomParams;
@@ -142,15 +143,38 @@ impl UpdateHeads {
 
     /// Face parameters from the face inputs `[F, face_input_dim]` (see [`face_inputs`]):
     /// the constant init (so3 0, scale 1, offset 0, rgb 0, opacity 1) plus each head's output.
+    ///
+    /// The four heads' first layers run as **one** matmul over their concatenated weights
+    /// (`[G, 4·hidden]`): the face inputs (`G = 3·32 + N·1152` wide, one row per high-res face)
+    /// are by far the largest operand of a feedback step, and one product reads them once
+    /// instead of four times, forward and backward. The parameters keep their own names and
+    /// shapes, so checkpoints and their import are unchanged; the result equals four separate
+    /// heads up to float summation order (tested below).
     pub fn faces(&self, inputs: Tensor<2>) -> GomParams {
         let [f, _] = inputs.dims();
         let device = inputs.device();
         let init = GomParams::init(f, &device);
+        let heads = [&self.so3, &self.scale, &self.offset, &self.rgb];
+        let weight = Tensor::cat(heads.iter().map(|m| m.l0.weight.val()).collect(), 1);
+        let bias = heads
+            .iter()
+            .map(|m| m.l0.bias.as_ref().map(|b| b.val()))
+            .collect::<Option<Vec<_>>>()
+            .map(|b| Tensor::cat(b, 0));
+        let hidden = relu(linear(inputs, weight, bias));
+        let widths: Vec<usize> = heads.iter().map(|m| m.l0.weight.dims()[1]).collect();
+        let mut start = 0;
+        let mut out = heads.iter().zip(&widths).map(|(m, &w)| {
+            let chunk = hidden.clone().narrow(1, start, w);
+            start += w;
+            m.l2.forward(chunk)
+        });
+        let mut next = || out.next().expect("four heads");
         GomParams {
-            so3: init.so3 + self.so3.forward(inputs.clone()),
-            scales: init.scales + self.scale.forward(inputs.clone()),
-            offsets: init.offsets + self.offset.forward(inputs.clone()),
-            colors: init.colors + self.rgb.forward(inputs),
+            so3: init.so3 + next(),
+            scales: init.scales + next(),
+            offsets: init.offsets + next(),
+            colors: init.colors + next(),
             opacities: init.opacities,
         }
     }
@@ -194,9 +218,7 @@ mod tests {
     use lifegom_render::mesh::MeshTopology;
     use lifegom_render::subdivision::Subdivision;
 
-    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        t.into_data().try_into_vec_as::<f32>().unwrap()
-    }
+    use lifegom_render::testing::read;
 
     fn check(device: &Device) {
         let cfg = UpdateHeadsConfig::new(8, 2)
@@ -250,5 +272,81 @@ mod tests {
         assert_eq!(params.colors.dims(), [f, 3]);
     }
 
+    /// The fused first layer gives the four separate heads' outputs and gradients (inputs and
+    /// every parameter), up to float summation order.
+    fn fused_faces_equal_separate_heads(device: &Device) {
+        let ad = device.clone().autodiff();
+        let heads = UpdateHeadsConfig::new(16, 3)
+            .with_point_dim(5)
+            .with_hidden(7)
+            .init(&ad);
+        let g = 3 * 5 + 3 * 16;
+        let x = Tensor::<2>::random([11, g], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+        let w = Tensor::<2>::random([11, 3], Distribution::Normal(0.0, 1.0), &ad);
+        let fused = heads.faces(x.clone());
+        let separate = [
+            heads.so3.forward(x.clone()),
+            heads.scale.forward(x.clone()) + 1.0,
+            heads.offset.forward(x.clone()),
+            heads.rgb.forward(x.clone()),
+        ];
+        let fused_out = [fused.so3, fused.scales, fused.offsets, fused.colors];
+        let close = |a: &[f32], b: &[f32], what: &str| {
+            assert_eq!(a.len(), b.len(), "{what}");
+            for (i, (p, q)) in a.iter().zip(b).enumerate() {
+                assert!(
+                    (p - q).abs() <= 1e-5 * (1.0 + q.abs()),
+                    "{what}[{i}]: fused {p} vs separate {q}"
+                );
+            }
+        };
+        let loss = |outs: &[Tensor<2>]| {
+            outs.iter()
+                .enumerate()
+                .map(|(k, o)| (o.clone() * w.clone().mul_scalar(k as f32 + 1.0)).sum())
+                .reduce(|a, b| a + b)
+                .expect("four heads")
+        };
+        for (k, (a, b)) in fused_out.iter().zip(&separate).enumerate() {
+            close(
+                &read(a.clone()),
+                &read(b.clone()),
+                &format!("head {k} output"),
+            );
+        }
+        let grads_fused = loss(&fused_out).backward();
+        let grads_sep = loss(&separate).backward();
+        close(
+            &read(x.grad(&grads_fused).expect("input gradient")),
+            &read(x.grad(&grads_sep).expect("input gradient")),
+            "input gradient",
+        );
+        for (name, m) in [
+            ("so3", &heads.so3),
+            ("scale", &heads.scale),
+            ("offset", &heads.offset),
+            ("rgb", &heads.rgb),
+        ] {
+            for (layer, l) in [("l0", &m.l0), ("l2", &m.l2)] {
+                let wf = l.weight.val().grad(&grads_fused).expect("weight gradient");
+                let ws = l.weight.val().grad(&grads_sep).expect("weight gradient");
+                close(
+                    &read(wf),
+                    &read(ws),
+                    &format!("{name}.{layer}.weight gradient"),
+                );
+                let bias = l.bias.as_ref().expect("heads have biases").val();
+                let bf = bias.grad(&grads_fused).expect("bias gradient");
+                let bs = bias.grad(&grads_sep).expect("bias gradient");
+                close(
+                    &read(bf),
+                    &read(bs),
+                    &format!("{name}.{layer}.bias gradient"),
+                );
+            }
+        }
+    }
+
     lifegom_render::cpu_backend_tests!(heads => check);
+    lifegom_render::cpu_backend_tests!(fused_heads => fused_faces_equal_separate_heads);
 }

@@ -684,9 +684,7 @@ mod tests {
         Tensor::from_data(TensorData::new(v, shape), device)
     }
 
-    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        t.into_data().try_into_vec_as::<f32>().unwrap()
-    }
+    use lifegom_render::testing::read;
 
     fn lowres_vertices(device: &Device) -> Tensor<2> {
         let t = lifegom_render::template::BodyTemplate::load(

@@ -564,9 +564,7 @@ mod tests {
     use lifegom_render::skeleton::BodyPose;
     use lifegom_render::template::{BodyTemplate, lowres_template_path};
 
-    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        t.into_data().try_into_vec_as::<f32>().unwrap()
-    }
+    use lifegom_render::testing::read;
 
     struct Fixture {
         subject: CanonicalSubject,

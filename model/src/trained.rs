@@ -222,11 +222,8 @@ pub fn load(path: &Path, device: &Device) -> Result<TrainedModel, TrainedError> 
 mod tests {
     #![allow(deprecated)]
     use super::*;
-    use burn::tensor::Tensor;
 
-    fn read(t: Tensor<2>) -> Vec<f32> {
-        t.into_data().try_into_vec_as::<f32>().unwrap()
-    }
+    use lifegom_render::testing::read;
 
     fn tmp(name: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("lifegom-trained-{}", std::process::id()));

@@ -194,9 +194,7 @@ mod tests {
     use super::*;
     use burn::tensor::TensorData;
 
-    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        t.into_data().try_into_vec_as::<f32>().unwrap()
-    }
+    use crate::testing::read;
 
     fn check_so3(device: &Device) {
         let r = Tensor::<2>::from_data(

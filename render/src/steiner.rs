@@ -82,9 +82,7 @@ mod tests {
         )
     }
 
-    fn read(t: Tensor<3>) -> Vec<f32> {
-        t.into_data().try_into_vec_as::<f32>().unwrap()
-    }
+    use crate::testing::read;
 
     /// The inellipse of a triangle touches each edge midpoint: with A's in-plane columns as the
     /// semi-axes (×2), each midpoint m satisfies |A⁻¹_inplane (m − c)| = ½.

@@ -1,6 +1,7 @@
 //! Test support shared by the workspace's test suites (not part of the API).
 //!
-//! - [`Rng`]: the workspace's seeded generator ([`crate::rng`]), re-exported for test suites.
+//! - [`Rng`]: the workspace's seeded generator ([`crate::rng`]), re-exported for test suites;
+//!   [`read`]: a tensor's values for assertions.
 //! - [`cpu_backend_tests!`](crate::cpu_backend_tests): one test body, run once per CPU backend
 //!   (ndarray, which CI covers, and Flex).
 //! - [`wgpu_test_device`]: the wgpu device for GPU-kernel tests, or a loud skip.
@@ -8,6 +9,12 @@
 //!   several suites build scenes from.
 
 pub use crate::rng::Rng;
+
+/// The values of a float tensor as `f32`, for test assertions (panics with the read-back
+/// error, which a test should report as a failure).
+pub fn read<const D: usize>(t: burn::tensor::Tensor<D>) -> Vec<f32> {
+    crate::readback::read("test tensor", t).expect("reading a test tensor back")
+}
 
 /// Runs test bodies `fn(&burn::tensor::Device)` once per CPU backend.
 ///

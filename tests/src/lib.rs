@@ -33,10 +33,7 @@ pub fn tensor2(values: Vec<f32>, cols: usize, device: &Device) -> Tensor<2> {
     Tensor::from_data(TensorData::new(values, [rows, cols]), device)
 }
 
-/// Host copy of a tensor.
-pub fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_into_vec_as::<f32>().expect("f32 data")
-}
+pub use lifegom_render::testing::read;
 
 /// Asserts every value is finite, naming what and where.
 pub fn assert_finite(what: &str, values: &[f32]) {

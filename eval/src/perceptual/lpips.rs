@@ -350,9 +350,7 @@ impl Lpips {
 mod tests {
     use super::*;
 
-    fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
-    }
+    use lifegom_render::testing::read;
 
     fn images(n: usize, h: usize, w: usize, phase: f32, device: &Device) -> Tensor<4> {
         let v: Vec<f32> = (0..n * 3 * h * w)

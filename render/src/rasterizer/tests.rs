@@ -113,9 +113,7 @@ impl Scene {
     }
 }
 
-pub(crate) fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_into_vec_as::<f32>().unwrap()
-}
+pub(crate) use crate::testing::read;
 
 fn isotropic_gaussian_renders_the_expected_bump(device: &Device) {
     let (w, h, f) = (40u32, 30u32, 50.0f32);
