@@ -11,7 +11,7 @@
 //! | `lifegom-eval` | the eval command on a THuman-style or AIST++ split |
 //! | `lifegom-synth` | the synthetic THuman-style data generator |
 //! | `turntable` | renders the body template as a Gaussians-on-Mesh turntable |
-//! | `render-bench`, `recon-bench` | benchmarks, one JSON line each (BENCHMARKS.md) |
+//! | `render-bench`, `recon-bench`, `train-bench` | benchmarks, one JSON line each (BENCHMARKS.md) |
 //!
 //! The library part holds what the binaries share: start-up ([`init_tracing`],
 //! [`stop_on_ctrl_c`]), the training loop behind the train command ([`train_run`]) and the
@@ -31,6 +31,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use anyhow::Context;
 
 pub mod eval_run;
+pub mod profile;
 pub mod train_run;
 
 /// Logs `tracing` spans and events to stderr, filtered by `RUST_LOG` (nothing by default).

@@ -29,7 +29,8 @@ use lifegom_model::reconstructor::MeshPurpose;
 
 use lifegom_train::config::ExperimentConfig;
 use lifegom_train::losses::UniformLaplacian;
-use lifegom_train::trainer::{StepStats, Trainer, sample_for_step};
+use lifegom_train::prefetch::Prefetcher;
+use lifegom_train::trainer::{StepStats, Trainer};
 
 /// Options of a training run (the command line).
 #[derive(Debug, Clone)]
@@ -143,7 +144,7 @@ pub fn train(
             cfg.train.loss_lpips
         );
     }
-    let dataset = Dataset::open(&cfg.file.data, Split::Train)?;
+    let dataset = Arc::new(Dataset::open(&cfg.file.data, Split::Train)?);
     if dataset.is_empty() {
         bail!(
             "the training split of {} is empty",
@@ -225,6 +226,7 @@ pub fn train(
     let meta = serde_json::json!({ "config": cfg.file.source.display().to_string() });
     let mut history = Vec::new();
     let mut stop_reason = StopReason::Finished;
+    let mut prefetch = Prefetcher::new(dataset.clone(), trainer.seed(), trainer.step);
     while trainer.step < total_steps {
         if stop.load(Ordering::SeqCst) {
             stop_reason = StopReason::Interrupted;
@@ -238,12 +240,16 @@ pub fn train(
             break;
         }
         let step = trainer.step;
-        let sample = sample_for_step(&dataset, trainer.seed(), step)?;
-        let body = bodies
-            .iter()
-            .find(|b| b.name == sample.subject)
-            .context("sample from an unknown subject")?;
-        let inputs = model_inputs(body, &sample, w, h, trainer.device())?;
+        let (sample, inputs) = {
+            let _span = tracing::debug_span!("data").entered();
+            let sample = prefetch.next_sample(&dataset, trainer.seed())?;
+            let body = bodies
+                .iter()
+                .find(|b| b.name == sample.subject)
+                .context("sample from an unknown subject")?;
+            let inputs = model_inputs(body, &sample, w, h, trainer.device())?;
+            (sample, inputs)
+        };
         let out = trainer
             .train_step_with_render(&inputs, &mesh, &laplacian)
             .with_context(|| format!("training step {step} ({})", sample.frame_name))?;

@@ -424,7 +424,10 @@ impl Reconstructor {
         for step in 0..self.iterations {
             let _span = tracing::debug_span!("feedback_step", step).entered();
             // The rendered branch carries no gradient into the encoder (design.md §7.3, §12).
-            let feats_ren = self.encoder.encode(renders.rgb.clone().detach())?.detach();
+            let feats_ren = {
+                let _span = tracing::debug_span!("encode_renders").entered();
+                self.encoder.encode(renders.rgb.clone().detach())?.detach()
+            };
             state = self.update(
                 subject,
                 mesh,
@@ -469,6 +472,7 @@ impl Reconstructor {
         let d = self.visibility_embed.dims()[0];
 
         // Pose the current vertices into each view and project them.
+        let span = tracing::debug_span!("pose_and_project").entered();
         let posed: Vec<Tensor<2>> = sources
             .skinning
             .iter()
@@ -485,6 +489,7 @@ impl Reconstructor {
         let faces_hr = faces_flat.clone().reshape([f, 3]);
         let num_hr_vertices = mesh.subdivision.highres.num_vertices;
         let posed_hr: Vec<Tensor<2>> = posed.iter().map(|p| tables.apply(p.clone())).collect();
+        drop(span);
         let (vis, face_vis) = {
             let _span = tracing::debug_span!("visibility").entered();
             let mut vis_lowres = Vec::with_capacity(n);
@@ -510,15 +515,19 @@ impl Reconstructor {
         let e_vis = self.visibility_embed.val().reshape([1, 1, d]);
 
         // Source branch, blended with e_vis where the vertex is hidden.
+        let span = tracing::debug_span!("sampling").entered();
         let f_src = feats_src.sample(proj.uv.clone(), w, h)?;
         let src = f_src * vis.clone() + e_vis.clone() * (vis.ones_like() - vis);
         // Rendered branch, blended by the previous render's soft alpha.
         let f_ren = feats_ren.sample(proj.uv.clone(), w, h)?;
         let m = sample_single(alpha_prev, proj.uv.clone(), w, h)?.reshape([v, n, 1]);
         let ren = f_ren * m.clone() + e_vis * (m.ones_like() - m);
+        drop(span);
 
+        let span = tracing::debug_span!("fusion").entered();
         let fused_src = self.fusion.forward(src, state.embed.clone());
         let fused_ren = self.fusion.forward(ren, state.embed.clone()).detach();
+        drop(span);
         let h_pt = {
             let _span = tracing::debug_span!("point_transformer").entered();
             self.point_transformer.forward(
@@ -526,10 +535,13 @@ impl Reconstructor {
                 Tensor::cat(vec![fused_src, fused_ren], 1),
             )?
         };
+        let span = tracing::debug_span!("vertex_heads").entered();
         let vertex = self.heads.vertices(h_pt.clone());
+        drop(span);
 
         // Faces: source features at the projected centroid of each high-res face of the current
         // (pre-update) mesh, zeroed where the face is not fully visible in that view.
+        let span = tracing::debug_span!("face_sampling").entered();
         let proj_hr = project_points(Tensor::stack(posed_hr, 0), &sources.cameras)?;
         let uv_faces = proj_hr
             .uv
@@ -538,6 +550,8 @@ impl Reconstructor {
             .mean_dim(2)
             .reshape([n, f, 2]);
         let face_feats = feats_src.sample(uv_faces, w, h)?; // [F, N, D]
+        drop(span);
+        let span = tracing::debug_span!("face_heads").entered();
         let inputs = face_inputs(
             h_pt,
             tables.index.clone(),
@@ -547,6 +561,7 @@ impl Reconstructor {
             face_vis,
         );
         let faces = self.heads.faces(inputs);
+        drop(span);
         Ok(GomState {
             xyz: state.xyz.clone() + vertex.delta_xyz,
             embed: vertex.embed,

@@ -31,7 +31,9 @@
 //!   Laplacian) and the [`losses::LossWeights`] that combine them.
 //! - [`config`]: `[model]` and `[train]` sections of an experiment TOML.
 //! - [`trainer`]: the step, the data schedule and exact-resume checkpoints.
+//! - [`prefetch`]: the next step's sample read on another thread while this one computes.
 
 pub mod config;
 pub mod losses;
+pub mod prefetch;
 pub mod trainer;

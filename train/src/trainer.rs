@@ -331,6 +331,7 @@ impl Trainer {
         self.device
             .seed(derived_seed(self.seed, DROPOUT, self.step));
         let rec = self.model.forward(&inputs.subject, mesh, &inputs.sources)?;
+        let span = tracing::debug_span!("target_renders").entered();
         let t = rec.states.len();
         let mut preds = Vec::with_capacity(t);
         let mut alphas = Vec::with_capacity(t);
@@ -349,6 +350,8 @@ impl Trainer {
             preds.push(Tensor::cat(vec![source.rgb.clone(), target.rgb], 0));
             alphas.push(Tensor::cat(vec![source.alpha.clone(), target.alpha], 0));
         }
+        drop(span);
+        let span = tracing::debug_span!("losses").entered();
         let gt_rgb = Tensor::cat(
             vec![
                 inputs.sources.images.clone(),
@@ -376,9 +379,17 @@ impl Trainer {
             laplacian: laplacian.loss(meshes),
         };
         let loss = self.weights.total(terms)?;
-        let grads = GradientsParams::from_grads(loss.total.backward(), &self.model);
-        self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
+        drop(span);
+        let grads = {
+            let _span = tracing::debug_span!("backward").entered();
+            GradientsParams::from_grads(loss.total.backward(), &self.model)
+        };
+        {
+            let _span = tracing::debug_span!("optimizer").entered();
+            self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
+        }
         self.step += 1;
+        let _span = tracing::debug_span!("statistics").entered();
 
         let target_render = last_target
             .ok_or(TrainError::NoFeedbackStep)?

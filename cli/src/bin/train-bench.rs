@@ -1,0 +1,202 @@
+//! `train-bench`: where a training step's time goes.
+//!
+//! ```text
+//! cargo run --release -p lifegom-cli --bin train-bench -- --config configs/quickstart.toml
+//! cargo run --release -p lifegom-cli --bin train-bench -- --config configs/synthetic-tiny.toml
+//! cargo run --release -p lifegom-cli --bin train-bench -- --config configs/synthetic-default.toml --steps 4
+//! ```
+//!
+//! Runs the trainer's real step (the same data schedule, model and losses as `lifegom-train`) on
+//! a config's synthetic split, after warm-up steps, and prints ONE JSON line: the median step
+//! time, the process's CPU time per wall second (2.0 = both cores of a 2-core machine busy), and
+//! the median milliseconds of every stage, keyed by span path (`profile` module docs), e.g.
+//! `train_step/reconstruct/feedback_step/render_views` (summed over the T feedback steps).
+//!
+//! If the config's split is missing it is generated first, with at most `--subjects` training
+//! subjects (the timing does not depend on how many there are), under `bench-data/<config>`.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use clap::Parser;
+use lifegom_cli::profile::{StageTimer, median, process_cpu_seconds};
+use lifegom_data::dataset::{Dataset, Split};
+use lifegom_data::synth;
+use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_model::reconstructor::MeshPurpose;
+use lifegom_render::device::DeviceChoice;
+use lifegom_train::config::ExperimentConfig;
+use lifegom_train::losses::UniformLaplacian;
+use lifegom_train::prefetch::Prefetcher;
+use lifegom_train::trainer::{Trainer, sample_for_step};
+use tracing_subscriber::layer::SubscriberExt;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum DataLoading {
+    /// One sample ahead on another thread.
+    Prefetch,
+    /// On the training thread, before each step.
+    Serial,
+}
+
+#[derive(Parser, Debug)]
+#[command(about = "Profile LIFe-GoM training steps (one JSON line)")]
+struct Args {
+    /// Experiment config (data, model preset, training settings).
+    #[arg(long, default_value = "configs/quickstart.toml")]
+    config: PathBuf,
+    /// Timed steps (the median is reported).
+    #[arg(long, default_value_t = 10)]
+    steps: u64,
+    /// Untimed steps first (allocator and thread-pool warm-up).
+    #[arg(long, default_value_t = 2)]
+    warmup: u64,
+    /// Backend.
+    #[arg(long, default_value = "flex")]
+    device: DeviceChoice,
+    /// Data root; defaults to the config's root if its split exists, else `bench-data/<config>`.
+    #[arg(long)]
+    data_root: Option<PathBuf>,
+    /// How samples are read: on a prefetch thread (as `lifegom-train` does) or on the training
+    /// thread (to measure what prefetching saves).
+    #[arg(long, value_enum, default_value = "prefetch")]
+    data: DataLoading,
+    /// Training subjects to generate when the split is missing.
+    #[arg(long, default_value_t = 3)]
+    subjects: usize,
+}
+
+fn ms(seconds: f64) -> serde_json::Value {
+    serde_json::json!((seconds * 1e5).round() / 100.0)
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let mut cfg = ExperimentConfig::load(&args.config)?;
+    let stem = args
+        .config
+        .file_stem()
+        .map_or_else(|| "bench".into(), |s| s.to_string_lossy().into_owned());
+    let split_exists = |cfg: &ExperimentConfig| {
+        cfg.file
+            .data
+            .root
+            .join(&cfg.file.data.train_dir)
+            .join(&cfg.file.data.train_split)
+            .exists()
+    };
+    if let Some(root) = &args.data_root {
+        cfg = cfg.with_root(root);
+    } else if !split_exists(&cfg) {
+        cfg = cfg.with_root(PathBuf::from("bench-data").join(&stem));
+    }
+    if !split_exists(&cfg) {
+        let mut synth_cfg = cfg.file.synthetic.clone().with_context(|| {
+            format!(
+                "{}: no [synthetic] section to generate a split from",
+                args.config.display()
+            )
+        })?;
+        synth_cfg.train_subjects = synth_cfg.train_subjects.min(args.subjects.max(1));
+        synth_cfg.val_subjects = 1;
+        eprintln!(
+            "generating {} training subjects into {}",
+            synth_cfg.train_subjects,
+            cfg.file.data.root.display()
+        );
+        synth::generate_split(
+            &synth_cfg,
+            &cfg.file.data,
+            &cfg.file.data.root,
+            synth_cfg.seed,
+            &|| {},
+        )?;
+    }
+
+    let device = args.device.device();
+    let dataset = std::sync::Arc::new(Dataset::open(&cfg.file.data, Split::Train)?);
+    let rigs = SubjectRig::for_split(&dataset)?;
+    let mut trainer = Trainer::new(
+        cfg.reconstructor(),
+        rigs[0].num_vertices(),
+        &cfg.train,
+        &device,
+    )?;
+    let mesh = trainer
+        .config
+        .mesh(&rigs[0].topology, MeshPurpose::Training, trainer.device())?;
+    let laplacian = UniformLaplacian::new(&rigs[0].topology.faces, rigs[0].num_vertices())?;
+    let (w, h) = (cfg.file.data.img_size[0], cfg.file.data.img_size[1]);
+
+    let timer = StageTimer::default();
+    tracing::subscriber::set_global_default(tracing_subscriber::registry().with(timer.clone()))
+        .context("installing the stage timer")?;
+
+    let mut step_seconds = Vec::new();
+    let mut stages: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
+    let mut cpu_seconds = 0.0;
+    let mut wall_seconds = 0.0;
+    let mut prefetch = (args.data == DataLoading::Prefetch)
+        .then(|| Prefetcher::new(dataset.clone(), trainer.seed(), trainer.step));
+    for i in 0..args.warmup + args.steps.max(1) {
+        let cpu_before = process_cpu_seconds();
+        let start = Instant::now();
+        {
+            let _span = tracing::info_span!("step").entered();
+            let inputs = {
+                let _span = tracing::debug_span!("data").entered();
+                let sample = match prefetch.as_mut() {
+                    Some(p) => p.next_sample(&dataset, trainer.seed())?,
+                    None => sample_for_step(&dataset, trainer.seed(), trainer.step)?,
+                };
+                let rig = rigs
+                    .iter()
+                    .find(|r| r.name == sample.subject)
+                    .context("sample from an unknown subject")?;
+                model_inputs(rig, &sample, w, h, trainer.device())?
+            };
+            trainer.train_step(&inputs, &mesh, &laplacian)?;
+        }
+        let wall = start.elapsed().as_secs_f64();
+        let totals = timer.take();
+        if i < args.warmup {
+            continue;
+        }
+        step_seconds.push(wall);
+        wall_seconds += wall;
+        if let (Some(a), Some(b)) = (cpu_before, process_cpu_seconds()) {
+            cpu_seconds += b - a;
+        }
+        for (path, d) in totals {
+            stages.entry(path).or_default().push(d.as_secs_f64());
+        }
+    }
+
+    let model = &trainer.config;
+    let stage_ms: serde_json::Map<String, serde_json::Value> = stages
+        .iter()
+        .filter_map(|(path, v)| Some((path.clone(), ms(median(v)?))))
+        .collect();
+    let line = serde_json::json!({
+        "bench": "train-step",
+        "config": stem,
+        "preset": cfg.model.preset,
+        "backend": args.device.name(),
+        "size": [w, h],
+        "views": cfg.file.data.n_input_frames,
+        "iterations": model.iterations,
+        "subdivide_train": model.subdivide_train,
+        "gaussians": mesh.num_gaussians(),
+        "vertices": rigs[0].num_vertices(),
+        "data": format!("{:?}", args.data).to_lowercase(),
+        "steps": step_seconds.len(),
+        "median_step_ms": ms(median(&step_seconds).unwrap_or(f64::NAN)),
+        "min_step_ms": ms(step_seconds.iter().copied().fold(f64::INFINITY, f64::min)),
+        "cpu_per_wall": (cpu_seconds / wall_seconds * 100.0).round() / 100.0,
+        "threads": rayon::current_num_threads(),
+        "stages_ms": stage_ms,
+    });
+    println!("{line}");
+    Ok(())
+}

@@ -1,0 +1,158 @@
+//! Wall time per stage, from the `tracing` spans the libraries already open.
+//!
+//! [`StageTimer`] is a `tracing-subscriber` layer: every span gets a path made of its ancestors'
+//! names (`train_step/reconstruct/feedback_step/render_views`), and the time between entering
+//! and leaving it is added to that path's total. A span entered several times in one step (the
+//! T feedback steps, the N views) sums into one entry, so a step's profile is a flat map from
+//! path to milliseconds, and a parent's time includes its children's.
+//!
+//! The CPU backends (ndarray, Flex) execute each op when it is called, so a span's time is the
+//! work done inside it. On wgpu a span only measures the time to enqueue.
+//!
+//! ```
+//! use lifegom_cli::profile::StageTimer;
+//! use tracing_subscriber::layer::SubscriberExt;
+//!
+//! let timer = StageTimer::default();
+//! let subscriber = tracing_subscriber::registry().with(timer.clone());
+//! tracing::subscriber::with_default(subscriber, || {
+//!     let _outer = tracing::info_span!("step").entered();
+//!     let _inner = tracing::debug_span!("render").entered();
+//! });
+//! let totals = timer.take();
+//! assert!(totals.contains_key("step/render"));
+//! ```
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+
+use tracing::span::{Attributes, Id};
+use tracing::{Metadata, Subscriber};
+use tracing_subscriber::Layer;
+use tracing_subscriber::layer::Context;
+use tracing_subscriber::registry::LookupSpan;
+
+/// Accumulated wall time per span path. Clones share one table.
+#[derive(Debug, Clone, Default)]
+pub struct StageTimer {
+    totals: Arc<Mutex<BTreeMap<String, Duration>>>,
+}
+
+/// What the layer keeps in each span's extensions.
+struct SpanClock {
+    path: String,
+    entered: Option<Instant>,
+}
+
+impl StageTimer {
+    /// The totals since the last call, emptying the table.
+    pub fn take(&self) -> BTreeMap<String, Duration> {
+        std::mem::take(&mut *self.totals.lock().unwrap_or_else(PoisonError::into_inner))
+    }
+}
+
+impl<S> Layer<S> for StageTimer
+where
+    S: Subscriber + for<'a> LookupSpan<'a>,
+{
+    fn enabled(&self, metadata: &Metadata<'_>, _ctx: Context<'_, S>) -> bool {
+        // Stages are info/debug spans; trace spans are per-kernel detail whose bookkeeping
+        // would cost more than the finest stage they split.
+        metadata.is_span() && *metadata.level() <= tracing::Level::DEBUG
+    }
+
+    fn on_new_span(&self, attrs: &Attributes<'_>, id: &Id, ctx: Context<'_, S>) {
+        let Some(span) = ctx.span(id) else { return };
+        let name = attrs.metadata().name();
+        let path = span
+            .parent()
+            .and_then(|p| {
+                p.extensions()
+                    .get::<SpanClock>()
+                    .map(|c| format!("{}/{name}", c.path))
+            })
+            .unwrap_or_else(|| name.to_string());
+        span.extensions_mut().insert(SpanClock {
+            path,
+            entered: None,
+        });
+    }
+
+    fn on_enter(&self, id: &Id, ctx: Context<'_, S>) {
+        if let Some(span) = ctx.span(id)
+            && let Some(clock) = span.extensions_mut().get_mut::<SpanClock>()
+        {
+            clock.entered = Some(Instant::now());
+        }
+    }
+
+    fn on_exit(&self, id: &Id, ctx: Context<'_, S>) {
+        let Some(span) = ctx.span(id) else { return };
+        let mut ext = span.extensions_mut();
+        let Some(clock) = ext.get_mut::<SpanClock>() else {
+            return;
+        };
+        if let Some(start) = clock.entered.take() {
+            let mut totals = self.totals.lock().unwrap_or_else(PoisonError::into_inner);
+            *totals.entry(clock.path.clone()).or_default() += start.elapsed();
+        }
+    }
+}
+
+/// CPU time (user + system) this process has used, from `/proc/self/stat`; `None` where that
+/// file does not exist (not Linux). Resolution: one clock tick (10 ms at the usual 100 Hz).
+pub fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the parenthesised command name (which may hold spaces): state is field 3,
+    // utime and stime are fields 14 and 15, in clock ticks.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let utime: f64 = fields.get(11)?.parse().ok()?;
+    let stime: f64 = fields.get(12)?.parse().ok()?;
+    // USER_HZ is 100 on every Linux architecture Rust targets (it is fixed by the ABI).
+    Some((utime + stime) / 100.0)
+}
+
+/// The median of `values` (the upper middle one for an even count); `None` when empty.
+pub fn median(values: &[f64]) -> Option<f64> {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tracing_subscriber::layer::SubscriberExt;
+
+    #[test]
+    fn nested_and_repeated_spans_sum_per_path() {
+        let timer = StageTimer::default();
+        let subscriber = tracing_subscriber::registry().with(timer.clone());
+        tracing::subscriber::with_default(subscriber, || {
+            let _step = tracing::info_span!("step").entered();
+            for _ in 0..3 {
+                let _r = tracing::debug_span!("render").entered();
+                std::thread::sleep(Duration::from_millis(2));
+            }
+            // Trace spans are not timed.
+            let _t = tracing::trace_span!("kernel").entered();
+        });
+        let totals = timer.take();
+        let render = totals["step/render"];
+        assert!(render >= Duration::from_millis(6), "{totals:?}");
+        assert!(totals["step"] >= render, "a parent includes its children");
+        assert!(!totals.keys().any(|k| k.contains("kernel")), "{totals:?}");
+        assert!(timer.take().is_empty(), "take empties the table");
+    }
+
+    #[test]
+    fn cpu_time_and_median() {
+        if cfg!(target_os = "linux") {
+            assert!(process_cpu_seconds().is_some_and(|s| s >= 0.0));
+        }
+        assert_eq!(median(&[3.0, 1.0, 2.0]), Some(2.0));
+        assert_eq!(median(&[]), None);
+    }
+}
