@@ -13,7 +13,7 @@
 //! | [`skeleton`], [`skinning`] | forward kinematics from axis-angles, linear blend skinning |
 //! | [`template`] | the free Anny-derived body templates (glTF) |
 //! | [`steiner`] | the face-local Steiner-inellipse frame `A` |
-//! | [`gom`] | per-face Gaussian parameters → world Gaussians (mean, covariance, colour, opacity) |
+//! | [`gom`] | per-face Gaussian parameters → world Gaussians (mean, covariance, colour, opacity), as one fused differentiable op (CPU and CubeCL; design.md §5.6) |
 //! | [`rasterizer`] | the differentiable EWA splatting op (forward, backward, Burn glue) |
 //! | [`visibility`] | a triangle-ID z-buffer for visibility (no gradient), CPU and GPU |
 //!

@@ -10,12 +10,33 @@
 //! Because `A` is recomputed in posed space, the per-face parameters deform with the mesh and no
 //! skinning is applied to covariances. At init (`r = 0, s = 1, o = 0`) `Σ = A Aᵀ`.
 //!
-//! The high-res mesh is never stored: [`GomMesh::gaussians`] takes the *posed low-res*
-//! vertices, interpolates the high-res ones through the subdivision tables (so the high-res
-//! mesh is piecewise planar inside each low-res triangle), and builds the Gaussians — all as
-//! differentiable tensor ops, so gradients reach the low-res vertices and every face parameter.
+//! # One fused op
+//!
+//! The high-res mesh is never stored. [`GomMesh::new`] composes the subdivision tables
+//! (design.md §5.2) with the high-res faces into a *corner table*: for each high-res face, its
+//! three corners as ≤3 `(low-res index, weight)` pairs each. [`GomMesh::gaussians`] then hands
+//! the posed low-res vertices, the per-face parameters and that table to one custom Burn op,
+//! [`op::GomGeometryOps`] (design.md §5.6), which per face interpolates the corners, builds the
+//! Steiner frame (design.md §5.3) and `exp(r̂)`, and writes mean ‖ covariance. Its backward
+//! recomputes the same per face, chains the output gradient back to the face's corners and
+//! parameters, and scatters the corner gradients to the low-res vertices with the table's
+//! weights, so gradients reach the low-res vertices and every face parameter.
+//!
+//! | module | holds |
+//! |---|---|
+//! | [`cpu`] | the per-face math in `f64` and its backward; the NdArray / Flex implementation |
+//! | [`op`] | the backend extension and its autodiff node |
+//! | `cube` | the CubeCL kernels (wgpu) and their host side |
+//!
+//! [`gaussians_from_triangles`] (with [`so3_exp_map`] and [`crate::steiner::steiner_frames`])
+//! is the same math as ~60 ordinary tensor ops. It is the specification the op is tested
+//! against and what `GomMesh::gaussians_reference` runs.
 
-use burn::tensor::{Device, Int, Tensor, s};
+pub mod cpu;
+pub(crate) mod cube;
+pub mod op;
+
+use burn::tensor::{Device, Int, Tensor, TensorData, s};
 
 use crate::error::Result;
 use crate::mesh::{MeshTopology, face_vertices};
@@ -67,7 +88,7 @@ pub fn so3_exp_map(r: Tensor<2>) -> Tensor<3> {
     let [f, _] = r.dims();
     let device = r.device();
     let nrm2 = (r.clone() * r.clone()).sum_dim(1); // [F, 1]
-    let theta = nrm2.clone().clamp_min(1e-4).sqrt();
+    let theta = nrm2.clone().clamp_min(cpu::SO3_THETA2_MIN).sqrt();
     let fac1 = (theta.clone().sin() / theta.clone()).reshape([f, 1, 1]);
     let fac2 = ((theta.clone().cos().neg() + 1.0) / (theta.clone() * theta)).reshape([f, 1, 1]);
     let x = r.clone().slice(s![.., 0..1]);
@@ -144,6 +165,8 @@ pub struct GomMesh {
     pub subdivision: Subdivision,
     tables: SubdivisionTables,
     highres_faces: Tensor<1, Int>,
+    corner_index: Tensor<1, Int>,
+    corner_weight: Tensor<1>,
 }
 
 impl GomMesh {
@@ -152,10 +175,14 @@ impl GomMesh {
         let subdivision = Subdivision::new(lowres, levels)?;
         let tables = subdivision.tables(device);
         let highres_faces = subdivision.highres.face_index_tensor(device);
+        let (index, weight) = corner_table(&subdivision);
+        let entries = index.len();
         Ok(Self {
             subdivision,
             tables,
             highres_faces,
+            corner_index: Tensor::from_data(TensorData::new(index, [entries]), device),
+            corner_weight: Tensor::from_data(TensorData::new(weight, [entries]), device),
         })
     }
 
@@ -169,6 +196,17 @@ impl GomMesh {
         &self.highres_faces
     }
 
+    /// Low-res vertex indices of every high-res face corner, `[F·9]`: face `f`, corner `k`,
+    /// slot `m` at `9f + 3k + m` (unused slots are index 0 with weight 0).
+    pub fn corner_index(&self) -> &Tensor<1, Int> {
+        &self.corner_index
+    }
+
+    /// The weights matching [`Self::corner_index`], `[F·9]`.
+    pub fn corner_weight(&self) -> &Tensor<1> {
+        &self.corner_weight
+    }
+
     /// One Gaussian per high-res face.
     pub fn num_gaussians(&self) -> usize {
         self.subdivision.highres.faces.len()
@@ -179,13 +217,98 @@ impl GomMesh {
         self.tables.apply(lowres_vertices)
     }
 
-    /// The Gaussians of the mesh posed at `lowres_vertices` (`[V↓, 3]`).
+    /// The Gaussians of the mesh posed at `lowres_vertices` (`[V↓, 3]`), through the fused op
+    /// [`op::GomGeometryOps`] on whichever backend the tensors live on; differentiable in the
+    /// vertices and in `so3`, `scales`, `offsets`, `colors` and `opacities`.
+    ///
+    /// # Panics
+    ///
+    /// If `lowres_vertices` is not `[V↓, 3]` or a parameter is not `[F, 3]` (`[F]` for the
+    /// opacities), `F` the number of high-res faces.
     pub fn gaussians(&self, lowres_vertices: Tensor<2>, params: &GomParams) -> Gaussians {
         let _span = tracing::debug_span!("gom_gaussians", faces = self.num_gaussians()).entered();
-        let highres = self.highres_vertices(lowres_vertices);
+        self.check_shapes(&lowres_vertices, params);
+        let out: Tensor<2> = Tensor::from_dispatch(
+            <burn::backend::Dispatch as op::GomGeometryOps>::gom_geometry(
+                lowres_vertices.into_dispatch(),
+                params.so3.clone().into_dispatch(),
+                params.scales.clone().into_dispatch(),
+                params.offsets.clone().into_dispatch(),
+                self.corner_index.clone().into_dispatch(),
+                self.corner_weight.clone().into_dispatch(),
+            ),
+        );
+        Gaussians {
+            means: out.clone().narrow(1, 0, 3),
+            covariances: out.narrow(1, 3, 6),
+            colors: params.colors.clone(),
+            opacities: params.opacities.clone(),
+        }
+    }
+
+    /// [`Self::gaussians`] as ordinary tensor ops (subdivision tables, corner gather,
+    /// [`gaussians_from_triangles`]): the specification the fused op is tested and benchmarked
+    /// against.
+    #[doc(hidden)]
+    pub fn gaussians_reference(&self, lowres_vertices: Tensor<2>, params: &GomParams) -> Gaussians {
+        let _span =
+            tracing::debug_span!("gom_gaussians_reference", faces = self.num_gaussians()).entered();
+        // The weights are exact dyadic f32s; casting them lets the reference run in f64 too.
+        let tables = SubdivisionTables {
+            weight: self.tables.weight.clone().cast(lowres_vertices.dtype()),
+            ..self.tables.clone()
+        };
+        let highres = tables.apply(lowres_vertices);
         let [v0, v1, v2] = face_vertices(highres, self.highres_faces.clone());
         gaussians_from_triangles(v0, v1, v2, params)
     }
+
+    fn check_shapes(&self, lowres_vertices: &Tensor<2>, params: &GomParams) {
+        let v = self.subdivision.lowres.num_vertices;
+        let f = self.num_gaussians();
+        let dims = lowres_vertices.dims();
+        assert_eq!(
+            dims,
+            [v, 3],
+            "GomMesh::gaussians: `lowres_vertices` must be [{v}, 3], got {dims:?}"
+        );
+        for (name, t) in [
+            ("so3", &params.so3),
+            ("scales", &params.scales),
+            ("offsets", &params.offsets),
+            ("colors", &params.colors),
+        ] {
+            let dims = t.dims();
+            assert_eq!(
+                dims,
+                [f, 3],
+                "GomMesh::gaussians: `{name}` must be [{f}, 3], got {dims:?}"
+            );
+        }
+        let dims = params.opacities.dims();
+        assert_eq!(
+            dims,
+            [f],
+            "GomMesh::gaussians: `opacities` must be [{f}], got {dims:?}"
+        );
+    }
+}
+
+/// The per-high-res-face corner table (`[F·9]` indices and weights): each corner's barycentric
+/// slots in the low-res mesh, i.e. the subdivision table composed with the high-res faces.
+fn corner_table(subdivision: &Subdivision) -> (Vec<i64>, Vec<f32>) {
+    let slots = || {
+        subdivision
+            .highres
+            .faces
+            .iter()
+            .flatten()
+            .flat_map(|&v| subdivision.highres_from_lowres[v as usize])
+    };
+    (
+        slots().map(|(i, _)| i64::from(i)).collect(),
+        slots().map(|(_, w)| w).collect(),
+    )
 }
 
 #[cfg(test)]
