@@ -1,8 +1,9 @@
 //! The `lifegom-eval` command as a library function (the quickstart calls it too).
 //!
 //! Loads a trained-model file, opens the config's validation split, scores every target
-//! ([`lifegom_eval::evaluate`]), optionally the template-only baseline, a free-view turntable, the
-//! procedural motions and the accuracy-vs-time sweep, and writes CSVs, `summary.json` and
+//! ([`lifegom_eval::evaluate`]), optionally the baselines (template in one colour, projective
+//! texturing, per-scene optimisation after K steps), a free-view turntable, the procedural
+//! motions and the accuracy-vs-time sweep, and writes CSVs, `summary.json` and
 //! `report.md` with pictures into `--out`.
 
 use std::path::{Path, PathBuf};
@@ -21,8 +22,11 @@ use lifegom_eval::evaluate::{
     EvalSettings, Method, SplitScores, evaluate_split, reconstruct_timed, render_timed,
 };
 use lifegom_eval::images::save_gif;
+use lifegom_eval::per_scene::{FitPoint, score_per_scene_fit};
 use lifegom_eval::perceptual_scores::{PerceptualOutcome, score_perceptual};
 use lifegom_eval::report::{Report, Summary, SweepRow, write_csvs};
+use lifegom_train::fit::FitConfig;
+use lifegom_train::losses::LossWeights;
 
 /// Options of one evaluation.
 #[derive(Debug, Clone)]
@@ -51,8 +55,12 @@ pub struct EvalOptions {
     pub sweep_sizes: Vec<u32>,
     /// Subjects used by the sweep (it multiplies the evaluation cost by 15 per size).
     pub sweep_subjects: usize,
-    /// Also score the template-only baseline.
+    /// Also score the baselines (template in one colour, projective texturing).
     pub baseline: bool,
+    /// Score the per-scene optimisation baseline after each of these step counts (empty: no).
+    pub per_scene: Vec<usize>,
+    /// Subjects the per-scene optimisation fits (`None`: as many as the evaluation).
+    pub per_scene_subjects: Option<usize>,
     /// Evaluate at most this many subjects.
     pub max_subjects: Option<usize>,
     /// Folder with the converted LPIPS/Inception weights.
@@ -66,10 +74,12 @@ pub struct EvalOptions {
 pub struct EvalOutcome {
     /// The model's summary.
     pub summary: Summary,
-    /// The baseline's summary, if asked.
-    pub baseline: Option<Summary>,
+    /// The baselines' summaries (name, summary), if asked.
+    pub baselines: Vec<(String, Summary)>,
     /// Sweep rows, if asked.
     pub sweep: Vec<SweepRow>,
+    /// The per-scene optimisation's points, if asked.
+    pub per_scene: Vec<FitPoint>,
     /// The report that was written.
     pub report: PathBuf,
 }
@@ -130,22 +140,23 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
     report.summary = Some(summary.clone());
     report.sheets = list_relative(&opts.out, "sheets");
 
-    let baseline = if opts.baseline {
-        let mut b = evaluate_split(
-            &Method::TemplateBaseline {
-                subdivide: opts.subdivide.unwrap_or(config.subdivide_test),
-            },
-            &dataset,
-            &settings(opts, &opts.out),
-            &opts.device,
-        )?;
-        let PerceptualOutcome { fid } = score_perceptual(&perceptual, &mut b, &opts.device)?;
-        let s = Summary::of(&b, fid);
-        report.baseline = Some(s.clone());
-        Some(s)
-    } else {
-        None
-    };
+    let mut baselines = Vec::new();
+    if opts.baseline {
+        let subdivide = opts.subdivide.unwrap_or(config.subdivide_test);
+        for (name, method) in [
+            (BASELINE_TEMPLATE, Method::TemplateBaseline { subdivide }),
+            (
+                BASELINE_PROJECTIVE,
+                Method::ProjectiveTexturing { subdivide },
+            ),
+        ] {
+            let mut b =
+                evaluate_split(&method, &dataset, &settings(opts, &opts.out), &opts.device)?;
+            let PerceptualOutcome { fid } = score_perceptual(&perceptual, &mut b, &opts.device)?;
+            baselines.push((name.to_string(), Summary::of(&b, fid)));
+        }
+        report.baselines = baselines.clone();
+    }
 
     if opts.freeview_frames > 0 || opts.motion {
         let pictures = animations(opts, &model, &dataset, config.subdivide_test)?;
@@ -158,10 +169,29 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         report.sweep = sweep.clone();
     }
 
+    let mut per_scene = Vec::new();
+    if !opts.per_scene.is_empty() {
+        eprintln!(
+            "per-scene optimisation: fitting each subject for up to {} steps",
+            opts.per_scene.iter().max().unwrap_or(&0)
+        );
+        per_scene = score_per_scene_fit(
+            &dataset,
+            &opts.per_scene,
+            opts.subdivide.unwrap_or(config.subdivide_test),
+            &FitConfig::new(),
+            &LossWeights::new(),
+            opts.per_scene_subjects.or(opts.max_subjects),
+            &opts.device,
+        )?;
+        report.per_scene = per_scene.clone();
+    }
+
     let json = serde_json::json!({
         "model": summary,
-        "baseline": baseline,
+        "baselines": baselines_json(&baselines),
         "sweep": sweep,
+        "per_scene": per_scene,
         "checkpoint": opts.checkpoint.display().to_string(),
         "perceptual": perceptual.note().unwrap_or_else(|| "computed".into()),
     });
@@ -171,10 +201,26 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
     report.write(&opts.out)?;
     Ok(EvalOutcome {
         summary,
-        baseline,
+        baselines,
         sweep,
+        per_scene,
         report: opts.out.join("report.md"),
     })
+}
+
+/// Name of the template-in-one-colour baseline in reports.
+pub const BASELINE_TEMPLATE: &str = "template, one colour";
+/// Name of the projective-texturing baseline in reports.
+pub const BASELINE_PROJECTIVE: &str = "projective texturing";
+
+/// `{name: summary}` of the baselines.
+pub fn baselines_json(baselines: &[(String, Summary)]) -> serde_json::Value {
+    serde_json::Value::Object(
+        baselines
+            .iter()
+            .map(|(n, s)| (n.clone(), serde_json::json!(s)))
+            .collect(),
+    )
 }
 
 fn list_relative(out: &Path, dir: &str) -> Vec<PathBuf> {

@@ -9,6 +9,9 @@
 //! | `metrics.jsonl` | one JSON object per logged step: losses, target PSNR, seconds, elapsed |
 //! | `snapshots/step_NNNNNNN.png` | target ground truth, last-iteration render, error map |
 //! | `loss_curve.png` | the logged losses against the step (written at every checkpoint) |
+//! | `validation.jsonl` | every `validate_every` steps: PSNR and SSIM of each feedback step `t` on the validation split |
+//! | `validation_baselines.json` | the same scores of the baselines that need no training (template in one colour, projective texturing) |
+//! | `validation_curve.png` | validation PSNR of each `t` against the step, with the baselines |
 //!
 //! On `--resume` the loop restarts from `checkpoints/latest.lgck`, drops log lines past the
 //! checkpoint's step (they belong to work that was lost), and continues the same data schedule.
@@ -20,17 +23,23 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+use burn::module::Module;
 use burn::tensor::Device;
 use lifegom_data::dataset::{Dataset, Split};
+use lifegom_eval::evaluate::{EvalSettings, Method, evaluate_split, mean_of};
 use lifegom_eval::images::{Image, error_map, grid};
 use lifegom_eval::plot::{Chart, PALETTE, Scale, Series, Style};
-use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_eval::validation::score_feedback_steps;
+use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::MeshPurpose;
 
 use lifegom_train::config::ExperimentConfig;
 use lifegom_train::losses::UniformLaplacian;
 use lifegom_train::prefetch::Prefetcher;
+use lifegom_train::source::{StepSample, TrainingSource};
 use lifegom_train::trainer::{StepStats, Trainer};
+
+use crate::eval_run::{BASELINE_PROJECTIVE, BASELINE_TEMPLATE};
 
 /// Options of a training run (the command line).
 #[derive(Debug, Clone)]
@@ -128,6 +137,153 @@ pub fn write_loss_curve(out: &Path) -> anyhow::Result<()> {
         .with_context(|| format!("writing {}", path.display()))
 }
 
+/// The validation split and its baselines' scores, when `[train] validate_every` asks for it.
+struct Validation {
+    dataset: Dataset,
+    subjects: usize,
+    subdivide: u32,
+}
+
+impl Validation {
+    /// Opens the validation split and scores the baselines once (they do not train); `None`
+    /// with a message when validation is off or the split is missing.
+    fn open(cfg: &ExperimentConfig, subdivide: u32, out: &Path, device: &Device) -> Option<Self> {
+        if cfg.train.validate_every == 0 {
+            return None;
+        }
+        let dataset = match Dataset::open(&cfg.file.data, Split::Val) {
+            Ok(d) if !d.is_empty() => d,
+            Ok(_) => {
+                eprintln!("validation: the validation split is empty; no validation curves");
+                return None;
+            }
+            Err(e) => {
+                eprintln!("validation: {e}; no validation curves");
+                return None;
+            }
+        };
+        let v = Self {
+            dataset,
+            subjects: cfg.train.validate_subjects.max(1),
+            subdivide,
+        };
+        let mut baselines = serde_json::Map::new();
+        for (name, method) in [
+            (BASELINE_TEMPLATE, Method::TemplateBaseline { subdivide }),
+            (
+                BASELINE_PROJECTIVE,
+                Method::ProjectiveTexturing { subdivide },
+            ),
+        ] {
+            let settings = EvalSettings {
+                out: out.to_path_buf(),
+                subdivide: Some(subdivide),
+                iterations: None,
+                save_predictions: false,
+                sheets: 0,
+                max_subjects: Some(v.subjects),
+            };
+            match evaluate_split(&method, &v.dataset, &settings, device) {
+                Ok(s) => {
+                    let psnr = mean_of(&s.views, |x| Some(x.psnr));
+                    let ssim = mean_of(&s.views, |x| Some(x.ssim));
+                    baselines.insert(name.into(), serde_json::json!({"psnr": psnr, "ssim": ssim}));
+                }
+                Err(e) => eprintln!("validation: baseline {name}: {e}"),
+            }
+        }
+        let path = out.join("validation_baselines.json");
+        if let Err(e) = lifegom_render::atomic_file::write_atomic(
+            &path,
+            serde_json::to_string_pretty(&baselines)
+                .unwrap_or_default()
+                .as_bytes(),
+        ) {
+            eprintln!("validation: writing {}: {e}", path.display());
+        }
+        Some(v)
+    }
+
+    /// Scores every feedback step of the trainer's current weights; one line of
+    /// `validation.jsonl`.
+    fn run(&self, trainer: &Trainer, device: &Device) -> anyhow::Result<serde_json::Value> {
+        let _span = tracing::info_span!("validation", step = trainer.step).entered();
+        let model = trainer.model.valid();
+        let scores = score_feedback_steps(
+            &model,
+            &self.dataset,
+            self.subdivide,
+            Some(self.subjects),
+            device,
+        )?;
+        Ok(serde_json::json!({
+            "step": trainer.step,
+            "psnr": scores.iter().map(|s| s.psnr).collect::<Vec<_>>(),
+            "ssim": scores.iter().map(|s| s.ssim).collect::<Vec<_>>(),
+        }))
+    }
+}
+
+/// Draws `validation_curve.png` from `validation.jsonl` and `validation_baselines.json`.
+pub fn write_validation_curve(out: &Path) -> anyhow::Result<()> {
+    let lines = read_history(&out.join("validation.jsonl"), u64::MAX);
+    let Some(t_max) = lines
+        .iter()
+        .filter_map(|v| v["psnr"].as_array())
+        .map(Vec::len)
+        .max()
+    else {
+        return Ok(());
+    };
+    let mut series: Vec<Series> = (0..t_max)
+        .map(|t| Series {
+            name: format!("model, t = {}", t + 1),
+            points: lines
+                .iter()
+                .filter_map(|v| Some((v["step"].as_f64()?, v["psnr"][t].as_f64()?)))
+                .collect(),
+            labels: vec![],
+            color: PALETTE[t % PALETTE.len()],
+        })
+        .collect();
+    let first = lines
+        .first()
+        .and_then(|v| v["step"].as_f64())
+        .unwrap_or(0.0);
+    let last = lines.last().and_then(|v| v["step"].as_f64()).unwrap_or(1.0);
+    let baselines: serde_json::Value =
+        std::fs::read_to_string(out.join("validation_baselines.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok())
+            .unwrap_or_default();
+    if let Some(map) = baselines.as_object() {
+        for (k, (name, b)) in map.iter().enumerate() {
+            if let Some(psnr) = b["psnr"].as_f64() {
+                series.push(Series {
+                    name: name.clone(),
+                    points: vec![(first, psnr), (last.max(first + 1.0), psnr)],
+                    labels: vec![],
+                    color: PALETTE[(t_max + k) % PALETTE.len()],
+                });
+            }
+        }
+    }
+    let chart = Chart {
+        title: "validation PSNR per feedback step (unseen subjects)".into(),
+        x_label: "training step".into(),
+        y_label: "PSNR (dB)".into(),
+        x_scale: Scale::Linear,
+        y_scale: Scale::Linear,
+        series,
+        style: Style::Lines,
+    };
+    let path = out.join("validation_curve.png");
+    chart
+        .render(720, 420)
+        .save(&path)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
 /// Trains `cfg` until its steps are done, the time limit, or `stop` is raised.
 pub fn train(
     cfg: &ExperimentConfig,
@@ -144,15 +300,12 @@ pub fn train(
             cfg.train.loss_lpips
         );
     }
-    let dataset = Arc::new(Dataset::open(&cfg.file.data, Split::Train)?);
-    if dataset.is_empty() {
-        bail!(
-            "the training split of {} is empty",
-            cfg.file.source.display()
-        );
-    }
-    let bodies = SubjectRig::for_split(&dataset)?;
-    let num_vertices = bodies[0].num_vertices();
+    let source = Arc::new(
+        TrainingSource::open(cfg)
+            .with_context(|| format!("training data of {}", cfg.file.source.display()))?,
+    );
+    let rig = source.reference_rig();
+    let num_vertices = rig.num_vertices();
     let ckpt = latest_checkpoint(&opts.out);
     let mut trainer = if opts.resume && ckpt.exists() {
         let t = Trainer::resume(&ckpt, &cfg.train, &opts.device)?;
@@ -191,12 +344,20 @@ pub fn train(
     }
     let mesh = trainer
         .config
-        .mesh(&bodies[0].topology, MeshPurpose::Training, trainer.device())?;
-    let laplacian = UniformLaplacian::new(&bodies[0].topology.faces, num_vertices)?;
+        .mesh(&rig.topology, MeshPurpose::Training, trainer.device())?;
+    let laplacian = UniformLaplacian::new(&rig.topology.faces, num_vertices)?;
     let total_steps = opts.steps.unwrap_or(cfg.train.steps);
     let (w, h) = (cfg.file.data.img_size[0], cfg.file.data.img_size[1]);
 
-    // Keep the log consistent with the checkpoint: lines past it describe lost work.
+    // Keep the logs consistent with the checkpoint: lines past it describe lost work.
+    let val_path = opts.out.join("validation.jsonl");
+    let kept_val = read_history(&val_path, trainer.step);
+    let mut val_log = std::fs::File::create(&val_path)
+        .with_context(|| format!("writing {}", val_path.display()))?;
+    for v in &kept_val {
+        writeln!(val_log, "{v}")?;
+    }
+    let validation = Validation::open(cfg, trainer.config.subdivide_test, &opts.out, &opts.device);
     let log_path = opts.out.join("metrics.jsonl");
     let kept = read_history(&log_path, trainer.step);
     let mut log = std::fs::File::create(&log_path)
@@ -226,7 +387,7 @@ pub fn train(
     let meta = serde_json::json!({ "config": cfg.file.source.display().to_string() });
     let mut history = Vec::new();
     let mut stop_reason = StopReason::Finished;
-    let mut prefetch = Prefetcher::new(dataset.clone(), trainer.seed(), trainer.step);
+    let mut prefetch = Prefetcher::new(source.clone(), trainer.seed(), trainer.step);
     while trainer.step < total_steps {
         if stop.load(Ordering::SeqCst) {
             stop_reason = StopReason::Interrupted;
@@ -242,12 +403,8 @@ pub fn train(
         let step = trainer.step;
         let (sample, inputs) = {
             let _span = tracing::debug_span!("data").entered();
-            let sample = prefetch.next_sample(&dataset, trainer.seed())?;
-            let body = bodies
-                .iter()
-                .find(|b| b.name == sample.subject)
-                .context("sample from an unknown subject")?;
-            let inputs = model_inputs(body, &sample, w, h, trainer.device())?;
+            let StepSample { sample, rig } = prefetch.next_sample()?;
+            let inputs = model_inputs(&rig, &sample, w, h, trainer.device())?;
             (sample, inputs)
         };
         let out = trainer
@@ -276,6 +433,14 @@ pub fn train(
                 line.insert(n.clone(), (*v).into());
             }
             line.insert("psnr_target".into(), stats.psnr_target.into());
+            line.insert(
+                "psnr_target_steps".into(),
+                stats.psnr_target_steps.clone().into(),
+            );
+            line.insert(
+                "psnr_source_steps".into(),
+                stats.psnr_source_steps.clone().into(),
+            );
             line.insert("seconds".into(), stats.seconds.into());
             line.insert(
                 "elapsed".into(),
@@ -298,6 +463,14 @@ pub fn train(
         if trainer.step.is_multiple_of(cfg.train.checkpoint_every) {
             trainer.save(&ckpt, meta.clone())?;
             write_loss_curve(&opts.out)?;
+        }
+        if let Some(v) = &validation
+            && trainer.step.is_multiple_of(cfg.train.validate_every)
+        {
+            let line = v.run(&trainer, &opts.device)?;
+            writeln!(val_log, "{line}")?;
+            val_log.flush()?;
+            write_validation_curve(&opts.out)?;
         }
         history.push(stats);
     }

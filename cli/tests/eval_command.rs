@@ -55,6 +55,8 @@ fn eval_on_a_tiny_split_writes_every_file() {
         sweep_sizes: vec![],
         sweep_subjects: 1,
         baseline: true,
+        per_scene: vec![1, 2],
+        per_scene_subjects: Some(1),
         max_subjects: None,
         weights_dir: tmp.join("no-weights"),
         context: vec!["test".into()],
@@ -85,8 +87,20 @@ fn eval_on_a_tiny_split_writes_every_file() {
     assert!(outcome.summary.recon_ms > 0.0 && outcome.summary.render_ms > 0.0);
     assert_eq!(outcome.summary.lpips_vgg_x1000, None);
     assert_eq!(outcome.summary.fid, None);
-    assert!(outcome.baseline.as_ref().unwrap().psnr.is_finite());
+    let names: Vec<&str> = outcome.baselines.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names, ["template, one colour", "projective texturing"]);
+    assert!(outcome.baselines.iter().all(|(_, b)| b.psnr.is_finite()));
     assert_eq!(outcome.sweep.len(), 15, "T 1..5 × subdivisions 0..2");
+    let ks: Vec<usize> = outcome.per_scene.iter().map(|p| p.steps).collect();
+    assert_eq!(ks, [1, 2]);
+    assert!(
+        outcome
+            .per_scene
+            .iter()
+            .all(|p| p.psnr.is_finite() && p.ms > 0.0),
+        "{:?}",
+        outcome.per_scene
+    );
     let gaussians: Vec<usize> = outcome
         .sweep
         .iter()
@@ -99,7 +113,7 @@ fn eval_on_a_tiny_split_writes_every_file() {
 
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(report.contains(WEIGHTS_MISSING), "{report}");
-    assert!(report.contains("template baseline"));
+    assert!(report.contains("template, one colour") && report.contains("projective texturing"));
     assert!(report.contains("What accuracy costs in time"));
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();

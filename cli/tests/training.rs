@@ -189,9 +189,10 @@ fn a_stop_request_saves_a_checkpoint_and_bad_checkpoints_are_errors() {
 fn prefetched_samples_follow_the_serial_schedule() {
     let cfg = experiment();
     let data = std::sync::Arc::new(Dataset::open(&cfg.file.data, Split::Train).unwrap());
-    let mut prefetch = lifegom_train::prefetch::Prefetcher::new(data.clone(), 7, 3);
+    let source = lifegom_train::source::TrainingSource::from_split(data.clone()).unwrap();
+    let mut prefetch = lifegom_train::prefetch::Prefetcher::new(std::sync::Arc::new(source), 7, 3);
     for step in 3..9 {
-        let a = prefetch.next_sample(&data, 7).unwrap();
+        let a = prefetch.next_sample().unwrap().sample;
         let b = sample_for_step(&data, 7, step).unwrap();
         assert_eq!(a.frame_name, b.frame_name, "step {step}");
         assert_eq!(a.bgcolor, b.bgcolor, "step {step}");

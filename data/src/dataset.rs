@@ -25,9 +25,9 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{DataError, Location, Result};
-use crate::format::{Subject, read_split};
+use crate::format::{FrameCamera, FrameMeshInfo, Subject, read_split};
 use crate::kinematics::KinematicTree;
-use crate::preprocess::{self, Kernel};
+use crate::preprocess::{self, FloatImage, Kernel};
 use lifegom_render::rng::Rng;
 
 /// Which experiment's frame-indexing rules apply (module docs).
@@ -62,6 +62,16 @@ pub enum Background {
     Random,
     /// A fixed colour, 0..255.
     Fixed([u8; 3]),
+}
+
+impl Background {
+    /// One sample's colour in the 0..255 domain (`Random` draws three uniforms from `rng`).
+    pub fn draw(self, rng: &mut Rng) -> [f32; 3] {
+        match self {
+            Self::Random => [0, 1, 2].map(|_| rng.range(0.0, 255.0) as f32),
+            Self::Fixed(c) => c.map(f32::from),
+        }
+    }
 }
 
 /// The data section of an experiment config (`[data]` in `configs/*.toml`).
@@ -378,10 +388,7 @@ impl Dataset {
                 format!("sample {i} out of range ({} samples)", self.len()),
             )
         })?;
-        let bg = match self.background {
-            Background::Random => [0, 1, 2].map(|_| rng.range(0.0, 255.0) as f32),
-            Background::Fixed(c) => c.map(f32::from),
-        };
+        let bg = self.background.draw(rng);
         let subject = &self.subjects[idx.subject];
         let views = idx
             .inputs
@@ -415,8 +422,8 @@ pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) ->
     };
     let img_path = subject.image_path(f);
     let mask_path = subject.mask_path(f);
-    let mut rgb = preprocess::read_rgb(&img_path, &at(&img_path, "images"))?;
-    let mut alpha = preprocess::read_mask(&mask_path, &at(&mask_path, "masks"))?;
+    let rgb = preprocess::read_rgb(&img_path, &at(&img_path, "images"))?;
+    let alpha = preprocess::read_mask(&mask_path, &at(&mask_path, "masks"))?;
     if (rgb.width, rgb.height) != (alpha.width, alpha.height) {
         return Err(DataError::Image {
             location: Box::new(at(&mask_path, "masks")),
@@ -426,7 +433,30 @@ pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) ->
             ),
         });
     }
-    let cam = &subject.cameras[f];
+    Ok(prepare_view(
+        frame,
+        rgb,
+        alpha,
+        &subject.cameras[f],
+        &subject.mesh_infos[f],
+        bg,
+        size,
+    ))
+}
+
+/// Undistorts, composites over `bg` and resizes one frame's image (0..255) and alpha (0..1) of
+/// equal size, and folds the body's global transform into its camera (design.md §8.3). The one
+/// home of these steps for frames read from disk ([`load_view`]) and frames generated in memory
+/// (`synth::stream`).
+pub fn prepare_view(
+    frame: &str,
+    mut rgb: FloatImage,
+    mut alpha: FloatImage,
+    cam: &FrameCamera,
+    info: &FrameMeshInfo,
+    bg: [f32; 3],
+    size: (u32, u32),
+) -> View {
     if let Some(d) = &cam.distortion {
         rgb = preprocess::undistort(&rgb, &cam.k, d);
         alpha = preprocess::undistort(&alpha, &cam.k, d);
@@ -436,10 +466,9 @@ pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) ->
     let rgb = preprocess::resize(&rgb, size.0, size.1, Kernel::Lanczos4);
     let alpha = preprocess::resize(&alpha, size.0, size.1, Kernel::Linear);
     let k = preprocess::scale_intrinsics(cam.k, orig, size);
-    let info = &subject.mesh_infos[f];
     let e = fold_body_transform(&cam.e, info.rh, info.th);
-    Ok(View {
-        frame: frame.clone(),
+    View {
+        frame: frame.to_owned(),
         rgb: rgb
             .data
             .iter()
@@ -450,7 +479,7 @@ pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) ->
         e,
         poses: info.poses.clone(),
         tpose_joints: info.tpose_joints.iter().map(|j| j.to_array()).collect(),
-    })
+    }
 }
 
 /// `E · [R(rh) | th]` (design.md §3.4), row-major, computed in f64.

@@ -28,6 +28,26 @@ pub struct FloatImage {
 }
 
 impl FloatImage {
+    /// An RGB8 buffer (`H×W×3`) as a float image in the 0..255 domain.
+    pub fn from_rgb8(width: u32, height: u32, rgb: &[u8]) -> Self {
+        Self {
+            width,
+            height,
+            channels: 3,
+            data: rgb.iter().map(|&v| f32::from(v)).collect(),
+        }
+    }
+
+    /// An 8-bit mask buffer (`H×W`) as alpha in `[0, 1]`.
+    pub fn mask_from_l8(width: u32, height: u32, mask: &[u8]) -> Self {
+        Self {
+            width,
+            height,
+            channels: 1,
+            data: mask.iter().map(|&v| f32::from(v) / 255.0).collect(),
+        }
+    }
+
     fn at(&self, x: usize, y: usize, c: usize) -> f32 {
         self.data[(y * self.width as usize + x) * self.channels + c]
     }
@@ -75,12 +95,11 @@ pub fn read_rgb(path: &Path, loc: &Location) -> Result<FloatImage> {
         reason: format!("unreadable PNG: {e}"),
     })?;
     let rgb = img.to_rgb8();
-    Ok(FloatImage {
-        width: rgb.width(),
-        height: rgb.height(),
-        channels: 3,
-        data: rgb.into_raw().into_iter().map(f32::from).collect(),
-    })
+    Ok(FloatImage::from_rgb8(
+        rgb.width(),
+        rgb.height(),
+        rgb.as_raw(),
+    ))
 }
 
 /// Reads a mask PNG as alpha in `[0, 1]`: channel 0 of its RGB conversion, divided by 255.

@@ -27,6 +27,9 @@ pub enum EvalError {
     /// LPIPS or FID failed.
     #[error(transparent)]
     Perceptual(#[from] crate::perceptual::PerceptualError),
+    /// Per-scene optimisation failed.
+    #[error(transparent)]
+    Fit(#[from] lifegom_train::trainer::TrainError),
     /// A file could not be written.
     #[error("writing {path}: {reason}")]
     Write {

@@ -25,10 +25,10 @@ use lifegom_model::avatar::Avatar;
 use lifegom_model::inputs::{SubjectRig, model_inputs};
 use lifegom_model::reconstructor::{Reconstructor, ReconstructorConfig, render_views};
 use lifegom_render::gom::GomMesh;
-use lifegom_render::readback;
 use lifegom_render::rng::Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::baselines;
 use crate::error::EvalError;
 use crate::images::{Image, error_map, grid};
 use crate::metrics::{ImageMetrics, ImageRef, crop, full_image_metrics, thuman_crop_box};
@@ -105,7 +105,7 @@ pub fn thuman_crop_size(h: usize, w: usize) -> [usize; 2] {
 /// The protocol's metric region of a prediction/ground-truth pair, after the uint8 round trip
 /// the reference scores (THuman/XHuman: the GT box grown to `crop_size`; AIST++ or an all-black
 /// GT: the full image), and PSNR/SSIM on it.
-fn score_region(
+pub(crate) fn score_region(
     pred: &Image,
     gt: &Image,
     crop_protocol: bool,
@@ -213,6 +213,13 @@ pub enum Method<'a> {
         /// Subdivisions of its Gaussians' mesh.
         subdivide: u32,
     },
+    /// Projective texturing: the template coloured from the source pixels each vertex projects
+    /// to in the views that see it ([`crate::baselines::projective_texturing`]). What reading
+    /// the photos gives without learning.
+    ProjectiveTexturing {
+        /// Subdivisions of its Gaussians' mesh.
+        subdivide: u32,
+    },
 }
 
 /// Evaluates `method` on every target of `dataset` (a validation split): one avatar per
@@ -233,7 +240,9 @@ pub fn evaluate_split(
             }),
             settings.subdivide.unwrap_or(config.subdivide_test),
         ),
-        Method::TemplateBaseline { subdivide } => (None, *subdivide),
+        Method::TemplateBaseline { subdivide } | Method::ProjectiveTexturing { subdivide } => {
+            (None, *subdivide)
+        }
     };
     let bodies = SubjectRig::for_split(dataset)?;
     let mesh = GomMesh::new(&bodies[0].topology, subdivide, device)?;
@@ -258,9 +267,12 @@ pub fn evaluate_split(
         let inputs = model_inputs(body, &sample, w, h, device)?;
         let key = (index.subject, index.inputs.clone());
         if !cache.contains_key(&key) {
-            let rec = match &model {
-                Some(model) => reconstruct_timed(model, &mesh, &inputs),
-                None => template_baseline(&mesh, &inputs, device),
+            let rec = match (&model, method) {
+                (Some(model), _) => reconstruct_timed(model, &mesh, &inputs),
+                (None, Method::ProjectiveTexturing { .. }) => {
+                    baselines::projective_texturing(&mesh, &inputs, device)
+                }
+                (None, _) => baselines::template_one_colour(&mesh, &inputs, device),
             }
             .map_err(|e| EvalError::Frame {
                 frame: sample.frame_name.clone(),
@@ -346,32 +358,4 @@ pub fn per_subject(views: &[ViewScore]) -> Vec<(String, Vec<ViewScore>)> {
             (s, g)
         })
         .collect()
-}
-
-/// The template-only baseline's avatar for `inputs` (see [`Method::TemplateBaseline`]).
-fn template_baseline(
-    mesh: &GomMesh,
-    inputs: &lifegom_model::inputs::ModelInputs,
-    device: &Device,
-) -> Result<Reconstructed, EvalError> {
-    let mask = inputs.source_masks.clone();
-    let count = readback::read::<f64, 1, _>("source mask area", mask.clone().sum())?[0].max(1.0);
-    let fg = (inputs.sources.images.clone() * mask)
-        .sum_dim(0)
-        .sum_dim(2)
-        .sum_dim(3)
-        .reshape([3]);
-    let mut params = lifegom_render::gom::GomParams::init(mesh.num_gaussians(), device);
-    let mean = fg.div_scalar(count);
-    params.colors = params.colors.zeros_like() + mean.unsqueeze_dim(0);
-    Ok(Reconstructed {
-        avatar: Avatar::new(
-            inputs.subject.canonical_vertices.clone(),
-            params,
-            inputs.subject.lbs_weights.clone(),
-            inputs.subject.skeleton.clone(),
-            mesh.clone(),
-        ),
-        ms: 0.0,
-    })
 }

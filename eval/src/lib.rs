@@ -20,8 +20,12 @@
 //! - [`metrics`]: host-side PSNR, skimage-compatible SSIM and the THuman 1000×500 foreground
 //!   crop (design.md §10.2–§10.4).
 //! - [`evaluate`]: reconstruct each validation subject once, render its targets, score them;
-//!   the same loop scores the template-only baseline.
+//!   the same loop scores the baselines.
+//! - [`baselines`]: reconstructions without learning (the template in one colour, projective
+//!   texturing).
 //! - [`animate`]: free-view orbits and the procedural motions (walk, arm-raise, squat).
+//! - [`per_scene`]: the per-scene optimisation baseline scored after K gradient steps.
+//! - [`validation`]: every feedback step's scores on the validation split (training's curves).
 //! - [`report`]: CSVs, `summary.json`, `report.md`, the Pareto plot.
 //! - [`error`]: the library's one error type.
 //! - [`images`], [`plot`]: PNG/GIF writing, sheets, error maps, dependency-free charts.
@@ -30,11 +34,14 @@
 //!   evaluation uses them.
 
 pub mod animate;
+pub mod baselines;
 pub mod error;
 pub mod evaluate;
 pub mod images;
 pub mod metrics;
+pub mod per_scene;
 pub mod perceptual;
 pub mod perceptual_scores;
 pub mod plot;
 pub mod report;
+pub mod validation;

@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::evaluate::{SplitScores, ViewScore, mean_of, per_subject};
+use crate::per_scene::FitPoint;
 use crate::plot::{Chart, PALETTE, Scale, Series, Style};
 
 /// The line printed and written when perceptual weights are absent.
@@ -140,8 +141,9 @@ pub struct Report {
     pub context: Vec<String>,
     /// The model's summary.
     pub summary: Option<Summary>,
-    /// The template-only baseline, if evaluated.
-    pub baseline: Option<Summary>,
+    /// The baselines evaluated (name, summary), e.g. the template in one colour and projective
+    /// texturing ([`crate::baselines`]).
+    pub baselines: Vec<(String, Summary)>,
     /// Notes (e.g. [`WEIGHTS_MISSING`], random encoder init).
     pub notes: Vec<String>,
     /// Comparison sheets (relative paths under the report's folder).
@@ -150,6 +152,8 @@ pub struct Report {
     pub pictures: Vec<(String, PathBuf)>,
     /// Accuracy-vs-time sweep rows.
     pub sweep: Vec<SweepRow>,
+    /// The per-scene optimisation baseline after K gradient steps (same axes as the sweep).
+    pub per_scene: Vec<FitPoint>,
 }
 
 fn table_row(name: &str, s: &Summary) -> String {
@@ -180,7 +184,7 @@ impl Report {
         for note in &self.notes {
             let _ = writeln!(md, "> {note}\n");
         }
-        if self.summary.is_some() || self.baseline.is_some() {
+        if self.summary.is_some() || !self.baselines.is_empty() {
             md.push_str("## Results\n\n");
             md.push_str(TABLE_HEAD);
             md.push('\n');
@@ -188,8 +192,8 @@ impl Report {
                 md.push_str(&table_row("model", s));
                 md.push('\n');
             }
-            if let Some(b) = &self.baseline {
-                md.push_str(&table_row("template baseline", b));
+            for (name, b) in &self.baselines {
+                md.push_str(&table_row(name, b));
                 md.push('\n');
             }
             if let Some(s) = &self.summary {
@@ -219,6 +223,22 @@ impl Report {
                     s.render_ms
                 );
             }
+        }
+        if !self.per_scene.is_empty() {
+            md.push_str(
+                "\n## Per-scene optimisation: gradient steps instead of learned feedback\n\n",
+            );
+            md.push_str("The template in its mean colour fitted to the source views by Adam through the differentiable renderer (the training loss on the sources), scored after K steps on the same targets.\n\n");
+            md.push_str("| K | PSNR ↑ | SSIM ↑ | fit ms per subject |\n|---|---|---|---|\n");
+            for p in &self.per_scene {
+                let _ = writeln!(
+                    md,
+                    "| {} | {:.2} | {:.4} | {:.0} |",
+                    p.steps, p.psnr, p.ssim, p.ms
+                );
+            }
+        }
+        if !self.sweep.is_empty() || !self.per_scene.is_empty() {
             md.push_str("\n![accuracy vs time](pareto.png)\n");
         }
         if !self.sheets.is_empty() {
@@ -236,9 +256,9 @@ impl Report {
     /// Writes `report.md` (and `pareto.png` when there is a sweep) into `out`.
     pub fn write(&self, out: &Path) -> Result<(), EvalError> {
         std::fs::create_dir_all(out).map_err(|e| EvalError::write(out, e))?;
-        if !self.sweep.is_empty() {
+        if !self.sweep.is_empty() || !self.per_scene.is_empty() {
             let path = out.join("pareto.png");
-            pareto_chart(&self.sweep)
+            pareto_chart(&self.sweep, &self.per_scene)
                 .render(760, 460)
                 .save(&path)
                 .map_err(|e| EvalError::write(&path, e))?;
@@ -249,13 +269,14 @@ impl Report {
 }
 
 /// PSNR against reconstruction time, one series per subdivision level, points labelled
-/// `T<n>` (and the size when several sizes were swept).
-pub fn pareto_chart(rows: &[SweepRow]) -> Chart {
+/// `T<n>` (and the size when several sizes were swept), plus the per-scene optimisation's points
+/// labelled `K<n>`.
+pub fn pareto_chart(rows: &[SweepRow], per_scene: &[FitPoint]) -> Chart {
     let sizes: std::collections::BTreeSet<u32> = rows.iter().map(|r| r.size).collect();
     let mut levels: Vec<u32> = rows.iter().map(|r| r.summary.subdivide).collect();
     levels.sort_unstable();
     levels.dedup();
-    let series = levels
+    let mut series: Vec<Series> = levels
         .iter()
         .enumerate()
         .map(|(k, level)| {
@@ -283,6 +304,14 @@ pub fn pareto_chart(rows: &[SweepRow]) -> Chart {
             }
         })
         .collect();
+    if !per_scene.is_empty() {
+        series.push(Series {
+            name: "per-scene optimisation".into(),
+            points: per_scene.iter().map(|p| (p.ms, p.psnr)).collect(),
+            labels: per_scene.iter().map(|p| format!("K{}", p.steps)).collect(),
+            color: PALETTE[levels.len() % PALETTE.len()],
+        });
+    }
     Chart {
         title: "PSNR vs reconstruction time".into(),
         x_label: "reconstruction ms".into(),

@@ -85,12 +85,26 @@ impl ModelSection {
     }
 }
 
+/// Where training samples come from (`[train] subjects`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum TrainingSubjects {
+    /// The training split on disk (`[data] train_dir`), in epochs: the reference's setting.
+    #[default]
+    Split,
+    /// A fresh synthetic subject for every step, drawn as `[synthetic]` describes
+    /// (`lifegom_data::synth::stream`): no person is seen twice.
+    Procedural,
+}
+
 /// `[train]`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrainSection {
     /// Optimiser steps (one sample each: the reference's batch size is 1).
     pub steps: u64,
+    /// Where the samples come from.
+    pub subjects: TrainingSubjects,
     /// Adam learning rate of the image encoder.
     pub lr_encoder: f64,
     /// Adam learning rate of everything else (fusion, Point Transformer, heads, embeddings).
@@ -113,12 +127,18 @@ pub struct TrainSection {
     pub snapshot_every: u64,
     /// Append a line to `metrics.jsonl` every this many steps.
     pub log_every: u64,
+    /// Score every feedback step on the validation split every this many steps (0: never);
+    /// `validation.jsonl` and `validation_curve.png`.
+    pub validate_every: u64,
+    /// Validation subjects scored (the first ones of the split).
+    pub validate_subjects: usize,
 }
 
 impl Default for TrainSection {
     fn default() -> Self {
         Self {
             steps: 200_000,
+            subjects: TrainingSubjects::Split,
             lr_encoder: 1e-4,
             lr_reconstructor: 5e-5,
             seed: 42,
@@ -130,6 +150,8 @@ impl Default for TrainSection {
             checkpoint_every: 10_000,
             snapshot_every: 1_000,
             log_every: 10,
+            validate_every: 0,
+            validate_subjects: 8,
         }
     }
 }
@@ -219,6 +241,11 @@ impl ExperimentConfig {
                 return Err(invalid(format!("[train] {name} must be ≥ 1")));
             }
         }
+        if train.subjects == TrainingSubjects::Procedural && file.synthetic.is_none() {
+            return Err(invalid(
+                "[train] subjects = \"procedural\" needs a [synthetic] section describing the subjects".into(),
+            ));
+        }
         Ok(Self { file, model, train })
     }
 
@@ -286,6 +313,7 @@ mod tests {
             ("[model]\niterations = 0\n", "iterations"),
             ("[train]\nlog_every = 0\n", "log_every"),
             ("[model]\npreset = \"huge\"\n", "huge"),
+            ("[train]\nsubjects = \"forever\"\n", "forever"),
         ] {
             let err = ExperimentConfig::parse_sections(base.clone(), text, path)
                 .unwrap_err()

@@ -31,9 +31,15 @@
 //!   Laplacian) and the [`losses::LossWeights`] that combine them.
 //! - [`config`]: `[model]` and `[train]` sections of an experiment TOML.
 //! - [`trainer`]: the step, the data schedule and exact-resume checkpoints.
+//! - [`source`]: where a step's sample comes from: the split on disk, or a fresh synthetic
+//!   subject per step.
+//! - [`fit`]: per-scene optimisation of one avatar on its source views (the baseline learned
+//!   feedback competes with, and test-time refinement).
 //! - [`prefetch`]: the next step's sample read on another thread while this one computes.
 
 pub mod config;
+pub mod fit;
 pub mod losses;
 pub mod prefetch;
+pub mod source;
 pub mod trainer;

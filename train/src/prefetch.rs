@@ -1,72 +1,72 @@
 //! Reading the next training sample while the current step computes.
 //!
-//! A step's sample is a pure function of `(seed, step)` ([`crate::trainer::schedule`]), so the
-//! sample of step `s + 1` can be read and decoded (PNG images, masks, cameras) on another thread
-//! while step `s` runs: the training thread then only turns host data into tensors. One sample
-//! ahead is enough: decoding takes a fraction of a step.
+//! A step's sample is a pure function of `(seed, step)` ([`crate::source`]), so the sample of
+//! step `s + 1` can be read and decoded (PNG images, masks, cameras) or generated (a procedural
+//! subject) on another thread while step `s` runs: the training thread then only turns host
+//! data into tensors. One sample ahead is enough: preparing one takes a fraction of a step.
 //!
-//! Order and content are exactly what [`sample_for_step`] gives, so resuming and profiling see
-//! the same data as the serial loop.
+//! Order and content are exactly what [`TrainingSource::sample`] gives, so resuming and
+//! profiling see the same data as the serial loop.
 
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 
-use lifegom_data::dataset::{Dataset, Sample};
+use crate::source::{StepSample, TrainingSource};
+use crate::trainer::TrainError;
 
-use crate::trainer::sample_for_step;
+type Prepared = (u64, Result<StepSample, TrainError>);
 
 /// A background reader of consecutive steps' samples, starting at a given step.
 #[derive(Debug)]
 pub struct Prefetcher {
     next_step: u64,
-    receiver: Receiver<(u64, Result<Sample, lifegom_data::DataError>)>,
+    seed: u64,
+    source: Arc<TrainingSource>,
+    receiver: Receiver<Prepared>,
     worker: Option<JoinHandle<()>>,
 }
 
 impl Prefetcher {
-    /// Starts reading the samples of steps `first_step, first_step + 1, …` of `dataset` under
+    /// Starts preparing the samples of steps `first_step, first_step + 1, …` of `source` under
     /// `seed`, one ahead of the consumer.
-    pub fn new(dataset: Arc<Dataset>, seed: u64, first_step: u64) -> Self {
+    pub fn new(source: Arc<TrainingSource>, seed: u64, first_step: u64) -> Self {
         // Capacity 1: the worker holds one finished sample in the channel and prepares the
         // next one, so it never runs more than two steps ahead.
         let (sender, receiver) = sync_channel(1);
         let worker = std::thread::Builder::new()
             .name("lifegom-prefetch".into())
-            .spawn(move || produce(&dataset, seed, first_step, &sender))
+            .spawn({
+                let source = source.clone();
+                move || produce(&source, seed, first_step, &sender)
+            })
             .ok();
         Self {
             next_step: first_step,
+            seed,
+            source,
             receiver,
             worker,
         }
     }
 
     /// The sample of the next step (in order: each call advances by one step). If the worker
-    /// thread could not be started or has stopped, the sample is read on this thread instead.
-    pub fn next_sample(
-        &mut self,
-        dataset: &Dataset,
-        seed: u64,
-    ) -> Result<Sample, lifegom_data::DataError> {
+    /// thread could not be started or has stopped, the sample is prepared on this thread
+    /// instead.
+    pub fn next_sample(&mut self) -> Result<StepSample, TrainError> {
         let step = self.next_step;
         self.next_step += 1;
         let _span = tracing::debug_span!("data_wait").entered();
         match self.receiver.recv() {
             Ok((s, sample)) if s == step => sample,
-            _ => sample_for_step(dataset, seed, step),
+            _ => self.source.sample(self.seed, step),
         }
     }
 }
 
-fn produce(
-    dataset: &Dataset,
-    seed: u64,
-    first_step: u64,
-    sender: &SyncSender<(u64, Result<Sample, lifegom_data::DataError>)>,
-) {
+fn produce(source: &TrainingSource, seed: u64, first_step: u64, sender: &SyncSender<Prepared>) {
     for step in first_step.. {
-        let sample = sample_for_step(dataset, seed, step);
+        let sample = source.sample(seed, step);
         // The consumer dropped the prefetcher: stop.
         if sender.send((step, sample)).is_err() {
             return;

@@ -55,6 +55,12 @@ pub enum TrainError {
     /// The trainer's own metadata could not be serialised for a checkpoint.
     #[error("serialising the trainer state: {0}")]
     TrainerState(#[from] serde_json::Error),
+    /// Reading or generating a training sample failed.
+    #[error(transparent)]
+    Data(#[from] lifegom_data::DataError),
+    /// The training source cannot be used as configured.
+    #[error("training data: {0}")]
+    Source(String),
     /// A model configured with no feedback step has nothing to render or supervise.
     #[error("the reconstructor ran no feedback step (iterations = 0)")]
     NoFeedbackStep,
@@ -69,6 +75,14 @@ pub struct StepStats {
     pub losses: Vec<(String, f64)>,
     /// PSNR of the last feedback step's target-view render against the target (dB).
     pub psnr_target: f64,
+    /// PSNR of the target-view render after each feedback step `t = 1…T` (dB): the novel view,
+    /// which says whether a step helps on what the inputs do not show.
+    #[serde(default)]
+    pub psnr_target_steps: Vec<f64>,
+    /// PSNR of the N source-view renders (their pooled MSE) after each feedback step (dB): what
+    /// the feedback loop sees and corrects.
+    #[serde(default)]
+    pub psnr_source_steps: Vec<f64>,
     /// Wall time of the step (s).
     pub seconds: f64,
 }
@@ -369,6 +383,12 @@ impl Trainer {
         let pred = Tensor::cat(preds, 0);
         let alpha = Tensor::cat(alphas, 0);
         let gt_rgb = gt_rgb.repeat_dim(0, t);
+        // One MSE per rendered image, `[T·(N+1)]`, for the per-step statistics.
+        let image_mse = (pred.clone().detach() - gt_rgb.clone())
+            .powf_scalar(2.0)
+            .flatten::<2>(1, 3)
+            .mean_dim(1)
+            .flatten::<1>(0, 1);
         let gt_mask = gt_mask.repeat_dim(0, t);
         let meshes = Tensor::stack(rec.states.iter().map(|s| s.xyz.clone()).collect(), 0);
         let terms = LossTerms {
@@ -401,6 +421,14 @@ impl Trainer {
                 .powf_scalar(2.0)
                 .mean(),
         )?;
+        let image_mse = readback::read::<f64, 1, _>("per-image MSE", image_mse)?;
+        let views = image_mse.len() / t.max(1);
+        let psnr = |mse: f64| 10.0 * (1.0 / mse.max(1e-12)).log10();
+        let per_step = image_mse.chunks(views.max(1));
+        let psnr_target_steps = per_step.clone().map(|c| psnr(c[views - 1])).collect();
+        let psnr_source_steps = per_step
+            .map(|c| psnr(c[..views - 1].iter().sum::<f64>() / (views - 1).max(1) as f64))
+            .collect();
         let stats = StepStats {
             step: self.step,
             losses: loss
@@ -409,6 +437,8 @@ impl Trainer {
                 .map(|(n, v)| (n.to_string(), v))
                 .collect(),
             psnr_target: 10.0 * (1.0 / mse).log10(),
+            psnr_target_steps,
+            psnr_source_steps,
             seconds: start.elapsed().as_secs_f64(),
         };
         Ok(StepOutput {

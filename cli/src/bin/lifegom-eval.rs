@@ -4,7 +4,8 @@
 //! lifegom-eval --config configs/quickstart.toml --checkpoint runs/quickstart/checkpoints/latest.lgck
 //!              [--data <root>] [--out runs/eval] [--device flex|ndarray]
 //!              [--subdivide S] [--iterations T] [--baseline] [--freeview N] [--motion]
-//!              [--sweep [--sweep-sizes 64,128] [--sweep-subjects 2]] [--weights weights/]
+//!              [--sweep [--sweep-sizes 64,128] [--sweep-subjects 2]] [--per-scene 10,30,100,300]
+//!              [--weights weights/]
 //! ```
 //!
 //! Writes `per_view.csv`, `per_subject.csv`, `summary.json`, `report.md`, `preds/`, `sheets/`,
@@ -47,7 +48,7 @@ struct Args {
     /// Comparison sheets to write.
     #[arg(long, default_value_t = 6)]
     sheets: usize,
-    /// Also score the template-only baseline.
+    /// Also score the baselines (template in one colour, projective texturing).
     #[arg(long)]
     baseline: bool,
     /// Free-view turntable with this many frames (PNG frames + GIF).
@@ -65,6 +66,13 @@ struct Args {
     /// Subjects the sweep uses.
     #[arg(long, default_value_t = 2)]
     sweep_subjects: usize,
+    /// Per-scene optimisation baseline: fit each subject and score it after each of these
+    /// gradient-step counts (e.g. `10,30,100,300`), on the accuracy-vs-time plot.
+    #[arg(long, value_delimiter = ',')]
+    per_scene: Vec<usize>,
+    /// Subjects the per-scene optimisation fits (default: as many as are evaluated).
+    #[arg(long)]
+    per_scene_subjects: Option<usize>,
     /// Evaluate at most this many subjects.
     #[arg(long)]
     max_subjects: Option<usize>,
@@ -95,6 +103,8 @@ fn main() -> anyhow::Result<()> {
         sweep_sizes: args.sweep_sizes.clone(),
         sweep_subjects: args.sweep_subjects,
         baseline: args.baseline,
+        per_scene: args.per_scene.clone(),
+        per_scene_subjects: args.per_scene_subjects,
         max_subjects: args.max_subjects,
         weights_dir: args
             .weights
@@ -107,7 +117,7 @@ fn main() -> anyhow::Result<()> {
         serde_json::json!({
             "report": outcome.report.display().to_string(),
             "model": outcome.summary,
-            "baseline": outcome.baseline,
+            "baselines": lifegom_cli::eval_run::baselines_json(&outcome.baselines),
             "sweep_points": outcome.sweep.len(),
         })
     );

@@ -120,6 +120,8 @@ fn main() -> anyhow::Result<()> {
         sweep_sizes: vec![],
         sweep_subjects: 2,
         baseline: true,
+        per_scene: vec![],
+        per_scene_subjects: None,
         max_subjects: None,
         weights_dir: PerceptualModels::default_dir(),
         context: vec![
@@ -144,8 +146,7 @@ fn main() -> anyhow::Result<()> {
             "steps": summary.step,
             "psnr": s.psnr,
             "ssim": s.ssim,
-            "baseline_psnr": outcome.baseline.as_ref().map(|b| b.psnr),
-            "baseline_ssim": outcome.baseline.as_ref().map(|b| b.ssim),
+            "baselines": lifegom_cli::eval_run::baselines_json(&outcome.baselines),
             "lpips_vgg_x1000": s.lpips_vgg_x1000,
             "recon_ms": s.recon_ms,
             "render_ms": s.render_ms,

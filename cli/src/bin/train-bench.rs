@@ -12,8 +12,11 @@
 //! the median milliseconds of every stage, keyed by span path (`profile` module docs), e.g.
 //! `train_step/reconstruct/feedback_step/render_views` (summed over the T feedback steps).
 //!
-//! If the config's split is missing it is generated first, with at most `--subjects` training
-//! subjects (the timing does not depend on how many there are), under `bench-data/<config>`.
+//! If the config trains on its split (`[train] subjects = "split"`) and the split is missing, it
+//! is generated first, with at most `--subjects` training subjects (the timing does not depend on
+//! how many there are), under `bench-data/<config>`. With `subjects = "procedural"` each step
+//! generates its own subject (on the prefetch thread, or in the `data` stage with `--data
+//! serial`).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -21,15 +24,15 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Parser;
 use lifegom_cli::profile::{StageTimer, median, process_cpu_seconds};
-use lifegom_data::dataset::{Dataset, Split};
 use lifegom_data::synth;
-use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::MeshPurpose;
 use lifegom_render::device::DeviceChoice;
-use lifegom_train::config::ExperimentConfig;
+use lifegom_train::config::{ExperimentConfig, TrainingSubjects};
 use lifegom_train::losses::UniformLaplacian;
 use lifegom_train::prefetch::Prefetcher;
-use lifegom_train::trainer::{Trainer, sample_for_step};
+use lifegom_train::source::{StepSample, TrainingSource};
+use lifegom_train::trainer::Trainer;
 use tracing_subscriber::layer::SubscriberExt;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -86,12 +89,13 @@ fn main() -> anyhow::Result<()> {
             .join(&cfg.file.data.train_split)
             .exists()
     };
+    let on_disk = cfg.train.subjects == TrainingSubjects::Split;
     if let Some(root) = &args.data_root {
         cfg = cfg.with_root(root);
-    } else if !split_exists(&cfg) {
+    } else if on_disk && !split_exists(&cfg) {
         cfg = cfg.with_root(PathBuf::from("bench-data").join(&stem));
     }
-    if !split_exists(&cfg) {
+    if on_disk && !split_exists(&cfg) {
         let mut synth_cfg = cfg.file.synthetic.clone().with_context(|| {
             format!(
                 "{}: no [synthetic] section to generate a split from",
@@ -115,18 +119,13 @@ fn main() -> anyhow::Result<()> {
     }
 
     let device = args.device.device();
-    let dataset = std::sync::Arc::new(Dataset::open(&cfg.file.data, Split::Train)?);
-    let rigs = SubjectRig::for_split(&dataset)?;
-    let mut trainer = Trainer::new(
-        cfg.reconstructor(),
-        rigs[0].num_vertices(),
-        &cfg.train,
-        &device,
-    )?;
+    let source = std::sync::Arc::new(TrainingSource::open(&cfg)?);
+    let rig = source.reference_rig();
+    let mut trainer = Trainer::new(cfg.reconstructor(), rig.num_vertices(), &cfg.train, &device)?;
     let mesh = trainer
         .config
-        .mesh(&rigs[0].topology, MeshPurpose::Training, trainer.device())?;
-    let laplacian = UniformLaplacian::new(&rigs[0].topology.faces, rigs[0].num_vertices())?;
+        .mesh(&rig.topology, MeshPurpose::Training, trainer.device())?;
+    let laplacian = UniformLaplacian::new(&rig.topology.faces, rig.num_vertices())?;
     let (w, h) = (cfg.file.data.img_size[0], cfg.file.data.img_size[1]);
 
     let timer = StageTimer::default();
@@ -138,7 +137,7 @@ fn main() -> anyhow::Result<()> {
     let mut cpu_seconds = 0.0;
     let mut wall_seconds = 0.0;
     let mut prefetch = (args.data == DataLoading::Prefetch)
-        .then(|| Prefetcher::new(dataset.clone(), trainer.seed(), trainer.step));
+        .then(|| Prefetcher::new(source.clone(), trainer.seed(), trainer.step));
     for i in 0..args.warmup + args.steps.max(1) {
         let cpu_before = process_cpu_seconds();
         let start = Instant::now();
@@ -146,15 +145,11 @@ fn main() -> anyhow::Result<()> {
             let _span = tracing::info_span!("step").entered();
             let inputs = {
                 let _span = tracing::debug_span!("data").entered();
-                let sample = match prefetch.as_mut() {
-                    Some(p) => p.next_sample(&dataset, trainer.seed())?,
-                    None => sample_for_step(&dataset, trainer.seed(), trainer.step)?,
+                let StepSample { sample, rig } = match prefetch.as_mut() {
+                    Some(p) => p.next_sample()?,
+                    None => source.sample(trainer.seed(), trainer.step)?,
                 };
-                let rig = rigs
-                    .iter()
-                    .find(|r| r.name == sample.subject)
-                    .context("sample from an unknown subject")?;
-                model_inputs(rig, &sample, w, h, trainer.device())?
+                model_inputs(&rig, &sample, w, h, trainer.device())?
             };
             trainer.train_step(&inputs, &mesh, &laplacian)?;
         }
@@ -188,7 +183,7 @@ fn main() -> anyhow::Result<()> {
         "iterations": model.iterations,
         "subdivide_train": model.subdivide_train,
         "gaussians": mesh.num_gaussians(),
-        "vertices": rigs[0].num_vertices(),
+        "vertices": rig.num_vertices(),
         "data": format!("{:?}", args.data).to_lowercase(),
         "steps": step_seconds.len(),
         "median_step_ms": ms(median(&step_seconds).unwrap_or(f64::NAN)),

@@ -28,6 +28,7 @@
 
 pub mod body;
 pub mod raster;
+pub mod stream;
 pub mod texture;
 
 use std::path::{Path, PathBuf};
@@ -41,6 +42,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::dataset::{DataConfig, Protocol};
 use crate::error::{DataError, Location, Result};
+use crate::format::{CanonicalBody, FrameCamera, FrameMeshInfo};
 use crate::pickle::{self, DType, Elements, NdArray, Value};
 use body::{Outfit, Surface};
 use lifegom_render::rng::Rng;
@@ -260,6 +262,56 @@ pub struct SyntheticSubject {
     pub est_vertices: Vec<Vec3>,
 }
 
+impl RenderedFrame {
+    /// The frame's camera as `cameras.pkl` stores it: `K` and `E` (world → camera), each entry
+    /// an `f32` widened to `f64`, exactly what reading the written file gives back.
+    pub fn frame_camera(&self) -> FrameCamera {
+        let k = self.camera.intrinsics.matrix();
+        let r = self.camera.rotation();
+        let t = self.camera.cam_from_world.translation;
+        let e = [
+            [r.x_axis.x, r.y_axis.x, r.z_axis.x, t.x],
+            [r.x_axis.y, r.y_axis.y, r.z_axis.y, t.y],
+            [r.x_axis.z, r.y_axis.z, r.z_axis.z, t.z],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        FrameCamera {
+            k: k.map(|row| row.map(f64::from)),
+            e: e.map(|row| row.map(f64::from)),
+            distortion: None,
+        }
+    }
+}
+
+impl SyntheticSubject {
+    /// The body pose every frame shares (THuman scans are static), as `mesh_infos.pkl` stores it.
+    pub fn mesh_info(&self) -> FrameMeshInfo {
+        FrameMeshInfo {
+            poses: self.poses.clone(),
+            tpose_joints: self.est_joints.clone(),
+            rh: self.rh,
+            th: self.th,
+        }
+    }
+
+    /// The canonical body as `canonical_joints.pkl` stores it: the estimated shape's joints and
+    /// template vertices, the template's dense skinning weights, faces and parents.
+    pub fn canonical_body(&self, template: &BodyTemplate) -> CanonicalBody {
+        CanonicalBody {
+            joints: self.est_joints.clone(),
+            vertices: self.est_vertices.clone(),
+            weights: template.skin.to_dense(),
+            faces: template.topology.faces.clone(),
+            parents: template
+                .skeleton
+                .parents
+                .iter()
+                .map(|p| p.map_or(-1, |p| p as i32))
+                .collect(),
+        }
+    }
+}
+
 /// Camera azimuths (radians) of a training subject: the ring, then targets in the gaps.
 fn train_azimuths(cfg: &SynthConfig, rng: &mut Rng) -> Vec<f32> {
     let n = cfg.source_views;
@@ -384,6 +436,21 @@ pub fn generate_subject(
     name: &str,
     val_inputs: Option<usize>,
 ) -> Result<SyntheticSubject> {
+    generate_subject_frames(template, cfg, seed, index, name, val_inputs, None)
+}
+
+/// [`generate_subject`], rendering only the frames in `only` (indices into the full camera
+/// layout; `None`: all). The subject (shape, outfit, pose, every camera) is the same whatever
+/// frames are rendered: a training stream that needs four of the 64 views pays for four.
+pub fn generate_subject_frames(
+    template: &BodyTemplate,
+    cfg: &SynthConfig,
+    seed: u64,
+    index: usize,
+    name: &str,
+    val_inputs: Option<usize>,
+    only: Option<&[usize]>,
+) -> Result<SyntheticSubject> {
     let mut rng = Rng::new(seed).fork(index as u64);
     let at = |field: &str| Location::default().subject(name).field(field.to_owned());
     let basis = &template.shape_basis;
@@ -484,6 +551,7 @@ pub fn generate_subject(
     let frames = azimuths
         .iter()
         .enumerate()
+        .filter(|(f, _)| only.is_none_or(|o| o.contains(f)))
         .map(|(f, &az)| {
             let camera = ring_camera(cfg, az)?;
             let (rgb, mask) = scene.render(&camera, cfg.shading, cfg.supersample)?;
@@ -546,7 +614,9 @@ pub fn write_subject(
     }
     let mut cameras = Vec::new();
     let mut infos = Vec::new();
-    let j = subject.est_joints.len();
+    let info = subject.mesh_info();
+    let body = subject.canonical_body(template);
+    let j = body.num_joints();
     for frame in &subject.frames {
         let (w, h) = (frame.camera.width, frame.camera.height);
         let img_path = root.join("images").join(format!("{}.png", frame.name));
@@ -563,26 +633,15 @@ pub fn write_subject(
         let mask_path = root.join("masks").join(format!("{}.png", frame.name));
         image::save_buffer(&mask_path, &frame.mask, w, h, image::ExtendedColorType::L8)
             .map_err(|e| save_err(&mask_path, e))?;
-        let k = frame.camera.intrinsics.matrix();
-        let r = frame.camera.rotation();
-        let t = frame.camera.cam_from_world.translation;
-        let e = [
-            [r.x_axis.x, r.y_axis.x, r.z_axis.x, t.x],
-            [r.x_axis.y, r.y_axis.y, r.z_axis.y, t.y],
-            [r.x_axis.z, r.y_axis.z, r.z_axis.z, t.z],
-            [0.0, 0.0, 0.0, 1.0],
-        ];
+        let camera = frame.frame_camera();
+        // Exact: the entries are f32 values widened to f64.
+        let k: Vec<f32> = camera.k.iter().flatten().map(|&v| v as f32).collect();
+        let e: Vec<f32> = camera.e.iter().flatten().map(|&v| v as f32).collect();
         cameras.push((
             key(&frame.name),
             Value::Dict(vec![
-                (
-                    key("intrinsics"),
-                    f32_array(vec![3, 3], k.into_iter().flatten()),
-                ),
-                (
-                    key("extrinsics"),
-                    f32_array(vec![4, 4], e.into_iter().flatten()),
-                ),
+                (key("intrinsics"), f32_array(vec![3, 3], k)),
+                (key("extrinsics"), f32_array(vec![4, 4], e)),
             ]),
         ));
         infos.push((
@@ -590,36 +649,34 @@ pub fn write_subject(
             Value::Dict(vec![
                 (
                     key("poses"),
-                    f32_array(vec![3 * j], subject.poses.iter().copied()),
+                    f32_array(vec![3 * j], info.poses.iter().copied()),
                 ),
-                (key("tpose_joints"), vec3_array(&subject.est_joints)),
-                (key("Rh"), f32_array(vec![3], subject.rh.to_array())),
-                (key("Th"), f32_array(vec![3], subject.th.to_array())),
+                (key("tpose_joints"), vec3_array(&info.tpose_joints)),
+                (key("Rh"), f32_array(vec![3], info.rh.to_array())),
+                (key("Th"), f32_array(vec![3], info.th.to_array())),
             ]),
         ));
     }
     pickle::save(&root.join("cameras.pkl"), &Value::Dict(cameras))?;
     pickle::save(&root.join("mesh_infos.pkl"), &Value::Dict(infos))?;
-    let parents = template
-        .skeleton
-        .parents
-        .iter()
-        .map(|p| p.map_or(-1, |p| p as i64));
     let canonical = Value::Dict(vec![
-        (key("joints"), vec3_array(&subject.est_joints)),
-        (key("vertex"), vec3_array(&subject.est_vertices)),
+        (key("joints"), vec3_array(&body.joints)),
+        (key("vertex"), vec3_array(&body.vertices)),
         (
             key("weights"),
-            f32_array(vec![template.num_vertices(), j], template.skin.to_dense()),
+            f32_array(vec![body.vertices.len(), j], body.weights.iter().copied()),
         ),
         (
             key("faces"),
             i64_array(
-                vec![template.topology.num_faces(), 3],
-                template.topology.faces.iter().flatten().map(|&i| i as i64),
+                vec![body.faces.len(), 3],
+                body.faces.iter().flatten().map(|&i| i64::from(i)),
             ),
         ),
-        (key("parents"), i64_array(vec![j], parents)),
+        (
+            key("parents"),
+            i64_array(vec![j], body.parents.iter().map(|&p| i64::from(p))),
+        ),
         (
             key("joint_names"),
             Value::List(template.skeleton.names.iter().map(|n| key(n)).collect()),

@@ -1,0 +1,276 @@
+//! Subjects that never repeat: one fresh synthetic subject for every training sample
+//! (design.md §8.9).
+//!
+//! A fixed split of a few dozen subjects lets a reconstructor memorise its people instead of
+//! reading their photos. A [`SubjectStream`] instead generates subject `i` of an unbounded
+//! sequence on demand (shape, outfit, pose, cameras: [`generate_subject_frames`]) and renders
+//! only the views its sample needs: the frame rule's N inputs and one target, chosen from the
+//! subject's full camera layout exactly as a training split on disk would choose them. Every
+//! random choice is a function of `(seed, i)`, so a training step's sample is reproducible and
+//! `--resume` continues the same sequence.
+//!
+//! The frames go through the same preprocessing as frames read from disk
+//! ([`prepare_view`]): a stream sample equals the sample read back from the subject written
+//! with [`super::write_subject`] (tested below).
+
+use lifegom_render::rng::Rng;
+use lifegom_render::template::BodyTemplate;
+
+use super::{SynthConfig, generate_subject_frames};
+use crate::dataset::{Background, DataConfig, FrameRule, Sample, Split, prepare_view};
+use crate::error::{DataError, Location, Result};
+use crate::format::CanonicalBody;
+use crate::preprocess::FloatImage;
+
+/// Stream key of the subjects' seed (kept apart from the on-disk split's subjects).
+const SUBJECT_SEED: u64 = 0x5752_4541_4d00_0001;
+/// Fork key of a sample's frame and background choices (kept apart from the subject's own).
+const SAMPLE_CHOICES: u64 = 1;
+
+/// A generated sample with the canonical body its subject's `canonical_joints.pkl` would hold.
+#[derive(Debug, Clone)]
+pub struct StreamSample {
+    /// The subject's canonical body (estimated shape, template skinning and faces).
+    pub canonical: CanonicalBody,
+    /// The N inputs and the target, preprocessed.
+    pub sample: Sample,
+}
+
+/// An unbounded, deterministic sequence of synthetic training samples (module docs).
+#[derive(Debug, Clone)]
+pub struct SubjectStream {
+    template: BodyTemplate,
+    synth: SynthConfig,
+    rule: FrameRule,
+    img_size: (u32, u32),
+    background: Background,
+    /// `[synthetic] seed`.
+    seed: u64,
+}
+
+impl SubjectStream {
+    /// A stream of training samples under `data`'s frame rule, image size and training
+    /// background, with subjects drawn as `synth` describes (its `seed` and the run's pick the
+    /// sequence: [`SubjectStream::sample`]).
+    pub fn new(synth: &SynthConfig, data: &DataConfig) -> Result<Self> {
+        let path = synth.template.path();
+        let template = BodyTemplate::load(&path)
+            .map_err(|e| DataError::render(Location::file(&path).field("template"), e))?;
+        Ok(Self::with_template(template, synth, data))
+    }
+
+    /// [`SubjectStream::new`] with an already loaded template.
+    pub fn with_template(template: BodyTemplate, synth: &SynthConfig, data: &DataConfig) -> Self {
+        Self {
+            template,
+            synth: synth.clone(),
+            rule: FrameRule {
+                protocol: data.protocol,
+                split: Split::Train,
+                n_inputs: data.n_input_frames,
+            },
+            img_size: (data.img_size[0], data.img_size[1]),
+            background: data.train_background,
+            seed: synth.seed,
+        }
+    }
+
+    /// The template every subject is shaped from.
+    pub fn template(&self) -> &BodyTemplate {
+        &self.template
+    }
+
+    /// The template in its own rest shape as a canonical body: the topology and skinning every
+    /// subject of the stream shares.
+    pub fn template_body(&self) -> CanonicalBody {
+        let t = &self.template;
+        CanonicalBody {
+            joints: t.skeleton.rest_joints.clone(),
+            vertices: t.vertices.clone(),
+            weights: t.skin.to_dense(),
+            faces: t.topology.faces.clone(),
+            parents: t
+                .skeleton
+                .parents
+                .iter()
+                .map(|p| p.map_or(-1, |p| p as i32))
+                .collect(),
+        }
+    }
+
+    /// Name of subject `index` (`p` + nine digits: never a name of an on-disk split).
+    pub fn subject_name(index: u64) -> String {
+        format!("p{index:09}")
+    }
+
+    /// Frames per subject: the training ring and its targets.
+    fn num_frames(&self) -> usize {
+        self.synth.source_views + self.synth.target_views
+    }
+
+    /// The generator seed of the subjects of run seed `seed`.
+    fn subject_seed(&self, seed: u64) -> u64 {
+        Rng::new(self.seed).fork(SUBJECT_SEED).fork(seed).next_u64()
+    }
+
+    /// Sample `index` of the sequence of run seed `seed`: subject `index`, its inputs and
+    /// target picked by the frame rule, composited on the training background.
+    pub fn sample(&self, seed: u64, index: u64) -> Result<StreamSample> {
+        let _span = tracing::debug_span!("generate_subject", index).entered();
+        let name = Self::subject_name(index);
+        let subject_seed = self.subject_seed(seed);
+        let mut rng = Rng::new(subject_seed).fork(index).fork(SAMPLE_CHOICES);
+        let num_frames = self.num_frames();
+        let s = rng.below(self.rule.samples_per_subject(num_frames).max(1));
+        let (inputs, target) = self.rule.frames(s, num_frames, &mut rng);
+        let bg = self.background.draw(&mut rng);
+        let wanted: Vec<usize> = inputs.iter().copied().chain([target]).collect();
+        let subject = generate_subject_frames(
+            &self.template,
+            &self.synth,
+            subject_seed,
+            index as usize,
+            &name,
+            None,
+            Some(&wanted),
+        )?;
+        let info = subject.mesh_info();
+        let views = wanted
+            .iter()
+            .map(|&f| {
+                let frame_name = format!("frame_{f:06}");
+                let frame = subject
+                    .frames
+                    .iter()
+                    .find(|r| r.name == frame_name)
+                    .ok_or_else(|| {
+                        DataError::invalid(
+                            Location::default().subject(&name).frame(&frame_name),
+                            "the generator did not render a frame the rule picked",
+                        )
+                    })?;
+                let (w, h) = (frame.camera.width, frame.camera.height);
+                Ok(prepare_view(
+                    &frame.name,
+                    FloatImage::from_rgb8(w, h, &frame.rgb),
+                    FloatImage::mask_from_l8(w, h, &frame.mask),
+                    &frame.frame_camera(),
+                    &info,
+                    bg,
+                    self.img_size,
+                ))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let canonical = subject.canonical_body(&self.template);
+        Ok(StreamSample {
+            sample: Sample {
+                frame_name: format!("scene_{name}_frame_{target:06}"),
+                subject: name,
+                views,
+                bgcolor: bg.map(|c| c / 255.0),
+                canonical_vertices: canonical.vertices.iter().map(|v| v.to_array()).collect(),
+            },
+            canonical,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dataset::Protocol;
+    use crate::format::Subject;
+    use crate::kinematics::KinematicTree;
+    use crate::synth::{Shading, ShapeEstimate, TemplateChoice, generate_subject, write_subject};
+
+    fn configs(size: u32) -> (SynthConfig, DataConfig) {
+        let synth = SynthConfig {
+            template: TemplateChoice::Lowres,
+            train_subjects: 1,
+            val_subjects: 0,
+            image_size: size,
+            source_views: 16,
+            target_views: 48,
+            val_target_views: 3,
+            camera_radius: 2.0,
+            camera_pitch_deg: -8.0,
+            focal_factor: 0.8,
+            shape_estimate: ShapeEstimate::Noisy,
+            shape_noise: 0.2,
+            shading: Shading::Albedo,
+            supersample: 1,
+            seed: 0,
+        };
+        let data = DataConfig {
+            root: "unused".into(),
+            protocol: Protocol::ThumanView3,
+            kinematic_tree: KinematicTree::Stored,
+            train_dir: "train".into(),
+            train_split: "train.json".into(),
+            val_dir: "val".into(),
+            val_split: "val.json".into(),
+            val_subjects: None,
+            img_size: [size / 2, size / 2],
+            n_input_frames: 3,
+            train_background: Background::Random,
+            test_background: Background::Fixed([0, 0, 0]),
+        };
+        (synth, data)
+    }
+
+    /// A stream sample is exactly what the reader gives for the same subject written to disk:
+    /// same views (pixels, masks, cameras, poses), canonical body and background.
+    #[test]
+    fn stream_sample_equals_the_written_subject_read_back() {
+        let (synth, data) = configs(48);
+        let stream = SubjectStream::new(&synth, &data).unwrap();
+        let got = stream.sample(7, 3).unwrap();
+        let dir = std::env::temp_dir().join(format!("lifegom-stream-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let name = SubjectStream::subject_name(3);
+        let seed = stream.subject_seed(7);
+        let full = generate_subject(stream.template(), &synth, seed, 3, &name, None).unwrap();
+        write_subject(stream.template(), &full, &dir).unwrap();
+        let subject = Subject::load(&dir.join(&name), KinematicTree::Stored).unwrap();
+        assert_eq!(subject.canonical, got.canonical);
+        assert_eq!(got.sample.views.len(), 4);
+        let bg = got.sample.bgcolor.map(|c| c * 255.0);
+        for view in &got.sample.views {
+            let f = subject
+                .frames
+                .iter()
+                .position(|n| *n == view.frame)
+                .unwrap();
+            let read = crate::dataset::load_view(&subject, f, bg, (24, 24)).unwrap();
+            assert_eq!(&read, view, "frame {}", view.frame);
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+        // Inputs follow the THuman view3 training rule: ring frames 5 or 6 apart; the target is
+        // one of the 48 in-gap views.
+        let idx: Vec<usize> = got
+            .sample
+            .views
+            .iter()
+            .map(|v| v.frame["frame_".len()..].parse().unwrap())
+            .collect();
+        for pair in idx[..3].windows(2) {
+            assert!(matches!((pair[1] + 16 - pair[0]) % 16, 5 | 6), "{idx:?}");
+        }
+        assert!((16..64).contains(&idx[3]), "{idx:?}");
+    }
+
+    /// Same index, same sample; another index or seed, another person.
+    #[test]
+    fn samples_are_deterministic_and_distinct() {
+        let (synth, data) = configs(32);
+        let stream = SubjectStream::new(&synth, &data).unwrap();
+        let s0 = stream.sample(1, 0).unwrap();
+        assert_eq!(s0.sample, stream.sample(1, 0).unwrap().sample);
+        let next = stream.sample(1, 1).unwrap();
+        assert_ne!(s0.canonical.vertices, next.canonical.vertices);
+        let other_run = stream.sample(2, 0).unwrap();
+        assert_ne!(s0.canonical.vertices, other_run.canonical.vertices);
+        let sum = |s: &StreamSample| s.sample.views[0].rgb.iter().sum::<f32>();
+        assert_ne!(sum(&s0), sum(&next));
+    }
+}

@@ -1,0 +1,153 @@
+//! The per-scene optimisation baseline scored after K = 10, 30, 100, … gradient steps
+//! (design.md §10.8): quality against time on the same axes as the learned model's T = 1…5.
+//!
+//! For each validation subject the template in its mean colour
+//! ([`crate::baselines::template_one_colour`]) is fitted to the N source views
+//! ([`lifegom_train::fit`]); after each requested K the fitted avatar renders every target view
+//! of the subject, scored as the evaluation scores the model (protocol region, PSNR, SSIM). The
+//! time of a point is the fit's own wall time up to K, per subject (scoring excluded).
+
+use burn::tensor::Device;
+use lifegom_data::dataset::{Dataset, Protocol};
+use lifegom_model::inputs::{ModelInputs, SubjectRig, model_inputs};
+use lifegom_render::gom::GomMesh;
+use lifegom_render::rng::Rng;
+use lifegom_train::fit::{FitConfig, fit};
+use lifegom_train::losses::{LossWeights, UniformLaplacian};
+use serde::{Deserialize, Serialize};
+
+use crate::baselines::template_one_colour;
+use crate::error::EvalError;
+use crate::evaluate::{render_timed, score_region, thuman_crop_size};
+use crate::images::Image;
+
+/// Scores of the fit after `steps` gradient steps, averaged over subjects and target views.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FitPoint {
+    /// Gradient steps K.
+    pub steps: usize,
+    /// Mean PSNR over the target views (dB).
+    pub psnr: f64,
+    /// Mean SSIM over the target views.
+    pub ssim: f64,
+    /// Mean fit wall time per subject up to K (ms).
+    pub ms: f64,
+}
+
+/// The validation samples of each subject, in split order (the first sample's inputs are the
+/// subject's inputs; every target shares them).
+fn samples_by_subject(
+    dataset: &Dataset,
+    rigs: &[SubjectRig],
+    max_subjects: usize,
+    device: &Device,
+) -> Result<Vec<Vec<ModelInputs>>, EvalError> {
+    let (w, h) = (dataset.img_size.0, dataset.img_size.1);
+    let mut groups: Vec<Vec<ModelInputs>> = Vec::new();
+    let mut rng = Rng::new(0);
+    for i in 0..dataset.len() {
+        let Some(index) = dataset.index(i, &mut rng) else {
+            break;
+        };
+        if index.subject >= max_subjects {
+            continue;
+        }
+        let sample = dataset.sample(i, &mut rng)?;
+        let inputs = model_inputs(&rigs[index.subject], &sample, w, h, device)?;
+        if groups.len() <= index.subject {
+            groups.resize_with(index.subject + 1, Vec::new);
+        }
+        groups[index.subject].push(inputs);
+    }
+    groups.retain(|g| !g.is_empty());
+    Ok(groups)
+}
+
+/// Fits every subject (at most `max_subjects`) for `max(ks)` steps and scores it after each
+/// `K ∈ ks` (module docs); `subdivide` is the Gaussians' level.
+pub fn score_per_scene_fit(
+    dataset: &Dataset,
+    ks: &[usize],
+    subdivide: u32,
+    cfg: &FitConfig,
+    weights: &LossWeights,
+    max_subjects: Option<usize>,
+    device: &Device,
+) -> Result<Vec<FitPoint>, EvalError> {
+    let _span = tracing::info_span!("score_per_scene_fit").entered();
+    let rigs = SubjectRig::for_split(dataset)?;
+    let topology = &rigs[0].topology;
+    let mesh = GomMesh::new(topology, subdivide, device)?;
+    let laplacian = UniformLaplacian::new(&topology.faces, rigs[0].num_vertices())
+        .map_err(|e| EvalError::Fit(e.into()))?;
+    let (w, h) = (dataset.img_size.0 as usize, dataset.img_size.1 as usize);
+    let crop_size = thuman_crop_size(h, w);
+    let crop_protocol = dataset.rule.protocol != Protocol::Aistpp;
+    let k_max = ks.iter().copied().max().unwrap_or(0);
+    let mut sums: Vec<FitPoint> = ks
+        .iter()
+        .map(|&steps| FitPoint {
+            steps,
+            psnr: 0.0,
+            ssim: 0.0,
+            ms: 0.0,
+        })
+        .collect();
+    let mut views = 0usize;
+    let groups = samples_by_subject(dataset, &rigs, max_subjects.unwrap_or(usize::MAX), device)?;
+    for targets in &groups {
+        let start = template_one_colour(&mesh, &targets[0], device)?.avatar;
+        let mut failure = None;
+        fit(
+            &start,
+            &targets[0],
+            &laplacian,
+            weights,
+            cfg,
+            k_max,
+            |k, seconds, avatar| {
+                let Some(point) = sums.iter_mut().find(|p| p.steps == k) else {
+                    return Ok(true);
+                };
+                point.ms += seconds * 1e3;
+                for inputs in targets {
+                    let scored = render_timed(
+                        avatar,
+                        inputs,
+                        &inputs.target_camera,
+                        &inputs.target_skinning,
+                    )
+                    .and_then(|(pred, _)| {
+                        let gt = Image::from_chw(inputs.target_rgb.clone())?;
+                        score_region(&pred, &gt, crop_protocol, crop_size, "per-scene fit")
+                    });
+                    match scored {
+                        Ok((m, _, _)) => {
+                            point.psnr += m.psnr;
+                            point.ssim += m.ssim;
+                        }
+                        Err(e) => {
+                            failure = Some(e);
+                            return Ok(false);
+                        }
+                    }
+                }
+                Ok(true)
+            },
+        )?;
+        if let Some(e) = failure {
+            return Err(e);
+        }
+        views += targets.len();
+    }
+    let (views, subjects) = (views.max(1) as f64, groups.len().max(1) as f64);
+    Ok(sums
+        .into_iter()
+        .map(|p| FitPoint {
+            psnr: p.psnr / views,
+            ssim: p.ssim / views,
+            ms: p.ms / subjects,
+            ..p
+        })
+        .collect())
+}

@@ -1,0 +1,102 @@
+//! What each feedback step does on people the model never saw (design.md §10.7).
+//!
+//! One reconstruction per validation subject runs all T feedback steps; the state after every
+//! step `t = 1…T` is rendered in each target view and scored exactly as the evaluation scores
+//! the final one (protocol region, PSNR, skimage SSIM). Training runs this every
+//! `[train] validate_every` steps, so the curves show, over training, whether later steps help
+//! and how the model compares with the baselines that need no learning.
+
+use std::collections::HashMap;
+
+use burn::tensor::Device;
+use lifegom_data::dataset::{Dataset, Protocol};
+use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_model::reconstructor::{Reconstructor, render_views};
+use lifegom_render::gom::GomMesh;
+use lifegom_render::rng::Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::error::EvalError;
+use crate::evaluate::{score_region, thuman_crop_size};
+use crate::images::Image;
+
+/// Mean scores of the state after one feedback step.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct StepScore {
+    /// The feedback step (1-based).
+    pub t: usize,
+    /// Mean PSNR over the target views (dB).
+    pub psnr: f64,
+    /// Mean SSIM over the target views.
+    pub ssim: f64,
+}
+
+/// Scores every feedback step of `model` (an inference model: no autodiff) on the targets of
+/// `dataset` (a validation split), at `subdivide` subdivisions, on at most `max_subjects`.
+pub fn score_feedback_steps(
+    model: &Reconstructor,
+    dataset: &Dataset,
+    subdivide: u32,
+    max_subjects: Option<usize>,
+    device: &Device,
+) -> Result<Vec<StepScore>, EvalError> {
+    let _span = tracing::info_span!("score_feedback_steps").entered();
+    let rigs = SubjectRig::for_split(dataset)?;
+    let mesh = GomMesh::new(&rigs[0].topology, subdivide, device)?;
+    let (w, h) = (dataset.img_size.0, dataset.img_size.1);
+    let crop_size = thuman_crop_size(h as usize, w as usize);
+    let crop_protocol = dataset.rule.protocol != Protocol::Aistpp;
+    let t_max = model.iterations();
+    let mut psnr = vec![0.0; t_max];
+    let mut ssim = vec![0.0; t_max];
+    let mut views = 0usize;
+    let mut cache = HashMap::new();
+    let mut rng = Rng::new(0);
+    let max_subjects = max_subjects.unwrap_or(usize::MAX);
+    for i in 0..dataset.len() {
+        let Some(index) = dataset.index(i, &mut rng) else {
+            break;
+        };
+        if index.subject >= max_subjects {
+            continue;
+        }
+        let sample = dataset.sample(i, &mut rng)?;
+        let inputs = model_inputs(&rigs[index.subject], &sample, w, h, device)?;
+        let key = (index.subject, index.inputs.clone());
+        if !cache.contains_key(&key) {
+            let rec = model
+                .forward(&inputs.subject, &mesh, &inputs.sources)
+                .map_err(|e| EvalError::Frame {
+                    frame: sample.frame_name.clone(),
+                    source: Box::new(e.into()),
+                })?;
+            cache.clear();
+            cache.insert(key.clone(), rec.states);
+        }
+        let gt = Image::from_chw(inputs.target_rgb.clone())?;
+        for (t, state) in cache[&key].iter().enumerate() {
+            let rendered = render_views(
+                &mesh,
+                &state.xyz,
+                &state.faces,
+                &inputs.subject,
+                std::slice::from_ref(&inputs.target_camera),
+                std::slice::from_ref(&inputs.target_skinning),
+                inputs.sources.background,
+            )?;
+            let pred = Image::from_chw(rendered.rgb.squeeze_dim::<3>(0))?;
+            let (m, _, _) = score_region(&pred, &gt, crop_protocol, crop_size, &sample.frame_name)?;
+            psnr[t] += m.psnr;
+            ssim[t] += m.ssim;
+        }
+        views += 1;
+    }
+    let n = views.max(1) as f64;
+    Ok((0..t_max)
+        .map(|t| StepScore {
+            t: t + 1,
+            psnr: psnr[t] / n,
+            ssim: ssim[t] / n,
+        })
+        .collect())
+}
