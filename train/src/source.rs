@@ -39,8 +39,8 @@ pub enum TrainingSource {
     },
     /// A fresh synthetic subject per step.
     Procedural {
-        /// The stream.
-        stream: SubjectStream,
+        /// The stream (boxed: it holds the whole body template).
+        stream: Box<SubjectStream>,
         /// The template's own rig (topology and vertex count every subject shares).
         template: Arc<SubjectRig>,
     },
@@ -64,7 +64,7 @@ impl TrainingSource {
                 let stream = SubjectStream::new(synth, &cfg.file.data)?;
                 let template = SubjectRig::new("template", &stream.template_body())?;
                 Ok(Self::Procedural {
-                    stream,
+                    stream: Box::new(stream),
                     template: Arc::new(template),
                 })
             }
