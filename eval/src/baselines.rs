@@ -245,7 +245,8 @@ mod tests {
         assert_eq!(colors[2], [0.5, 0.5, 0.0]); // ring 1: neighbours 0 and 1
         assert_eq!(colors[3], [0.0, 1.0, 0.0]); // ring 1: only 1 was seen
         assert_eq!(colors[4], [0.25, 0.75, 0.0]); // ring 2: neighbours 2 and 3
-        assert!(seen.iter().all(|&s| s));
+        assert!(seen[..5].iter().all(|&s| s), "the strip is reached");
+        assert!(!seen[6], "the isolated triangle is not");
         assert_eq!(colors[6], [0.5, 0.5, 0.5]); // unreachable: the fallback
     }
 }
