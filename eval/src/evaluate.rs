@@ -20,9 +20,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use burn::tensor::Device;
-use lifegom_data::dataset::{Dataset, Protocol};
+use lifegom_data::dataset::{Dataset, Protocol, Sample, SampleIndex};
 use lifegom_model::avatar::Avatar;
-use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_model::inputs::{ModelInputs, SubjectRig, model_inputs};
 use lifegom_model::reconstructor::{Reconstructor, ReconstructorConfig, render_views};
 use lifegom_render::gom::GomMesh;
 use lifegom_render::rng::Rng;
@@ -146,6 +146,51 @@ pub(crate) fn score_region(
     Ok((m, p_img, g_img))
 }
 
+/// One sample of a validation split, ready for a model.
+pub struct ValidationSample {
+    /// Its subject and frames.
+    pub index: SampleIndex,
+    /// The preprocessed views.
+    pub sample: Sample,
+    /// The views as model inputs.
+    pub inputs: ModelInputs,
+}
+
+/// The samples of a validation split in order, under the split's deterministic rule (the fixed
+/// inputs and background), leaving out subjects from `max_subjects` on: what the evaluation,
+/// the per-step validation and the per-scene fit all iterate over.
+pub fn validation_samples<'a>(
+    dataset: &'a Dataset,
+    rigs: &'a [SubjectRig],
+    max_subjects: Option<usize>,
+    device: &'a Device,
+) -> impl Iterator<Item = Result<ValidationSample, EvalError>> + 'a {
+    let (w, h) = (dataset.img_size.0, dataset.img_size.1);
+    let max_subjects = max_subjects.unwrap_or(usize::MAX);
+    let mut rng = Rng::new(0);
+    (0..dataset.len())
+        .map_while(move |i| {
+            let index = dataset.index(i, &mut rng)?;
+            if index.subject >= max_subjects {
+                return Some(None);
+            }
+            let sample = match dataset.sample(i, &mut rng) {
+                Ok(s) => s,
+                Err(e) => return Some(Some(Err(e.into()))),
+            };
+            Some(Some(
+                model_inputs(&rigs[index.subject], &sample, w, h, device)
+                    .map_err(EvalError::from)
+                    .map(|inputs| ValidationSample {
+                        index,
+                        sample,
+                        inputs,
+                    }),
+            ))
+        })
+        .flatten()
+}
+
 /// A reconstructed avatar and how long it took.
 pub struct Reconstructed {
     /// The avatar (canonical state + mesh).
@@ -253,18 +298,12 @@ pub fn evaluate_split(
     let mut views = Vec::new();
     let mut images = MetricImages::default();
     let mut sheets = Vec::new();
-    let mut rng = Rng::new(0);
-    let max_subjects = settings.max_subjects.unwrap_or(usize::MAX);
-    for i in 0..dataset.len() {
-        let Some(index) = dataset.index(i, &mut rng) else {
-            break;
-        };
-        if index.subject >= max_subjects {
-            continue;
-        }
-        let sample = dataset.sample(i, &mut rng)?;
-        let body = &bodies[index.subject];
-        let inputs = model_inputs(body, &sample, w, h, device)?;
+    for item in validation_samples(dataset, &bodies, settings.max_subjects, device) {
+        let ValidationSample {
+            index,
+            sample,
+            inputs,
+        } = item?;
         let key = (index.subject, index.inputs.clone());
         if !cache.contains_key(&key) {
             let rec = match (&model, method) {

@@ -9,16 +9,17 @@
 
 use burn::tensor::Device;
 use lifegom_data::dataset::{Dataset, Protocol};
-use lifegom_model::inputs::{ModelInputs, SubjectRig, model_inputs};
+use lifegom_model::inputs::{ModelInputs, SubjectRig};
 use lifegom_render::gom::GomMesh;
-use lifegom_render::rng::Rng;
 use lifegom_train::fit::{FitConfig, fit};
 use lifegom_train::losses::{LossWeights, UniformLaplacian};
 use serde::{Deserialize, Serialize};
 
 use crate::baselines::template_one_colour;
 use crate::error::EvalError;
-use crate::evaluate::{render_timed, score_region, thuman_crop_size};
+use crate::evaluate::{
+    ValidationSample, render_timed, score_region, thuman_crop_size, validation_samples,
+};
 use crate::images::Image;
 
 /// Scores of the fit after `steps` gradient steps, averaged over subjects and target views.
@@ -39,21 +40,12 @@ pub struct FitPoint {
 fn samples_by_subject(
     dataset: &Dataset,
     rigs: &[SubjectRig],
-    max_subjects: usize,
+    max_subjects: Option<usize>,
     device: &Device,
 ) -> Result<Vec<Vec<ModelInputs>>, EvalError> {
-    let (w, h) = (dataset.img_size.0, dataset.img_size.1);
     let mut groups: Vec<Vec<ModelInputs>> = Vec::new();
-    let mut rng = Rng::new(0);
-    for i in 0..dataset.len() {
-        let Some(index) = dataset.index(i, &mut rng) else {
-            break;
-        };
-        if index.subject >= max_subjects {
-            continue;
-        }
-        let sample = dataset.sample(i, &mut rng)?;
-        let inputs = model_inputs(&rigs[index.subject], &sample, w, h, device)?;
+    for item in validation_samples(dataset, rigs, max_subjects, device) {
+        let ValidationSample { index, inputs, .. } = item?;
         if groups.len() <= index.subject {
             groups.resize_with(index.subject + 1, Vec::new);
         }
@@ -94,7 +86,7 @@ pub fn score_per_scene_fit(
         })
         .collect();
     let mut views = 0usize;
-    let groups = samples_by_subject(dataset, &rigs, max_subjects.unwrap_or(usize::MAX), device)?;
+    let groups = samples_by_subject(dataset, &rigs, max_subjects, device)?;
     for targets in &groups {
         let start = template_one_colour(&mesh, &targets[0], device)?.avatar;
         let mut failure = None;

@@ -10,14 +10,13 @@ use std::collections::HashMap;
 
 use burn::tensor::Device;
 use lifegom_data::dataset::{Dataset, Protocol};
-use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_model::inputs::SubjectRig;
 use lifegom_model::reconstructor::{Reconstructor, render_views};
 use lifegom_render::gom::GomMesh;
-use lifegom_render::rng::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::error::EvalError;
-use crate::evaluate::{score_region, thuman_crop_size};
+use crate::evaluate::{ValidationSample, score_region, thuman_crop_size, validation_samples};
 use crate::images::Image;
 
 /// Mean scores of the state after one feedback step.
@@ -51,17 +50,12 @@ pub fn score_feedback_steps(
     let mut ssim = vec![0.0; t_max];
     let mut views = 0usize;
     let mut cache = HashMap::new();
-    let mut rng = Rng::new(0);
-    let max_subjects = max_subjects.unwrap_or(usize::MAX);
-    for i in 0..dataset.len() {
-        let Some(index) = dataset.index(i, &mut rng) else {
-            break;
-        };
-        if index.subject >= max_subjects {
-            continue;
-        }
-        let sample = dataset.sample(i, &mut rng)?;
-        let inputs = model_inputs(&rigs[index.subject], &sample, w, h, device)?;
+    for item in validation_samples(dataset, &rigs, max_subjects, device) {
+        let ValidationSample {
+            index,
+            sample,
+            inputs,
+        } = item?;
         let key = (index.subject, index.inputs.clone());
         if !cache.contains_key(&key) {
             let rec = model
