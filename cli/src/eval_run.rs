@@ -7,6 +7,7 @@
 //! `report.md` with pictures into `--out`.
 
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 use anyhow::Context;
 use burn::tensor::Device;
@@ -63,6 +64,9 @@ pub struct EvalOptions {
     pub per_scene_subjects: Option<usize>,
     /// Evaluate at most this many subjects.
     pub max_subjects: Option<usize>,
+    /// Test-time refinement: gradient steps of the per-scene fit after the feed-forward pass
+    /// (0 = none); applies to the model and the baselines alike.
+    pub refine_steps: usize,
     /// Folder with the converted LPIPS/Inception weights.
     pub weights_dir: PathBuf,
     /// Lines to put under the report heading (command line, machine).
@@ -92,6 +96,7 @@ fn settings(opts: &EvalOptions, out: &Path) -> EvalSettings {
         save_predictions: true,
         sheets: opts.sheets,
         max_subjects: opts.max_subjects,
+        refine_steps: opts.refine_steps,
     }
 }
 
@@ -119,12 +124,29 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         dataset.img_size.1
     ));
 
+    if opts.refine_steps > 0 {
+        report.context.push(format!(
+            "test-time refinement: every avatar below (model and baselines) is refined by {} gradient steps on its source views (design.md §10.9); recon ms includes them",
+            opts.refine_steps
+        ));
+    }
+
     let perceptual = lifegom_eval::perceptual_scores::load_models(&opts.weights_dir, &opts.device);
     if let Some(note) = perceptual.note() {
         eprintln!("{note}");
         report.notes.push(note);
     }
 
+    let clock = Instant::now();
+    let progress = |what: &str, summary: &Summary| {
+        eprintln!(
+            "        {what:<28} PSNR {:6.2}  SSIM {:.3}  ({} views, {:.0} s)",
+            summary.psnr,
+            summary.ssim,
+            summary.views,
+            clock.elapsed().as_secs_f64()
+        );
+    };
     let mut scores = evaluate_split(
         &Method::Model {
             model: &model,
@@ -136,6 +158,7 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
     )?;
     let PerceptualOutcome { fid } = score_perceptual(&perceptual, &mut scores, &opts.device)?;
     let summary = Summary::of(&scores, fid);
+    progress(&format!("model, T = {}", scores.iterations), &summary);
     write_csvs(&opts.out, &scores.views)?;
     report.summary = Some(summary.clone());
     report.sheets = list_relative(&opts.out, "sheets");
@@ -153,12 +176,23 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
             let mut b =
                 evaluate_split(&method, &dataset, &settings(opts, &opts.out), &opts.device)?;
             let PerceptualOutcome { fid } = score_perceptual(&perceptual, &mut b, &opts.device)?;
-            baselines.push((name.to_string(), Summary::of(&b, fid)));
+            let summary = Summary::of(&b, fid);
+            progress(name, &summary);
+            baselines.push((name.to_string(), summary));
         }
         report.baselines = baselines.clone();
     }
 
     if opts.freeview_frames > 0 || opts.motion {
+        eprintln!(
+            "        rendering novel views ({} frames) and poses ({})",
+            opts.freeview_frames,
+            if opts.motion {
+                "walk, arm-raise, squat"
+            } else {
+                "none"
+            }
+        );
         let pictures = animations(opts, &model, &dataset, config.subdivide_test)?;
         report.pictures.extend(pictures);
     }
@@ -184,6 +218,16 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
             opts.per_scene_subjects.or(opts.max_subjects),
             &opts.device,
         )?;
+        for p in &per_scene {
+            eprintln!(
+                "        {:<28} PSNR {:6.2}  SSIM {:.3}  ({} subjects, {:.1} s each)",
+                format!("per-scene fit, K = {}", p.steps),
+                p.psnr,
+                p.ssim,
+                p.subjects,
+                p.ms / 1e3
+            );
+        }
         report.per_scene = per_scene.clone();
     }
 
@@ -332,6 +376,7 @@ fn run_sweep(
                     save_predictions: false,
                     sheets: 0,
                     max_subjects: Some(opts.sweep_subjects.max(1)),
+                    refine_steps: 0,
                 };
                 let mut scores: SplitScores = evaluate_split(
                     &Method::Model { model, config },

@@ -32,6 +32,7 @@ use lifegom_eval::plot::{Chart, PALETTE, Scale, Series, Style};
 use lifegom_eval::validation::score_feedback_steps;
 use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::MeshPurpose;
+use lifegom_model::trained;
 
 use lifegom_train::config::ExperimentConfig;
 use lifegom_train::losses::UniformLaplacian;
@@ -56,6 +57,29 @@ pub struct RunOptions {
     pub device: Device,
     /// Show a progress bar (off in tests).
     pub progress: bool,
+}
+
+/// Writes the model of the checkpoint `source` (weights, config, metadata) to `dest` without
+/// the trainer's payload (optimizer state, data position): what inference needs.
+/// `subdivide_test` replaces the default subdivision at inference (the weights serve every
+/// level). Returns the size written.
+pub fn export_model(
+    source: &Path,
+    dest: &Path,
+    subdivide_test: Option<u32>,
+    device: &Device,
+) -> anyhow::Result<u64> {
+    let mut loaded = trained::load(source, device)?;
+    if let Some(s) = subdivide_test {
+        loaded.config.subdivide_test = s;
+    }
+    if let Some(dir) = dest.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    trained::save(dest, &loaded.model, &loaded.config, loaded.header.meta, &[])?;
+    Ok(std::fs::metadata(dest)
+        .with_context(|| format!("reading {}", dest.display()))?
+        .len())
 }
 
 /// Why the loop ended.
@@ -182,6 +206,7 @@ impl Validation {
                 save_predictions: false,
                 sheets: 0,
                 max_subjects: Some(v.subjects),
+                refine_steps: 0,
             };
             match evaluate_split(&method, &v.dataset, &settings, device) {
                 Ok(s) => {

@@ -26,6 +26,8 @@ use lifegom_model::inputs::{ModelInputs, SubjectRig, model_inputs};
 use lifegom_model::reconstructor::{Reconstructor, ReconstructorConfig, render_views};
 use lifegom_render::gom::GomMesh;
 use lifegom_render::rng::Rng;
+use lifegom_train::fit::{FitConfig, fit};
+use lifegom_train::losses::{LossWeights, UniformLaplacian};
 use serde::{Deserialize, Serialize};
 
 use crate::baselines;
@@ -48,6 +50,10 @@ pub struct EvalSettings {
     pub sheets: usize,
     /// Evaluate at most this many subjects (`None`: all).
     pub max_subjects: Option<usize>,
+    /// Test-time refinement: after the method's avatar is built, this many gradient steps of
+    /// the per-scene fit on the source views ([`lifegom_train::fit`], default learning rates
+    /// and loss weights); 0 = none. Its time counts in the reconstruction time.
+    pub refine_steps: usize,
 }
 
 /// Scores of one target view.
@@ -291,6 +297,10 @@ pub fn evaluate_split(
     };
     let bodies = SubjectRig::for_split(dataset)?;
     let mesh = GomMesh::new(&bodies[0].topology, subdivide, device)?;
+    let laplacian = (settings.refine_steps > 0)
+        .then(|| UniformLaplacian::new(&bodies[0].topology.faces, bodies[0].num_vertices()))
+        .transpose()
+        .map_err(|e| EvalError::Fit(e.into()))?;
     let (w, h) = (dataset.img_size.0, dataset.img_size.1);
     let crop_size = thuman_crop_size(h as usize, w as usize);
     let crop_protocol = dataset.rule.protocol != Protocol::Aistpp;
@@ -317,6 +327,7 @@ pub fn evaluate_split(
                 frame: sample.frame_name.clone(),
                 source: Box::new(e),
             })?;
+            let rec = refine(rec, &inputs, laplacian.as_ref(), settings.refine_steps)?;
             cache.clear();
             cache.insert(key.clone(), rec);
         }
@@ -367,6 +378,34 @@ pub fn evaluate_split(
         num_gaussians: mesh.num_gaussians(),
         iterations: model.as_ref().map_or(0, |m| m.iterations()),
         subdivide,
+    })
+}
+
+/// Test-time refinement of a reconstruction (`steps` = 0: unchanged): the per-scene fit started
+/// from `rec.avatar`, its wall time added to `rec.ms`.
+fn refine(
+    rec: Reconstructed,
+    inputs: &ModelInputs,
+    laplacian: Option<&UniformLaplacian>,
+    steps: usize,
+) -> Result<Reconstructed, EvalError> {
+    let Some(laplacian) = laplacian.filter(|_| steps > 0) else {
+        return Ok(rec);
+    };
+    let clock = Instant::now();
+    let avatar = fit(
+        &rec.avatar,
+        inputs,
+        laplacian,
+        &LossWeights::new(),
+        &FitConfig::new(),
+        steps,
+        |_, _, _| Ok(true),
+    )
+    .map_err(EvalError::Fit)?;
+    Ok(Reconstructed {
+        avatar,
+        ms: rec.ms + clock.elapsed().as_secs_f64() * 1e3,
     })
 }
 

@@ -33,6 +33,8 @@ pub struct FitPoint {
     pub ssim: f64,
     /// Mean fit wall time per subject up to K (ms).
     pub ms: f64,
+    /// Subjects fitted (the means are over their target views).
+    pub subjects: usize,
 }
 
 /// The validation samples of each subject, in split order (the first sample's inputs are the
@@ -83,6 +85,7 @@ pub fn score_per_scene_fit(
             psnr: 0.0,
             ssim: 0.0,
             ms: 0.0,
+            subjects: 0,
         })
         .collect();
     let mut views = 0usize;
@@ -139,6 +142,7 @@ pub fn score_per_scene_fit(
             psnr: p.psnr / views,
             ssim: p.ssim / views,
             ms: p.ms / subjects,
+            subjects: groups.len(),
             ..p
         })
         .collect())

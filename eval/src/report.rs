@@ -228,7 +228,11 @@ impl Report {
             md.push_str(
                 "\n## Per-scene optimisation: gradient steps instead of learned feedback\n\n",
             );
-            md.push_str("The template in its mean colour fitted to the source views by Adam through the differentiable renderer (the training loss on the sources), scored after K steps on the same targets.\n\n");
+            let _ = writeln!(
+                md,
+                "The template in its mean colour fitted to the source views by Adam through the differentiable renderer (the training loss on the sources), scored after K steps on the same targets ({} subjects).\n",
+                self.per_scene[0].subjects
+            );
             md.push_str("| K | PSNR ↑ | SSIM ↑ | fit ms per subject |\n|---|---|---|---|\n");
             for p in &self.per_scene {
                 let _ = writeln!(
@@ -258,20 +262,31 @@ impl Report {
         std::fs::create_dir_all(out).map_err(|e| EvalError::write(out, e))?;
         if !self.sweep.is_empty() || !self.per_scene.is_empty() {
             let path = out.join("pareto.png");
-            pareto_chart(&self.sweep, &self.per_scene)
-                .render(760, 460)
-                .save(&path)
-                .map_err(|e| EvalError::write(&path, e))?;
+            pareto_chart(
+                &self.sweep,
+                self.summary.as_ref(),
+                &self.baselines,
+                &self.per_scene,
+            )
+            .render(760, 460)
+            .save(&path)
+            .map_err(|e| EvalError::write(&path, e))?;
         }
         let path = out.join("report.md");
         write_atomic(&path, self.markdown().as_bytes()).map_err(|e| EvalError::write(&path, e))
     }
 }
 
-/// PSNR against reconstruction time, one series per subdivision level, points labelled
-/// `T<n>` (and the size when several sizes were swept), plus the per-scene optimisation's points
-/// labelled `K<n>`.
-pub fn pareto_chart(rows: &[SweepRow], per_scene: &[FitPoint]) -> Chart {
+/// PSNR against reconstruction time: the sweep's points, one series per subdivision level,
+/// labelled `T<n>` (and the size when several sizes were swept) — or, without a sweep, the
+/// evaluated model's own point —, the per-scene optimisation's points labelled `K<steps>`, and
+/// the no-learning baselines: every way of building an avatar on the same axes.
+pub fn pareto_chart(
+    rows: &[SweepRow],
+    model: Option<&Summary>,
+    baselines: &[(String, Summary)],
+    per_scene: &[FitPoint],
+) -> Chart {
     let sizes: std::collections::BTreeSet<u32> = rows.iter().map(|r| r.size).collect();
     let mut levels: Vec<u32> = rows.iter().map(|r| r.summary.subdivide).collect();
     levels.sort_unstable();
@@ -285,7 +300,7 @@ pub fn pareto_chart(rows: &[SweepRow], per_scene: &[FitPoint]) -> Chart {
                 .filter(|r| r.summary.subdivide == *level)
                 .collect();
             Series {
-                name: format!("subdiv {level}"),
+                name: format!("model, subdiv {level}"),
                 points: pts
                     .iter()
                     .map(|r| (r.summary.recon_ms, r.summary.psnr))
@@ -304,12 +319,28 @@ pub fn pareto_chart(rows: &[SweepRow], per_scene: &[FitPoint]) -> Chart {
             }
         })
         .collect();
+    if let (true, Some(m)) = (rows.is_empty(), model) {
+        series.push(Series {
+            name: format!("model, subdiv {}", m.subdivide),
+            points: vec![(m.recon_ms, m.psnr)],
+            labels: vec![format!("T{}", m.iterations)],
+            color: PALETTE[0],
+        });
+    }
     if !per_scene.is_empty() {
         series.push(Series {
             name: "per-scene optimisation".into(),
             points: per_scene.iter().map(|p| (p.ms, p.psnr)).collect(),
             labels: per_scene.iter().map(|p| format!("K{}", p.steps)).collect(),
-            color: PALETTE[levels.len() % PALETTE.len()],
+            color: PALETTE[(levels.len().max(1)) % PALETTE.len()],
+        });
+    }
+    for (k, (name, b)) in baselines.iter().enumerate() {
+        series.push(Series {
+            name: name.clone(),
+            points: vec![(b.recon_ms.max(1e-3), b.psnr)],
+            labels: vec![String::new()],
+            color: PALETTE[(levels.len().max(1) + 1 + k) % PALETTE.len()],
         });
     }
     Chart {

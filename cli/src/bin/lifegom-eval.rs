@@ -76,6 +76,10 @@ struct Args {
     /// Evaluate at most this many subjects.
     #[arg(long)]
     max_subjects: Option<usize>,
+    /// Test-time refinement: after the feed-forward pass, this many gradient steps of the
+    /// per-scene fit on the source views (the model's and the baselines' avatars alike).
+    #[arg(long, default_value_t = 0)]
+    refine_steps: usize,
     /// Folder with converted LPIPS/Inception weights (default: $LIFEGOM_WEIGHTS or weights/).
     #[arg(long)]
     weights: Option<PathBuf>,
@@ -106,6 +110,7 @@ fn main() -> anyhow::Result<()> {
         per_scene: args.per_scene.clone(),
         per_scene_subjects: args.per_scene_subjects,
         max_subjects: args.max_subjects,
+        refine_steps: args.refine_steps,
         weights_dir: args
             .weights
             .clone()

@@ -3,14 +3,17 @@
 //! ```text
 //! lifegom-train --config configs/synthetic-tiny.toml --out runs/tiny [--device flex|ndarray]
 //!               [--data <root>] [--resume] [--max-minutes M] [--steps N]
+//! lifegom-train --out runs/demo --export assets/demo/demo.lgck [--subdivide-test S]
 //! ```
 //!
 //! Ctrl-C finishes the current step, writes a checkpoint and exits; `--resume` continues it.
+//! `--export` trains nothing: it writes the run's latest checkpoint without the optimizer state
+//! (an inference-only model file, a third of the size).
 
 use std::path::PathBuf;
 
 use clap::Parser;
-use lifegom_cli::train_run::{RunOptions, StopReason, train};
+use lifegom_cli::train_run::{RunOptions, StopReason, export_model, latest_checkpoint, train};
 use lifegom_render::device::DeviceChoice;
 use lifegom_train::config::ExperimentConfig;
 
@@ -18,8 +21,8 @@ use lifegom_train::config::ExperimentConfig;
 #[command(about = "Train the LIFe-GoM reconstructor", version)]
 struct Args {
     /// Experiment config (configs/*.toml).
-    #[arg(long)]
-    config: PathBuf,
+    #[arg(long, required_unless_present = "export")]
+    config: Option<PathBuf>,
     /// Backend.
     #[arg(long, default_value = "flex")]
     device: DeviceChoice,
@@ -38,12 +41,36 @@ struct Args {
     /// Override `[train] steps`.
     #[arg(long)]
     steps: Option<u64>,
+    /// Write `<out>/checkpoints/latest.lgck` without its optimizer state to this file and exit.
+    #[arg(long)]
+    export: Option<PathBuf>,
+    /// With `--export`: the Gaussians' subdivision the exported model renders at by default
+    /// (the run's `subdivide_test` otherwise). The weights serve every level; pick the one the
+    /// image size calls for (docs/design.md §10.9).
+    #[arg(long, requires = "export")]
+    subdivide_test: Option<u32>,
 }
 
 fn main() -> anyhow::Result<()> {
     lifegom_cli::init_tracing();
     let args = Args::parse();
-    let mut cfg = ExperimentConfig::load(&args.config)?;
+    if let Some(dest) = &args.export {
+        let source = latest_checkpoint(&args.out);
+        let bytes = export_model(&source, dest, args.subdivide_test, &args.device.device())?;
+        println!(
+            "{}",
+            serde_json::json!({
+                "exported": dest.display().to_string(),
+                "from": source.display().to_string(),
+                "bytes": bytes,
+            })
+        );
+        return Ok(());
+    }
+    let Some(config) = &args.config else {
+        anyhow::bail!("--config is required to train");
+    };
+    let mut cfg = ExperimentConfig::load(config)?;
     if let Some(root) = &args.data {
         cfg = cfg.with_root(root);
     }

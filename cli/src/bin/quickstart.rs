@@ -1,16 +1,20 @@
-//! The README's main job: from a fresh clone to a trained avatar model and its report.
+//! The README's main job: the shipped demo model reconstructs people it has never seen.
 //!
 //! ```text
-//! cargo run --release -p lifegom-cli --bin quickstart [-- --minutes 20 --out runs/quickstart]
+//! cargo run --release -p lifegom-cli --bin quickstart [-- --out runs/quickstart]
+//! cargo run --release -p lifegom-cli --bin quickstart -- --train-minutes 60   # from scratch
 //! ```
 //!
-//! 1. generates the synthetic THuman-style split of `configs/quickstart.toml` if it is missing;
-//! 2. trains the tiny network for `--minutes` (a checkpoint every 100 steps; Ctrl-C stops early
-//!    with a checkpoint);
-//! 3. evaluates on the validation subjects: PSNR/SSIM (LPIPS/FID when weights exist), the
-//!    template-only baseline, comparison sheets, a free-view turntable, three procedural motions
-//!    and the accuracy-vs-time sweep (T = 1..5 × subdivisions 0..2);
-//! 4. writes `runs/quickstart/report.md` with the pictures.
+//! 1. generates the validation subjects of `configs/demo.toml` if they are missing (synthetic
+//!    people no training step ever saw: another seed than the training stream);
+//! 2. loads the demo model (`assets/demo/demo.lgck`, trained on a fresh synthetic subject every
+//!    step; `assets/demo/README.md` says how), or with `--train-minutes N` trains one from
+//!    scratch for N minutes instead;
+//! 3. reconstructs every validation subject from its 3 input views and scores the held-out
+//!    target views beside the no-learning baselines (one colour, projective texturing) and the
+//!    per-scene optimisation after K gradient steps; renders comparison sheets, a free-view
+//!    turntable and three procedural motions (novel views and poses);
+//! 4. writes `<out>/report.md` with the table and the pictures, and one JSON line.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -19,96 +23,155 @@ use anyhow::Context;
 use clap::Parser;
 use lifegom_cli::eval_run::{EvalOptions, run as run_eval};
 use lifegom_cli::train_run::{RunOptions, train};
+use lifegom_data::dataset::Split;
 use lifegom_data::synth;
 use lifegom_eval::perceptual::PerceptualModels;
+use lifegom_model::trained;
 use lifegom_render::device::DeviceChoice;
 use lifegom_train::config::ExperimentConfig;
 
 #[derive(Parser, Debug)]
 #[command(
-    about = "Generate synthetic data, train for a bounded time, evaluate, report",
+    about = "Reconstruct unseen people with the demo model (or one trained now) and report",
     version
 )]
 struct Args {
-    /// Experiment config.
-    #[arg(long, default_value = "configs/quickstart.toml")]
+    /// Experiment config: the validation subjects, and the training when `--train-minutes`.
+    #[arg(long, default_value = "configs/demo.toml")]
     config: PathBuf,
-    /// Training time budget in minutes.
-    #[arg(long, default_value_t = 20.0)]
-    minutes: f64,
+    /// The trained model to evaluate (ignored with `--train-minutes`).
+    #[arg(long, default_value = "assets/demo/demo.lgck")]
+    model: PathBuf,
+    /// Train a model from scratch for this many minutes (into `<out>`) instead of loading
+    /// `--model`; with `--resume`, continue the one in `<out>`.
+    #[arg(long)]
+    train_minutes: Option<f64>,
+    /// With `--train-minutes`: continue `<out>/checkpoints/latest.lgck`.
+    #[arg(long, requires = "train_minutes")]
+    resume: bool,
     /// Output folder.
     #[arg(long, default_value = "runs/quickstart")]
     out: PathBuf,
     /// Backend.
     #[arg(long, default_value = "flex")]
     device: DeviceChoice,
-    /// Continue training from `<out>/checkpoints/latest.lgck` instead of starting fresh.
+    /// Test-time refinement: gradient steps of the per-scene fit after the feed-forward pass.
+    #[arg(long, default_value_t = 0)]
+    refine_steps: usize,
+    /// Per-scene optimisation baseline: score after each of these step counts (`0`: skip).
+    #[arg(long, value_delimiter = ',', default_value = "10,30")]
+    per_scene: Vec<usize>,
+    /// Subjects the per-scene optimisation fits (default: all, as the model).
     #[arg(long)]
-    resume: bool,
-    /// Skip the accuracy-vs-time sweep.
+    per_scene_subjects: Option<usize>,
+    /// Also run the accuracy-vs-time sweep (T = 1..5 × subdivisions 0..2, one subject).
     #[arg(long)]
-    no_sweep: bool,
+    sweep: bool,
 }
 
 fn main() -> anyhow::Result<()> {
     lifegom_cli::init_tracing();
     let args = Args::parse();
     let started = Instant::now();
+    let stage = |n: usize, what: String| {
+        eprintln!("[{n}/4 {:>5.1} s] {what}", started.elapsed().as_secs_f64());
+    };
     let cfg = ExperimentConfig::load(&args.config)?;
-    let root = cfg.file.data.root.clone();
-    if !root
-        .join(&cfg.file.data.train_dir)
-        .join(&cfg.file.data.train_split)
-        .exists()
-    {
-        let synth_cfg = cfg
-            .file
-            .synthetic
-            .clone()
-            .context("the quickstart config needs a [synthetic] section")?;
-        eprintln!(
-            "[1/3] generating the synthetic split into {}",
-            root.display()
-        );
-        let s = synth::generate_split(&synth_cfg, &cfg.file.data, &root, synth_cfg.seed, &|| {})?;
-        eprintln!(
-            "      {} train + {} val subjects, {} frames",
-            s.train.len(),
-            s.val.len(),
-            s.frames
+    let (val_split, _) = cfg.file.data.split_paths(Split::Val);
+    if val_split.exists() {
+        stage(
+            1,
+            format!("using the validation subjects in {}", val_split.display()),
         );
     } else {
-        eprintln!("[1/3] using the existing split in {}", root.display());
+        let synth_cfg = cfg.file.synthetic.clone().with_context(|| {
+            format!(
+                "{}: needs a [synthetic] section to generate the validation subjects",
+                args.config.display()
+            )
+        })?;
+        stage(
+            1,
+            format!(
+                "generating {} validation subjects into {}",
+                synth_cfg.val_subjects,
+                cfg.file.data.root.display()
+            ),
+        );
+        let s = synth::generate_split(
+            &synth_cfg,
+            &cfg.file.data,
+            &cfg.file.data.root,
+            synth_cfg.seed,
+            &|| {},
+        )?;
+        eprintln!("        {} subjects, {} frames", s.val.len(), s.frames);
     }
 
-    let stop = lifegom_cli::stop_on_ctrl_c("stopping training with a checkpoint, then evaluating")?;
-    eprintln!(
-        "[2/3] training {} for {} min on {}",
-        args.config.display(),
-        args.minutes,
-        args.device.name()
-    );
-    let summary = train(
-        &cfg,
-        &RunOptions {
-            out: args.out.clone(),
-            resume: args.resume,
-            max_minutes: Some(args.minutes),
-            steps: None,
-            device: args.device.device(),
-            progress: true,
-        },
-        stop,
-    )?;
-    eprintln!(
-        "      {} steps ({} this run) in {:.0} s, stopped: {:?}",
-        summary.step, summary.steps_this_run, summary.seconds, summary.stop
-    );
+    let (checkpoint, trained_how) = match args.train_minutes {
+        Some(minutes) => {
+            stage(
+                2,
+                format!(
+                    "training {} from scratch for {minutes} min on {} (Ctrl-C stops early with a checkpoint)",
+                    args.config.display(),
+                    args.device.name()
+                ),
+            );
+            let stop = lifegom_cli::stop_on_ctrl_c(
+                "stopping training with a checkpoint, then evaluating",
+            )?;
+            let summary = train(
+                &cfg,
+                &RunOptions {
+                    out: args.out.clone(),
+                    resume: args.resume,
+                    max_minutes: Some(minutes),
+                    steps: None,
+                    device: args.device.device(),
+                    progress: true,
+                },
+                stop,
+            )?;
+            eprintln!(
+                "        {} steps ({} this run) in {:.0} s",
+                summary.step, summary.steps_this_run, summary.seconds
+            );
+            let how = format!(
+                "trained here for {:.1} min ({} steps); loss curve: ![loss](loss_curve.png), validation: ![validation](validation_curve.png)",
+                summary.seconds / 60.0,
+                summary.step
+            );
+            (summary.checkpoint, how)
+        }
+        None => {
+            let header = trained::read_header(&args.model).context(
+                "the demo model is missing or unreadable; train one with `--train-minutes N` (or pass --model)",
+            )?;
+            stage(
+                2,
+                format!(
+                    "loading the demo model {} (trained {} steps, never on these subjects)",
+                    args.model.display(),
+                    header.meta["step"]
+                ),
+            );
+            let how = format!(
+                "the shipped demo model `{}` ({} training steps; how it was trained: `assets/demo/README.md`)",
+                args.model.display(),
+                header.meta["step"]
+            );
+            (args.model.clone(), how)
+        }
+    };
 
-    eprintln!("[3/3] evaluating on the validation subjects");
+    stage(
+        3,
+        "reconstructing the validation subjects, scoring them beside the baselines, rendering novel views and poses".into(),
+    );
     let outcome = run_eval(&EvalOptions {
         data: cfg.file.data.clone(),
-        checkpoint: summary.checkpoint.clone(),
+        checkpoint,
         out: args.out.clone(),
         device: args.device.device(),
         subdivide: None,
@@ -116,37 +179,34 @@ fn main() -> anyhow::Result<()> {
         sheets: 6,
         freeview_frames: 36,
         motion: true,
-        sweep: !args.no_sweep,
+        sweep: args.sweep,
         sweep_sizes: vec![],
-        sweep_subjects: 2,
+        sweep_subjects: 1,
         baseline: true,
-        per_scene: vec![],
-        per_scene_subjects: None,
+        per_scene: args.per_scene.iter().copied().filter(|&k| k > 0).collect(),
+        per_scene_subjects: args.per_scene_subjects,
         max_subjects: None,
+        refine_steps: args.refine_steps,
         weights_dir: PerceptualModels::default_dir(),
         context: vec![
             format!(
-                "`cargo run --release -p lifegom-cli --bin quickstart -- --minutes {}` on {} ({} threads available)",
-                args.minutes,
+                "`cargo run --release -p lifegom-cli --bin quickstart` on {} ({} threads available)",
                 args.device.name(),
                 std::thread::available_parallelism().map_or(0, |n| n.get())
             ),
-            format!(
-                "trained {} steps in {:.1} min; loss curve: ![loss](loss_curve.png)",
-                summary.step,
-                summary.seconds / 60.0
-            ),
+            format!("model: {trained_how}"),
         ],
     })?;
+    stage(4, format!("report written to {}", outcome.report.display()));
     let s = &outcome.summary;
     println!(
         "{}",
         serde_json::json!({
             "report": outcome.report.display().to_string(),
-            "steps": summary.step,
             "psnr": s.psnr,
             "ssim": s.ssim,
             "baselines": lifegom_cli::eval_run::baselines_json(&outcome.baselines),
+            "per_scene": outcome.per_scene,
             "lpips_vgg_x1000": s.lpips_vgg_x1000,
             "recon_ms": s.recon_ms,
             "render_ms": s.render_ms,
