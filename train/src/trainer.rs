@@ -29,7 +29,9 @@ use lifegom_render::rng::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::config::TrainSection;
-use crate::losses::{LossTerms, LossWeights, UniformLaplacian, l1, mask_l1, ssim_loss};
+use crate::losses::{
+    LossTerms, LossWeights, UniformLaplacian, WeightedLoss, l1, mask_l1, ssim_loss,
+};
 
 /// Errors of a training step or checkpoint.
 #[derive(Debug, thiserror::Error)]
@@ -94,6 +96,19 @@ pub struct StepOutput {
     pub stats: StepStats,
     /// What the model rendered in the target view after the last feedback step.
     pub target_render: Tensor<3>,
+}
+
+/// A step's forward ([`Trainer::step_loss`]): the loss, still on the autodiff graph, and what
+/// the step's statistics read once the optimiser has run.
+pub struct StepLoss {
+    /// The weighted terms; the step differentiates `total`.
+    pub loss: WeightedLoss,
+    /// One MSE per rendered image, `[T·(N+1)]`, detached.
+    image_mse: Tensor<1>,
+    /// The last feedback step's target render, `[1, 3, H, W]`.
+    last_target: Tensor<4>,
+    /// Feedback steps T.
+    iterations: usize,
 }
 
 /// Trainer state that is not in the weights or the optimiser.
@@ -342,6 +357,67 @@ impl Trainer {
     ) -> Result<StepOutput, TrainError> {
         let _span = tracing::info_span!("train_step", step = self.step).entered();
         let start = Instant::now();
+        let StepLoss {
+            loss,
+            image_mse,
+            last_target,
+            iterations: t,
+        } = self.step_loss(inputs, mesh, laplacian)?;
+        let grads = {
+            let _span = tracing::debug_span!("backward").entered();
+            GradientsParams::from_grads(loss.total.backward(), &self.model)
+        };
+        {
+            let _span = tracing::debug_span!("optimizer").entered();
+            self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
+        }
+        self.step += 1;
+        let _span = tracing::debug_span!("statistics").entered();
+
+        let target_render = last_target.detach().squeeze_dim::<3>(0);
+        let mse = scalar(
+            "target MSE",
+            (target_render.clone() - inputs.target_rgb.clone())
+                .powf_scalar(2.0)
+                .mean(),
+        )?;
+        let image_mse = readback::read::<f64, 1, _>("per-image MSE", image_mse)?;
+        let views = image_mse.len() / t.max(1);
+        let psnr = |mse: f64| 10.0 * (1.0 / mse.max(1e-12)).log10();
+        let per_step = image_mse.chunks(views.max(1));
+        let psnr_target_steps = per_step.clone().map(|c| psnr(c[views - 1])).collect();
+        let psnr_source_steps = per_step
+            .map(|c| psnr(c[..views - 1].iter().sum::<f64>() / (views - 1).max(1) as f64))
+            .collect();
+        let stats = StepStats {
+            step: self.step,
+            losses: loss
+                .scalars()?
+                .into_iter()
+                .map(|(n, v)| (n.to_string(), v))
+                .collect(),
+            psnr_target: 10.0 * (1.0 / mse).log10(),
+            psnr_target_steps,
+            psnr_source_steps,
+            seconds: start.elapsed().as_secs_f64(),
+        };
+        Ok(StepOutput {
+            stats,
+            target_render,
+        })
+    }
+
+    /// The forward half of the next [`Trainer::train_step`] (same dropout masks, same loss),
+    /// without the backward or the optimiser step, so the step's loss and gradients can be
+    /// inspected, e.g. compared between two implementations of the geometry. Calling it twice
+    /// draws the same masks only once the weights exist: Burn initialises parameters lazily,
+    /// from the RNG re-seeded here, so a model's first forward draws its weights too.
+    pub fn step_loss(
+        &self,
+        inputs: &ModelInputs,
+        mesh: &GomMesh,
+        laplacian: &UniformLaplacian,
+    ) -> Result<StepLoss, TrainError> {
         self.device
             .seed(derived_seed(self.seed, DROPOUT, self.step));
         let rec = self.model.forward(&inputs.subject, mesh, &inputs.sources)?;
@@ -400,50 +476,11 @@ impl Trainer {
         };
         let loss = self.weights.total(terms)?;
         drop(span);
-        let grads = {
-            let _span = tracing::debug_span!("backward").entered();
-            GradientsParams::from_grads(loss.total.backward(), &self.model)
-        };
-        {
-            let _span = tracing::debug_span!("optimizer").entered();
-            self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
-        }
-        self.step += 1;
-        let _span = tracing::debug_span!("statistics").entered();
-
-        let target_render = last_target
-            .ok_or(TrainError::NoFeedbackStep)?
-            .detach()
-            .squeeze_dim::<3>(0);
-        let mse = scalar(
-            "target MSE",
-            (target_render.clone() - inputs.target_rgb.clone())
-                .powf_scalar(2.0)
-                .mean(),
-        )?;
-        let image_mse = readback::read::<f64, 1, _>("per-image MSE", image_mse)?;
-        let views = image_mse.len() / t.max(1);
-        let psnr = |mse: f64| 10.0 * (1.0 / mse.max(1e-12)).log10();
-        let per_step = image_mse.chunks(views.max(1));
-        let psnr_target_steps = per_step.clone().map(|c| psnr(c[views - 1])).collect();
-        let psnr_source_steps = per_step
-            .map(|c| psnr(c[..views - 1].iter().sum::<f64>() / (views - 1).max(1) as f64))
-            .collect();
-        let stats = StepStats {
-            step: self.step,
-            losses: loss
-                .scalars()?
-                .into_iter()
-                .map(|(n, v)| (n.to_string(), v))
-                .collect(),
-            psnr_target: 10.0 * (1.0 / mse).log10(),
-            psnr_target_steps,
-            psnr_source_steps,
-            seconds: start.elapsed().as_secs_f64(),
-        };
-        Ok(StepOutput {
-            stats,
-            target_render,
+        Ok(StepLoss {
+            loss,
+            image_mse,
+            last_target: last_target.ok_or(TrainError::NoFeedbackStep)?,
+            iterations: t,
         })
     }
 }

@@ -30,13 +30,15 @@
 //!
 //! [`gaussians_from_triangles`] (with [`so3_exp_map`] and [`crate::steiner::steiner_frames`])
 //! is the same math as ~60 ordinary tensor ops. It is the specification the op is tested
-//! against and what `GomMesh::gaussians_reference` runs.
+//! against and what `GomMesh::gaussians_reference` runs; a mesh set to
+//! [`GomGeometry::ReferenceF64`] runs it in place of the op, so whole training steps can be
+//! compared too.
 
 pub mod cpu;
 pub(crate) mod cube;
 pub mod op;
 
-use burn::tensor::{Device, Int, Tensor, TensorData, s};
+use burn::tensor::{DType, Device, Int, Tensor, TensorData, s};
 
 use crate::error::Result;
 use crate::mesh::{MeshTopology, face_vertices};
@@ -158,6 +160,25 @@ pub fn gaussians_from_triangles(
     }
 }
 
+/// Which implementation [`GomMesh::gaussians`] runs.
+///
+/// The model only ever calls [`GomMesh::gaussians`], so switching the mesh is how a test or a
+/// benchmark runs a whole forward and backward (a training step, a reconstruction) on the
+/// specification instead of the fused op, without a second code path through the model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GomGeometry {
+    /// The fused op [`op::GomGeometryOps`]: what training and inference use.
+    #[default]
+    Fused,
+    /// [`GomMesh::gaussians_reference`] evaluated in `f64`, its means and covariances rounded
+    /// back to the vertices' dtype. In `f32` the tensor ops are themselves off by up to ~2e-2
+    /// relative on covariance entries that cancel, too coarse to check the fused op (which
+    /// works in `f64` per face) at 1e-5; in `f64` the two differ by the final rounding only.
+    /// Slow (about 60 tensor ops over every face) and only for backends with `f64` tensors
+    /// (ndarray, Flex; not most wgpu adapters): a test and benchmark reference.
+    ReferenceF64,
+}
+
 /// A low-res mesh with its subdivision, ready to turn posed low-res vertices into Gaussians.
 #[derive(Debug, Clone)]
 pub struct GomMesh {
@@ -167,6 +188,7 @@ pub struct GomMesh {
     highres_faces: Tensor<1, Int>,
     corner_index: Tensor<1, Int>,
     corner_weight: Tensor<1>,
+    geometry: GomGeometry,
 }
 
 impl GomMesh {
@@ -183,7 +205,18 @@ impl GomMesh {
             highres_faces,
             corner_index: Tensor::from_data(TensorData::new(index, [entries]), device),
             corner_weight: Tensor::from_data(TensorData::new(weight, [entries]), device),
+            geometry: GomGeometry::default(),
         })
+    }
+
+    /// The same mesh with [`Self::gaussians`] running `geometry`.
+    pub fn with_geometry(self, geometry: GomGeometry) -> Self {
+        Self { geometry, ..self }
+    }
+
+    /// What [`Self::gaussians`] runs.
+    pub fn geometry(&self) -> GomGeometry {
+        self.geometry
     }
 
     /// The barycentric high-res-from-low-res tables, on the mesh's device.
@@ -218,16 +251,24 @@ impl GomMesh {
     }
 
     /// The Gaussians of the mesh posed at `lowres_vertices` (`[V↓, 3]`), through the fused op
-    /// [`op::GomGeometryOps`] on whichever backend the tensors live on; differentiable in the
-    /// vertices and in `so3`, `scales`, `offsets`, `colors` and `opacities`.
+    /// [`op::GomGeometryOps`] on whichever backend the tensors live on (or the mesh's
+    /// [`GomGeometry`] reference); differentiable in the vertices and in `so3`, `scales`,
+    /// `offsets`, `colors` and `opacities`.
     ///
     /// # Panics
     ///
     /// If `lowres_vertices` is not `[V↓, 3]` or a parameter is not `[F, 3]` (`[F]` for the
     /// opacities), `F` the number of high-res faces.
     pub fn gaussians(&self, lowres_vertices: Tensor<2>, params: &GomParams) -> Gaussians {
-        let _span = tracing::debug_span!("gom_gaussians", faces = self.num_gaussians()).entered();
         self.check_shapes(&lowres_vertices, params);
+        match self.geometry {
+            GomGeometry::Fused => self.gaussians_fused(lowres_vertices, params),
+            GomGeometry::ReferenceF64 => self.gaussians_reference_f64(lowres_vertices, params),
+        }
+    }
+
+    fn gaussians_fused(&self, lowres_vertices: Tensor<2>, params: &GomParams) -> Gaussians {
+        let _span = tracing::debug_span!("gom_gaussians", faces = self.num_gaussians()).entered();
         let out: Tensor<2> = Tensor::from_dispatch(
             <burn::backend::Dispatch as op::GomGeometryOps>::gom_geometry(
                 lowres_vertices.into_dispatch(),
@@ -261,6 +302,25 @@ impl GomMesh {
         let highres = tables.apply(lowres_vertices);
         let [v0, v1, v2] = face_vertices(highres, self.highres_faces.clone());
         gaussians_from_triangles(v0, v1, v2, params)
+    }
+
+    /// [`GomGeometry::ReferenceF64`]. The casts are differentiable, so gradients reach the
+    /// caller's tensors in their own dtype.
+    fn gaussians_reference_f64(&self, lowres_vertices: Tensor<2>, params: &GomParams) -> Gaussians {
+        let dtype = lowres_vertices.dtype();
+        let wide = GomParams {
+            so3: params.so3.clone().cast(DType::F64),
+            scales: params.scales.clone().cast(DType::F64),
+            offsets: params.offsets.clone().cast(DType::F64),
+            colors: params.colors.clone(),
+            opacities: params.opacities.clone(),
+        };
+        let g = self.gaussians_reference(lowres_vertices.cast(DType::F64), &wide);
+        Gaussians {
+            means: g.means.cast(dtype),
+            covariances: g.covariances.cast(dtype),
+            ..g
+        }
     }
 
     fn check_shapes(&self, lowres_vertices: &Tensor<2>, params: &GomParams) {
