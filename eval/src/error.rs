@@ -38,6 +38,9 @@ pub enum EvalError {
         /// The cause.
         reason: String,
     },
+    /// The request does not fit the data (a subject or frame out of range).
+    #[error("{0}")]
+    Invalid(String),
     /// Reconstructing one frame's avatar failed.
     #[error("reconstructing {frame}: {source}")]
     Frame {

@@ -46,7 +46,9 @@ pub struct EvalSettings {
     pub iterations: Option<usize>,
     /// Write prediction PNGs (`preds/scene_<subject>_<frame>.png`).
     pub save_predictions: bool,
-    /// Comparison sheets to write (GT | prediction | error), at most.
+    /// Comparison sheets to write (GT | prediction | error), at most: one per subject (its
+    /// first target), so they show different people; all of them also go, one row each,
+    /// into `sheets.png`.
     pub sheets: usize,
     /// Evaluate at most this many subjects (`None`: all).
     pub max_subjects: Option<usize>,
@@ -308,6 +310,7 @@ pub fn evaluate_split(
     let mut views = Vec::new();
     let mut images = MetricImages::default();
     let mut sheets = Vec::new();
+    let mut sheet_rows: Vec<(usize, Vec<Image>)> = Vec::new();
     for item in validation_samples(dataset, &bodies, settings.max_subjects, device) {
         let ValidationSample {
             index,
@@ -349,15 +352,18 @@ pub fn evaluate_split(
                     .join(format!("{}.png", sample.frame_name)),
             )?;
         }
-        if model.is_some() && sheets.len() < settings.sheets {
-            let err = error_map(&pred, &gt, 4.0)?;
-            let sheet = grid(&[vec![gt.clone(), pred.clone(), err]], 2, [1.0; 3]);
+        if model.is_some()
+            && sheets.len() < settings.sheets
+            && !sheet_rows.iter().any(|(s, _)| *s == index.subject)
+        {
+            let row = vec![gt.clone(), pred.clone(), error_map(&pred, &gt, 4.0)?];
             let path = settings
                 .out
                 .join("sheets")
                 .join(format!("{}.png", sample.frame_name));
-            sheet.save_png(&path)?;
+            grid(std::slice::from_ref(&row), 2, [1.0; 3]).save_png(&path)?;
             sheets.push(path);
+            sheet_rows.push((index.subject, row));
         }
         views.push(ViewScore {
             subject: sample.subject.clone(),
@@ -371,6 +377,10 @@ pub fn evaluate_split(
         });
         images.pred.push(p_img);
         images.gt.push(g_img);
+    }
+    if sheet_rows.len() > 1 {
+        let rows: Vec<Vec<Image>> = sheet_rows.into_iter().map(|(_, row)| row).collect();
+        grid(&rows, 2, [1.0; 3]).save_png(&settings.out.join("sheets.png"))?;
     }
     Ok(SplitScores {
         views,

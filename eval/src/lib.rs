@@ -35,6 +35,7 @@
 
 pub mod animate;
 pub mod baselines;
+pub mod capacity;
 pub mod error;
 pub mod evaluate;
 pub mod images;

@@ -77,11 +77,11 @@ fn main() -> anyhow::Result<()> {
         eprintln!("[{n}/4 {:>5.1} s] {what}", started.elapsed().as_secs_f64());
     };
     let cfg = ExperimentConfig::load(&args.config)?;
-    let (val_split, _) = cfg.file.data.split_paths(Split::Val);
+    let (val_dir, val_split) = cfg.file.data.split_paths(Split::Val);
     if val_split.exists() {
         stage(
             1,
-            format!("using the validation subjects in {}", val_split.display()),
+            format!("using the validation subjects in {}", val_dir.display()),
         );
     } else {
         let synth_cfg = cfg.file.synthetic.clone().with_context(|| {
@@ -176,7 +176,7 @@ fn main() -> anyhow::Result<()> {
         device: args.device.device(),
         subdivide: None,
         iterations: None,
-        sheets: 6,
+        sheets: 8,
         freeview_frames: 36,
         motion: true,
         sweep: args.sweep,
