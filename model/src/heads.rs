@@ -22,6 +22,7 @@ use burn::tensor::module::linear;
 use burn::tensor::{Device, Int, Tensor};
 
 use lifegom_render::gom::GomParams;
+use lifegom_render::select::select_rows;
 
 /// `Linear → ReLU → Linear`, named `l0`/`l2` after the reference's `Sequential` indices.
 #[derive(Module, Debug)]
@@ -201,11 +202,11 @@ pub fn face_inputs(
     let [_, p] = h.dims();
     let [vh, k] = highres_weight.dims();
     let [f, n, d] = image_features.dims();
-    let h_hr = (h.select(0, highres_index).reshape([vh, k, p])
+    let h_hr = (select_rows(h, 0, highres_index).reshape([vh, k, p])
         * highres_weight.reshape([vh, k, 1]))
     .sum_dim(1)
     .reshape([vh, p]);
-    let corners = h_hr.select(0, faces).reshape([f, 3 * p]);
+    let corners = select_rows(h_hr, 0, faces).reshape([f, 3 * p]);
     let images = (image_features * face_visible.reshape([f, n, 1])).reshape([f, n * d]);
     Tensor::cat(vec![corners, images], 1)
 }

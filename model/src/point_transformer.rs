@@ -87,6 +87,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::readback::{self, ReadbackError};
 
 use crate::knn::{Neighbours, farthest_point_sampling, knn};
+use lifegom_render::select::select_rows;
 
 /// Weight-sharing groups must divide every width; this is the paper's value.
 const PAPER_SHARE_PLANES: usize = 8;
@@ -311,7 +312,7 @@ fn group_positions(
     let device = p_ref.device();
     let m = nb.len();
     let idx = index_tensor(&nb.indices, &device);
-    let rel = p_ref.clone().select(0, idx.clone()).reshape([m, nb.k, 3])
+    let rel = select_rows(p_ref.clone(), 0, idx.clone()).reshape([m, nb.k, 3])
         - p_query.clone().unsqueeze_dim::<3>(1);
     (idx, rel)
 }
@@ -379,7 +380,7 @@ impl PointTransformer {
                 Some(prev) => {
                     let m = (prev.n / stage.down.stride).max(1);
                     let sel = farthest_point_sampling(&prev.host, m);
-                    let p = prev.p.clone().select(0, index_tensor(&sel, &device));
+                    let p = select_rows(prev.p.clone(), 0, index_tensor(&sel, &device));
                     let host: Vec<[f32; 3]> = sel.iter().map(|&i| prev.host[i as usize]).collect();
                     let nb = knn(&prev.host, &host, k);
                     let down = group_positions(&nb, &prev.p, &p);
@@ -444,7 +445,7 @@ impl TransitionDown {
     pub fn forward_grouped(&self, x: Tensor<2>, idx: Tensor<1, Int>, rel: Tensor<3>) -> Tensor<2> {
         let [m, k, _] = rel.dims();
         let c_in = x.dims()[1];
-        let grouped = x.select(0, idx).reshape([m, k, c_in]);
+        let grouped = select_rows(x, 0, idx).reshape([m, k, c_in]);
         let h = self.linear.forward(Tensor::cat(vec![rel, grouped], 2));
         let h = relu(bn_last(&self.bn, h));
         let c = h.dims()[2];
@@ -571,12 +572,8 @@ impl PointTransformerLayer {
         let s = self.share_planes;
         let q = self.linear_q.forward(x.clone());
         // Project before gathering: n rows instead of n·k.
-        let kf = self
-            .linear_k
-            .forward(x.clone())
-            .select(0, nbr.clone())
-            .reshape([n, k, c]);
-        let vf = self.linear_v.forward(x).select(0, nbr).reshape([n, k, c]);
+        let kf = select_rows(self.linear_k.forward(x.clone()), 0, nbr.clone()).reshape([n, k, c]);
+        let vf = select_rows(self.linear_v.forward(x), 0, nbr).reshape([n, k, c]);
 
         let mp = &self.linear_p;
         let delta = mp.fc3.forward(relu(bn_last(&mp.bn1, mp.fc0.forward(rel)))); // [n, k, c]
@@ -625,7 +622,7 @@ impl Interpolation {
     fn apply(&self, x: Tensor<2>) -> Tensor<2> {
         let [n, kk, _] = self.weights.dims();
         let c = x.dims()[1];
-        (x.select(0, self.idx.clone()).reshape([n, kk, c]) * self.weights.clone())
+        (select_rows(x, 0, self.idx.clone()).reshape([n, kk, c]) * self.weights.clone())
             .sum_dim(1)
             .reshape([n, c])
     }

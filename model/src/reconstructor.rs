@@ -41,6 +41,7 @@ use crate::fusion::{Fusion, FusionConfig};
 use crate::heads::{UpdateHeads, UpdateHeadsConfig, face_inputs};
 use crate::point_transformer::{PointTransformer, PointTransformerConfig};
 use crate::sampling::{project_points, sample_single};
+use lifegom_render::select::select_rows;
 
 /// Width of the encoder's concatenated pyramid for a configuration (1152 for the paper's).
 fn encoder_feature_dim(cfg: &ImageEncoderConfig) -> usize {
@@ -543,9 +544,7 @@ impl Reconstructor {
         // (pre-update) mesh, zeroed where the face is not fully visible in that view.
         let span = tracing::debug_span!("face_sampling").entered();
         let proj_hr = project_points(Tensor::stack(posed_hr, 0), &sources.cameras)?;
-        let uv_faces = proj_hr
-            .uv
-            .select(1, faces_flat.clone())
+        let uv_faces = select_rows(proj_hr.uv, 1, faces_flat.clone())
             .reshape([n, f, 3, 2])
             .mean_dim(2)
             .reshape([n, f, 2]);

@@ -35,6 +35,7 @@
 
 use burn::tensor::{Bool, Int, Tensor, TensorData, s};
 use lifegom_render::camera::Camera;
+use lifegom_render::select::select_rows;
 
 /// Depth used in place of `Z` for points with `Z < MIN_DEPTH` (at or behind the camera).
 pub const MIN_DEPTH: f64 = 1e-6;
@@ -297,7 +298,7 @@ impl Level {
         )
         .reshape([n * p * 4]);
         let c = self.channels;
-        let corners = self.rows.clone().select(0, index).reshape([n, p, 4, c]);
+        let corners = select_rows(self.rows.clone(), 0, index).reshape([n, p, 4, c]);
         (corners * weights.unsqueeze_dim::<4>(3))
             .sum_dim(2)
             .reshape([n, p, c])

@@ -46,6 +46,7 @@ pub mod mesh;
 pub mod rasterizer;
 pub mod readback;
 pub mod rng;
+pub mod select;
 pub mod skeleton;
 pub mod skinning;
 pub mod steiner;

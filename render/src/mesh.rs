@@ -103,7 +103,7 @@ impl MeshTopology {
 pub fn face_vertices(vertices: Tensor<2>, faces_flat: Tensor<1, Int>) -> [Tensor<2>; 3] {
     let [n] = faces_flat.dims();
     let f = n / 3;
-    let corners = vertices.select(0, faces_flat).reshape([f, 9]);
+    let corners = crate::select::select_rows(vertices, 0, faces_flat).reshape([f, 9]);
     [0, 1, 2].map(|k| corners.clone().narrow(1, 3 * k, 3))
 }
 

@@ -199,7 +199,8 @@ impl SubdivisionTables {
             self.num_lowres
         );
         let [vh, _] = self.weight.dims();
-        let gathered = lowres.select(0, self.index.clone()).reshape([vh, 3, 3]);
+        let gathered =
+            crate::select::select_rows(lowres, 0, self.index.clone()).reshape([vh, 3, 3]);
         let weighted = gathered * self.weight.clone().reshape([vh, 3, 1]);
         weighted.sum_dim(1).reshape([vh, 3])
     }

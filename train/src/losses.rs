@@ -41,6 +41,7 @@ use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Int, Tensor, TensorData};
 use lifegom_render::readback::{self, ReadbackError};
+use lifegom_render::select::select_rows;
 
 /// Errors of the loss helpers.
 #[derive(Debug, thiserror::Error)]
@@ -279,7 +280,7 @@ impl UniformLaplacian {
             TensorData::new(self.connected.clone(), [1, v, 1]),
             (&device, dtype),
         );
-        let gathered = vertices.clone().select(1, index).reshape([m, v, k, d]);
+        let gathered = select_rows(vertices.clone(), 1, index).reshape([m, v, k, d]);
         let centroid: Tensor<3> = (gathered * weights).sum_dim(2).reshape([m, v, d]);
         centroid - vertices * connected
     }
