@@ -319,6 +319,10 @@ impl Chart {
             *lo -= pad;
             *hi += pad;
         }
+        // Headroom for the legend (top right) so it never covers a point.
+        let legend = (8 + 12 * self.series.len() as i64) as f64 / ph as f64;
+        let legend = legend.min(0.5);
+        y1 += (y1 - y0) * legend / (1.0 - legend);
         let px = |x: f64| left as f64 + (x - x0) / (x1 - x0) * pw as f64;
         let py = |y: f64| (top + ph) as f64 - (y - y0) / (y1 - y0) * ph as f64;
 
