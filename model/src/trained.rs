@@ -256,6 +256,28 @@ mod tests {
         assert_eq!(read_header(&path).unwrap().num_vertices, 17);
     }
 
+    /// The demo model the README's main job loads: inference-only (no optimizer payload),
+    /// within the size the repository allows, built for the low-res template, and its weights
+    /// fit the network its header describes.
+    #[test]
+    fn the_shipped_demo_model_loads() {
+        let path = PathBuf::from(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../assets/demo/demo.lgck"
+        ));
+        let size = std::fs::metadata(&path).unwrap().len();
+        assert!(size <= 25 << 20, "{size} bytes");
+        let loaded = load(&path, &Device::ndarray()).unwrap();
+        assert!(loaded.payload.is_empty());
+        let template = lifegom_render::template::BodyTemplate::load(
+            lifegom_render::template::lowres_template_path(),
+        )
+        .unwrap();
+        assert_eq!(loaded.header.num_vertices, template.num_vertices());
+        assert_eq!(loaded.config.iterations, 3);
+        assert!(loaded.header.meta["step"].as_u64().unwrap() > 0);
+    }
+
     #[test]
     fn damaged_files_are_errors_naming_the_file() {
         let device = Device::ndarray();
