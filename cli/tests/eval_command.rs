@@ -14,15 +14,23 @@ use lifegom_eval::report::WEIGHTS_MISSING;
 use lifegom_model::reconstructor::ReconstructorConfig;
 use lifegom_model::trained;
 
-#[test]
-fn eval_on_a_tiny_split_writes_every_file() {
-    let tmp = std::env::temp_dir().join(format!("lifegom-eval-cmd-{}", std::process::id()));
+/// A fresh folder `lifegom-<tag>-<pid>` holding the tiny synthetic split (`tweak` may change
+/// its `[synthetic]` section first), and the config pointed at it.
+fn tiny_split(tag: &str, tweak: impl FnOnce(&mut synth::SynthConfig)) -> (PathBuf, ConfigFile) {
+    let tmp = std::env::temp_dir().join(format!("lifegom-{tag}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);
     let config = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic-tiny.toml");
     let root = tmp.join("data");
     let cfg = ConfigFile::load(&config).unwrap().with_root(&root);
-    let s = cfg.synthetic.clone().unwrap();
+    let mut s = cfg.synthetic.clone().unwrap();
+    tweak(&mut s);
     synth::generate_split(&s, &cfg.data, &root, s.seed, &|| {}).unwrap();
+    (tmp, cfg)
+}
+
+#[test]
+fn eval_on_a_tiny_split_writes_every_file() {
+    let (tmp, cfg) = tiny_split("eval-cmd", |_| {});
 
     // An untrained tiny model stands in for a checkpoint: this test is about the files.
     let device = Device::ndarray();
@@ -143,13 +151,7 @@ fn test_time_refinement_improves_the_template() {
     use lifegom_data::dataset::{Dataset, Split};
     use lifegom_eval::evaluate::{EvalSettings, Method, evaluate_split, mean_of};
 
-    let tmp = std::env::temp_dir().join(format!("lifegom-refine-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&tmp);
-    let config = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic-tiny.toml");
-    let root = tmp.join("data");
-    let cfg = ConfigFile::load(&config).unwrap().with_root(&root);
-    let s = cfg.synthetic.clone().unwrap();
-    synth::generate_split(&s, &cfg.data, &root, s.seed, &|| {}).unwrap();
+    let (tmp, cfg) = tiny_split("refine", |_| {});
     let dataset = Dataset::open(&cfg.data, Split::Val).unwrap();
     let device = Device::flex();
     let score = |refine_steps| {
@@ -194,14 +196,7 @@ fn capacity_check_fits_ring_views_and_scores_held_out_ones() {
     use lifegom_train::fit::FitConfig;
     use lifegom_train::losses::LossWeights;
 
-    let tmp = std::env::temp_dir().join(format!("lifegom-capacity-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&tmp);
-    let config = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic-tiny.toml");
-    let root = tmp.join("data");
-    let cfg = ConfigFile::load(&config).unwrap().with_root(&root);
-    let mut s = cfg.synthetic.clone().unwrap();
-    (s.train_subjects, s.val_subjects) = (1, 0);
-    synth::generate_split(&s, &cfg.data, &root, s.seed, &|| {}).unwrap();
+    let (tmp, cfg) = tiny_split("capacity", |s| (s.train_subjects, s.val_subjects) = (1, 0));
     let mut dataset = Dataset::open(&cfg.data, Split::Train).unwrap();
     dataset.background = cfg.data.test_background;
     let device = Device::flex();

@@ -431,3 +431,58 @@ pub fn raster_hard_cases() -> Vec<Scene> {
     }
     scenes
 }
+
+/// A square `size`-pixel camera on a 2.6 m orbit around the template's middle (0, 0.3, 0), at
+/// `azimuth` (radians) and `rise` (the eye's height above the look-at point, in orbit radii).
+pub fn body_camera(azimuth: f32, rise: f32, size: u32) -> Camera {
+    let f = 1.6 * size as f32;
+    let k = Intrinsics {
+        fx: f,
+        fy: f,
+        cx: size as f32 / 2.0,
+        cy: size as f32 / 2.0,
+    };
+    let look_at = glam::Vec3::new(0.0, 0.3, 0.0);
+    let eye = look_at + 2.6 * glam::Vec3::new(azimuth.sin(), rise, azimuth.cos());
+    Camera::look_at(eye, look_at, glam::Vec3::Y, k, size, size).expect("valid test camera")
+}
+
+/// The body template as a canonical subject (its own vertices, skin and skeleton).
+pub fn template_subject(
+    template: &lifegom_render::template::BodyTemplate,
+    device: &Device,
+) -> lifegom_model::reconstructor::CanonicalSubject {
+    lifegom_model::reconstructor::CanonicalSubject {
+        canonical_vertices: template.vertex_tensor(device),
+        lbs_weights: template.skin.tensor(device),
+        skeleton: template.skeleton.clone(),
+    }
+}
+
+/// A known appearance for scenes whose truth must be recoverable: one colour per Gaussian of
+/// `mesh`, varying smoothly with its face's centre in the canonical pose (`[F, 3]`).
+pub fn pattern_colors(
+    mesh: &lifegom_render::gom::GomMesh,
+    canonical_vertices: Tensor<2>,
+) -> Tensor<2> {
+    let f = mesh.num_gaussians();
+    let device = canonical_vertices.device();
+    let centres = read(
+        mesh.highres_vertices(canonical_vertices)
+            .select(0, mesh.highres_faces().clone())
+            .reshape([f, 3, 3])
+            .mean_dim(1)
+            .reshape([f, 3]),
+    );
+    let colors: Vec<f32> = centres
+        .chunks_exact(3)
+        .flat_map(|p| {
+            [
+                0.5 + 0.4 * (6.0 * p[1]).sin(),
+                0.5 + 0.4 * (5.0 * p[0]).cos(),
+                0.5 + 0.3 * (4.0 * (p[0] + p[1])).sin(),
+            ]
+        })
+        .collect();
+    Tensor::from_data(TensorData::new(colors, [f, 3]), &device)
+}

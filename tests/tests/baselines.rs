@@ -5,35 +5,22 @@
 //!   photos.
 //! - Per-scene optimisation must lower its source-view loss and improve the novel view.
 
-use burn::tensor::{Device, Tensor, TensorData};
-use glam::Vec3;
+use burn::tensor::Device;
 use lifegom_eval::baselines::{projective_texturing, template_one_colour};
 use lifegom_eval::images::Image;
 use lifegom_eval::metrics::{ImageRef, psnr};
 use lifegom_model::avatar::Avatar;
 use lifegom_model::inputs::ModelInputs;
-use lifegom_model::reconstructor::{CanonicalSubject, SourceViews, render_views};
-use lifegom_render::camera::{Camera, Intrinsics};
+use lifegom_model::reconstructor::{SourceViews, render_views};
+use lifegom_render::camera::Camera;
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::skeleton::BodyPose;
 use lifegom_render::template::{BodyTemplate, lowres_template_path};
+use lifegom_tests::{body_camera, pattern_colors, template_subject};
 use lifegom_train::fit::{FitConfig, fit};
 use lifegom_train::losses::{LossWeights, UniformLaplacian};
 
 const SIZE: u32 = 48;
-
-fn camera(azimuth: f32) -> Camera {
-    let f = 1.6 * SIZE as f32;
-    let k = Intrinsics {
-        fx: f,
-        fy: f,
-        cx: SIZE as f32 / 2.0,
-        cy: SIZE as f32 / 2.0,
-    };
-    let look_at = Vec3::new(0.0, 0.3, 0.0);
-    let eye = look_at + 2.6 * Vec3::new(azimuth.sin(), 0.0, azimuth.cos());
-    Camera::look_at(eye, look_at, Vec3::Y, k, SIZE, SIZE).unwrap()
-}
 
 struct Scene {
     inputs: ModelInputs,
@@ -45,39 +32,18 @@ struct Scene {
 fn scene(device: &Device) -> Scene {
     let template = BodyTemplate::load(lowres_template_path()).unwrap();
     let mesh = GomMesh::new(&template.topology, 1, device).unwrap();
-    let subject = CanonicalSubject {
-        canonical_vertices: template.vertex_tensor(device),
-        lbs_weights: template.skin.tensor(device),
-        skeleton: template.skeleton.clone(),
-    };
+    let subject = template_subject(&template, device);
     let rest = template
         .skeleton
         .skinning_transforms(&BodyPose::rest(template.num_joints()))
         .unwrap();
-    // Face colours from the canonical face centres (high-res vertices through the tables).
-    let hr = mesh.highres_vertices(subject.canonical_vertices.clone());
-    let faces = mesh.highres_faces().clone();
     let f = mesh.num_gaussians();
-    let centres: Vec<f32> = hr
-        .select(0, faces)
-        .reshape([f, 3, 3])
-        .mean_dim(1)
-        .into_data()
-        .try_to_vec::<f32>()
-        .unwrap();
-    let colors: Vec<f32> = centres
-        .chunks_exact(3)
-        .flat_map(|p| {
-            [
-                0.5 + 0.4 * (6.0 * p[1]).sin(),
-                0.5 + 0.4 * (5.0 * p[0]).cos(),
-                0.5 + 0.3 * (4.0 * (p[0] + p[1])).sin(),
-            ]
-        })
-        .collect();
     let mut truth = GomParams::init(f, device);
-    truth.colors = Tensor::from_data(TensorData::new(colors, [f, 3]), device);
-    let cams: Vec<Camera> = [0.0f32, 2.1, 4.2, 1.0].iter().map(|&a| camera(a)).collect();
+    truth.colors = pattern_colors(&mesh, subject.canonical_vertices.clone());
+    let cams: Vec<Camera> = [0.0f32, 2.1, 4.2, 1.0]
+        .iter()
+        .map(|&a| body_camera(a, 0.0, SIZE))
+        .collect();
     let bg = [0.0; 3];
     let skinning = vec![rest.clone(); 4];
     let views = render_views(

@@ -106,70 +106,38 @@ fn vertices_to_image_gradients_match_finite_differences() {
 mod step_parity {
     use burn::module::{Module, ModuleVisitor, Param};
     use burn::optim::GradientsParams;
-    use burn::tensor::{Device, Tensor, TensorData};
-    use glam::Vec3;
+    use burn::tensor::{Device, Tensor};
     use lifegom_model::inputs::ModelInputs;
     use lifegom_model::reconstructor::{
-        CanonicalSubject, MeshPurpose, ReconstructorConfig, SourceViews, render_views,
+        MeshPurpose, ReconstructorConfig, SourceViews, render_views,
     };
-    use lifegom_render::camera::{Camera, Intrinsics};
+    use lifegom_render::camera::Camera;
     use lifegom_render::gom::{GomGeometry, GomMesh, GomParams};
     use lifegom_render::skeleton::BodyPose;
     use lifegom_render::template::{BodyTemplate, lowres_template_path};
-    use lifegom_tests::read;
+    use lifegom_tests::{body_camera, pattern_colors, read, template_subject};
     use lifegom_train::config::TrainSection;
     use lifegom_train::losses::UniformLaplacian;
     use lifegom_train::trainer::Trainer;
 
     const SIZE: u32 = 32;
 
-    fn camera(azimuth: f32) -> Camera {
-        let f = 1.6 * SIZE as f32;
-        let k = Intrinsics {
-            fx: f,
-            fy: f,
-            cx: SIZE as f32 / 2.0,
-            cy: SIZE as f32 / 2.0,
-        };
-        let look_at = Vec3::new(0.0, 0.3, 0.0);
-        let eye = look_at + 2.6 * Vec3::new(azimuth.sin(), 0.1, azimuth.cos());
-        Camera::look_at(eye, look_at, Vec3::Y, k, SIZE, SIZE).unwrap()
-    }
-
     /// Two source views and a target of the template with a smooth colour pattern, rendered
     /// through `mesh`; the network starts far from it, so every loss term has a gradient.
     fn inputs(template: &BodyTemplate, mesh: &GomMesh, device: &Device) -> ModelInputs {
-        let subject = CanonicalSubject {
-            canonical_vertices: template.vertex_tensor(device),
-            lbs_weights: template.skin.tensor(device),
-            skeleton: template.skeleton.clone(),
-        };
+        let subject = template_subject(template, device);
         let rest = template
             .skeleton
             .skinning_transforms(&BodyPose::rest(template.num_joints()))
             .unwrap();
         let f = mesh.num_gaussians();
-        let centres = read(
-            mesh.highres_vertices(subject.canonical_vertices.clone())
-                .select(0, mesh.highres_faces().clone())
-                .reshape([f, 3, 3])
-                .mean_dim(1)
-                .reshape([f, 3]),
-        );
-        let colors: Vec<f32> = centres
-            .chunks_exact(3)
-            .flat_map(|p| {
-                [
-                    0.5 + 0.4 * (6.0 * p[1]).sin(),
-                    0.5 + 0.4 * (5.0 * p[0]).cos(),
-                    0.5 + 0.3 * (4.0 * (p[0] + p[1])).sin(),
-                ]
-            })
-            .collect();
         let mut truth = GomParams::init(f, device);
-        truth.colors = Tensor::from_data(TensorData::new(colors, [f, 3]), device);
+        truth.colors = pattern_colors(mesh, subject.canonical_vertices.clone());
         truth.scales = truth.scales * 0.8;
-        let cams: Vec<Camera> = [0.3f32, 2.4, 1.2].iter().map(|&a| camera(a)).collect();
+        let cams: Vec<Camera> = [0.3f32, 2.4, 1.2]
+            .iter()
+            .map(|&a| body_camera(a, 0.1, SIZE))
+            .collect();
         let bg = [0.2, 0.1, 0.3];
         let skinning = vec![rest.clone(); 3];
         let views = render_views(
