@@ -77,6 +77,15 @@ impl CanonicalBody {
     }
 }
 
+/// Where one frame's pictures are.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FrameFiles {
+    /// The RGB image.
+    pub image: PathBuf,
+    /// The foreground mask (same size).
+    pub mask: PathBuf,
+}
+
 /// One subject: its folder, frames, cameras, poses and canonical body, all validated.
 #[derive(Debug, Clone)]
 pub struct Subject {
@@ -86,6 +95,9 @@ pub struct Subject {
     pub dir: PathBuf,
     /// Frame names (PNG stems of `images/`, sorted).
     pub frames: Vec<String>,
+    /// Image and mask file of each frame, in `frames` order (`images/<frame>.png` and
+    /// `masks/<frame>.png` in the official layout; anywhere in the JSON layout).
+    pub files: Vec<FrameFiles>,
     /// Camera of each frame, in `frames` order.
     pub cameras: Vec<FrameCamera>,
     /// Pose of each frame, in `frames` order.
@@ -127,10 +139,18 @@ impl Subject {
                 .ok_or_else(|| DataError::invalid(loc.clone(), "no entry for this frame"))?;
             mesh_infos.push(read_mesh_info(entry, &loc, num_joints)?);
         }
+        let files = frames
+            .iter()
+            .map(|f| FrameFiles {
+                image: dir.join("images").join(format!("{f}.png")),
+                mask: dir.join("masks").join(format!("{f}.png")),
+            })
+            .collect();
         Ok(Self {
             name,
             dir: dir.to_path_buf(),
             frames,
+            files,
             cameras,
             mesh_infos,
             canonical,
@@ -139,16 +159,35 @@ impl Subject {
 
     /// Path of frame `i`'s image.
     pub fn image_path(&self, i: usize) -> PathBuf {
-        self.dir
-            .join("images")
-            .join(format!("{}.png", self.frames[i]))
+        self.files[i].image.clone()
     }
 
     /// Path of frame `i`'s mask.
     pub fn mask_path(&self, i: usize) -> PathBuf {
-        self.dir
-            .join("masks")
-            .join(format!("{}.png", self.frames[i]))
+        self.files[i].mask.clone()
+    }
+
+    /// Checks that frame `i`'s camera sees the posed body from the front of the lens: the
+    /// body's origin (`Th`, where the root sits) must have a positive depth. A camera behind
+    /// the body projects it mirrored, which no later stage can detect.
+    pub fn check_camera_faces_body(&self, i: usize, source: &Path) -> Result<()> {
+        let (e, th) = (&self.cameras[i].e, self.mesh_infos[i].th);
+        let root = self.canonical.joints.first().copied().unwrap_or_default();
+        let r = crate::dataset::fold_body_transform(e, self.mesh_infos[i].rh, th);
+        let z = r[2][0] * root.x + r[2][1] * root.y + r[2][2] * root.z + r[2][3];
+        if z.is_finite() && z > 0.0 {
+            return Ok(());
+        }
+        Err(DataError::invalid(
+            Location::file(source)
+                .subject(&self.name)
+                .frame(&self.frames[i])
+                .field("extrinsics"),
+            format!(
+                "the camera is behind the body (the root joint is at depth {z:.3} m): \
+                 extrinsics must map world to camera (OpenCV: +z forward)"
+            ),
+        ))
     }
 }
 
@@ -223,7 +262,7 @@ fn expect_len(a: &NdArray, n: usize, what: &str, loc: &Location, key: &str) -> R
     Ok(())
 }
 
-fn read_camera(v: &Value, loc: &Location) -> Result<FrameCamera> {
+pub(crate) fn read_camera(v: &Value, loc: &Location) -> Result<FrameCamera> {
     let k_arr = field(v, "intrinsics", loc)?;
     let kv = k_arr.to_f64();
     let kloc = loc.clone().field("intrinsics");
@@ -315,7 +354,11 @@ fn vec3s(a: &NdArray) -> Vec<Vec3> {
     a.to_f32().chunks_exact(3).map(Vec3::from_slice).collect()
 }
 
-fn read_mesh_info(v: &Value, loc: &Location, num_joints: usize) -> Result<FrameMeshInfo> {
+pub(crate) fn read_mesh_info(
+    v: &Value,
+    loc: &Location,
+    num_joints: usize,
+) -> Result<FrameMeshInfo> {
     let poses = field(v, "poses", loc)?;
     expect_len(
         &poses,
@@ -344,7 +387,11 @@ fn read_mesh_info(v: &Value, loc: &Location, num_joints: usize) -> Result<FrameM
     })
 }
 
-fn read_canonical(path: &Path, subject: &str, tree: KinematicTree) -> Result<CanonicalBody> {
+pub(crate) fn read_canonical(
+    path: &Path,
+    subject: &str,
+    tree: KinematicTree,
+) -> Result<CanonicalBody> {
     let v = pickle::load(path).map_err(|e| with_subject(e, subject))?;
     let loc = Location::file(path).subject(subject);
     let joints = field(&v, "joints", &loc)?;
@@ -355,9 +402,23 @@ fn read_canonical(path: &Path, subject: &str, tree: KinematicTree) -> Result<Can
         ));
     }
     let num_joints = joints.len() / 3;
-    let parents: Vec<i32> = match tree.fixed_parents() {
+    let fixed = tree
+        .fixed_parents()
+        .map_err(|r| DataError::invalid(loc.clone().field("parents"), r))?;
+    let parents: Vec<i32> = match fixed {
         Some(p) => p.to_vec(),
         None => {
+            if v.get("parents").is_none() {
+                // The one case a user can fix by choosing another tree: say which.
+                return Err(DataError::invalid(
+                    loc.clone().field("parents"),
+                    format!(
+                        "missing, and kinematic_tree = \"stored\" reads the parent table from it \
+                         ({num_joints} joints here). Use kinematic_tree = \"anny\" for Anny-rig \
+                         data written by other tools (104 joints), \"smpl\" (24) or \"smplx\" (55)"
+                    ),
+                ));
+            }
             let p = field(&v, "parents", &loc)?;
             p.to_i64()
                 .ok_or_else(|| {
@@ -372,7 +433,8 @@ fn read_canonical(path: &Path, subject: &str, tree: KinematicTree) -> Result<Can
         return Err(DataError::invalid(
             loc.field("joints"),
             format!(
-                "wrong joint count: {num_joints} joints, but the {tree:?} kinematic tree has {}",
+                "wrong joint count: {num_joints} joints, but kinematic_tree = \"{}\" has {}",
+                tree.name(),
                 parents.len()
             ),
         ));

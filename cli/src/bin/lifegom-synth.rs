@@ -1,5 +1,7 @@
-//! `lifegom-synth --config <toml> --out <dir> [--seed N] [--contact-sheet <png>]`: generates a
-//! synthetic THuman-style split in the official processed layout (see `lifegom_data::synth`).
+//! `lifegom-synth --config <toml> --out <dir> [--seed N] [--contact-sheet <png>] [--json-example
+//! <dir>]`: generates a synthetic THuman-style split in the official processed layout (see
+//! `lifegom_data::synth`); `--json-example` also writes its first validation subject in the
+//! custom JSON layout (`lifegom_data::custom`, docs/custom-data.md).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -27,6 +29,10 @@ struct Args {
     /// subjects) to this PNG.
     #[arg(long)]
     contact_sheet: Option<PathBuf>,
+    /// Also write the first validation subject in the custom JSON layout (`subject.json` and
+    /// its pictures) to this folder: the worked example of docs/custom-data.md.
+    #[arg(long)]
+    json_example: Option<PathBuf>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -65,6 +71,16 @@ fn main() -> anyhow::Result<()> {
         image::save_buffer(&path, &rgb, w, h, image::ExtendedColorType::Rgb8)
             .with_context(|| format!("writing {}", path.display()))?;
         eprintln!("contact sheet: {}", path.display());
+    }
+    if let Some(dir) = args.json_example {
+        let Some(first) = summary.val.first() else {
+            bail!("--json-example needs a validation subject; the config writes none");
+        };
+        let (split_dir, _) = cfg.data.split_paths(lifegom_data::dataset::Split::Val);
+        let subject =
+            lifegom_data::format::Subject::load(&split_dir.join(first), cfg.data.kinematic_tree)?;
+        let path = lifegom_data::custom::write_subject(&subject, synth_cfg.template, &dir)?;
+        eprintln!("JSON-layout example subject: {}", path.display());
     }
     Ok(())
 }
