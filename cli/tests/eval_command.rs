@@ -4,29 +4,15 @@
 
 #![allow(deprecated)] // Device::ndarray(): ndarray is the CI backend the project requires (design.md §1.4).
 
-use std::path::PathBuf;
+mod common;
 
 use burn::tensor::Device;
 use lifegom_cli::eval_run::{EvalOptions, run};
-use lifegom_data::config::ConfigFile;
-use lifegom_data::synth;
 use lifegom_eval::report::WEIGHTS_MISSING;
 use lifegom_model::reconstructor::ReconstructorConfig;
 use lifegom_model::trained;
 
-/// A fresh folder `lifegom-<tag>-<pid>` holding the tiny synthetic split (`tweak` may change
-/// its `[synthetic]` section first), and the config pointed at it.
-fn tiny_split(tag: &str, tweak: impl FnOnce(&mut synth::SynthConfig)) -> (PathBuf, ConfigFile) {
-    let tmp = std::env::temp_dir().join(format!("lifegom-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&tmp);
-    let config = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic-tiny.toml");
-    let root = tmp.join("data");
-    let cfg = ConfigFile::load(&config).unwrap().with_root(&root);
-    let mut s = cfg.synthetic.clone().unwrap();
-    tweak(&mut s);
-    synth::generate_split(&s, &cfg.data, &root, s.seed, &|| {}).unwrap();
-    (tmp, cfg)
-}
+use common::tiny_split;
 
 #[test]
 fn eval_on_a_tiny_split_writes_every_file() {

@@ -393,7 +393,7 @@ pub fn evaluate_split(
 
 /// Test-time refinement of a reconstruction (`steps` = 0: unchanged): the per-scene fit started
 /// from `rec.avatar`, its wall time added to `rec.ms`.
-fn refine(
+pub fn refine(
     rec: Reconstructed,
     inputs: &ModelInputs,
     laplacian: Option<&UniformLaplacian>,

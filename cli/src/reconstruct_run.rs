@@ -1,0 +1,321 @@
+//! The reconstruct command: one person's photos → an animatable avatar and everything made
+//! from it (the `lifegom-reconstruct` binary; README).
+//!
+//! 1. **Subject**: a folder in the official layout (`images/`, `masks/`, three pickles) or the
+//!    custom JSON layout (`subject.json`, docs/custom-data.md), validated by `lifegom-data`;
+//!    each input camera must face the body.
+//! 2. **Inputs**: the model takes exactly as many views as it was trained with; by default
+//!    they are spread evenly over the subject's frames. A frame left over becomes a held-out
+//!    view the avatar is scored on, so a user sees how it does on a view it never saw.
+//! 3. **Avatar**: one feed-forward pass (T feedback steps), then `--refine-steps` gradient
+//!    steps of the per-scene fit on the inputs (design.md §10.9).
+//! 4. **Outputs** in `--out`: `avatar.lgom` (ours), `avatar.ply` (3D Gaussian splatting, canonical
+//!    T-pose), `inputs.png` (each input beside the avatar re-rendered in its view, and the
+//!    held-out view when there is one), `turntable.gif`, one GIF per `--motion`, and
+//!    `reconstruct.json` (timings, scores, files).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use burn::tensor::Device;
+use lifegom_data::dataset::{Sample, load_view};
+use lifegom_data::format::Subject;
+use lifegom_data::kinematics::KinematicTree;
+use lifegom_eval::animate::{JointRoles, Motion, orbit_camera, posed_joint};
+use lifegom_eval::evaluate::{reconstruct_timed, refine, render_timed};
+use lifegom_eval::images::{Image, grid, save_gif};
+use lifegom_eval::metrics::{ImageRef, psnr};
+use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_model::trained;
+use lifegom_render::gom::GomMesh;
+use lifegom_render::skeleton::BodyPose;
+use lifegom_train::losses::UniformLaplacian;
+
+/// What to reconstruct, with what, and where the outputs go.
+#[derive(Debug, Clone)]
+pub struct ReconstructOptions {
+    /// A subject folder (official layout, or holding `subject.json`) or a `subject.json`.
+    pub subject: PathBuf,
+    /// The trained model (`.lgck`).
+    pub model: PathBuf,
+    /// Image size the model works at (the experiment's `data.img_size`), `[W, H]`.
+    pub img_size: [u32; 2],
+    /// Background the images are composited over, in `[0, 1]`.
+    pub background: [f32; 3],
+    /// Kinematic tree of an official-layout subject (the JSON layout is always the Anny rig).
+    pub kinematic_tree: KinematicTree,
+    /// Input frames by name or index; `None`: spread evenly over the subject's frames.
+    pub inputs: Option<Vec<String>>,
+    /// Test-time refinement steps after the feed-forward pass.
+    pub refine_steps: usize,
+    /// Subdivision levels of the avatar (`None`: the model's `subdivide_test`).
+    pub subdivide: Option<u32>,
+    /// Frames of the turntable GIF (0: none).
+    pub turntable_frames: usize,
+    /// Procedural motions to render, one GIF each.
+    pub motions: Vec<Motion>,
+    /// Output folder.
+    pub out: PathBuf,
+    /// Where the network runs.
+    pub device: Device,
+}
+
+/// What a reconstruction produced, also written as `reconstruct.json`.
+#[derive(Debug, Clone)]
+pub struct ReconstructOutcome {
+    /// Subject name.
+    pub subject: String,
+    /// The input frames used.
+    pub inputs: Vec<String>,
+    /// Feed-forward reconstruction wall time (ms).
+    pub reconstruct_ms: f64,
+    /// Refinement wall time (ms; 0 without refinement).
+    pub refine_ms: f64,
+    /// Mean PSNR (dB) of the avatar re-rendered in the input views.
+    pub input_psnr: f64,
+    /// The held-out frame and the avatar's PSNR (dB) there, when the subject has one.
+    pub held_out: Option<(String, f64)>,
+    /// Files written, relative to the output folder.
+    pub files: Vec<PathBuf>,
+}
+
+/// Reads the subject in whichever layout `path` is (module docs).
+pub fn load_subject(path: &Path, tree: KinematicTree) -> anyhow::Result<Subject> {
+    let json = if path.is_dir() {
+        path.join("subject.json")
+    } else {
+        path.to_path_buf()
+    };
+    if json.is_file() {
+        return Ok(lifegom_data::custom::load_subject(&json)?);
+    }
+    if !path.is_dir() {
+        bail!(
+            "{}: no such subject: expected a folder in the official layout, or a subject.json (docs/custom-data.md)",
+            path.display()
+        );
+    }
+    Ok(Subject::load(path, tree)?)
+}
+
+/// Frame indices of the inputs: the named or numbered frames, or `n` spread evenly.
+pub fn choose_inputs(
+    subject: &Subject,
+    requested: Option<&[String]>,
+    n: usize,
+) -> anyhow::Result<Vec<usize>> {
+    let frames = &subject.frames;
+    let Some(requested) = requested else {
+        if frames.len() < n {
+            bail!(
+                "subject `{}` ({}) has {} frames, but the model takes {n} input views",
+                subject.name,
+                subject.dir.display(),
+                frames.len()
+            );
+        }
+        return Ok((0..n).map(|k| k * frames.len() / n).collect());
+    };
+    if requested.len() != n {
+        bail!(
+            "--inputs names {} frames, but the model takes exactly {n} input views",
+            requested.len()
+        );
+    }
+    requested
+        .iter()
+        .map(|r| {
+            frames
+                .iter()
+                .position(|f| f == r)
+                .or_else(|| r.parse::<usize>().ok().filter(|&i| i < frames.len()))
+                .with_context(|| {
+                    format!(
+                        "--inputs: subject `{}` has no frame `{r}` (frames: {} .. {}, or indices 0..{})",
+                        subject.name,
+                        frames[0],
+                        frames[frames.len() - 1],
+                        frames.len()
+                    )
+                })
+        })
+        .collect()
+}
+
+fn mean_psnr(pred: &Image, gt: &Image) -> anyhow::Result<f64> {
+    let shape = [gt.height, gt.width, 3];
+    Ok(psnr(
+        ImageRef::new(&pred.data, shape)?,
+        ImageRef::new(&gt.data, shape)?,
+        1.0,
+    )?)
+}
+
+/// Runs the reconstruction (module docs).
+pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
+    let _span = tracing::info_span!("reconstruct", subject = %opts.subject.display()).entered();
+    let loaded = trained::load(&opts.model, &opts.device)?;
+    let subject = load_subject(&opts.subject, opts.kinematic_tree)?;
+    let inputs_at = choose_inputs(&subject, opts.inputs.as_deref(), loaded.config.num_views)?;
+    let source = if opts.subject.is_dir() && !opts.subject.join("subject.json").is_file() {
+        opts.subject.join("cameras.pkl")
+    } else {
+        opts.subject.clone()
+    };
+    for &f in &inputs_at {
+        subject.check_camera_faces_body(f, &source)?;
+    }
+    let held_out = (0..subject.frames.len()).find(|f| !inputs_at.contains(f));
+
+    let rig = SubjectRig::new(&subject.name, &subject.canonical)?;
+    if rig.num_vertices() != loaded.header.num_vertices {
+        bail!(
+            "{}: the model was trained for a {}-vertex template, but subject `{}` has {} canonical vertices: \
+             use the template the model was trained on (the demo model: the low-res Anny template)",
+            opts.model.display(),
+            loaded.header.num_vertices,
+            subject.name,
+            rig.num_vertices()
+        );
+    }
+    let [w, h] = opts.img_size;
+    let bg = opts.background;
+    // `model_inputs` takes the inputs and one target; the held-out frame is the target when
+    // there is one, otherwise the first input stands in and is not scored.
+    let target = held_out.unwrap_or(inputs_at[0]);
+    let views = inputs_at
+        .iter()
+        .chain(std::iter::once(&target))
+        .map(|&f| load_view(&subject, f, bg.map(|c| c * 255.0), (w, h)))
+        .collect::<Result<Vec<_>, _>>()?;
+    let sample = Sample {
+        subject: subject.name.clone(),
+        frame_name: subject.frames[target].clone(),
+        views,
+        bgcolor: bg,
+        canonical_vertices: subject
+            .canonical
+            .vertices
+            .iter()
+            .map(|v| v.to_array())
+            .collect(),
+    };
+    let inputs = model_inputs(&rig, &sample, w, h, &opts.device)?;
+    let subdivide = opts.subdivide.unwrap_or(loaded.config.subdivide_test);
+    let mesh = GomMesh::new(&rig.topology, subdivide, &opts.device)?;
+
+    let rec = reconstruct_timed(&loaded.model, &mesh, &inputs)?;
+    let reconstruct_ms = rec.ms;
+    let rec = if opts.refine_steps > 0 {
+        let laplacian = UniformLaplacian::new(&rig.topology.faces, rig.num_vertices())?;
+        refine(rec, &inputs, Some(&laplacian), opts.refine_steps)?
+    } else {
+        rec
+    };
+    let refine_ms = rec.ms - reconstruct_ms;
+    let avatar = rec.avatar;
+
+    std::fs::create_dir_all(&opts.out)
+        .with_context(|| format!("creating {}", opts.out.display()))?;
+    let mut files = Vec::new();
+    let mut write = |name: &str| {
+        files.push(PathBuf::from(name));
+        opts.out.join(name)
+    };
+    avatar.save(write("avatar.lgom"))?;
+    avatar.export_ply(
+        &BodyPose::rest(rig.skeleton.num_joints()),
+        write("avatar.ply"),
+    )?;
+
+    // Inputs beside their re-renders; the held-out view last.
+    let mut rows = Vec::new();
+    let mut scores = Vec::new();
+    for (k, view) in sample.views.iter().enumerate() {
+        let is_target = k == inputs_at.len();
+        if is_target && held_out.is_none() {
+            continue;
+        }
+        let (camera, skinning) = if is_target {
+            (&inputs.target_camera, &inputs.target_skinning)
+        } else {
+            (&inputs.sources.cameras[k], &inputs.sources.skinning[k])
+        };
+        let (pred, _) = render_timed(&avatar, &inputs, camera, skinning)?;
+        let gt = Image {
+            width: w as usize,
+            height: h as usize,
+            data: view.rgb.clone(),
+        };
+        scores.push(mean_psnr(&pred, &gt)?);
+        rows.push(vec![gt, pred]);
+    }
+    grid(&rows, 2, [1.0; 3]).save_png(&write("inputs.png"))?;
+    let input_psnr = scores[..inputs_at.len()].iter().sum::<f64>() / inputs_at.len() as f64;
+    let held_out = held_out.map(|f| (subject.frames[f].clone(), scores[inputs_at.len()]));
+
+    // Free view around the body in the first input's pose, then the motions from its camera.
+    let camera = &inputs.sources.cameras[0];
+    if opts.turntable_frames > 0 {
+        let skinning = &inputs.sources.skinning[0];
+        let pivot = posed_joint(skinning, rig.skeleton.rest_joints[0], 0);
+        let frames = (0..opts.turntable_frames)
+            .map(|k| {
+                let cam = orbit_camera(camera, pivot, k, opts.turntable_frames);
+                Ok(render_timed(&avatar, &inputs, &cam, skinning)?.0)
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        save_gif(&write("turntable.gif"), &frames, 80)?;
+    }
+    let j = rig.skeleton.num_joints();
+    if !opts.motions.is_empty() {
+        let roles = JointRoles::for_rig(j).with_context(|| {
+            format!("--motion: no joint roles for a {j}-joint rig (SMPL, SMPL-X or Anny expected)")
+        })?;
+        for &motion in &opts.motions {
+            let n = 24;
+            let frames = (0..n)
+                .map(|k| {
+                    let pose = motion.pose(&roles, j, k as f32 / n as f32);
+                    let skinning = rig.skeleton.skinning_transforms(&pose)?;
+                    Ok(render_timed(&avatar, &inputs, camera, &skinning)?.0)
+                })
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            save_gif(
+                &write(&format!("motion_{}.gif", motion.name())),
+                &frames,
+                80,
+            )?;
+        }
+    }
+
+    files.push(PathBuf::from("reconstruct.json"));
+    let outcome = ReconstructOutcome {
+        subject: subject.name.clone(),
+        inputs: inputs_at
+            .iter()
+            .map(|&f| subject.frames[f].clone())
+            .collect(),
+        reconstruct_ms,
+        refine_ms,
+        input_psnr,
+        held_out,
+        files,
+    };
+    let json = opts.out.join("reconstruct.json");
+    let report = serde_json::json!({
+        "subject": outcome.subject,
+        "model": opts.model,
+        "inputs": outcome.inputs,
+        "refine_steps": opts.refine_steps,
+        "subdivide": subdivide,
+        "reconstruct_ms": outcome.reconstruct_ms,
+        "refine_ms": outcome.refine_ms,
+        "input_psnr": outcome.input_psnr,
+        "held_out": outcome.held_out.as_ref().map(|(f, db)| serde_json::json!({"frame": f, "psnr": db})),
+        "files": outcome.files,
+    });
+    std::fs::write(&json, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("writing {}", json.display()))?;
+    Ok(outcome)
+}

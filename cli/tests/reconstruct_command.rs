@@ -1,0 +1,169 @@
+//! `lifegom-reconstruct` end to end on a tiny synthetic person (tiny untrained network,
+//! ndarray, 64 px): both input layouts give every output, the held-out view is scored, and bad
+//! input is one error naming the file and field.
+
+#![allow(deprecated)] // Device::ndarray(): ndarray is the CI backend the project requires (design.md §1.4).
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use burn::tensor::Device;
+use lifegom_cli::reconstruct_run::{ReconstructOptions, run};
+use lifegom_data::dataset::Split;
+use lifegom_data::kinematics::KinematicTree;
+use lifegom_data::synth::TemplateChoice;
+use lifegom_eval::animate::Motion;
+use lifegom_model::avatar::Avatar;
+use lifegom_model::reconstructor::ReconstructorConfig;
+use lifegom_model::trained;
+
+use common::tiny_split;
+
+/// The tiny split's first validation subject (3 inputs + 3 targets), the same person in the
+/// JSON layout, and an untrained tiny model for the low-res template.
+fn setup(tag: &str) -> (PathBuf, PathBuf, PathBuf, PathBuf) {
+    let (tmp, cfg) = tiny_split(tag, |s| (s.train_subjects, s.val_subjects) = (0, 1));
+    let (val_dir, _) = cfg.data.split_paths(Split::Val);
+    let official = std::fs::read_dir(&val_dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.is_dir())
+        .unwrap();
+    let subject = lifegom_data::format::Subject::load(&official, KinematicTree::Stored).unwrap();
+    let json =
+        lifegom_data::custom::write_subject(&subject, TemplateChoice::Lowres, &tmp.join("me"))
+            .unwrap();
+    let device = Device::ndarray();
+    let model_cfg = ReconstructorConfig::tiny(3)
+        .with_iterations(1)
+        .with_subdivide_test(0);
+    let model = model_cfg.init(1229, &device).unwrap();
+    let ckpt = tmp.join("model.lgck");
+    trained::save(
+        &ckpt,
+        &model,
+        &model_cfg,
+        serde_json::json!({"step": 0}),
+        &[],
+    )
+    .unwrap();
+    (tmp, official, json, ckpt)
+}
+
+fn options(subject: &Path, model: &Path, out: PathBuf) -> ReconstructOptions {
+    ReconstructOptions {
+        subject: subject.to_path_buf(),
+        model: model.to_path_buf(),
+        img_size: [64, 64],
+        background: [0.0; 3],
+        kinematic_tree: KinematicTree::Stored,
+        inputs: None,
+        refine_steps: 0,
+        subdivide: None,
+        turntable_frames: 3,
+        motions: vec![Motion::Walk],
+        out,
+        device: Device::ndarray(),
+    }
+}
+
+#[test]
+fn reconstruct_from_the_json_layout_writes_every_output() {
+    let (tmp, _, json, model) = setup("recon-json");
+    let out = tmp.join("out");
+    let outcome = run(&ReconstructOptions {
+        refine_steps: 2,
+        ..options(json.parent().unwrap(), &model, out.clone())
+    })
+    .unwrap();
+    for file in [
+        "avatar.lgom",
+        "avatar.ply",
+        "inputs.png",
+        "turntable.gif",
+        "motion_walk.gif",
+        "reconstruct.json",
+    ] {
+        assert!(out.join(file).is_file(), "{file} missing");
+        assert!(
+            outcome.files.contains(&PathBuf::from(file)),
+            "{file} unlisted"
+        );
+    }
+    // Inputs spread evenly over the 6 frames; the first other frame is held out and scored.
+    assert_eq!(outcome.inputs.len(), 3);
+    let (frame, db) = outcome.held_out.clone().unwrap();
+    assert!(!outcome.inputs.contains(&frame));
+    assert!(db.is_finite() && outcome.input_psnr.is_finite());
+    assert!(outcome.refine_ms > 0.0);
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("reconstruct.json")).unwrap())
+            .unwrap();
+    assert_eq!(report["held_out"]["frame"], frame.as_str());
+    assert_eq!(report["refine_steps"], 2);
+    let avatar = Avatar::load(out.join("avatar.lgom"), &Device::ndarray()).unwrap();
+    assert_eq!(avatar.xyz.dims(), [1229, 3]);
+}
+
+#[test]
+fn official_and_json_layouts_give_the_same_avatar() {
+    let (tmp, official, json, model) = setup("recon-both");
+    let inputs = Some(vec!["0".into(), "frame_000001".into(), "2".into()]);
+    let a = run(&ReconstructOptions {
+        inputs: inputs.clone(),
+        turntable_frames: 0,
+        motions: vec![],
+        ..options(&official, &model, tmp.join("a"))
+    })
+    .unwrap();
+    let b = run(&ReconstructOptions {
+        inputs,
+        turntable_frames: 0,
+        motions: vec![],
+        ..options(&json, &model, tmp.join("b"))
+    })
+    .unwrap();
+    assert_eq!(a.inputs, b.inputs);
+    // The JSON body is rebuilt from fitted shape coefficients, equal to float rounding.
+    assert!((a.input_psnr - b.input_psnr).abs() < 1e-3, "{a:?} {b:?}");
+}
+
+#[test]
+fn bad_input_is_one_error_naming_file_and_field() {
+    let (tmp, official, json, model) = setup("recon-bad");
+    let err = |opts: ReconstructOptions| format!("{:#}", run(&opts).unwrap_err());
+
+    let msg = err(ReconstructOptions {
+        inputs: Some(vec!["0".into(), "1".into()]),
+        ..options(&official, &model, tmp.join("o1"))
+    });
+    assert!(msg.contains("exactly 3 input views"), "{msg}");
+    let msg = err(ReconstructOptions {
+        inputs: Some(vec!["0".into(), "1".into(), "frame_9".into()]),
+        ..options(&official, &model, tmp.join("o2"))
+    });
+    assert!(msg.contains("no frame `frame_9`"), "{msg}");
+    let msg = err(options(&tmp.join("nobody"), &model, tmp.join("o3")));
+    assert!(
+        msg.contains("nobody") && msg.contains("no such subject"),
+        "{msg}"
+    );
+
+    // A camera turned around: the body is behind it.
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    for row in [0, 2] {
+        for col in 0..4 {
+            let x = v["frames"][0]["extrinsics"][row][col].as_f64().unwrap();
+            v["frames"][0]["extrinsics"][row][col] = serde_json::json!(-x);
+        }
+    }
+    std::fs::write(&json, v.to_string()).unwrap();
+    let msg = err(options(&json, &model, tmp.join("o4")));
+    for part in ["subject.json", "field `extrinsics`", "behind the body"] {
+        assert!(msg.contains(part), "`{msg}` lacks `{part}`");
+    }
+    // Nothing was written for a refused subject.
+    assert!(!tmp.join("o4").exists());
+}
