@@ -4,9 +4,10 @@
 //! 1. **Subject**: a folder in the official layout (`images/`, `masks/`, three pickles) or the
 //!    custom JSON layout (`subject.json`, docs/custom-data.md), validated by `lifegom-data`;
 //!    each input camera must face the body.
-//! 2. **Inputs**: the model takes exactly as many views as it was trained with; by default
-//!    they are spread evenly over the subject's frames. A frame left over becomes a held-out
-//!    view the avatar is scored on, so a user sees how it does on a view it never saw.
+//! 2. **Inputs**: the model takes exactly as many views as it was trained with; by default the
+//!    subject's first frames (in the official layout, frame-name order; in the JSON layout, file
+//!    order). A frame left over becomes a held-out view the avatar is scored on, so a user sees
+//!    how it does on a view it never saw.
 //! 3. **Avatar**: one feed-forward pass (T feedback steps), then `--refine-steps` gradient
 //!    steps of the per-scene fit on the inputs (design.md §10.9).
 //! 4. **Outputs** in `--out`: `avatar.lgom` (ours), `avatar.ply` (3D Gaussian splatting, canonical
@@ -44,7 +45,7 @@ pub struct ReconstructOptions {
     pub background: [f32; 3],
     /// Kinematic tree of an official-layout subject (the JSON layout is always the Anny rig).
     pub kinematic_tree: KinematicTree,
-    /// Input frames by name or index; `None`: spread evenly over the subject's frames.
+    /// Input frames by name or index; `None`: the first frames.
     pub inputs: Option<Vec<String>>,
     /// Test-time refinement steps after the feed-forward pass.
     pub refine_steps: usize,
@@ -98,7 +99,7 @@ pub fn load_subject(path: &Path, tree: KinematicTree) -> anyhow::Result<Subject>
     Ok(Subject::load(path, tree)?)
 }
 
-/// Frame indices of the inputs: the named or numbered frames, or `n` spread evenly.
+/// Frame indices of the inputs: the named or numbered frames, or the first `n`.
 pub fn choose_inputs(
     subject: &Subject,
     requested: Option<&[String]>,
@@ -114,7 +115,7 @@ pub fn choose_inputs(
                 frames.len()
             );
         }
-        return Ok((0..n).map(|k| k * frames.len() / n).collect());
+        return Ok((0..n).collect());
     };
     if requested.len() != n {
         bail!(
@@ -163,7 +164,7 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
         opts.subject.clone()
     };
     for &f in &inputs_at {
-        subject.check_camera_faces_body(f, &source)?;
+        subject.check_camera_sees_body(f, &source)?;
     }
     let held_out = (0..subject.frames.len()).find(|f| !inputs_at.contains(f));
 

@@ -185,7 +185,7 @@ pub fn load_subject(path: &Path) -> Result<Subject> {
         canonical,
     };
     for i in 0..subject.frames.len() {
-        subject.check_camera_faces_body(i, path)?;
+        subject.check_camera_sees_body(i, path)?;
     }
     Ok(subject)
 }

@@ -167,27 +167,55 @@ impl Subject {
         self.files[i].mask.clone()
     }
 
-    /// Checks that frame `i`'s camera sees the posed body from the front of the lens: the
-    /// body's origin (`Th`, where the root sits) must have a positive depth. A camera behind
-    /// the body projects it mirrored, which no later stage can detect.
-    pub fn check_camera_faces_body(&self, i: usize, source: &Path) -> Result<()> {
-        let (e, th) = (&self.cameras[i].e, self.mesh_infos[i].th);
-        let root = self.canonical.joints.first().copied().unwrap_or_default();
-        let r = crate::dataset::fold_body_transform(e, self.mesh_infos[i].rh, th);
-        let z = r[2][0] * root.x + r[2][1] * root.y + r[2][2] * root.z + r[2][3];
-        if z.is_finite() && z > 0.0 {
-            return Ok(());
-        }
-        Err(DataError::invalid(
+    /// Checks that frame `i`'s camera sees the posed body: its root (the first joint, placed by
+    /// `Rh`/`Th`) must be in front of the lens and project inside the image. A camera given as
+    /// camera-to-world, facing away, or with intrinsics for another image size fails here;
+    /// later stages would render the body mirrored or off-screen without noticing.
+    pub fn check_camera_sees_body(&self, i: usize, source: &Path) -> Result<()> {
+        let at = |field: &str| {
             Location::file(source)
                 .subject(&self.name)
                 .frame(&self.frames[i])
-                .field("extrinsics"),
-            format!(
-                "the camera is behind the body (the root joint is at depth {z:.3} m): \
-                 extrinsics must map world to camera (OpenCV: +z forward)"
+                .field(field)
+        };
+        let root = self.canonical.joints.first().copied().unwrap_or_default();
+        let info = &self.mesh_infos[i];
+        let m = crate::dataset::fold_body_transform(&self.cameras[i].e, info.rh, info.th);
+        let cam: [f32; 3] = std::array::from_fn(|r| {
+            m[r][0] * root.x + m[r][1] * root.y + m[r][2] * root.z + m[r][3]
+        });
+        if !(cam[2].is_finite() && cam[2] > 0.0) {
+            return Err(DataError::invalid(
+                at("extrinsics"),
+                format!(
+                    "the camera is behind the body (its root is at depth {:.3} m): extrinsics must \
+                     map world to camera (OpenCV: +z forward)",
+                    cam[2]
+                ),
+            ));
+        }
+        let k = &self.cameras[i].k;
+        let u = k[0][0] * f64::from(cam[0] / cam[2]) + k[0][2];
+        let v = k[1][1] * f64::from(cam[1] / cam[2]) + k[1][2];
+        let path = &self.files[i].image;
+        let (w, h) = image::image_dimensions(path).map_err(|e| DataError::Image {
+            location: Box::new(
+                Location::file(path)
+                    .subject(&self.name)
+                    .frame(&self.frames[i]),
             ),
-        ))
+            reason: format!("cannot read: {e}"),
+        })?;
+        if !(0.0..=f64::from(w)).contains(&u) || !(0.0..=f64::from(h)).contains(&v) {
+            return Err(DataError::invalid(
+                at("extrinsics"),
+                format!(
+                    "the body's root projects to pixel ({u:.0}, {v:.0}), outside the {w}×{h} image: \
+                     extrinsics must map world to camera, and intrinsics be in this image's pixels"
+                ),
+            ));
+        }
+        Ok(())
     }
 }
 

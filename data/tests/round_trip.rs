@@ -493,6 +493,25 @@ fn bad_json_subjects_name_file_frame_and_field() {
         &["frame_000002", "field `extrinsics`", "behind the body"],
     );
     check(
+        "camera-to-world",
+        &|v| {
+            // The inverse of E, as tools that store camera poses write it.
+            let e = &v["frames"][1]["extrinsics"];
+            let r = |i: usize, j: usize| e[i][j].as_f64().unwrap();
+            let t = [r(0, 3), r(1, 3), r(2, 3)];
+            let mut inv = vec![vec![0.0; 4]; 4];
+            for i in 0..3 {
+                for j in 0..3 {
+                    inv[i][j] = r(j, i);
+                }
+                inv[i][3] = -(0..3).map(|k| r(k, i) * t[k]).sum::<f64>();
+            }
+            inv[3][3] = 1.0;
+            v["frames"][1]["extrinsics"] = serde_json::json!(inv);
+        },
+        &["frame_000001", "field `extrinsics`", "world to camera"],
+    );
+    check(
         "missing-view",
         &|v| v["frames"][0]["image"] = serde_json::json!("nowhere.png"),
         &["nowhere.png", "cannot read"],

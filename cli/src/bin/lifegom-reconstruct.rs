@@ -39,7 +39,7 @@ struct Args {
     /// The experiment the model was trained with: its image size and test background.
     #[arg(long, default_value = "configs/demo.toml")]
     config: PathBuf,
-    /// Input frames, by name or index (default: as many as the model takes, evenly spread).
+    /// Input frames, by name or index (default: the first frames, as many as the model takes).
     #[arg(long, value_delimiter = ',')]
     inputs: Option<Vec<String>>,
     /// Kinematic tree of an official-layout subject (default: the config's `data.kinematic_tree`).
