@@ -44,9 +44,13 @@
 //! # The `.ply` rig
 //!
 //! [`GaussianRig`] is the per-Gaussian part: the triangle the Gaussian sits on (its index and
-//! corners in the `.glb`'s numbering) and the skinning weights at the triangle's centroid, the
-//! mean of its three corners' weights, normalised and sorted as above. docs/export.md lists the
-//! exact `.ply` properties.
+//! corners in the `.glb`'s numbering), the low-res triangle that one lies in with the
+//! barycentric coordinates of its corners there, and the skinning weights at the triangle's
+//! centroid, the mean of its three corners' weights, normalised and sorted as above. With the
+//! Gaussian's face-frame parameters (which [`Avatar::export_ply`] adds) the first two give the
+//! avatar's own posing exactly: skin the low-res corners, interpolate, rebuild the Gaussian on
+//! its posed triangle (design.md §5.3–§5.4). The weights give the usual approximation, LBS of
+//! the Gaussian's centre. docs/export.md lists the exact `.ply` properties.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -101,6 +105,12 @@ impl CanonicalRig {
 pub struct GaussianRig {
     /// The triangle's corners, in the `.glb`'s (high-res) vertex numbering.
     pub corners: Vec<[u32; 3]>,
+    /// The corners of the low-res triangle the Gaussian's triangle lies in (its ancestor,
+    /// design.md §5.1): low-res vertex indices, which are also the `.glb`'s first vertices.
+    pub lowres_corners: Vec<[u32; 3]>,
+    /// `barycentric[f][c][k]`: corner `c` of triangle `f` is `Σ_k b_ck · lowres_corners[f][k]`,
+    /// in any pose (the subdivision tables, design.md §5.2, restricted to the ancestor).
+    pub barycentric: Vec<[[f32; 3]; 3]>,
     /// Skinning weights at the triangle's centroid.
     pub influences: Vec<Influences>,
 }
@@ -322,8 +332,34 @@ impl Avatar {
     pub fn gaussian_rig(&self) -> Result<GaussianRig> {
         let host = self.host_state()?;
         let sub = &self.mesh.subdivision;
-        let mut influences = Vec::with_capacity(sub.highres.faces.len());
+        let faces = sub.highres.faces.len();
+        let mut influences = Vec::with_capacity(faces);
+        let mut lowres_corners = Vec::with_capacity(faces);
+        let mut barycentric = Vec::with_capacity(faces);
         for (f, tri) in sub.highres.faces.iter().enumerate() {
+            let ancestor = sub.lowres.faces[sub.parent_face(f)];
+            let mut bary = [[0.0f32; 3]; 3];
+            for (c, &v) in tri.iter().enumerate() {
+                for &(i, b) in sub.highres_from_lowres[v as usize]
+                    .iter()
+                    .filter(|(_, b)| *b > 0.0)
+                {
+                    // Every vertex of a face lies in its low-res ancestor (render's
+                    // subdivision.rs), so `i` is one of the ancestor's corners.
+                    let k = ancestor.iter().position(|&a| a == i).ok_or_else(|| {
+                        invalid(
+                            "avatar.mesh",
+                            format!(
+                                "high-res vertex {v} of face {f} leans on low-res vertex {i}, \
+                                 outside its ancestor face {ancestor:?}"
+                            ),
+                        )
+                    })?;
+                    bary[c][k] += b;
+                }
+            }
+            lowres_corners.push(ancestor);
+            barycentric.push(bary);
             let mut acc = BTreeMap::new();
             for &v in tri {
                 for &(i, b) in sub.highres_from_lowres[v as usize]
@@ -345,6 +381,8 @@ impl Avatar {
         }
         Ok(GaussianRig {
             corners: sub.highres.faces.clone(),
+            lowres_corners,
+            barycentric,
             influences,
         })
     }
@@ -648,7 +686,8 @@ impl GlbWriter {
 }
 
 /// The `.ply` header comment that points a reader at the rig properties' description.
-pub(crate) const PLY_COMMENT: &str = "comment lifegom rig: face_id, face_v*, gom_* and lbs_* are described in lifegom's docs/export.md\n";
+pub(crate) const PLY_COMMENT: &str = "comment lifegom rig: face_id, face_v*, lowres_v*, bary_*, \
+    gom_* and lbs_* are described in lifegom's docs/export.md\n";
 
 /// The rig properties [`Avatar::export_ply`] appends to every Gaussian's record (docs/export.md):
 /// the header lines and one fixed-size little-endian record per Gaussian.
@@ -692,6 +731,10 @@ impl Avatar {
         let mut header = String::new();
         let mut props: Vec<(String, &str)> = vec![("face_id".into(), "uint")];
         props.extend((0..3).map(|c| (format!("face_v{c}"), "uint")));
+        props.extend((0..3).map(|k| (format!("lowres_v{k}"), "uint")));
+        for c in 0..3 {
+            props.extend((0..3).map(|k| (format!("bary_{c}_{k}"), "float")));
+        }
         for name in ["so3", "scale", "offset"] {
             props.extend((0..3).map(|c| (format!("gom_{name}_{c}"), "float")));
         }
@@ -704,8 +747,11 @@ impl Avatar {
         let mut data = Vec::with_capacity(record_len * faces);
         for f in 0..faces {
             data.extend_from_slice(&(f as u32).to_le_bytes());
-            for c in rig.corners[f] {
+            for c in rig.corners[f].iter().chain(&rig.lowres_corners[f]) {
                 data.extend_from_slice(&c.to_le_bytes());
+            }
+            for b in rig.barycentric[f].iter().flatten() {
+                data.extend_from_slice(&b.to_le_bytes());
             }
             for p in &params {
                 for v in &p[3 * f..3 * f + 3] {
