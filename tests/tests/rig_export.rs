@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat4, DVec3, Vec3};
 use lifegom_model::avatar::Avatar;
-use lifegom_render::gom::{GomMesh, GomParams};
+use lifegom_render::gom::{GomMesh, GomParams, gaussians_from_triangles};
 use lifegom_render::skeleton::{BodyPose, rodrigues};
 use lifegom_render::skinning::skin_vertices;
 use lifegom_render::template::{BodyTemplate, full_template_path, lowres_template_path};
@@ -511,7 +511,7 @@ fn ply_carries_the_gaussians_rig() {
         .filter(|n| n.starts_with("lbs_weight_"))
         .count();
     assert!(k >= 4, "{names:?}");
-    assert_eq!(props.len(), 17 + 1 + 3 + 9 + 2 * k);
+    assert_eq!(props.len(), 17 + 1 + 3 + 3 + 9 + 9 + 2 * k);
     let record = 4 * props.len();
     assert_eq!(bytes.len() - end, f * record);
     let col = |name: &str| names.iter().position(|n| *n == name).unwrap();
@@ -564,6 +564,45 @@ fn ply_carries_the_gaussians_rig() {
         })
         .collect();
     let posed = vec3s(&read(avatar.gaussians(&pose).unwrap().means));
+
+    // The exact way: skin the low-res corners (the .glb's first vertices, which a glTF tool
+    // poses exactly as we do), interpolate the Gaussian's triangle with its barycentric
+    // coordinates, rebuild the Gaussian on it from its face-frame parameters.
+    let lowres = vec3s(&read(
+        skin_vertices(avatar.xyz.clone(), avatar.lbs_weights.clone(), &m).unwrap(),
+    ));
+    let mut corners = [Vec::new(), Vec::new(), Vec::new()];
+    let mut params = [Vec::new(), Vec::new(), Vec::new()];
+    for i in 0..f {
+        let low = [0, 1, 2].map(|k| lowres[uint(i, &format!("lowres_v{k}")) as usize]);
+        for (c, corner) in corners.iter_mut().enumerate() {
+            let p: Vec3 = (0..3)
+                .map(|k| float(i, &format!("bary_{c}_{k}")) * low[k])
+                .sum();
+            corner.extend(p.to_array());
+        }
+        for (p, name) in params.iter_mut().zip(["so3", "scale", "offset"]) {
+            p.extend((0..3).map(|c| float(i, &format!("gom_{name}_{c}"))));
+        }
+    }
+    let t = |v: &[f32]| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [f, 3]), &device);
+    let rebuilt = gaussians_from_triangles(
+        t(&corners[0]),
+        t(&corners[1]),
+        t(&corners[2]),
+        &GomParams {
+            so3: t(&params[0]),
+            scales: t(&params[1]),
+            offsets: t(&params[2]),
+            ..GomParams::init(f, &device)
+        },
+    );
+    let (max, _) = max_and_rms(&vec3s(&read(rebuilt.means)), &posed);
+    eprintln!(
+        "ply rig rebuilt on the skinned low-res corners vs the avatar's posing: max {max:.3e} m"
+    );
+    assert!(max < 1e-5, "{max}");
+
     let (max, rms) = max_and_rms(&skinned, &posed);
     eprintln!(
         "ply LBS of Gaussian centres vs the avatar's posing: max {max:.3e} m, rms {rms:.3e} m"
