@@ -7,7 +7,8 @@
 //! Without trained weights (the train command comes in a later issue) the network is randomly
 //! initialised, so the avatar is the body template with untrained colours: this example shows
 //! the API and the data flow, not reconstruction quality. It writes the source view it was
-//! given, the avatar in a new pose, a `.lgom` file and a standard 3DGS `.ply`.
+//! given, the avatar in a new pose, a `.lgom` file, a standard 3DGS `.ply` (with the Gaussians'
+//! rig) and a rigged `.glb` of the canonical avatar that glTF tools pose (docs/export.md).
 
 use std::path::PathBuf;
 
@@ -116,6 +117,7 @@ fn main() -> anyhow::Result<()> {
     save_png(&out.join("novel_pose.png"), novel.over([1.0; 3]))?;
     avatar.save(out.join("avatar.lgom"))?;
     avatar.export_ply(&pose, out.join("avatar.ply"))?;
+    avatar.export_glb(out.join("avatar.glb"))?;
     println!("wrote {}", out.display());
     Ok(())
 }

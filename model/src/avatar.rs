@@ -1,5 +1,6 @@
 //! The reconstructed avatar: a canonical T-pose Gaussians-on-Mesh that renders in any pose and
-//! view, saves and loads, and exports to the standard 3D Gaussian splatting `.ply`.
+//! view, saves and loads, and exports to the standard 3D Gaussian splatting `.ply` (with the
+//! Gaussians' rig appended) and to a rigged `.glb` ([`crate::rig_export`]).
 //!
 //! An avatar is the final low-res canonical vertices, the per-face Gaussian parameters of the
 //! subdivided mesh, the skinning weights and the subject's skeleton. Posing is exactly the
@@ -275,6 +276,11 @@ impl Avatar {
     /// SH DC colour, logit opacity, log scales, rotation quaternion w-x-y-z), which common splat
     /// viewers open. Each covariance is factorised `Σ = R S² Rᵀ` by a symmetric eigensolver;
     /// the flat direction of a Gaussian gets a tiny positive scale rather than `log 0`.
+    ///
+    /// After the standard properties every Gaussian carries its rig (the triangle it rides on,
+    /// its face-frame parameters, its skinning weights), so a splat tool can animate it; the
+    /// properties are listed in docs/export.md. The skinning weights act on canonical positions:
+    /// export with the rest pose to animate from the `.ply` alone.
     pub fn export_ply(&self, pose: &BodyPose, path: impl AsRef<Path>) -> Result<()> {
         let path = path.as_ref();
         let g = self.gaussians(pose)?;
@@ -283,6 +289,7 @@ impl Avatar {
         let colors = host("colors", &g.colors)?;
         let opacities = host("opacities", &g.opacities)?;
         let n = opacities.len();
+        let rig = self.ply_rig()?;
         let mut out = Vec::new();
         let props = [
             "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0",
@@ -290,12 +297,14 @@ impl Avatar {
         ];
         write!(
             out,
-            "ply\nformat binary_little_endian 1.0\nelement vertex {n}\n"
+            "ply\nformat binary_little_endian 1.0\n{}element vertex {n}\n",
+            crate::rig_export::PLY_COMMENT
         )
         .expect("write to Vec");
         for p in props {
             writeln!(out, "property float {p}").expect("write to Vec");
         }
+        out.extend_from_slice(rig.header.as_bytes());
         out.extend_from_slice(b"end_header\n");
         const SH_C0: f32 = 0.282_094_8;
         for i in 0..n {
@@ -323,6 +332,7 @@ impl Avatar {
             for v in record {
                 out.extend_from_slice(&v.to_le_bytes());
             }
+            out.extend_from_slice(rig.record(i));
         }
         write_atomic(path, &out).map_err(|e| file_error(path, e.to_string()))
     }
@@ -445,7 +455,10 @@ mod tests {
             header.contains(&format!("element vertex {n}"))
                 && header.contains("property float rot_3")
         );
-        assert_eq!(bytes.len() - header_end, n * 17 * 4);
+        // Every property, standard or rig, is 4 bytes wide.
+        let props = header.lines().filter(|l| l.starts_with("property")).count();
+        assert!(props > 17 && header.contains("property float lbs_weight_0"));
+        assert_eq!(bytes.len() - header_end, n * props * 4);
         let body = &bytes[header_end..];
         assert!(
             body.chunks_exact(4)

@@ -43,6 +43,7 @@
 //! | [`heads`] | update heads: residual vertex update, new embedding, per-face Gaussian parameters |
 //! | [`reconstructor`] | the reconstructor: T steps of render → encode → fuse → update |
 //! | [`avatar`] | the result: render in any pose and view, save/load, 3DGS `.ply` export |
+//! | [`rig_export`] | the avatar's rig for other tools: rigged `.glb`, the Gaussians' rig in the `.ply` |
 //! | [`checkpoint`] | import of the official LIFe-GoM PyTorch checkpoint (key map: design.md §11) |
 //! | [`inputs`] | a `lifegom-data` sample → subject, source views and target (skinning per design.md §4.4) |
 //! | [`trained`] | our trained-model files: weights + config + payload, written atomically |
@@ -62,6 +63,7 @@ pub mod inputs;
 pub mod knn;
 pub mod point_transformer;
 pub mod reconstructor;
+pub mod rig_export;
 pub mod sampling;
 pub mod trained;
 pub mod weights_file;
