@@ -9,7 +9,7 @@
 //! | `quickstart` | the README's main job: synthetic split → train → evaluate → report |
 //! | `lifegom-train` | the train command (checkpoints, `--resume`, Ctrl-C) |
 //! | `lifegom-eval` | the eval command on a THuman-style or AIST++ split |
-//! | `lifegom-reconstruct` | one person's photos → avatar (`.lgom`, `.ply`), turntable and motions ([`reconstruct_run`]) |
+//! | `lifegom-reconstruct` | one person's photos → avatar (`.lgom`, `.ply`, rigged `.glb`), turntable and motions ([`reconstruct_run`]) |
 //! | `lifegom-synth` | the synthetic THuman-style data generator |
 //! | `turntable` | renders the body template as a Gaussians-on-Mesh turntable |
 //! | `render-bench`, `recon-bench`, `train-bench` | benchmarks, one JSON line each (BENCHMARKS.md) |

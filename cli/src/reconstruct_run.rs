@@ -11,7 +11,8 @@
 //! 3. **Avatar**: one feed-forward pass (T feedback steps), then `--refine-steps` gradient
 //!    steps of the per-scene fit on the inputs (design.md §10.9).
 //! 4. **Outputs** in `--out`: `avatar.lgom` (ours), `avatar.ply` (3D Gaussian splatting, canonical
-//!    T-pose), `inputs.png` (each input beside the avatar re-rendered in its view, and the
+//!    T-pose, with each Gaussian's rig), `avatar.glb` (the rigged canonical surface that glTF
+//!    tools pose; docs/export.md), `inputs.png` (each input beside the avatar re-rendered in its view, and the
 //!    held-out view when there is one), `turntable.gif`, one GIF per `--motion`, and
 //!    `reconstruct.json` (timings, scores, files).
 
@@ -228,6 +229,7 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
         &BodyPose::rest(rig.skeleton.num_joints()),
         write("avatar.ply"),
     )?;
+    avatar.export_glb(write("avatar.glb"))?;
 
     // Inputs beside their re-renders; the held-out view last.
     let mut rows = Vec::new();

@@ -80,6 +80,7 @@ fn reconstruct_from_the_json_layout_writes_every_output() {
     for file in [
         "avatar.lgom",
         "avatar.ply",
+        "avatar.glb",
         "inputs.png",
         "turntable.gif",
         "motion_walk.gif",
