@@ -326,9 +326,10 @@ fn animations(
         // Rigs read from data carry only parents; a known rig gets its joint names back, so a
         // motion file that names its joints is checked against them.
         let j = body.skeleton.num_joints();
-        let rig = match known_joint_names(j) {
+        let known = known_joint_names(j);
+        let rig = match &known {
             Some(names) => Skeleton {
-                names,
+                names: names.clone(),
                 ..body.skeleton.clone()
             },
             None => body.skeleton.clone(),
@@ -336,7 +337,12 @@ fn animations(
         for source in &opts.motions {
             let name = source.name();
             let seq = match source.sequence(&rig, PROCEDURAL_FRAMES, PROCEDURAL_FPS) {
-                Ok(seq) => seq,
+                // Name the joints in the written file where the rig's names are known, so it
+                // can be edited by name and is checked against the rig it is played on.
+                Ok(seq) => match (&seq.joint_names, &known) {
+                    (None, Some(names)) => seq.with_joint_names(names.clone()),
+                    _ => seq,
+                },
                 Err(e) => {
                     eprintln!("--motion {name}: {e}; skipped");
                     continue;

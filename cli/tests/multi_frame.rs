@@ -132,6 +132,11 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
     // What the evaluation wrote is what it played: the file reads back as the same poses.
     let played = PoseSequence::load(out.join("motion/wave/poses.json")).unwrap();
     assert_eq!(played.poses(), PoseSequence::load(&file).unwrap().poses());
+    // A procedural motion is written with the rig's joint names, ready to edit by name.
+    let walk = PoseSequence::load(out.join("motion/walk/poses.json")).unwrap();
+    let names = walk.joint_names.unwrap();
+    assert_eq!(names.len(), 104);
+    assert!(names.iter().any(|n| n == "upperarm01.L"));
 
     // The AIST++ protocol scores the full image over white: the PSNR of a saved prediction
     // against the full, quantised ground truth is the one reported.
