@@ -2,8 +2,8 @@
 //!
 //! Loads a trained-model file, opens the config's validation split, scores every target
 //! ([`lifegom_eval::evaluate`]), optionally the baselines (template in one colour, projective
-//! texturing, per-scene optimisation after K steps), a free-view turntable, the procedural
-//! motions and the accuracy-vs-time sweep, and writes CSVs, `summary.json` and
+//! texturing, per-scene optimisation after K steps), a free-view turntable, novel-pose
+//! motions (procedural or pose-sequence files) and the accuracy-vs-time sweep, and writes CSVs, `summary.json` and
 //! `report.md` with pictures into `--out`.
 
 use std::path::{Path, PathBuf};
@@ -16,9 +16,11 @@ use lifegom_model::inputs::{SubjectRig, model_inputs};
 use lifegom_model::reconstructor::Reconstructor;
 use lifegom_model::trained;
 use lifegom_render::gom::GomMesh;
+use lifegom_render::motion::{MotionSource, known_joint_names};
 use lifegom_render::rng::Rng;
+use lifegom_render::skeleton::Skeleton;
 
-use lifegom_eval::animate::{JointRoles, Motion, orbit_camera, posed_joint};
+use lifegom_eval::animate::{orbit_camera, posed_joint};
 use lifegom_eval::evaluate::{
     EvalSettings, Method, SplitScores, evaluate_split, reconstruct_timed, render_timed,
 };
@@ -48,8 +50,8 @@ pub struct EvalOptions {
     pub sheets: usize,
     /// Frames of the free-view turntable (0 = none).
     pub freeview_frames: usize,
-    /// Write the procedural motions.
-    pub motion: bool,
+    /// Novel-pose motions to render (procedural or files; empty: none).
+    pub motions: Vec<MotionSource>,
     /// Run the accuracy-vs-time sweep over T ∈ 1..=5 and subdivisions 0..=2.
     pub sweep: bool,
     /// Extra image sides for the sweep (empty = the config's size only).
@@ -183,14 +185,15 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         report.baselines = baselines.clone();
     }
 
-    if opts.freeview_frames > 0 || opts.motion {
+    if opts.freeview_frames > 0 || !opts.motions.is_empty() {
+        let names: Vec<String> = opts.motions.iter().map(MotionSource::name).collect();
         eprintln!(
             "        rendering novel views ({} frames) and poses ({})",
             opts.freeview_frames,
-            if opts.motion {
-                "walk, arm-raise, squat"
+            if names.is_empty() {
+                "none".to_owned()
             } else {
-                "none"
+                names.join(", ")
             }
         );
         let pictures = animations(opts, &model, &dataset, config.subdivide_test)?;
@@ -279,7 +282,12 @@ fn list_relative(out: &Path, dir: &str) -> Vec<PathBuf> {
     v
 }
 
-/// Free-view turntable and procedural motions of the first validation subject.
+/// Frames of one cycle of a procedural motion.
+const PROCEDURAL_FRAMES: usize = 24;
+/// Playback rate of a procedural motion's GIF (80 ms a frame).
+const PROCEDURAL_FPS: f32 = 12.5;
+
+/// Free-view turntable and novel-pose motions of the first validation subject.
 fn animations(
     opts: &EvalOptions,
     model: &Reconstructor,
@@ -314,35 +322,47 @@ fn animations(
             PathBuf::from("freeview.gif"),
         ));
     }
-    if opts.motion {
+    if !opts.motions.is_empty() {
+        // Rigs read from data carry only parents; a known rig gets its joint names back, so a
+        // motion file that names its joints is checked against them.
         let j = body.skeleton.num_joints();
-        match JointRoles::for_rig(j) {
-            None => eprintln!(
-                "--motion: no joint roles for a {j}-joint rig (SMPL, SMPL-X or Anny expected); skipped"
-            ),
-            Some(roles) => {
-                for motion in Motion::ALL {
-                    let mut frames = Vec::new();
-                    let n = 24;
-                    for k in 0..n {
-                        let pose = motion.pose(&roles, j, k as f32 / n as f32);
-                        let skinning = body.skeleton.skinning_transforms(&pose)?;
-                        let cam = &inputs.sources.cameras[0];
-                        let (img, _) = render_timed(&rec.avatar, &inputs, cam, &skinning)?;
-                        img.save_png(
-                            &opts
-                                .out
-                                .join("motion")
-                                .join(motion.name())
-                                .join(format!("frame_{k:04}.png")),
-                        )?;
-                        frames.push(img);
-                    }
-                    let gif = PathBuf::from(format!("motion_{}.gif", motion.name()));
-                    save_gif(&opts.out.join(&gif), &frames, 80)?;
-                    pictures.push((format!("Novel pose: {}", motion.name()), gif));
+        let known = known_joint_names(j);
+        let rig = match &known {
+            Some(names) => Skeleton {
+                names: names.clone(),
+                ..body.skeleton.clone()
+            },
+            None => body.skeleton.clone(),
+        };
+        for source in &opts.motions {
+            let name = source.name();
+            let seq = match source.sequence(&rig, PROCEDURAL_FRAMES, PROCEDURAL_FPS) {
+                // Name the joints in the written file where the rig's names are known, so it
+                // can be edited by name and is checked against the rig it is played on.
+                Ok(seq) => match (&seq.joint_names, &known) {
+                    (None, Some(names)) => seq.with_joint_names(names.clone()),
+                    _ => seq,
+                },
+                Err(e) => {
+                    eprintln!("--motion {name}: {e}; skipped");
+                    continue;
                 }
+            };
+            let dir = opts.out.join("motion").join(&name);
+            // The poses that were rendered, as a file `--motion` reads back (docs/motions.md).
+            seq.save(dir.join("poses.json"))?;
+            let mut frames = Vec::new();
+            for (k, pose) in seq.poses().iter().enumerate() {
+                let skinning = body.skeleton.skinning_transforms(pose)?;
+                let cam = &inputs.sources.cameras[0];
+                let (img, _) = render_timed(&rec.avatar, &inputs, cam, &skinning)?;
+                img.save_png(&dir.join(format!("frame_{k:04}.png")))?;
+                frames.push(img);
             }
+            let gif = PathBuf::from(format!("motion_{name}.gif"));
+            let delay_ms = (1000.0 / seq.fps).clamp(20.0, 1000.0) as u32;
+            save_gif(&opts.out.join(&gif), &frames, delay_ms)?;
+            pictures.push((format!("Novel pose: {name}"), gif));
         }
     }
     Ok(pictures)

@@ -34,7 +34,7 @@ use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::MeshPurpose;
 use lifegom_model::trained;
 
-use lifegom_train::config::ExperimentConfig;
+use lifegom_train::config::{ExperimentConfig, LpipsFallback};
 use lifegom_train::losses::UniformLaplacian;
 use lifegom_train::prefetch::Prefetcher;
 use lifegom_train::source::{StepSample, TrainingSource};
@@ -318,12 +318,15 @@ pub fn train(
     let _span = tracing::info_span!("train", out = %opts.out.display()).entered();
     std::fs::create_dir_all(opts.out.join("snapshots"))
         .with_context(|| format!("creating {}", opts.out.display()))?;
-    if cfg.train.loss_lpips > 0.0 {
+    if cfg.train.loss_lpips > 0.0 && cfg.train.lpips_fallback == LpipsFallback::Refuse {
         bail!(
-            "{}: [train] loss_lpips = {} but the LPIPS training loss (the AIST++ setting, docs/design.md §9.2) is not wired into the trainer yet; set it to 0",
+            "{}: [train] loss_lpips = {} but the trainer has no LPIPS (the AIST++ setting, docs/design.md §9.2): set it to 0, or train with 1 - SSIM in its place with [train] lpips_fallback = \"ssim\"",
             cfg.file.source.display(),
             cfg.train.loss_lpips
         );
+    }
+    if let Some(note) = cfg.train.lpips_note() {
+        eprintln!("{note}");
     }
     let source = Arc::new(
         TrainingSource::open(cfg)

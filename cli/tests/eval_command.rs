@@ -44,7 +44,7 @@ fn eval_on_a_tiny_split_writes_every_file() {
         iterations: None,
         sheets: 2,
         freeview_frames: 3,
-        motion: true,
+        motions: lifegom_render::motion::MotionSource::all_procedural(),
         sweep: true,
         sweep_sizes: vec![],
         sweep_subjects: 1,

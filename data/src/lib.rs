@@ -1,7 +1,9 @@
 //! # lifegom-data
 //!
 //! Reads the official LIFe-GoM processed datasets (THuman2.0, XHuman, AIST++: Python pickles +
-//! PNGs) natively, and generates synthetic THuman-style splits in exactly that format.
+//! PNGs) natively, and generates synthetic splits in exactly that format: THuman-style
+//! (multi-view, static people on a camera ring) or AIST++-style (multi-frame, people moving in
+//! front of one camera).
 //!
 //! | module | concept |
 //! |---|---|

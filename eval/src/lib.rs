@@ -23,7 +23,8 @@
 //!   the same loop scores the baselines.
 //! - [`baselines`]: reconstructions without learning (the template in one colour, projective
 //!   texturing).
-//! - [`animate`]: free-view orbits and the procedural motions (walk, arm-raise, squat).
+//! - [`animate`]: free-view orbits; the motions (procedural walk, arm-raise, squat and
+//!   pose-sequence files) are `lifegom_render::motion`, re-exported there.
 //! - [`per_scene`]: the per-scene optimisation baseline scored after K gradient steps.
 //! - [`validation`]: every feedback step's scores on the validation split (training's curves).
 //! - [`report`]: CSVs, `summary.json`, `report.md`, the Pareto plot.

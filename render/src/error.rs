@@ -53,6 +53,16 @@ pub enum RenderError {
         /// What is wrong with it.
         reason: String,
     },
+    /// A pose-sequence (motion) file that cannot be read or does not fit its rig.
+    #[error("motion file {path}: field `{field}`: {reason}")]
+    Motion {
+        /// The file (or `<walk>` for a procedural motion).
+        path: PathBuf,
+        /// The field at fault (`fps`, `frames[12][40]`, `joint_names[3]`, ...).
+        field: String,
+        /// What is wrong with it.
+        reason: String,
+    },
     /// Tensor values could not be read back to the host.
     #[error(transparent)]
     Readback(#[from] crate::readback::ReadbackError),

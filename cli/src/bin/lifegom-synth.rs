@@ -1,7 +1,9 @@
 //! `lifegom-synth --config <toml> --out <dir> [--seed N] [--contact-sheet <png>] [--json-example
-//! <dir>]`: generates a synthetic THuman-style split in the official processed layout (see
-//! `lifegom_data::synth`); `--json-example` also writes its first validation subject in the
-//! custom JSON layout (`lifegom_data::custom`, docs/custom-data.md).
+//! <dir>]`: generates a synthetic split in the official processed layout (see
+//! `lifegom_data::synth`): THuman-style static people on a camera ring, or with `[synthetic]
+//! setting = "multi_frame"` AIST++-style people moving in front of one camera
+//! (`configs/synthetic-multiframe.toml`). `--json-example` also writes the first validation
+//! subject in the custom JSON layout (`lifegom_data::custom`, docs/custom-data.md).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -12,7 +14,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use lifegom_data::config::ConfigFile;
 use lifegom_data::synth;
 
-/// Generate a synthetic THuman-style dataset.
+/// Generate a synthetic THuman-style (multi-view) or AIST++-style (multi-frame) dataset.
 #[derive(Debug, Parser)]
 #[command(version, about)]
 struct Args {
@@ -25,8 +27,8 @@ struct Args {
     /// Seed (replaces `synthetic.seed`).
     #[arg(long)]
     seed: Option<u64>,
-    /// Also write a contact sheet (images then masks of frames 0, 4, 8, 12 of up to 6 training
-    /// subjects) to this PNG.
+    /// Also write a contact sheet (images then masks of four frames of up to 6 training
+    /// subjects: ring views 0, 4, 8, 12, or four times spread over a sequence) to this PNG.
     #[arg(long)]
     contact_sheet: Option<PathBuf>,
     /// Also write the first validation subject in the custom JSON layout (`subject.json` and
@@ -67,7 +69,13 @@ fn main() -> anyhow::Result<()> {
     if let Some(path) = args.contact_sheet {
         let dir = args.out.join(&cfg.data.train_dir);
         let subjects: Vec<String> = summary.train.iter().take(6).cloned().collect();
-        let (w, h, rgb) = synth::contact_sheet(&dir, &subjects, &[0, 4, 8, 12])?;
+        let views: Vec<usize> = match synth_cfg.setting {
+            synth::SynthSetting::MultiView => vec![0, 4, 8, 12],
+            synth::SynthSetting::MultiFrame => {
+                (0..4).map(|k| k * synth_cfg.sequence_frames / 4).collect()
+            }
+        };
+        let (w, h, rgb) = synth::contact_sheet(&dir, &subjects, &views)?;
         image::save_buffer(&path, &rgb, w, h, image::ExtendedColorType::Rgb8)
             .with_context(|| format!("writing {}", path.display()))?;
         eprintln!("contact sheet: {}", path.display());

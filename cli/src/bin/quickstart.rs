@@ -13,7 +13,7 @@
 //! 3. reconstructs every validation subject from its 3 input views and scores the held-out
 //!    target views beside the no-learning baselines (one colour, projective texturing) and the
 //!    per-scene optimisation after K gradient steps; renders comparison sheets, a free-view
-//!    turntable and three procedural motions (novel views and poses);
+//!    turntable and three procedural motions, or `--motion` files (novel views and poses);
 //! 4. writes `<out>/report.md` with the table and the pictures, and one JSON line.
 
 use std::path::PathBuf;
@@ -49,6 +49,10 @@ struct Args {
     /// With `--train-minutes`: continue `<out>/checkpoints/latest.lgck`.
     #[arg(long, requires = "train_minutes")]
     resume: bool,
+    /// Novel-pose motions: procedural names (walk, arm-raise, squat) or pose-sequence files
+    /// (`docs/motions.md`), comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "walk,arm-raise,squat")]
+    motion: Vec<lifegom_render::motion::MotionSource>,
     /// Output folder.
     #[arg(long, default_value = "runs/quickstart")]
     out: PathBuf,
@@ -178,7 +182,7 @@ fn main() -> anyhow::Result<()> {
         iterations: None,
         sheets: 8,
         freeview_frames: 36,
-        motion: true,
+        motions: args.motion.clone(),
         sweep: args.sweep,
         sweep_sizes: vec![],
         sweep_subjects: 1,

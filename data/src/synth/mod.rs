@@ -1,7 +1,8 @@
-//! The synthetic THuman-style generator: subjects in exactly the official processed layout
-//! (design.md §8), so the reader, training and evaluation run on it unchanged.
+//! The synthetic generator: THuman-style (multi-view) or AIST++-style (multi-frame) subjects in
+//! exactly the official processed layout (design.md §8), so the reader, training and evaluation
+//! run on it unchanged. [`SynthSetting`] picks the kind; steps 1, 2 and 5 are shared.
 //!
-//! # Per subject
+//! # Per subject (multi-view, the default)
 //!
 //! 1. **Shape**: PCA coefficients `c ~ N(mean, std)` of the template's shape basis (clamped to
 //!    ±2.5σ), redrawn until the height is in [`HEIGHT_RANGE`] (adults, in the camera's view). **Estimated shape** for `canonical_joints.pkl` / `tpose_joints`: the true `c` plus
@@ -23,6 +24,28 @@
 //!    `supersample`×`supersample` anti-aliasing are computed only when the config asks for them.
 //!    The image is the colour over black (THuman's raw background), the mask the coverage.
 //!
+//! # Multi-frame (AIST++-style, design.md §8.10)
+//!
+//! A person (steps 1–2) moves through a procedural motion ([`lifegom_render::motion`]) in front
+//! of **one fixed camera** (the rig's camera at a random azimuth), as an AIST++ dancer in front of
+//! camera 1. The motion is drawn per subject: walk, arm-raise or squat, a start phase, 0.75–1.5
+//! cycles over the sequence, arm and leg amplitudes of 0.6–1 (legs halved under a skirt, which is
+//! part of the legs' skin), and a turn about the vertical of up to ±`max_turn_deg` over the
+//! sequence, so the one camera sees several sides. The joints the motion does not move keep the
+//! person's own random pose (step 3). Every frame's pose, `Rh` and `Th` (feet on the floor in
+//! that frame) go to `mesh_infos.pkl`.
+//!
+//! - Training subjects (`d01`, `d02`, ...): `sequence_frames` frames at evenly spaced times,
+//!   all from the one camera. Under the AIST++ training rule every frame is a target once, with
+//!   N other frames as inputs.
+//! - Validation subjects (`dNN_val`): N inputs from the one camera at evenly spaced times, then
+//!   `val_target_views` targets, each at a random time of the sequence (a pose the inputs do not
+//!   show) and seen from a camera spread around the person (a view they do not show) — the
+//!   AIST++ evaluation, which scores cameras 2–7 given frames of camera 1.
+//!
+//! Images are the colour over black with the coverage mask, as in the multi-view setting; the
+//! AIST++ white background is the `[data]` backgrounds' job, applied when frames are read.
+//!
 //! Everything is a function of `(seed, subject index)` ([`Rng::fork`]), so the output is
 //! identical whatever the thread count.
 
@@ -35,6 +58,8 @@ use std::path::{Path, PathBuf};
 
 use glam::Vec3;
 use lifegom_render::camera::{Camera, Intrinsics};
+use lifegom_render::motion::{JointRoles, Motion};
+use lifegom_render::skeleton::{BodyPose, Skeleton};
 use lifegom_render::skinning::skin_points;
 use lifegom_render::template::{self, BodyTemplate};
 use rayon::prelude::*;
@@ -92,10 +117,26 @@ pub enum Shading {
     Lambert,
 }
 
+/// What kind of split the generator writes (design.md §8.7, §8.10).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SynthSetting {
+    /// THuman-style: each person static, photographed by a ring of cameras (module docs).
+    #[default]
+    MultiView,
+    /// AIST++-style: each person moves through a motion in front of one fixed camera; the
+    /// frames are the inputs, other frames (other poses, seen from other cameras at
+    /// validation) the targets (module docs, "Multi-frame").
+    MultiFrame,
+}
+
 /// The `[synthetic]` section of a config.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SynthConfig {
+    /// Multi-view (THuman-style, the default) or multi-frame (AIST++-style).
+    #[serde(default)]
+    pub setting: SynthSetting,
     /// Template and topology.
     pub template: TemplateChoice,
     /// Training subjects.
@@ -134,6 +175,13 @@ pub struct SynthConfig {
     /// Supersampling factor per axis (1 = one sample per pixel centre).
     #[serde(default = "default_supersample")]
     pub supersample: u32,
+    /// Multi-frame: frames of each training sequence (all from the one camera).
+    #[serde(default = "default_sequence_frames")]
+    pub sequence_frames: usize,
+    /// Multi-frame: the largest turn of the body about the vertical over one sequence, degrees
+    /// (each person turns by a random angle within ±this, so the one camera sees more sides).
+    #[serde(default = "default_max_turn")]
+    pub max_turn_deg: f32,
     /// Base seed (`--seed` overrides it).
     #[serde(default)]
     pub seed: u64,
@@ -169,6 +217,12 @@ fn default_shading() -> Shading {
 fn default_supersample() -> u32 {
     1
 }
+fn default_sequence_frames() -> usize {
+    30
+}
+fn default_max_turn() -> f32 {
+    180.0
+}
 
 /// Heights (metres, T-pose) accepted when sampling shapes.
 pub const HEIGHT_RANGE: std::ops::RangeInclusive<f32> = 1.55..=1.92;
@@ -194,6 +248,9 @@ impl SynthConfig {
                 "supersample",
                 format!("must be in 1..=8, got {}", self.supersample),
             ));
+        }
+        if self.setting == SynthSetting::MultiFrame {
+            return self.validate_multi_frame(data, source);
         }
         if self.source_views < data.n_input_frames.max(1) || self.source_views > 360 {
             return Err(bad(
@@ -228,11 +285,130 @@ impl SynthConfig {
                 format!("must be >= 0, got {}", self.shape_noise),
             ));
         }
-        Ok(())
+        self.validate_split_files(data, source)
+    }
+
+    /// The settings only the multi-frame split reads, and the ones it shares.
+    fn validate_multi_frame(&self, data: &DataConfig, source: &Path) -> Result<()> {
+        let bad = |field: &str, reason: String| DataError::Config {
+            location: Box::new(Location::file(source).field(format!("synthetic.{field}"))),
+            reason,
+        };
+        if data.protocol != Protocol::Aistpp {
+            return Err(bad(
+                "setting",
+                format!(
+                    "a multi-frame split follows the AIST++ frame rules: set [data] protocol = \"aistpp\" (got {:?})",
+                    data.protocol
+                ),
+            ));
+        }
+        let n = data.n_input_frames;
+        if self.sequence_frames <= n || self.sequence_frames > 10_000 {
+            return Err(bad(
+                "sequence_frames",
+                format!(
+                    "must be in {}..=10000 (more than the {n} inputs), got {}",
+                    n + 1,
+                    self.sequence_frames
+                ),
+            ));
+        }
+        if self.val_subjects > 0 && self.val_target_views == 0 {
+            return Err(bad(
+                "val_target_views",
+                "a validation sequence needs at least one target frame".into(),
+            ));
+        }
+        if !(self.max_turn_deg.is_finite() && (0.0..=360.0).contains(&self.max_turn_deg)) {
+            return Err(bad(
+                "max_turn_deg",
+                format!("must be in 0..=360, got {}", self.max_turn_deg),
+            ));
+        }
+        if !(self.camera_radius > 0.3 && self.camera_radius.is_finite()) {
+            return Err(bad(
+                "camera_radius",
+                format!("must be > 0.3 m, got {}", self.camera_radius),
+            ));
+        }
+        if !(self.focal_factor > 0.0 && self.focal_factor.is_finite()) {
+            return Err(bad(
+                "focal_factor",
+                format!("must be > 0, got {}", self.focal_factor),
+            ));
+        }
+        if !(self.shape_noise >= 0.0 && self.shape_noise.is_finite()) {
+            return Err(bad(
+                "shape_noise",
+                format!("must be >= 0, got {}", self.shape_noise),
+            ));
+        }
+        self.validate_split_files(data, source)
+    }
+
+    /// The split files the generator writes must not clash, and an explicit validation list
+    /// must name the subjects it writes.
+    fn validate_split_files(&self, data: &DataConfig, source: &Path) -> Result<()> {
+        let bad = |field: &str, reason: String| DataError::Config {
+            location: Box::new(Location::file(source).field(format!("data.{field}"))),
+            reason,
+        };
+        let (_, val) = self.subject_names();
+        match &data.val_subjects {
+            Some(list) if *list != val => Err(bad(
+                "val_subjects",
+                format!("lists {list:?}, but the generator writes the validation subjects {val:?}"),
+            )),
+            None if data.val_split == data.train_split && !val.is_empty() => Err(bad(
+                "val_split",
+                "is the training split file: the generator would overwrite one list with the other (list the validation subjects in data.val_subjects, or use another file)".into(),
+            )),
+            _ => Ok(()),
+        }
+    }
+
+    /// Folder names of the training and validation subjects: `0000`, `0001`, ... in the
+    /// multi-view setting; AIST++'s style in the multi-frame one (`d01`, `d02`, ... then
+    /// `d03_val`, ...), numbered on through both.
+    pub fn subject_names(&self) -> (Vec<String>, Vec<String>) {
+        let total = self.train_subjects + self.val_subjects;
+        let names: Vec<String> = match self.setting {
+            SynthSetting::MultiView => (0..total).map(|i| format!("{i:04}")).collect(),
+            SynthSetting::MultiFrame => (0..total)
+                .map(|i| {
+                    let suffix = if i < self.train_subjects { "" } else { "_val" };
+                    format!("d{:02}{suffix}", i + 1)
+                })
+                .collect(),
+        };
+        let (train, val) = names.split_at(self.train_subjects);
+        (train.to_vec(), val.to_vec())
+    }
+
+    /// Frames of one training subject: the camera ring and its targets (multi-view), or the
+    /// sequence (multi-frame).
+    pub fn train_frames(&self) -> usize {
+        match self.setting {
+            SynthSetting::MultiView => self.source_views + self.target_views,
+            SynthSetting::MultiFrame => self.sequence_frames,
+        }
     }
 }
 
-/// One rendered frame: name, camera, RGB (over black) and mask, at the configured size.
+/// Where the body is in one frame, as `mesh_infos.pkl` stores it (the shape is the subject's).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameBody {
+    /// Flat axis-angle pose, `3J`.
+    pub poses: Vec<f32>,
+    /// Global rotation (axis-angle, about y).
+    pub rh: Vec3,
+    /// Global translation (feet on the floor).
+    pub th: Vec3,
+}
+
+/// One rendered frame: name, camera, RGB (over black) and mask, at the configured size, and
+/// the body's pose in it.
 pub struct RenderedFrame {
     /// `frame_%06d`.
     pub name: String,
@@ -242,6 +418,8 @@ pub struct RenderedFrame {
     pub rgb: Vec<u8>,
     /// `H×W` mask, 0..255.
     pub mask: Vec<u8>,
+    /// The body's pose (one for every frame of a static multi-view subject).
+    pub body: FrameBody,
 }
 
 /// A generated subject, before it is written.
@@ -250,12 +428,6 @@ pub struct SyntheticSubject {
     pub name: String,
     /// Frames.
     pub frames: Vec<RenderedFrame>,
-    /// Flat axis-angle pose, `3J`.
-    pub poses: Vec<f32>,
-    /// Global rotation (axis-angle, about y).
-    pub rh: Vec3,
-    /// Global translation.
-    pub th: Vec3,
     /// Estimated-shape joints.
     pub est_joints: Vec<Vec3>,
     /// Estimated-shape template vertices.
@@ -284,13 +456,14 @@ impl RenderedFrame {
 }
 
 impl SyntheticSubject {
-    /// The body pose every frame shares (THuman scans are static), as `mesh_infos.pkl` stores it.
-    pub fn mesh_info(&self) -> FrameMeshInfo {
+    /// Frame `frame`'s body as `mesh_infos.pkl` stores it: its pose, global transform and the
+    /// subject's estimated zero-pose joints.
+    pub fn mesh_info(&self, frame: &RenderedFrame) -> FrameMeshInfo {
         FrameMeshInfo {
-            poses: self.poses.clone(),
+            poses: frame.body.poses.clone(),
             tpose_joints: self.est_joints.clone(),
-            rh: self.rh,
-            th: self.th,
+            rh: frame.body.rh,
+            th: frame.body.th,
         }
     }
 
@@ -439,9 +612,140 @@ pub fn generate_subject(
     generate_subject_frames(template, cfg, seed, index, name, val_inputs, None)
 }
 
+/// A shaped, clothed person in the canonical pose: steps 1–2 of the module docs.
+struct Person {
+    skeleton: Skeleton,
+    clothed: Vec<Vec3>,
+    surfaces: Vec<Surface>,
+    outfit: Outfit,
+    est_joints: Vec<Vec3>,
+    est_vertices: Vec<Vec3>,
+}
+
+impl Person {
+    /// Draws the person from `rng` (shape, estimated shape, outfit, in that order).
+    fn sample(
+        template: &BodyTemplate,
+        cfg: &SynthConfig,
+        name: &str,
+        rng: &mut Rng,
+    ) -> Result<Self> {
+        let at = |field: &str| Location::default().subject(name).field(field.to_owned());
+        let basis = &template.shape_basis;
+        let k = basis.num_components();
+        // Rejection-sample adult heights (the official THuman renders rescale the scans to 1.80 ± 0.05 m; the PCA's tails
+        // reach child-like and >2 m bodies that leave the 2 m camera ring's field of view).
+        let mut coeffs = vec![0.0; k];
+        for attempt in 0..64 {
+            let spread = if attempt < 48 { 1.0 } else { 0.5 };
+            coeffs = (0..k)
+                .map(|i| {
+                    basis.coeff_mean[i]
+                        + spread * basis.coeff_std[i] * (rng.normal() as f32).clamp(-2.5, 2.5)
+                })
+                .collect();
+            let (v, _) = template
+                .shaped(&coeffs)
+                .map_err(|e| DataError::render(at("shape"), e))?;
+            let (lo, hi) = v
+                .iter()
+                .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), p| {
+                    (lo.min(p.y), hi.max(p.y))
+                });
+            if HEIGHT_RANGE.contains(&(hi - lo)) {
+                break;
+            }
+        }
+        let est: Vec<f32> = match cfg.shape_estimate {
+            ShapeEstimate::Exact => coeffs.clone(),
+            ShapeEstimate::Zero => vec![0.0; k],
+            ShapeEstimate::Noisy => coeffs
+                .iter()
+                .zip(&basis.coeff_std)
+                .map(|(c, s)| c + cfg.shape_noise * s * rng.normal() as f32)
+                .collect(),
+        };
+        let (vertices, joints) = template
+            .shaped(&coeffs)
+            .map_err(|e| DataError::render(at("shape"), e))?;
+        let (est_vertices, est_joints) = template
+            .shaped(&est)
+            .map_err(|e| DataError::render(at("shape"), e))?;
+        let skeleton = template
+            .skeleton
+            .with_rest_joints(joints.clone())
+            .map_err(|e| DataError::render(at("skeleton"), e))?;
+
+        let outfit = Outfit::sample(rng);
+        let dominant: Vec<usize> = template
+            .skin
+            .joints
+            .iter()
+            .zip(&template.skin.weights)
+            .map(|(j, w)| {
+                let best = (0..4).max_by(|&a, &b| w[a].total_cmp(&w[b])).unwrap_or(0);
+                j[best] as usize
+            })
+            .collect();
+        let faces = &template.topology.faces;
+        let normals = body::vertex_normals(&vertices, faces);
+        let surfaces = body::surfaces(&skeleton, &joints, &vertices, &dominant, &outfit);
+        let clothed = body::clothe(&skeleton, &joints, &vertices, &normals, &surfaces, &outfit);
+        Ok(Self {
+            skeleton,
+            clothed,
+            surfaces,
+            outfit,
+            est_joints,
+            est_vertices,
+        })
+    }
+
+    /// The person in `pose`, turned by `rh` about the vertical and standing on the floor
+    /// (y = 0) at `(x, z)`: the scene to render and the body's global transform.
+    fn posed<'a>(
+        &self,
+        template: &'a BodyTemplate,
+        pose: &BodyPose,
+        rh: Vec3,
+        (x, z): (f32, f32),
+        name: &str,
+    ) -> Result<(Scene<'a>, FrameBody)> {
+        let at = |field: &str| Location::default().subject(name).field(field.to_owned());
+        let faces = &template.topology.faces;
+        let transforms = self
+            .skeleton
+            .skinning_transforms(pose)
+            .map_err(|e| DataError::render(at("pose"), e))?;
+        let posed = skin_points(&self.clothed, &template.skin, &transforms)
+            .map_err(|e| DataError::render(at("skinning"), e))?;
+        let posed_normals = body::vertex_normals(&posed, faces);
+        let rot = lifegom_render::skeleton::rodrigues(rh);
+        let min_y = posed
+            .iter()
+            .map(|p| (rot * *p).y)
+            .fold(f32::INFINITY, f32::min);
+        let th = Vec3::new(x, -min_y, z);
+        let scene = Scene {
+            world: posed.iter().map(|p| rot * *p + th).collect(),
+            canonical: self.clothed.clone(),
+            normals: posed_normals.iter().map(|n| rot * *n).collect(),
+            surfaces: self.surfaces.clone(),
+            faces,
+            outfit: self.outfit.clone(),
+        };
+        let body = FrameBody {
+            poses: pose.to_flat(),
+            rh,
+            th,
+        };
+        Ok((scene, body))
+    }
+}
+
 /// [`generate_subject`], rendering only the frames in `only` (indices into the full camera
-/// layout; `None`: all). The subject (shape, outfit, pose, every camera) is the same whatever
-/// frames are rendered: a training stream that needs four of the 64 views pays for four.
+/// layout; `None`: all). The subject (shape, outfit, pose or motion, every camera) is the same
+/// whatever frames are rendered: a training stream that needs four of the 64 views pays for four.
 pub fn generate_subject_frames(
     template: &BodyTemplate,
     cfg: &SynthConfig,
@@ -452,106 +756,50 @@ pub fn generate_subject_frames(
     only: Option<&[usize]>,
 ) -> Result<SyntheticSubject> {
     let mut rng = Rng::new(seed).fork(index as u64);
-    let at = |field: &str| Location::default().subject(name).field(field.to_owned());
-    let basis = &template.shape_basis;
-    let k = basis.num_components();
-    // Rejection-sample adult heights (the official THuman renders rescale the scans to 1.80 ± 0.05 m; the PCA's tails
-    // reach child-like and >2 m bodies that leave the 2 m camera ring's field of view).
-    let mut coeffs = vec![0.0; k];
-    for attempt in 0..64 {
-        let spread = if attempt < 48 { 1.0 } else { 0.5 };
-        coeffs = (0..k)
-            .map(|i| {
-                basis.coeff_mean[i]
-                    + spread * basis.coeff_std[i] * (rng.normal() as f32).clamp(-2.5, 2.5)
-            })
-            .collect();
-        let (v, _) = template
-            .shaped(&coeffs)
-            .map_err(|e| DataError::render(at("shape"), e))?;
-        let (lo, hi) = v
-            .iter()
-            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), p| {
-                (lo.min(p.y), hi.max(p.y))
-            });
-        if HEIGHT_RANGE.contains(&(hi - lo)) {
-            break;
+    let person = Person::sample(template, cfg, name, &mut rng)?;
+    let frames = match cfg.setting {
+        SynthSetting::MultiView => {
+            multi_view_frames(template, cfg, &person, name, val_inputs, only, &mut rng)?
         }
-    }
-    let est: Vec<f32> = match cfg.shape_estimate {
-        ShapeEstimate::Exact => coeffs.clone(),
-        ShapeEstimate::Zero => vec![0.0; k],
-        ShapeEstimate::Noisy => coeffs
-            .iter()
-            .zip(&basis.coeff_std)
-            .map(|(c, s)| c + cfg.shape_noise * s * rng.normal() as f32)
-            .collect(),
+        SynthSetting::MultiFrame => {
+            multi_frame_frames(template, cfg, &person, name, val_inputs, only, &mut rng)?
+        }
     };
-    let (vertices, joints) = template
-        .shaped(&coeffs)
-        .map_err(|e| DataError::render(at("shape"), e))?;
-    let (est_vertices, est_joints) = template
-        .shaped(&est)
-        .map_err(|e| DataError::render(at("shape"), e))?;
-    let skeleton = template
-        .skeleton
-        .with_rest_joints(joints.clone())
-        .map_err(|e| DataError::render(at("skeleton"), e))?;
+    Ok(SyntheticSubject {
+        name: name.to_owned(),
+        frames,
+        est_joints: person.est_joints,
+        est_vertices: person.est_vertices,
+    })
+}
 
-    let outfit = Outfit::sample(&mut rng);
-    let dominant: Vec<usize> = template
-        .skin
-        .joints
-        .iter()
-        .zip(&template.skin.weights)
-        .map(|(j, w)| {
-            let best = (0..4).max_by(|&a, &b| w[a].total_cmp(&w[b])).unwrap_or(0);
-            j[best] as usize
-        })
-        .collect();
-    let faces = &template.topology.faces;
-    let normals = body::vertex_normals(&vertices, faces);
-    let surfaces = body::surfaces(&skeleton, &joints, &vertices, &dominant, &outfit);
-    let clothed = body::clothe(&skeleton, &joints, &vertices, &normals, &surfaces, &outfit);
+fn wanted(only: Option<&[usize]>, f: usize) -> bool {
+    only.is_none_or(|o| o.contains(&f))
+}
 
-    let pose = body::random_pose(&skeleton, &outfit, &mut rng);
-    let transforms = skeleton
-        .skinning_transforms(&pose)
-        .map_err(|e| DataError::render(at("pose"), e))?;
-    let posed = skin_points(&clothed, &template.skin, &transforms)
-        .map_err(|e| DataError::render(at("skinning"), e))?;
-    let posed_normals = body::vertex_normals(&posed, faces);
-
+/// Multi-view: one random pose, the ring's cameras (module docs, steps 3–5).
+fn multi_view_frames(
+    template: &BodyTemplate,
+    cfg: &SynthConfig,
+    person: &Person,
+    name: &str,
+    val_inputs: Option<usize>,
+    only: Option<&[usize]>,
+    rng: &mut Rng,
+) -> Result<Vec<RenderedFrame>> {
+    let pose = body::random_pose(&person.skeleton, &person.outfit, rng);
     let rh = Vec3::new(0.0, rng.uniform() as f32 * std::f32::consts::TAU, 0.0);
-    let rot = lifegom_render::skeleton::rodrigues(rh);
-    let min_y = posed
-        .iter()
-        .map(|p| (rot * *p).y)
-        .fold(f32::INFINITY, f32::min);
-    let th = Vec3::new(
-        rng.range(-0.05, 0.05) as f32,
-        -min_y,
-        rng.range(-0.05, 0.05) as f32,
-    );
-    let world: Vec<Vec3> = posed.iter().map(|p| rot * *p + th).collect();
-    let world_normals: Vec<Vec3> = posed_normals.iter().map(|n| rot * *n).collect();
-
+    let x = rng.range(-0.05, 0.05) as f32;
+    let z = rng.range(-0.05, 0.05) as f32;
+    let (scene, body) = person.posed(template, &pose, rh, (x, z), name)?;
     let azimuths = match val_inputs {
-        None => train_azimuths(cfg, &mut rng),
-        Some(n) => val_azimuths(cfg, n, &mut rng),
+        None => train_azimuths(cfg, rng),
+        Some(n) => val_azimuths(cfg, n, rng),
     };
-    let scene = Scene {
-        world,
-        canonical: clothed,
-        normals: world_normals,
-        surfaces,
-        faces,
-        outfit,
-    };
-    let frames = azimuths
+    azimuths
         .iter()
         .enumerate()
-        .filter(|(f, _)| only.is_none_or(|o| o.contains(f)))
+        .filter(|(f, _)| wanted(only, *f))
         .map(|(f, &az)| {
             let camera = ring_camera(cfg, az)?;
             let (rgb, mask) = scene.render(&camera, cfg.shading, cfg.supersample)?;
@@ -560,18 +808,152 @@ pub fn generate_subject_frames(
                 camera,
                 rgb,
                 mask,
+                body: body.clone(),
             })
         })
-        .collect::<Result<Vec<_>>>()?;
-    Ok(SyntheticSubject {
-        name: name.to_owned(),
-        frames,
-        poses: pose.to_flat(),
-        rh,
-        th,
-        est_joints,
-        est_vertices,
-    })
+        .collect()
+}
+
+/// Fork key of a sequence's motion parameters (kept apart from the person's draws).
+const MOTION_CHOICES: u64 = 0x4d4f_5449_4f4e;
+
+/// How one person moves through a multi-frame sequence (module docs, "Multi-frame").
+struct SequenceMotion {
+    motion: Motion,
+    roles: JointRoles,
+    /// Phase at the first frame, cycles.
+    phase: f32,
+    /// Cycles over the sequence.
+    cycles: f32,
+    /// Scale of the motion's arm and leg rotations.
+    arms: f32,
+    legs: f32,
+    /// Heading at the first frame, and the turn over the sequence (radians about y).
+    heading: f32,
+    turn: f32,
+}
+
+impl SequenceMotion {
+    fn sample(cfg: &SynthConfig, person: &Person, rng: &Rng, name: &str) -> Result<Self> {
+        let mut rng = rng.fork(MOTION_CHOICES);
+        let roles = JointRoles::for_skeleton(&person.skeleton).ok_or_else(|| {
+            DataError::invalid(
+                Location::default().subject(name).field("skeleton"),
+                "no hips/knees/shoulders/elbows to move: not an Anny, SMPL or SMPL-X rig",
+            )
+        })?;
+        let motion = Motion::ALL[rng.below(Motion::ALL.len())];
+        // A skirt is part of the legs' skin: wide leg swings would tear it.
+        let skirt = if person.outfit.bottom == body::Bottom::Skirt {
+            0.5
+        } else {
+            1.0
+        };
+        Ok(Self {
+            motion,
+            roles,
+            phase: rng.uniform() as f32,
+            cycles: rng.range(0.75, 1.5) as f32,
+            arms: rng.range(0.6, 1.0) as f32,
+            legs: skirt * rng.range(0.6, 1.0) as f32,
+            heading: rng.uniform() as f32 * std::f32::consts::TAU,
+            turn: rng.range(-1.0, 1.0) as f32 * cfg.max_turn_deg.to_radians(),
+        })
+    }
+
+    /// The pose and heading at time `u ∈ [0, 1)` of the sequence: `base` (the person's own
+    /// random pose) with the joints the motion moves replaced by the scaled motion.
+    fn at(&self, base: &BodyPose, u: f32) -> (BodyPose, Vec3) {
+        let j = base.num_joints();
+        let m = self
+            .motion
+            .pose(&self.roles, j, self.phase + self.cycles * u);
+        // The joints this motion moves at some point of its cycle.
+        let moved = |joint: usize| {
+            (0..4).any(|q| {
+                self.motion
+                    .pose(&self.roles, j, q as f32 / 4.0)
+                    .joint_rotations[joint]
+                    != Vec3::ZERO
+            })
+        };
+        let mut pose = base.clone();
+        let r = &self.roles;
+        for (joints, scale) in [
+            (r.hips, self.legs),
+            (r.knees, self.legs),
+            (r.shoulders, self.arms),
+            (r.elbows, self.arms),
+        ] {
+            for joint in joints {
+                if joint < j && moved(joint) {
+                    pose.joint_rotations[joint] = m.joint_rotations[joint] * scale;
+                }
+            }
+        }
+        let rh = Vec3::new(0.0, self.heading + self.turn * u, 0.0);
+        (pose, rh)
+    }
+}
+
+/// Multi-frame: the person moves through a procedural motion (module docs, "Multi-frame").
+/// Training subjects: `sequence_frames` frames, all from one camera. Validation subjects: the N
+/// inputs from that camera, spread over the sequence, then `val_target_views` targets at other
+/// times (other poses) from cameras spread around the person (other views), as AIST++ scores
+/// cameras 2–7 given frames of camera 1.
+fn multi_frame_frames(
+    template: &BodyTemplate,
+    cfg: &SynthConfig,
+    person: &Person,
+    name: &str,
+    val_inputs: Option<usize>,
+    only: Option<&[usize]>,
+    rng: &mut Rng,
+) -> Result<Vec<RenderedFrame>> {
+    let base = body::random_pose(&person.skeleton, &person.outfit, rng);
+    let x = rng.range(-0.05, 0.05) as f32;
+    let z = rng.range(-0.05, 0.05) as f32;
+    let motion = SequenceMotion::sample(cfg, person, rng, name)?;
+    let camera_az = rng.uniform() as f32 * std::f32::consts::TAU;
+    // (time in the sequence, camera azimuth) of every frame.
+    let layout: Vec<(f32, f32)> = match val_inputs {
+        None => {
+            let f = cfg.sequence_frames;
+            (0..f).map(|k| (k as f32 / f as f32, camera_az)).collect()
+        }
+        Some(n) => {
+            let targets = cfg.val_target_views;
+            let gap = std::f32::consts::TAU / (targets + 1) as f32;
+            let inputs = (0..n).map(|k| (k as f32 / n as f32, camera_az));
+            let others: Vec<(f32, f32)> = (0..targets)
+                .map(|t| {
+                    let u = rng.uniform() as f32;
+                    let az = camera_az + gap * (t as f32 + 1.0 + rng.range(-0.3, 0.3) as f32);
+                    (u, az)
+                })
+                .collect();
+            inputs.chain(others).collect()
+        }
+    };
+    layout
+        .iter()
+        .enumerate()
+        .filter(|(f, _)| wanted(only, *f))
+        .map(|(f, &(u, az))| {
+            let _span = tracing::trace_span!("sequence_frame", f).entered();
+            let (pose, rh) = motion.at(&base, u);
+            let (scene, body) = person.posed(template, &pose, rh, (x, z), name)?;
+            let camera = ring_camera(cfg, az)?;
+            let (rgb, mask) = scene.render(&camera, cfg.shading, cfg.supersample)?;
+            Ok(RenderedFrame {
+                name: format!("frame_{f:06}"),
+                camera,
+                rgb,
+                mask,
+                body,
+            })
+        })
+        .collect()
 }
 
 fn f32_array(shape: Vec<usize>, values: impl IntoIterator<Item = f32>) -> Value {
@@ -614,7 +996,6 @@ pub fn write_subject(
     }
     let mut cameras = Vec::new();
     let mut infos = Vec::new();
-    let info = subject.mesh_info();
     let body = subject.canonical_body(template);
     let j = body.num_joints();
     for frame in &subject.frames {
@@ -634,6 +1015,7 @@ pub fn write_subject(
         image::save_buffer(&mask_path, &frame.mask, w, h, image::ExtendedColorType::L8)
             .map_err(|e| save_err(&mask_path, e))?;
         let camera = frame.frame_camera();
+        let info = subject.mesh_info(frame);
         // Exact: the entries are f32 values widened to f64.
         let k: Vec<f32> = camera.k.iter().flatten().map(|&v| v as f32).collect();
         let e: Vec<f32> = camera.e.iter().flatten().map(|&v| v as f32).collect();
@@ -707,8 +1089,8 @@ pub fn generate_split(
 ) -> Result<SplitSummary> {
     let template = BodyTemplate::load(cfg.template.path())
         .map_err(|e| DataError::render(Location::file(cfg.template.path()), e))?;
-    let total = cfg.train_subjects + cfg.val_subjects;
-    let names: Vec<String> = (0..total).map(|i| format!("{i:04}")).collect();
+    let (train_names, val_names) = cfg.subject_names();
+    let names: Vec<String> = train_names.iter().chain(&val_names).cloned().collect();
     let n = data.n_input_frames;
     let frames = names
         .par_iter()
@@ -737,7 +1119,11 @@ pub fn generate_split(
         std::fs::write(&path, text).map_err(|e| DataError::io(Location::file(&path), e))
     };
     write_json(out.join(&data.train_split), serde_json::json!(train))?;
-    write_json(out.join(&data.val_split), serde_json::json!(val))?;
+    // A config whose validation subjects are listed in `[data] val_subjects` may share one
+    // split file with training (as the AIST++ experiment does): it holds the training list.
+    if data.val_split != data.train_split {
+        write_json(out.join(&data.val_split), serde_json::json!(val))?;
+    }
     let meta: Vec<serde_json::Value> = val
         .iter()
         .map(|s| serde_json::json!({"scene": s, "input_frames": (0..n).collect::<Vec<_>>(), "output_frame": n}))

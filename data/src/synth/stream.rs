@@ -103,9 +103,9 @@ impl SubjectStream {
         format!("p{index:09}")
     }
 
-    /// Frames per subject: the training ring and its targets.
+    /// Frames per subject: the training ring and its targets, or the training sequence.
     fn num_frames(&self) -> usize {
-        self.synth.source_views + self.synth.target_views
+        self.synth.train_frames()
     }
 
     /// The generator seed of the subjects of run seed `seed`.
@@ -134,7 +134,6 @@ impl SubjectStream {
             None,
             Some(&wanted),
         )?;
-        let info = subject.mesh_info();
         let views = wanted
             .iter()
             .map(|&f| {
@@ -155,7 +154,7 @@ impl SubjectStream {
                     FloatImage::from_rgb8(w, h, &frame.rgb),
                     FloatImage::mask_from_l8(w, h, &frame.mask),
                     &frame.frame_camera(),
-                    &info,
+                    &subject.mesh_info(frame),
                     bg,
                     self.img_size,
                 ))
@@ -181,10 +180,15 @@ mod tests {
     use crate::dataset::Protocol;
     use crate::format::Subject;
     use crate::kinematics::KinematicTree;
-    use crate::synth::{Shading, ShapeEstimate, TemplateChoice, generate_subject, write_subject};
+    use crate::synth::{
+        Shading, ShapeEstimate, SynthSetting, TemplateChoice, generate_subject, write_subject,
+    };
 
     fn configs(size: u32) -> (SynthConfig, DataConfig) {
         let synth = SynthConfig {
+            setting: SynthSetting::MultiView,
+            sequence_frames: 30,
+            max_turn_deg: 180.0,
             template: TemplateChoice::Lowres,
             train_subjects: 1,
             val_subjects: 0,
@@ -257,6 +261,40 @@ mod tests {
             assert!(matches!((pair[1] + 16 - pair[0]) % 16, 5 | 6), "{idx:?}");
         }
         assert!((16..64).contains(&idx[3]), "{idx:?}");
+    }
+
+    /// The multi-frame setting streams too: a sample is N frames of one person's sequence and
+    /// another frame as the target, equal to the written subject read back.
+    #[test]
+    fn multi_frame_stream_samples_equal_the_written_sequence() {
+        let (mut synth, mut data) = configs(32);
+        synth.setting = SynthSetting::MultiFrame;
+        synth.sequence_frames = 9;
+        data.protocol = Protocol::Aistpp;
+        data.n_input_frames = 5;
+        data.train_background = Background::Fixed([255, 255, 255]);
+        let stream = SubjectStream::new(&synth, &data).unwrap();
+        let got = stream.sample(3, 2).unwrap();
+        assert_eq!(got.sample.views.len(), 6);
+        assert_eq!(got.sample.bgcolor, [1.0; 3]);
+        let dir = std::env::temp_dir().join(format!("lifegom-stream-mf-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let name = SubjectStream::subject_name(2);
+        let seed = stream.subject_seed(3);
+        let full = generate_subject(stream.template(), &synth, seed, 2, &name, None).unwrap();
+        assert_eq!(full.frames.len(), 9);
+        write_subject(stream.template(), &full, &dir).unwrap();
+        let subject = Subject::load(&dir.join(&name), KinematicTree::Stored).unwrap();
+        for view in &got.sample.views {
+            let f = subject
+                .frames
+                .iter()
+                .position(|n| *n == view.frame)
+                .unwrap();
+            let read = crate::dataset::load_view(&subject, f, [255.0; 3], (16, 16)).unwrap();
+            assert_eq!(&read, view, "frame {}", view.frame);
+        }
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// Same index, same sample; another index or seed, another person.
