@@ -16,9 +16,8 @@ use lifegom_model::inputs::{SubjectRig, model_inputs};
 use lifegom_model::reconstructor::Reconstructor;
 use lifegom_model::trained;
 use lifegom_render::gom::GomMesh;
-use lifegom_render::motion::{MotionSource, known_joint_names};
+use lifegom_render::motion::{MotionSource, known_joint_names, with_known_joint_names};
 use lifegom_render::rng::Rng;
-use lifegom_render::skeleton::Skeleton;
 
 use lifegom_eval::animate::{orbit_camera, posed_joint};
 use lifegom_eval::evaluate::{
@@ -325,15 +324,8 @@ fn animations(
     if !opts.motions.is_empty() {
         // Rigs read from data carry only parents; a known rig gets its joint names back, so a
         // motion file that names its joints is checked against them.
-        let j = body.skeleton.num_joints();
-        let known = known_joint_names(j);
-        let rig = match &known {
-            Some(names) => Skeleton {
-                names: names.clone(),
-                ..body.skeleton.clone()
-            },
-            None => body.skeleton.clone(),
-        };
+        let known = known_joint_names(body.skeleton.num_joints());
+        let rig = with_known_joint_names(&body.skeleton);
         for source in &opts.motions {
             let name = source.name();
             let seq = match source.sequence(&rig, PROCEDURAL_FRAMES, PROCEDURAL_FPS) {

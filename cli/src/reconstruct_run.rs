@@ -13,8 +13,9 @@
 //! 4. **Outputs** in `--out`: `avatar.lgom` (ours), `avatar.ply` (3D Gaussian splatting, canonical
 //!    T-pose, with each Gaussian's rig), `avatar.glb` (the rigged canonical surface that glTF
 //!    tools pose; docs/export.md), `inputs.png` (each input beside the avatar re-rendered in its view, and the
-//!    held-out view when there is one), `turntable.gif`, one GIF per `--motion`, and
-//!    `reconstruct.json` (timings, scores, files).
+//!    held-out view when there is one), `turntable.gif`, one GIF per `--motion` (procedural or a
+//!    pose-sequence file, docs/motions.md), one PNG per `--pose` file, and `reconstruct.json`
+//!    (timings, scores, files).
 
 use std::path::{Path, PathBuf};
 
@@ -23,15 +24,20 @@ use burn::tensor::Device;
 use lifegom_data::dataset::{Sample, load_view};
 use lifegom_data::format::Subject;
 use lifegom_data::kinematics::KinematicTree;
-use lifegom_eval::animate::{JointRoles, Motion, orbit_camera, posed_joint};
+use lifegom_eval::animate::{orbit_camera, posed_joint};
 use lifegom_eval::evaluate::{reconstruct_timed, refine, render_timed};
 use lifegom_eval::images::{Image, grid, save_gif};
 use lifegom_eval::metrics::{ImageRef, psnr};
 use lifegom_model::inputs::{SubjectRig, model_inputs};
 use lifegom_model::trained;
 use lifegom_render::gom::GomMesh;
+use lifegom_render::motion::{MotionSource, PoseSequence, with_known_joint_names};
 use lifegom_render::skeleton::BodyPose;
 use lifegom_train::losses::UniformLaplacian;
+
+/// Frames of one cycle of a procedural motion, and its playback rate.
+const MOTION_FRAMES: usize = 24;
+const MOTION_FPS: f32 = 12.5;
 
 /// What to reconstruct, with what, and where the outputs go.
 #[derive(Debug, Clone)]
@@ -54,8 +60,10 @@ pub struct ReconstructOptions {
     pub subdivide: Option<u32>,
     /// Frames of the turntable GIF (0: none).
     pub turntable_frames: usize,
-    /// Procedural motions to render, one GIF each.
-    pub motions: Vec<Motion>,
+    /// Motions to play, one GIF each: procedural, or pose-sequence files (docs/motions.md).
+    pub motions: Vec<MotionSource>,
+    /// Pose files to render as stills, one PNG each (every frame of the file, side by side).
+    pub poses: Vec<PoseSequence>,
     /// Output folder.
     pub out: PathBuf,
     /// Where the network runs.
@@ -180,6 +188,24 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
             rig.num_vertices()
         );
     }
+    // Motion and pose files are checked against the rig (by joint count, and by joint name
+    // where the rig is a known one) before any work is done.
+    let named = with_known_joint_names(&rig.skeleton);
+    let motions = opts
+        .motions
+        .iter()
+        .map(|source| {
+            let seq = source
+                .sequence(&named, MOTION_FRAMES, MOTION_FPS)
+                .with_context(|| format!("--motion {}", source.name()))?;
+            Ok((source.name(), seq))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    for seq in &opts.poses {
+        seq.validate_for(&named)
+            .with_context(|| format!("--pose {}", seq.source.display()))?;
+    }
+
     let [w, h] = opts.img_size;
     let bg = opts.background;
     // `model_inputs` takes the inputs and one target; the held-out frame is the target when
@@ -270,26 +296,29 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
             .collect::<anyhow::Result<Vec<_>>>()?;
         save_gif(&write("turntable.gif"), &frames, 80)?;
     }
-    let j = rig.skeleton.num_joints();
-    if !opts.motions.is_empty() {
-        let roles = JointRoles::for_rig(j).with_context(|| {
-            format!("--motion: no joint roles for a {j}-joint rig (SMPL, SMPL-X or Anny expected)")
-        })?;
-        for &motion in &opts.motions {
-            let n = 24;
-            let frames = (0..n)
-                .map(|k| {
-                    let pose = motion.pose(&roles, j, k as f32 / n as f32);
-                    let skinning = rig.skeleton.skinning_transforms(&pose)?;
-                    Ok(render_timed(&avatar, &inputs, camera, &skinning)?.0)
-                })
-                .collect::<anyhow::Result<Vec<_>>>()?;
-            save_gif(
-                &write(&format!("motion_{}.gif", motion.name())),
-                &frames,
-                80,
-            )?;
-        }
+    // Poses and motions from the first input's camera.
+    let render_pose = |pose: &BodyPose| -> anyhow::Result<Image> {
+        let skinning = rig.skeleton.skinning_transforms(pose)?;
+        Ok(render_timed(&avatar, &inputs, camera, &skinning)?.0)
+    };
+    for (name, seq) in &motions {
+        let frames = seq
+            .poses()
+            .iter()
+            .map(&render_pose)
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        let delay_ms = (1000.0 / seq.fps).clamp(20.0, 1000.0) as u32;
+        save_gif(&write(&format!("motion_{name}.gif")), &frames, delay_ms)?;
+    }
+    for seq in &opts.poses {
+        let source = MotionSource::File(seq.clone());
+        let stills = seq
+            .poses()
+            .iter()
+            .map(&render_pose)
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        let rows: Vec<Vec<Image>> = stills.chunks(8).map(<[Image]>::to_vec).collect();
+        grid(&rows, 2, [1.0; 3]).save_png(&write(&format!("pose_{}.png", source.name())))?;
     }
 
     files.push(PathBuf::from("reconstruct.json"));

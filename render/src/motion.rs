@@ -71,6 +71,19 @@ pub fn known_joint_names(num_joints: usize) -> Option<Vec<String>> {
     (template.num_joints() == num_joints).then(|| template.skeleton.names.clone())
 }
 
+/// `skeleton` with its joint names replaced by the known rig's ([`known_joint_names`]) when
+/// it is one, so a motion file that names its joints is checked against them; unchanged
+/// otherwise.
+pub fn with_known_joint_names(skeleton: &Skeleton) -> Skeleton {
+    match known_joint_names(skeleton.num_joints()) {
+        Some(names) => Skeleton {
+            names,
+            ..skeleton.clone()
+        },
+        None => skeleton.clone(),
+    }
+}
+
 /// Indices of the joints the procedural motions move.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct JointRoles {

@@ -14,8 +14,8 @@ use lifegom_cli::reconstruct_run::{ReconstructOptions, run};
 use lifegom_data::config::ConfigFile;
 use lifegom_data::dataset::Background;
 use lifegom_data::kinematics::KinematicTree;
-use lifegom_eval::animate::Motion;
 use lifegom_render::device::DeviceChoice;
+use lifegom_render::motion::{MotionSource, PoseSequence};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -54,12 +54,21 @@ struct Args {
     /// Frames of the turntable GIF (0: none).
     #[arg(long, default_value_t = 36)]
     turntable: usize,
-    /// A procedural motion to render (walk, arm-raise, squat); repeat for several.
-    #[arg(long)]
-    motion: Vec<Motion>,
+    /// Motions to play as GIFs: walk, arm-raise, squat, or a pose-sequence file
+    /// (docs/motions.md); comma-separated or repeated.
+    #[arg(long, value_delimiter = ',')]
+    motion: Vec<MotionSource>,
+    /// Pose files (docs/motions.md) to render as stills, one PNG each; comma-separated or
+    /// repeated.
+    #[arg(long, value_delimiter = ',', value_parser = parse_pose)]
+    pose: Vec<PoseSequence>,
     /// Backend.
     #[arg(long, default_value = "flex")]
     device: DeviceChoice,
+}
+
+fn parse_pose(s: &str) -> Result<PoseSequence, String> {
+    PoseSequence::load(s).map_err(|e| e.to_string())
 }
 
 fn parse_tree(s: &str) -> Result<KinematicTree, String> {
@@ -87,6 +96,7 @@ fn main() -> anyhow::Result<()> {
         subdivide: args.subdivide,
         turntable_frames: args.turntable,
         motions: args.motion,
+        poses: args.pose,
         out: args.out.clone(),
         device: args.device.device(),
     };
