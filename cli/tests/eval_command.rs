@@ -9,37 +9,22 @@ mod common;
 use burn::tensor::Device;
 use lifegom_cli::eval_run::{EvalOptions, run};
 use lifegom_eval::report::WEIGHTS_MISSING;
-use lifegom_model::reconstructor::ReconstructorConfig;
-use lifegom_model::trained;
 
-use common::tiny_split;
+use common::{tiny_split, untrained_tiny_model};
 
 #[test]
 fn eval_on_a_tiny_split_writes_every_file() {
     let (tmp, cfg) = tiny_split("eval-cmd", |_| {});
 
     // An untrained tiny model stands in for a checkpoint: this test is about the files.
-    let device = Device::ndarray();
-    let model_cfg = ReconstructorConfig::tiny(3)
-        .with_iterations(2)
-        .with_subdivide_test(1);
-    let model = model_cfg.init(1229, &device).unwrap();
-    let ckpt = tmp.join("model.lgck");
-    trained::save(
-        &ckpt,
-        &model,
-        &model_cfg,
-        serde_json::json!({"step": 0}),
-        &[],
-    )
-    .unwrap();
+    let ckpt = untrained_tiny_model(&tmp, 2, 1);
 
     let out = tmp.join("out");
     let outcome = run(&EvalOptions {
         data: cfg.data.clone(),
         checkpoint: ckpt,
         out: out.clone(),
-        device,
+        device: Device::ndarray(),
         subdivide: None,
         iterations: None,
         sheets: 2,

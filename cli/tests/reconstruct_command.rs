@@ -13,12 +13,10 @@ use lifegom_cli::reconstruct_run::{ReconstructOptions, run};
 use lifegom_data::dataset::Split;
 use lifegom_data::kinematics::KinematicTree;
 use lifegom_data::synth::TemplateChoice;
-use lifegom_eval::animate::Motion;
 use lifegom_model::avatar::Avatar;
-use lifegom_model::reconstructor::ReconstructorConfig;
-use lifegom_model::trained;
+use lifegom_render::motion::{JointRoles, Motion, MotionSource, PoseSequence};
 
-use common::tiny_split;
+use common::{tiny_split, untrained_tiny_model};
 
 /// The tiny split's first validation subject (3 inputs + 3 targets), the same person in the
 /// JSON layout, and an untrained tiny model for the low-res template.
@@ -34,20 +32,7 @@ fn setup(tag: &str) -> (PathBuf, PathBuf, PathBuf, PathBuf) {
     let json =
         lifegom_data::custom::write_subject(&subject, TemplateChoice::Lowres, &tmp.join("me"))
             .unwrap();
-    let device = Device::ndarray();
-    let model_cfg = ReconstructorConfig::tiny(3)
-        .with_iterations(1)
-        .with_subdivide_test(0);
-    let model = model_cfg.init(1229, &device).unwrap();
-    let ckpt = tmp.join("model.lgck");
-    trained::save(
-        &ckpt,
-        &model,
-        &model_cfg,
-        serde_json::json!({"step": 0}),
-        &[],
-    )
-    .unwrap();
+    let ckpt = untrained_tiny_model(&tmp, 1, 0);
     (tmp, official, json, ckpt)
 }
 
@@ -62,7 +47,8 @@ fn options(subject: &Path, model: &Path, out: PathBuf) -> ReconstructOptions {
         refine_steps: 0,
         subdivide: None,
         turntable_frames: 3,
-        motions: vec![Motion::Walk],
+        motions: vec![MotionSource::Procedural(Motion::Walk)],
+        poses: vec![],
         out,
         device: Device::ndarray(),
     }
@@ -71,9 +57,24 @@ fn options(subject: &Path, model: &Path, out: PathBuf) -> ReconstructOptions {
 #[test]
 fn reconstruct_from_the_json_layout_writes_every_output() {
     let (tmp, _, json, model) = setup("recon-json");
+    // A motion file and a pose file, as another tool would write them (docs/motions.md).
+    let roles = JointRoles::for_rig(104).unwrap();
+    let squat = tmp.join("squat.json");
+    PoseSequence::from_motion(Motion::Squat, &roles, 104, 4, 10.0)
+        .save(&squat)
+        .unwrap();
+    let poses = tmp.join("two_poses.json");
+    PoseSequence::from_motion(Motion::ArmRaise, &roles, 104, 2, 10.0)
+        .save(&poses)
+        .unwrap();
     let out = tmp.join("out");
     let outcome = run(&ReconstructOptions {
         refine_steps: 2,
+        motions: vec![
+            MotionSource::Procedural(Motion::Walk),
+            squat.to_str().unwrap().parse().unwrap(),
+        ],
+        poses: vec![PoseSequence::load(&poses).unwrap()],
         ..options(json.parent().unwrap(), &model, out.clone())
     })
     .unwrap();
@@ -84,6 +85,8 @@ fn reconstruct_from_the_json_layout_writes_every_output() {
         "inputs.png",
         "turntable.gif",
         "motion_walk.gif",
+        "motion_squat.gif",
+        "pose_two_poses.png",
         "reconstruct.json",
     ] {
         assert!(out.join(file).is_file(), "{file} missing");
@@ -153,6 +156,20 @@ fn bad_input_is_one_error_naming_file_and_field() {
         msg.contains("nobody") && msg.contains("no such subject"),
         "{msg}"
     );
+
+    // A pose file for another rig.
+    let smpl = tmp.join("smpl_pose.json");
+    PoseSequence::from_motion(Motion::Walk, &JointRoles::for_rig(24).unwrap(), 24, 1, 1.0)
+        .save(&smpl)
+        .unwrap();
+    let msg = err(ReconstructOptions {
+        poses: vec![PoseSequence::load(&smpl).unwrap()],
+        ..options(&official, &model, tmp.join("o5"))
+    });
+    for part in ["smpl_pose.json", "24 joints", "104 joints"] {
+        assert!(msg.contains(part), "`{msg}` lacks `{part}`");
+    }
+    assert!(!tmp.join("o5").exists(), "checked before any output");
 
     // A camera turned around: the body is behind it.
     let mut v: serde_json::Value =

@@ -128,18 +128,7 @@ pub fn load_subject(path: &Path) -> Result<Subject> {
     let (vertices, joints) = template
         .shaped(&coeffs)
         .map_err(|e| DataError::render(loc.clone().field("body.shape"), e))?;
-    let canonical = CanonicalBody {
-        joints: joints.clone(),
-        vertices,
-        weights: template.skin.to_dense(),
-        faces: template.topology.faces.clone(),
-        parents: template
-            .skeleton
-            .parents
-            .iter()
-            .map(|p| p.map_or(-1, |p| p as i32))
-            .collect(),
-    };
+    let canonical = CanonicalBody::of_template(&template, vertices, joints.clone());
 
     let tpose = Value::List(
         joints
@@ -221,12 +210,14 @@ pub fn fit_shape(template: &BodyTemplate, vertices: &[glam::Vec3]) -> (Vec<f32>,
         if m[col][col].abs() < 1e-12 {
             continue;
         }
-        for row in 0..n {
+        let pivot_row = m[col].clone();
+        for (row, r) in m.iter_mut().enumerate() {
             if row != col {
-                let f = m[row][col] / m[col][col];
-                for k in col..=n {
-                    m[row][k] -= f * m[col][k];
-                }
+                let f = r[col] / pivot_row[col];
+                r.iter_mut()
+                    .zip(&pivot_row)
+                    .skip(col)
+                    .for_each(|(x, p)| *x -= f * p);
             }
         }
     }

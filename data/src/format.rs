@@ -26,6 +26,7 @@
 use std::path::{Path, PathBuf};
 
 use glam::Vec3;
+use lifegom_render::template::BodyTemplate;
 
 use crate::error::{DataError, Location, Result};
 use crate::kinematics::{KinematicTree, parents_as_options};
@@ -71,6 +72,23 @@ pub struct CanonicalBody {
 }
 
 impl CanonicalBody {
+    /// A shipped template's body in some shape: its `vertices` and `joints` (from
+    /// [`BodyTemplate::shaped`]) with the template's dense skinning weights, faces and parents.
+    pub fn of_template(template: &BodyTemplate, vertices: Vec<Vec3>, joints: Vec<Vec3>) -> Self {
+        Self {
+            joints,
+            vertices,
+            weights: template.skin.to_dense(),
+            faces: template.topology.faces.clone(),
+            parents: template
+                .skeleton
+                .parents
+                .iter()
+                .map(|p| p.map_or(-1, |p| p as i32))
+                .collect(),
+        }
+    }
+
     /// Number of joints.
     pub fn num_joints(&self) -> usize {
         self.joints.len()

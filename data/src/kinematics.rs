@@ -17,33 +17,8 @@ pub const SMPL_PARENTS: [i32; 24] = [
     -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21,
 ];
 
-/// SMPL joint names, in order.
-pub const SMPL_JOINT_NAMES: [&str; 24] = [
-    "pelvis",
-    "left_hip",
-    "right_hip",
-    "spine1",
-    "left_knee",
-    "right_knee",
-    "spine2",
-    "left_ankle",
-    "right_ankle",
-    "spine3",
-    "left_foot",
-    "right_foot",
-    "neck",
-    "left_collar",
-    "right_collar",
-    "head",
-    "left_shoulder",
-    "right_shoulder",
-    "left_elbow",
-    "right_elbow",
-    "left_wrist",
-    "right_wrist",
-    "left_hand",
-    "right_hand",
-];
+/// SMPL joint names, in order (one home: the motion files name their joints with them).
+pub use lifegom_render::motion::SMPL_JOINT_NAMES;
 
 /// Parent of each SMPL-X joint (−1: root): the 22 body joints as SMPL, jaw and eyes under the
 /// head (15), five 3-joint fingers under each wrist (20 left, 21 right) in the order index,

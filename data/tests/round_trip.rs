@@ -506,14 +506,17 @@ fn bad_json_subjects_name_file_frame_and_field() {
             let e = &v["frames"][1]["extrinsics"];
             let r = |i: usize, j: usize| e[i][j].as_f64().unwrap();
             let t = [r(0, 3), r(1, 3), r(2, 3)];
-            let mut inv = vec![vec![0.0; 4]; 4];
-            for i in 0..3 {
-                for j in 0..3 {
-                    inv[i][j] = r(j, i);
-                }
-                inv[i][3] = -(0..3).map(|k| r(k, i) * t[k]).sum::<f64>();
-            }
-            inv[3][3] = 1.0;
+            let inv: Vec<Vec<f64>> = (0..4)
+                .map(|i| match i {
+                    3 => vec![0.0, 0.0, 0.0, 1.0],
+                    _ => vec![
+                        r(0, i),
+                        r(1, i),
+                        r(2, i),
+                        -(0..3).map(|k| r(k, i) * t[k]).sum::<f64>(),
+                    ],
+                })
+                .collect();
             v["frames"][1]["extrinsics"] = serde_json::json!(inv);
         },
         &["frame_000001", "field `extrinsics`", "world to camera"],

@@ -2,10 +2,13 @@
 
 #![allow(dead_code)] // Each test file uses its own subset.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
+use burn::tensor::Device;
 use lifegom_data::config::ConfigFile;
 use lifegom_data::synth;
+use lifegom_model::reconstructor::ReconstructorConfig;
+use lifegom_model::trained;
 
 /// A fresh folder `lifegom-<tag>-<pid>` holding the tiny synthetic split (`tweak` may change
 /// its `[synthetic]` section first), and the config pointed at it.
@@ -19,4 +22,19 @@ pub fn tiny_split(tag: &str, tweak: impl FnOnce(&mut synth::SynthConfig)) -> (Pa
     tweak(&mut s);
     synth::generate_split(&s, &cfg.data, &root, s.seed, &|| {}).unwrap();
     (tmp, cfg)
+}
+
+/// An untrained tiny model for the low-res template (T = `iterations`, tested at `subdivide`
+/// levels), saved as `dir/model.lgck`: it stands in for a checkpoint where a test is about
+/// files and errors, not accuracy.
+pub fn untrained_tiny_model(dir: &Path, iterations: usize, subdivide: u32) -> PathBuf {
+    #[allow(deprecated)] // Device::ndarray(): the CI backend (design.md §1.4).
+    let device = Device::ndarray();
+    let config = ReconstructorConfig::tiny(3)
+        .with_iterations(iterations)
+        .with_subdivide_test(subdivide);
+    let model = config.init(1229, &device).unwrap();
+    let path = dir.join("model.lgck");
+    trained::save(&path, &model, &config, serde_json::json!({"step": 0}), &[]).unwrap();
+    path
 }

@@ -267,25 +267,7 @@ impl SynthConfig {
                 "the THuman view3 training rule needs 16 source + 48 target views".into(),
             ));
         }
-        if !(self.camera_radius > 0.3 && self.camera_radius.is_finite()) {
-            return Err(bad(
-                "camera_radius",
-                format!("must be > 0.3 m, got {}", self.camera_radius),
-            ));
-        }
-        if !(self.focal_factor > 0.0 && self.focal_factor.is_finite()) {
-            return Err(bad(
-                "focal_factor",
-                format!("must be > 0, got {}", self.focal_factor),
-            ));
-        }
-        if !(self.shape_noise >= 0.0 && self.shape_noise.is_finite()) {
-            return Err(bad(
-                "shape_noise",
-                format!("must be >= 0, got {}", self.shape_noise),
-            ));
-        }
-        self.validate_split_files(data, source)
+        self.validate_shared(data, source)
     }
 
     /// The settings only the multi-frame split reads, and the ones it shares.
@@ -326,6 +308,15 @@ impl SynthConfig {
                 format!("must be in 0..=360, got {}", self.max_turn_deg),
             ));
         }
+        self.validate_shared(data, source)
+    }
+
+    /// The settings both splits read: camera, shape noise and the split files.
+    fn validate_shared(&self, data: &DataConfig, source: &Path) -> Result<()> {
+        let bad = |field: &str, reason: String| DataError::Config {
+            location: Box::new(Location::file(source).field(format!("synthetic.{field}"))),
+            reason,
+        };
         if !(self.camera_radius > 0.3 && self.camera_radius.is_finite()) {
             return Err(bad(
                 "camera_radius",
@@ -470,18 +461,7 @@ impl SyntheticSubject {
     /// The canonical body as `canonical_joints.pkl` stores it: the estimated shape's joints and
     /// template vertices, the template's dense skinning weights, faces and parents.
     pub fn canonical_body(&self, template: &BodyTemplate) -> CanonicalBody {
-        CanonicalBody {
-            joints: self.est_joints.clone(),
-            vertices: self.est_vertices.clone(),
-            weights: template.skin.to_dense(),
-            faces: template.topology.faces.clone(),
-            parents: template
-                .skeleton
-                .parents
-                .iter()
-                .map(|p| p.map_or(-1, |p| p as i32))
-                .collect(),
-        }
+        CanonicalBody::of_template(template, self.est_vertices.clone(), self.est_joints.clone())
     }
 }
 
