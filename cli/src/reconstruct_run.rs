@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use burn::tensor::Device;
-use lifegom_data::dataset::{Sample, load_view};
+use lifegom_data::dataset::load_sample;
 use lifegom_data::format::Subject;
 use lifegom_data::kinematics::KinematicTree;
 use lifegom_eval::animate::{orbit_camera, posed_joint};
@@ -211,23 +211,7 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
     // `model_inputs` takes the inputs and one target; the held-out frame is the target when
     // there is one, otherwise the first input stands in and is not scored.
     let target = held_out.unwrap_or(inputs_at[0]);
-    let views = inputs_at
-        .iter()
-        .chain(std::iter::once(&target))
-        .map(|&f| load_view(&subject, f, bg.map(|c| c * 255.0), (w, h)))
-        .collect::<Result<Vec<_>, _>>()?;
-    let sample = Sample {
-        subject: subject.name.clone(),
-        frame_name: subject.frames[target].clone(),
-        views,
-        bgcolor: bg,
-        canonical_vertices: subject
-            .canonical
-            .vertices
-            .iter()
-            .map(|v| v.to_array())
-            .collect(),
-    };
+    let sample = load_sample(&subject, &inputs_at, target, bg.map(|c| c * 255.0), (w, h))?;
     let inputs = model_inputs(&rig, &sample, w, h, &opts.device)?;
     let subdivide = opts.subdivide.unwrap_or(loaded.config.subdivide_test);
     let mesh = GomMesh::new(&rig.topology, subdivide, &opts.device)?;
@@ -311,14 +295,13 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
         save_gif(&write(&format!("motion_{name}.gif")), &frames, delay_ms)?;
     }
     for seq in &opts.poses {
-        let source = MotionSource::File(seq.clone());
         let stills = seq
             .poses()
             .iter()
             .map(&render_pose)
             .collect::<anyhow::Result<Vec<_>>>()?;
         let rows: Vec<Vec<Image>> = stills.chunks(8).map(<[Image]>::to_vec).collect();
-        grid(&rows, 2, [1.0; 3]).save_png(&write(&format!("pose_{}.png", source.name())))?;
+        grid(&rows, 2, [1.0; 3]).save_png(&write(&format!("pose_{}.png", seq.name())))?;
     }
 
     files.push(PathBuf::from("reconstruct.json"));

@@ -389,26 +389,43 @@ impl Dataset {
             )
         })?;
         let bg = self.background.draw(rng);
-        let subject = &self.subjects[idx.subject];
-        let views = idx
-            .inputs
-            .iter()
-            .chain(std::iter::once(&idx.target))
-            .map(|&f| load_view(subject, f, bg, self.img_size))
-            .collect::<Result<Vec<_>>>()?;
-        Ok(Sample {
-            subject: subject.name.clone(),
-            frame_name: format!("scene_{}_{}", subject.name, subject.frames[idx.target]),
-            views,
-            bgcolor: bg.map(|c| c / 255.0),
-            canonical_vertices: subject
-                .canonical
-                .vertices
-                .iter()
-                .map(|v| v.to_array())
-                .collect(),
-        })
+        load_sample(
+            &self.subjects[idx.subject],
+            &idx.inputs,
+            idx.target,
+            bg,
+            self.img_size,
+        )
     }
+}
+
+/// The sample of `subject` with frames `inputs` as sources and `target` last, composited over
+/// `bg` (0..255) at `size`: what a split's [`Dataset::sample`] and a lone subject's
+/// reconstruction both read.
+pub fn load_sample(
+    subject: &Subject,
+    inputs: &[usize],
+    target: usize,
+    bg: [f32; 3],
+    size: (u32, u32),
+) -> Result<Sample> {
+    let views = inputs
+        .iter()
+        .chain(std::iter::once(&target))
+        .map(|&f| load_view(subject, f, bg, size))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(Sample {
+        subject: subject.name.clone(),
+        frame_name: format!("scene_{}_{}", subject.name, subject.frames[target]),
+        views,
+        bgcolor: bg.map(|c| c / 255.0),
+        canonical_vertices: subject
+            .canonical
+            .vertices
+            .iter()
+            .map(|v| v.to_array())
+            .collect(),
+    })
 }
 
 /// Reads, undistorts, composites and resizes frame `f` of `subject` (design.md §8.3).

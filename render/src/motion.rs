@@ -432,6 +432,13 @@ impl PoseSequence {
         &self.poses
     }
 
+    /// A name for output files: the file's stem.
+    pub fn name(&self) -> String {
+        self.source
+            .file_stem()
+            .map_or_else(|| "motion".to_owned(), |s| s.to_string_lossy().into_owned())
+    }
+
     /// Joints per frame (0 for an empty sequence).
     pub fn num_joints(&self) -> usize {
         self.poses.first().map_or(0, BodyPose::num_joints)
@@ -504,10 +511,7 @@ impl MotionSource {
     pub fn name(&self) -> String {
         match self {
             Self::Procedural(m) => m.name().to_owned(),
-            Self::File(seq) => seq
-                .source
-                .file_stem()
-                .map_or_else(|| "motion".to_owned(), |s| s.to_string_lossy().into_owned()),
+            Self::File(seq) => seq.name(),
         }
     }
 
