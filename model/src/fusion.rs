@@ -20,6 +20,8 @@ use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, Linea
 use burn::tensor::activation::{relu, softmax};
 use burn::tensor::{Device, Tensor};
 
+use crate::dropout::dropout;
+
 /// One post-norm attention layer.
 #[derive(Config, Debug)]
 pub struct AttentionLayerConfig {
@@ -96,9 +98,9 @@ impl AttentionLayer {
         let scores = q.matmul(k.swap_dims(2, 3)) / (dk as f64).sqrt();
         let attn = softmax(scores, 3).matmul(v); // [B,H,Lq,dk]
         let attn = self.w_o.forward(attn.swap_dims(1, 2).reshape([b, lq, d]));
-        let x = self.norm1.forward(query + self.dropout.forward(attn));
+        let x = self.norm1.forward(query + dropout(&self.dropout, attn));
         let ff = self.fc2.forward(relu(self.fc1.forward(x.clone())));
-        self.norm2.forward(x + self.dropout.forward(ff))
+        self.norm2.forward(x + dropout(&self.dropout, ff))
     }
 }
 

@@ -38,6 +38,7 @@
 //! |---|---|
 //! | [`encoder`] | ResNet-18 feature pyramid + 1×1 rgb embedding (1152 channels), torchvision/official weight import |
 //! | [`sampling`] | projection of posed vertices and torch-exact bilinear feature sampling |
+//! | [`dropout`] | the fusion layers' dropout, with masks drawn on the host on CPU backends |
 //! | [`fusion`] | multi-source fusion: self-attention over views, cross-attention with a per-vertex query |
 //! | [`knn`], [`point_transformer`] | farthest point sampling, kNN, the Point Transformer encoder–decoder |
 //! | [`heads`] | update heads: residual vertex update, new embedding, per-face Gaussian parameters |
@@ -55,6 +56,7 @@
 
 pub mod avatar;
 pub mod checkpoint;
+pub mod dropout;
 pub mod encoder;
 pub mod error;
 pub mod fusion;

@@ -96,6 +96,16 @@ pub fn wgpu_available() -> bool {
     })
 }
 
+/// Whether `device` (or the device an autodiff device wraps) computes on the host: ndarray or
+/// Flex, where a host-side loop over a tensor's values costs no transfer. CubeCL devices (wgpu,
+/// and lavapipe on a CPU) answer false.
+pub fn runs_on_host(device: &Device) -> bool {
+    !matches!(
+        device.as_dispatch().clone().inner(),
+        burn::backend::DispatchDevice::Cube(_)
+    )
+}
+
 /// Waits until `t` is computed and its values are on the host; returns the element count.
 ///
 /// For timing code. `Tensor::into_data` alone is not enough on the CubeCL backends: it returns

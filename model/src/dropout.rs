@@ -1,0 +1,120 @@
+//! Dropout with host-drawn masks on the CPU backends (design.md §7.4).
+//!
+//! The fusion layers apply dropout (p = 0.1) four times per call, six calls per training step:
+//! about 8.5 million mask elements per quickstart step. Burn's `Dropout` draws each element from
+//! a Bernoulli distribution through ChaCha12, building the sampler anew per element, and then
+//! multiplies twice (mask, then `1/keep`). On Flex that cost ~10 % of a training step (the
+//! profile in BENCHMARKS.md, "Training step profile").
+//!
+//! [`dropout`] keeps Burn's semantics (training flag, autodiff devices only, `x·m/keep` with
+//! `m ~ Bernoulli(keep)`) and, on the CPU backends, draws the mask on the host with the
+//! workspace's SplitMix64 ([`lifegom_render::rng`]): 32 random bits per element compared with
+//! `keep·2³²`, the mask already scaled to `{0, 1/keep}`, one multiply. `x·(1/keep)` equals
+//! Burn's `(x·1)·(1/keep)` bit for bit where an element is kept. The stream's seed is four
+//! 16-bit draws from the device's own RNG, so `Device::seed` (which the trainer sets per step)
+//! still fixes every mask. On CubeCL devices the mask is drawn on the device as Burn does (a host
+//! draw would cost an upload per call, and the GPU's generator is not the bottleneck there).
+
+use burn::nn::Dropout;
+use burn::tensor::{Distribution, Tensor, TensorData};
+use lifegom_render::device::runs_on_host;
+use lifegom_render::readback;
+use lifegom_render::rng::Rng;
+
+/// `layer` applied to `input` (module docs): the identity unless the layer is in training mode
+/// on an autodiff device with `prob > 0`.
+pub fn dropout<const D: usize>(layer: &Dropout, input: Tensor<D>) -> Tensor<D> {
+    let device = input.device();
+    if !layer.training.is_enabled() || !device.is_autodiff() || layer.prob == 0.0 {
+        return input;
+    }
+    if !runs_on_host(&device) {
+        return layer.forward(input);
+    }
+    let keep = 1.0 - layer.prob;
+    let draws = Tensor::<1>::random([4], Distribution::Uniform(0.0, 1.0), &device);
+    let seed = readback::read::<f32, 1, _>("dropout seed", draws)
+        .expect("a host tensor reads back")
+        .iter()
+        .fold(0u64, |acc, &u| {
+            (acc << 16) | ((u * 65_536.0) as u64 & 0xffff)
+        });
+    let mask = host_mask(input.shape().num_elements(), keep, seed);
+    let mask = Tensor::<1>::from_data(
+        TensorData::new(mask, [input.shape().num_elements()]),
+        (&device, input.dtype()),
+    )
+    .reshape(input.shape());
+    input * mask
+}
+
+/// `n` mask values in `{0, 1/keep}`, each `1/keep` with probability `keep` (to 2⁻³²).
+fn host_mask(n: usize, keep: f64, seed: u64) -> Vec<f32> {
+    let threshold = (keep * 4_294_967_296.0).round().min(u32::MAX as f64) as u32;
+    let scale = (1.0 / keep) as f32;
+    let mut rng = Rng::new(seed);
+    let mut mask = Vec::with_capacity(n);
+    let draw = |bits: u32| if bits < threshold { scale } else { 0.0 };
+    for _ in 0..n / 2 {
+        let bits = rng.next_u64();
+        mask.push(draw(bits as u32));
+        mask.push(draw((bits >> 32) as u32));
+    }
+    if n % 2 == 1 {
+        mask.push(draw(rng.next_u64() as u32));
+    }
+    mask
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::nn::DropoutConfig;
+    use burn::tensor::Device;
+
+    use lifegom_render::testing::read;
+
+    /// The kept fraction is `keep` (within 5σ), kept values are `x/keep`, and the same device
+    /// seed gives the same mask.
+    fn statistics_and_seeding(device: &Device) {
+        let ad = device.clone().autodiff();
+        let layer = DropoutConfig::new(0.1).init();
+        let n = 200_000;
+        let x = Tensor::<2>::ones([n / 100, 100], &ad);
+        ad.seed(7);
+        let a = read(dropout(&layer, x.clone()));
+        ad.seed(7);
+        let b = read(dropout(&layer, x.clone()));
+        assert_eq!(a, b, "the device seed fixes the mask");
+        let kept = a.iter().filter(|&&v| v != 0.0).count() as f64 / n as f64;
+        let sigma = (0.9 * 0.1 / n as f64).sqrt();
+        assert!((kept - 0.9).abs() < 5.0 * sigma, "kept fraction {kept}");
+        let scale = (1.0f64 / 0.9) as f32;
+        assert!(a.iter().all(|&v| v == 0.0 || v == scale));
+        let c = read(dropout(&layer, x));
+        assert_ne!(a, c, "a new draw without re-seeding");
+    }
+
+    /// Off the autodiff device, or with the layer frozen, dropout is the identity; the gradient
+    /// of a kept element is `1/keep` and of a dropped one 0.
+    fn identity_and_gradient(device: &Device) {
+        let layer = DropoutConfig::new(0.25).init();
+        let x = Tensor::<1>::from_floats([1.0, 2.0, 3.0], device);
+        assert_eq!(read(dropout(&layer, x.clone())), read(x));
+        let ad = device.clone().autodiff();
+        let x = Tensor::<1>::ones([1000], &ad).require_grad();
+        let y = dropout(&layer, x.clone());
+        let grads = y.clone().sum().backward();
+        let g = read(x.grad(&grads).expect("x takes part"));
+        assert_eq!(g, read(y), "d(x·m)/dx = m and x = 1");
+    }
+
+    #[test]
+    fn host_mask_matches_keep_probability_exactly_at_the_ends() {
+        assert!(host_mask(1001, 1.0, 3).iter().all(|&v| v == 1.0));
+        assert_eq!(host_mask(1001, 0.5, 3).len(), 1001);
+    }
+
+    lifegom_render::cpu_backend_tests!(dropout_statistics_and_seeding => statistics_and_seeding);
+    lifegom_render::cpu_backend_tests!(dropout_identity_and_gradient => identity_and_gradient);
+}
