@@ -575,15 +575,18 @@ impl EncodedViews {
         width: u32,
         height: u32,
     ) -> Result<Tensor<3>, SamplingError> {
-        let sampled = self.maps.sample(uv, width, height)?;
-        let [v, n, c] = sampled.dims();
-        let backbone = sampled.clone().slice(s![.., .., 0..c - 4]);
-        let affine = sampled.slice(s![.., .., c - 4..c]).reshape([v * n, 4]);
+        // Levels are sampled separately and concatenated once, after the rgb projection of the
+        // last one: no slicing of a concatenated sample (whose backward would copy it twice).
+        let mut levels = self.maps.sample_levels(uv, width, height)?;
+        let affine = levels.pop().expect("PreparedMaps has at least one level");
+        let [v, n, _] = affine.dims();
         let c_rgb = self.rgb_projection.dims()[1];
         let rgb = affine
+            .reshape([v * n, 4])
             .matmul(self.rgb_projection.clone())
             .reshape([v, n, c_rgb]);
-        Ok(Tensor::cat(vec![backbone, rgb], 2))
+        levels.push(rgb);
+        Ok(Tensor::cat(levels, 2))
     }
 
     /// Channels of one sample (1152 at width 1).

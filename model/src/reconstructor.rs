@@ -526,8 +526,14 @@ impl Reconstructor {
         drop(span);
 
         let span = tracing::debug_span!("fusion").entered();
-        let fused_src = self.fusion.forward(src, state.embed.clone());
-        let fused_ren = self.fusion.forward(ren, state.embed.clone()).detach();
+        let fused_src = {
+            let _span = tracing::debug_span!("source").entered();
+            self.fusion.forward(src, state.embed.clone())
+        };
+        let fused_ren = {
+            let _span = tracing::debug_span!("rendered").entered();
+            self.fusion.forward(ren, state.embed.clone()).detach()
+        };
         drop(span);
         let h_pt = {
             let _span = tracing::debug_span!("point_transformer").entered();
@@ -543,12 +549,18 @@ impl Reconstructor {
         // Faces: source features at the projected centroid of each high-res face of the current
         // (pre-update) mesh, zeroed where the face is not fully visible in that view.
         let span = tracing::debug_span!("face_sampling").entered();
-        let proj_hr = project_points(Tensor::stack(posed_hr, 0), &sources.cameras)?;
-        let uv_faces = select_rows(proj_hr.uv, 1, faces_flat.clone())
-            .reshape([n, f, 3, 2])
-            .mean_dim(2)
-            .reshape([n, f, 2]);
-        let face_feats = feats_src.sample(uv_faces, w, h)?; // [F, N, D]
+        let uv_faces = {
+            let _span = tracing::debug_span!("face_centroids").entered();
+            let proj_hr = project_points(Tensor::stack(posed_hr, 0), &sources.cameras)?;
+            select_rows(proj_hr.uv, 1, faces_flat.clone())
+                .reshape([n, f, 3, 2])
+                .mean_dim(2)
+                .reshape([n, f, 2])
+        };
+        let face_feats = {
+            let _span = tracing::debug_span!("sample_maps").entered();
+            feats_src.sample(uv_faces, w, h)? // [F, N, D]
+        };
         drop(span);
         let span = tracing::debug_span!("face_heads").entered();
         let inputs = face_inputs(

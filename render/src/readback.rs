@@ -79,6 +79,15 @@ pub(crate) fn cpu_float<B: Backend>(tensor: &'static str, t: FloatTensor<B>) -> 
     read_float_primitive::<B>(tensor, t).expect(CPU_READ)
 }
 
+/// The values of a float primitive on a CPU backend as `E` (converted when it stores another
+/// float), for op implementations that compute in the input's precision.
+pub fn cpu_float_as<B: Backend, E: Element>(tensor: &'static str, t: FloatTensor<B>) -> Vec<E> {
+    burn::tensor::read_sync(B::float_into_data(t))
+        .map_err(|e| format!("{e:?}"))
+        .and_then(|data| data.try_into_vec_as::<E>().map_err(|e| e.to_string()))
+        .unwrap_or_else(|reason| panic!("{CPU_READ}; reading `{tensor}`: {reason}"))
+}
+
 /// [`read_int_primitive`] for a CPU backend's op implementation, which cannot return errors.
 pub(crate) fn cpu_int<B: Backend>(tensor: &'static str, t: IntTensor<B>) -> Vec<i64> {
     read_int_primitive::<B>(tensor, t).expect(CPU_READ)

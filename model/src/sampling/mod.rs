@@ -35,7 +35,13 @@
 
 use burn::tensor::{Bool, Int, Tensor, TensorData, s};
 use lifegom_render::camera::Camera;
+use lifegom_render::device::runs_on_host;
 use lifegom_render::select::select_rows;
+
+pub mod bilinear;
+pub mod op;
+
+use op::MapLayout;
 
 /// Depth used in place of `Z` for points with `Z < MIN_DEPTH` (at or behind the camera).
 pub const MIN_DEPTH: f64 = 1e-6;
@@ -149,8 +155,10 @@ pub struct PreparedMaps {
     batch: usize,
 }
 
+/// One level of [`PreparedMaps`].
+#[doc(hidden)]
 #[derive(Debug, Clone)]
-struct Level {
+pub struct Level {
     /// `[N·H·W, C]`.
     rows: Tensor<2>,
     height: usize,
@@ -216,6 +224,16 @@ impl PreparedMaps {
         width: u32,
         height: u32,
     ) -> Result<Tensor<3>, SamplingError> {
+        Ok(Tensor::cat(self.sample_levels(uv, width, height)?, 2))
+    }
+
+    /// [`Self::sample`] without the concatenation: one `[V, N, C_l]` per level.
+    pub fn sample_levels(
+        &self,
+        uv: Tensor<3>,
+        width: u32,
+        height: u32,
+    ) -> Result<Vec<Tensor<3>>, SamplingError> {
         let [n, v, two] = uv.dims();
         if n != self.batch || two != 2 {
             return Err(shape_err(
@@ -234,25 +252,65 @@ impl PreparedMaps {
         let uv = uv.clone().mask_fill(uv.is_nan(), -1e6);
         let u = uv.clone().slice(s![.., .., 0..1]).reshape([n, v]);
         let y = uv.slice(s![.., .., 1..2]).reshape([n, v]);
-        let per_level: Vec<Tensor<3>> = self
+        let fused = runs_on_host(&u.device());
+        Ok(self
             .levels
             .iter()
-            .map(|level| level.sample(u.clone(), y.clone(), width, height))
-            .collect();
-        Ok(Tensor::cat(per_level, 2).swap_dims(0, 1))
+            .map(|level| {
+                let (x, y) = level.map_coordinates(u.clone(), y.clone(), width, height);
+                if fused {
+                    level.sample_fused(x, y)
+                } else {
+                    level.sample_reference(x, y).swap_dims(0, 1)
+                }
+            })
+            .collect())
     }
 }
 
 impl Level {
-    /// `[N, V]` image-pixel coordinates → `[N, V, C]`.
-    fn sample(&self, u: Tensor<2>, v: Tensor<2>, width: u32, height: u32) -> Tensor<3> {
-        let [n, p] = u.dims();
-        let device = u.device();
+    /// `[N, V]` image-pixel coordinates → map-pixel coordinates of this level. Clamping to
+    /// `[-2, W_l + 1]` changes no sample (both corners are outside the map beyond −1 and W_l)
+    /// and removes ±Inf before any integer cast.
+    fn map_coordinates(
+        &self,
+        u: Tensor<2>,
+        v: Tensor<2>,
+        width: u32,
+        height: u32,
+    ) -> (Tensor<2>, Tensor<2>) {
         let (w, h) = (self.width, self.height);
-        // Map-pixel coordinates; clamping to [-2, W_l + 1] changes no sample (both corners are
-        // outside the map beyond −1 and W_l) and removes ±Inf before the integer cast.
-        let x = (u * (w as f64 / width as f64) - 0.5).clamp(-2.0, w as f64 + 1.0);
-        let y = (v * (h as f64 / height as f64) - 0.5).clamp(-2.0, h as f64 + 1.0);
+        (
+            (u * (w as f64 / width as f64) - 0.5).clamp(-2.0, w as f64 + 1.0),
+            (v * (h as f64 / height as f64) - 0.5).clamp(-2.0, h as f64 + 1.0),
+        )
+    }
+
+    /// Map-pixel coordinates `[N, V]` → `[V, N, C]` through the fused op ([`op`]).
+    fn sample_fused(&self, x: Tensor<2>, y: Tensor<2>) -> Tensor<3> {
+        let layout = MapLayout {
+            views: x.dims()[0],
+            height: self.height,
+            width: self.width,
+            channels: self.channels,
+        };
+        Tensor::from_dispatch(
+            <burn::backend::Dispatch as op::BilinearSampleOps>::bilinear_sample(
+                self.rows.clone().into_dispatch(),
+                x.into_dispatch(),
+                y.into_dispatch(),
+                layout,
+            ),
+        )
+    }
+
+    /// Map-pixel coordinates `[N, V]` → `[N, V, C]` as ordinary tensor ops: the specification
+    /// the fused op is tested against, and the implementation on CubeCL devices.
+    #[doc(hidden)]
+    pub fn sample_reference(&self, x: Tensor<2>, y: Tensor<2>) -> Tensor<3> {
+        let [n, p] = x.dims();
+        let device = x.device();
+        let (w, h) = (self.width, self.height);
         let x0 = x.clone().floor();
         let y0 = y.clone().floor();
         let fx = x - x0.clone(); // d fx / d x = 1: this is where the coordinate gradient flows
@@ -724,6 +782,74 @@ mod tests {
         );
     }
     lifegom_render::cpu_backend_tests!(projection_gradients_reach_points => projection_gradients);
+
+    /// The fused op equals the tensor-op composition it replaces ([`Level::sample_reference`]),
+    /// values and gradients (maps and both coordinates), in f32, at points inside, on the
+    /// border and outside the maps. On CubeCL devices `sample` runs the composition itself.
+    fn fused_matches_reference(device: &Device) {
+        let ad = device.clone().autodiff();
+        let mut rng = Rng::new(13);
+        let (n, p) = (3usize, 700usize);
+        for (c, h, w) in [(8usize, 12usize, 20usize), (5, 3, 5), (4, 1, 1)] {
+            let map: Vec<f32> = (0..n * c * h * w)
+                .map(|_| rng.range_f32(-1.0, 1.0))
+                .collect();
+            let x: Vec<f32> = (0..n * p)
+                .map(|_| rng.range_f32(-2.0, w as f32 + 1.0))
+                .collect();
+            let y: Vec<f32> = (0..n * p)
+                .map(|_| rng.range_f32(-2.0, h as f32 + 1.0))
+                .collect();
+            let weight: Vec<f32> = (0..p * n * c).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+            let run = |fused: bool| {
+                let map_t = Tensor::<4>::from_data(TensorData::new(map.clone(), [n, c, h, w]), &ad)
+                    .require_grad();
+                let x_t =
+                    Tensor::<2>::from_data(TensorData::new(x.clone(), [n, p]), &ad).require_grad();
+                let y_t =
+                    Tensor::<2>::from_data(TensorData::new(y.clone(), [n, p]), &ad).require_grad();
+                let prepared = PreparedMaps::new(std::slice::from_ref(&map_t)).unwrap();
+                let level = &prepared.levels[0];
+                let out = if fused {
+                    level.sample_fused(x_t.clone(), y_t.clone())
+                } else {
+                    level
+                        .sample_reference(x_t.clone(), y_t.clone())
+                        .swap_dims(0, 1)
+                };
+                let wt = Tensor::<1>::from_data(TensorData::new(weight.clone(), [p * n * c]), &ad)
+                    .reshape([p, n, c]);
+                let grads = (out.clone() * wt).sum().backward();
+                [
+                    out.reshape([-1]),
+                    map_t.grad(&grads).expect("map gradient").reshape([-1]),
+                    x_t.grad(&grads).expect("x gradient").reshape([-1]),
+                    y_t.grad(&grads).expect("y gradient").reshape([-1]),
+                ]
+                .map(read)
+            };
+            let (fused, reference) = (run(true), run(false));
+            for (k, name) in ["values", "map gradient", "x gradient", "y gradient"]
+                .iter()
+                .enumerate()
+            {
+                let scale = reference[k].iter().fold(1.0f64, |m, v| m.max(v.abs()));
+                let diff = fused[k]
+                    .iter()
+                    .zip(&reference[k])
+                    .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                assert!(
+                    diff <= 1e-5 * scale,
+                    "{c}x{h}x{w} {name}: max diff {diff:.2e} (scale {scale:.2e})"
+                );
+            }
+            assert!(
+                fused[2].iter().any(|g| g.abs() > 1e-3),
+                "x gradients vanished"
+            );
+        }
+    }
+    lifegom_render::cpu_backend_tests!(fused_op_matches_reference => fused_matches_reference);
 
     /// Shape contracts are checked and the offending input is named.
     #[test]
