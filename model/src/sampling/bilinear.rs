@@ -43,23 +43,20 @@ pub trait Real:
     fn floor_index(self) -> (i64, Self);
 }
 
-impl Real for f32 {
-    const ZERO: Self = 0.0;
-    const ONE: Self = 1.0;
-    fn floor_index(self) -> (i64, Self) {
-        let f = self.floor();
-        (f as i64, f)
-    }
+macro_rules! impl_real {
+    ($($t:ty),*) => {$(
+        impl Real for $t {
+            const ZERO: Self = 0.0;
+            const ONE: Self = 1.0;
+            fn floor_index(self) -> (i64, Self) {
+                let f = self.floor();
+                (f as i64, f)
+            }
+        }
+    )*};
 }
 
-impl Real for f64 {
-    const ZERO: Self = 0.0;
-    const ONE: Self = 1.0;
-    fn floor_index(self) -> (i64, Self) {
-        let f = self.floor();
-        (f as i64, f)
-    }
-}
+impl_real!(f32, f64);
 
 /// The maps and points of one call.
 #[derive(Debug, Clone, Copy)]

@@ -114,24 +114,51 @@ fn cpu_forward<B: Backend>(inputs: SampleInputs<B>) -> FloatTensor<B> {
     in_precision!(inputs.rows.dtype(), cpu_forward_in(inputs))
 }
 
+/// The op's inputs read back to host memory in precision `T`.
+struct HostInputs<T> {
+    rows: Vec<T>,
+    x: Vec<T>,
+    y: Vec<T>,
+    layout: MapLayout,
+}
+
+impl<T: Real + Element> HostInputs<T> {
+    fn read<B: Backend>(inputs: SampleInputs<B>) -> Self {
+        Self {
+            rows: cpu_float_as::<B, T>("maps", inputs.rows),
+            x: cpu_float_as::<B, T>("x", inputs.x),
+            y: cpu_float_as::<B, T>("y", inputs.y),
+            layout: inputs.layout,
+        }
+    }
+
+    fn maps(&self) -> Maps<'_, T> {
+        Maps {
+            rows: &self.rows,
+            views: self.layout.views,
+            height: self.layout.height,
+            width: self.layout.width,
+            channels: self.layout.channels,
+        }
+    }
+
+    /// Points per view P.
+    fn points(&self) -> usize {
+        self.x.len() / self.layout.views.max(1)
+    }
+}
+
 fn cpu_forward_in<B: Backend, T: Real + Element>(inputs: SampleInputs<B>) -> FloatTensor<B> {
     let device = inputs.rows.device();
     let dtype = inputs.rows.dtype();
-    let l = inputs.layout;
-    let rows: Vec<T> = cpu_float_as::<B, T>("maps", inputs.rows);
-    let x: Vec<T> = cpu_float_as::<B, T>("x", inputs.x);
-    let y: Vec<T> = cpu_float_as::<B, T>("y", inputs.y);
-    let p = x.len() / l.views.max(1);
-    let maps = Maps {
-        rows: &rows,
-        views: l.views,
-        height: l.height,
-        width: l.width,
-        channels: l.channels,
-    };
-    let out = bilinear::forward(&maps, &x, &y);
+    let host = HostInputs::<T>::read(inputs);
+    let l = host.layout;
+    let out = bilinear::forward(&host.maps(), &host.x, &host.y);
     cast_to::<B>(
-        B::float_from_data(TensorData::new(out, [p, l.views, l.channels]), &device),
+        B::float_from_data(
+            TensorData::new(out, [host.points(), l.views, l.channels]),
+            &device,
+        ),
         dtype,
     )
 }
@@ -156,20 +183,11 @@ fn cpu_backward_in<B: Backend, T: Real + Element>(
 ) -> SampleGrads<B> {
     let device = inputs.rows.device();
     let dtypes = [inputs.rows.dtype(), inputs.x.dtype(), inputs.y.dtype()];
-    let l = inputs.layout;
-    let rows: Vec<T> = cpu_float_as::<B, T>("maps", inputs.rows);
-    let x: Vec<T> = cpu_float_as::<B, T>("x", inputs.x);
-    let y: Vec<T> = cpu_float_as::<B, T>("y", inputs.y);
     let grad: Vec<T> = cpu_float_as::<B, T>("sample gradient", grad);
-    let p = x.len() / l.views.max(1);
-    let maps = Maps {
-        rows: &rows,
-        views: l.views,
-        height: l.height,
-        width: l.width,
-        channels: l.channels,
-    };
-    let (grad_rows, grad_x, grad_y) = bilinear::backward(&maps, &x, &y, &grad, want_rows);
+    let host = HostInputs::<T>::read(inputs);
+    let (l, p) = (host.layout, host.points());
+    let (grad_rows, grad_x, grad_y) =
+        bilinear::backward(&host.maps(), &host.x, &host.y, &grad, want_rows);
     let tensor = |values: Vec<T>, shape: [usize; 2], dtype: DType| {
         cast_to::<B>(
             B::float_from_data(TensorData::new(values, shape), &device),
