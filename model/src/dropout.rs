@@ -21,24 +21,64 @@ use lifegom_render::device::runs_on_host;
 use lifegom_render::readback;
 use lifegom_render::rng::Rng;
 
+/// Where a host-drawn dropout mask's randomness comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MaskSeed {
+    /// Drawn from the device's RNG when the mask is needed (Burn's rule decides whether one
+    /// is: training flag, autodiff device, `prob > 0`).
+    Device,
+    /// A seed drawn earlier with [`draw_seed`]: the caller has decided this is a training pass
+    /// (the layer may be an inference copy on a non-autodiff device), and the mask is the one
+    /// [`MaskSeed::Device`] would have drawn at that point of the RNG stream.
+    Given(u64),
+    /// No mask: the identity (a pass in which [`MaskSeed::Device`] would draw none).
+    Off,
+}
+
 /// `layer` applied to `input` (module docs): the identity unless the layer is in training mode
 /// on an autodiff device with `prob > 0`.
 pub fn dropout<const D: usize>(layer: &Dropout, input: Tensor<D>) -> Tensor<D> {
-    let device = input.device();
-    if !layer.training.is_enabled() || !device.is_autodiff() || layer.prob == 0.0 {
-        return input;
-    }
-    if !runs_on_host(&device) {
-        return layer.forward(input);
-    }
-    let keep = 1.0 - layer.prob;
-    let draws = Tensor::<1>::random([4], Distribution::Uniform(0.0, 1.0), &device);
-    let seed = readback::read::<f32, 1, _>("dropout seed", draws)
+    dropout_with(layer, input, MaskSeed::Device)
+}
+
+/// Whether [`dropout`] on `device` draws a host mask (and so one seed from the device's RNG).
+pub fn draws_host_mask(layer: &Dropout, device: &burn::tensor::Device) -> bool {
+    layer.training.is_enabled() && device.is_autodiff() && layer.prob > 0.0 && runs_on_host(device)
+}
+
+/// The seed of the next host mask on `device`: four 16-bit draws from its RNG, exactly what
+/// [`dropout`] draws when it needs one.
+pub fn draw_seed(device: &burn::tensor::Device) -> u64 {
+    let draws = Tensor::<1>::random([4], Distribution::Uniform(0.0, 1.0), device);
+    readback::read::<f32, 1, _>("dropout seed", draws)
         .expect("a host tensor reads back")
         .iter()
         .fold(0u64, |acc, &u| {
             (acc << 16) | ((u * 65_536.0) as u64 & 0xffff)
-        });
+        })
+}
+
+/// [`dropout`] with the mask's seed chosen by the caller.
+pub fn dropout_with<const D: usize>(
+    layer: &Dropout,
+    input: Tensor<D>,
+    seed: MaskSeed,
+) -> Tensor<D> {
+    let device = input.device();
+    let seed = match seed {
+        MaskSeed::Given(seed) if layer.prob > 0.0 => seed,
+        MaskSeed::Given(_) | MaskSeed::Off => return input,
+        MaskSeed::Device => {
+            if !layer.training.is_enabled() || !device.is_autodiff() || layer.prob == 0.0 {
+                return input;
+            }
+            if !runs_on_host(&device) {
+                return layer.forward(input);
+            }
+            draw_seed(&device)
+        }
+    };
+    let keep = 1.0 - layer.prob;
     let mask = host_mask(input.shape().num_elements(), keep, seed);
     let mask = Tensor::<1>::from_data(
         TensorData::new(mask, [input.shape().num_elements()]),

@@ -37,7 +37,7 @@ use lifegom_render::visibility::rasterize_on_device;
 use crate::avatar::Avatar;
 use crate::encoder::{EncodedViews, ImageEncoder, ImageEncoderConfig};
 use crate::error::{ModelError, Result};
-use crate::fusion::{Fusion, FusionConfig};
+use crate::fusion::{Fusion, FusionConfig, FusionMasks};
 use crate::heads::{UpdateHeads, UpdateHeadsConfig, face_inputs};
 use crate::point_transformer::{PointTransformer, PointTransformerConfig};
 use crate::sampling::{project_points, sample_single};
@@ -455,6 +455,68 @@ impl Reconstructor {
         Ok(out)
     }
 
+    /// Fuses the source and rendered branches with the shared fusion weights; the rendered
+    /// branch is detached.
+    ///
+    /// The branches are independent, and much of a fusion call is ops that the CPU backends run
+    /// on one core, so the rendered branch runs on a second thread (design.md §7.4), on an
+    /// inference copy of the weights (no graph is built for a branch whose output is detached
+    /// anyway). In training its dropout masks stay what a sequential source-then-rendered run
+    /// draws: both branches' mask seeds are drawn from the device's seeded RNG first, in that
+    /// order, and handed to each branch. Where masks are drawn by Burn on the device (CubeCL),
+    /// the branches run in order on the calling thread.
+    fn fuse_branches(
+        &self,
+        src: Tensor<3>,
+        ren: Tensor<3>,
+        embed: &Tensor<2>,
+    ) -> (Tensor<2>, Tensor<2>) {
+        let device = src.device();
+        // Source first, then rendered: the order a sequential run draws them in.
+        let masks = self.fusion.draw_mask_seeds(&device).map(|src_seeds| {
+            let ren_seeds = self
+                .fusion
+                .draw_mask_seeds(&device)
+                .expect("a host device for one call is one for the next");
+            (FusionMasks::Given(src_seeds), FusionMasks::Given(ren_seeds))
+        });
+        let Some((src_masks, ren_masks)) = masks else {
+            let fused_src = {
+                let _span = tracing::debug_span!("source").entered();
+                self.fusion.forward(src, embed.clone())
+            };
+            let fused_ren = {
+                let _span = tracing::debug_span!("rendered").entered();
+                self.fusion.forward(ren, embed.clone()).detach()
+            };
+            return (fused_src, fused_ren);
+        };
+        let parent = tracing::Span::current();
+        let inference = self.fusion.valid();
+        let (ren, ren_embed) = (ren.inner(), embed.clone().inner());
+        let (fused_src, fused_ren) = std::thread::scope(|scope| {
+            let rendered = scope.spawn(move || {
+                let _span = tracing::debug_span!(parent: &parent, "rendered").entered();
+                inference.forward_with(ren, ren_embed, ren_masks)
+            });
+            let fused_src = {
+                let _span = tracing::debug_span!("source").entered();
+                self.fusion.forward_with(src, embed.clone(), src_masks)
+            };
+            let fused_ren = rendered
+                .join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+            (fused_src, fused_ren)
+        });
+        // Back on the caller's device, as a tensor without a graph (detached).
+        let fused_ren = if device.is_autodiff() {
+            Tensor::from_inner(fused_ren)
+        } else {
+            fused_ren
+        };
+        (fused_src, fused_ren)
+    }
+
     /// One feedback step (module docs).
     #[allow(clippy::too_many_arguments)]
     fn update(
@@ -526,14 +588,7 @@ impl Reconstructor {
         drop(span);
 
         let span = tracing::debug_span!("fusion").entered();
-        let fused_src = {
-            let _span = tracing::debug_span!("source").entered();
-            self.fusion.forward(src, state.embed.clone())
-        };
-        let fused_ren = {
-            let _span = tracing::debug_span!("rendered").entered();
-            self.fusion.forward(ren, state.embed.clone()).detach()
-        };
+        let (fused_src, fused_ren) = self.fuse_branches(src, ren, &state.embed);
         drop(span);
         let h_pt = {
             let _span = tracing::debug_span!("point_transformer").entered();

@@ -1,0 +1,506 @@
+//! Multi-source fusion (design.md §7.4): per vertex, the features sampled from the N views are fused
+//! by two post-norm transformer layers with shared weights for the source and rendered branches.
+//!
+//! 1. **Across views**: self-attention over the N view tokens of each vertex (sequence length N,
+//!    batch V). A vertex seen well in one view and occluded in another can borrow from the
+//!    good view; the order of views does not matter (no positional encoding).
+//! 2. **Into the vertex**: cross-attention whose single query is the vertex's current embedding
+//!    (learned per vertex, updated by the feedback loop) and whose keys/values are the fused
+//!    view tokens: one `d`-vector per vertex.
+//!
+//! Each layer is `x = LN₁(q + Dropout(MHA(q, k, v)))`, `out = LN₂(x + Dropout(FFN(x)))` with
+//! `FFN = Linear → ReLU → Linear`, separate `W_q, W_k, W_v, W_o` with biases, scale `1/√d_k`
+//! and no mask — the reference's `EncoderLayer`, written out here (rather than Burn's
+//! `MultiHeadAttention`) so the parameter names map one-to-one onto the official state dict
+//! (`multiview_embed.{0,1}.self_attn.W_{q,k,v,o}`, `feed_forward.fc{1,2}`, `norm{1,2}`).
+//!
+//! On the CPU backends the attention core (scores, softmax, weighted values, for all heads) and
+//! each `LN(a + b)` run as single custom ops with hand-written backwards ([`op`], math in
+//! [`kernels`]); on CubeCL devices, and as their test reference, they are the tensor-op
+//! compositions written here.
+
+pub mod kernels;
+pub mod op;
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
+use burn::tensor::activation::{relu, softmax};
+use burn::tensor::{Device, Tensor};
+
+use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with};
+use lifegom_render::device::runs_on_host;
+use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
+
+/// How the attention core and the residual LayerNorms are computed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FusionKernel {
+    /// The custom ops of [`op`] (CPU backends).
+    HostOps,
+    /// Burn tensor-op compositions (CubeCL devices; the reference in tests).
+    TensorOps,
+}
+
+impl FusionKernel {
+    /// The fast choice for `device`.
+    pub fn for_device(device: &Device) -> Self {
+        if runs_on_host(device) {
+            Self::HostOps
+        } else {
+            Self::TensorOps
+        }
+    }
+}
+
+/// One post-norm attention layer.
+#[derive(Config, Debug)]
+pub struct AttentionLayerConfig {
+    /// Token width.
+    pub d_model: usize,
+    /// Hidden width of the feed-forward block.
+    pub d_ff: usize,
+    /// Attention heads; must divide `d_model`.
+    pub n_heads: usize,
+    /// Dropout after attention and after the feed-forward block (training only).
+    #[config(default = 0.1)]
+    pub dropout: f64,
+    /// LayerNorm epsilon.
+    #[config(default = 1e-5)]
+    pub layer_norm_eps: f64,
+}
+
+/// See [`AttentionLayerConfig`].
+#[derive(Module, Debug)]
+pub struct AttentionLayer {
+    w_q: Linear,
+    w_k: Linear,
+    w_v: Linear,
+    w_o: Linear,
+    fc1: Linear,
+    fc2: Linear,
+    norm1: LayerNorm,
+    norm2: LayerNorm,
+    dropout: Dropout,
+    n_heads: usize,
+    layer_norm_eps: f64,
+}
+
+impl AttentionLayerConfig {
+    /// Builds the layer with PyTorch-default initialisation (Burn's `Linear` default is the same
+    /// kaiming-uniform with bound `1/√fan_in`).
+    pub fn init(&self, device: &Device) -> AttentionLayer {
+        assert!(
+            self.n_heads > 0 && self.d_model.is_multiple_of(self.n_heads),
+            "d_model {} must be divisible by n_heads {}",
+            self.d_model,
+            self.n_heads
+        );
+        let lin = |i, o| LinearConfig::new(i, o).init(device);
+        AttentionLayer {
+            w_q: lin(self.d_model, self.d_model),
+            w_k: lin(self.d_model, self.d_model),
+            w_v: lin(self.d_model, self.d_model),
+            w_o: lin(self.d_model, self.d_model),
+            fc1: lin(self.d_model, self.d_ff),
+            fc2: lin(self.d_ff, self.d_model),
+            norm1: LayerNormConfig::new(self.d_model)
+                .with_epsilon(self.layer_norm_eps)
+                .init(device),
+            norm2: LayerNormConfig::new(self.d_model)
+                .with_epsilon(self.layer_norm_eps)
+                .init(device),
+            dropout: DropoutConfig::new(self.dropout).init(),
+            n_heads: self.n_heads,
+            layer_norm_eps: self.layer_norm_eps,
+        }
+    }
+}
+
+impl AttentionLayer {
+    /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`; returns `[B, Lq, D]`.
+    pub fn forward(&self, query: Tensor<3>, context: Tensor<3>) -> Tensor<3> {
+        let kernel = FusionKernel::for_device(&query.device());
+        self.forward_with(query, context, kernel, [MaskSeed::Device; 2])
+    }
+
+    /// [`Self::forward`] with the kernel chosen by the caller (tests compare the two) and the
+    /// seeds of its two dropout masks (after attention, after the feed-forward block).
+    pub fn forward_with(
+        &self,
+        query: Tensor<3>,
+        context: Tensor<3>,
+        kernel: FusionKernel,
+        masks: [MaskSeed; 2],
+    ) -> Tensor<3> {
+        let q = self.w_q.forward(query.clone());
+        let k = self.w_k.forward(context.clone());
+        let v = self.w_v.forward(context);
+        let attn = self.w_o.forward(self.attend(q, k, v, kernel));
+        let x = self.add_norm(
+            &self.norm1,
+            query,
+            dropout_with(&self.dropout, attn, masks[0]),
+            kernel,
+        );
+        let ff = self.fc2.forward(relu(self.fc1.forward(x.clone())));
+        self.add_norm(
+            &self.norm2,
+            x,
+            dropout_with(&self.dropout, ff, masks[1]),
+            kernel,
+        )
+    }
+
+    /// Scaled dot-product attention of projected `q` `[B, Lq, D]` over `k`, `v` `[B, Lk, D]`,
+    /// heads side by side in the channels; `[B, Lq, D]`.
+    fn attend(&self, q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, kernel: FusionKernel) -> Tensor<3> {
+        match kernel {
+            FusionKernel::HostOps => Tensor::from_dispatch(
+                <burn::backend::Dispatch as FusionAttentionOps>::fusion_attention(
+                    q.into_dispatch(),
+                    k.into_dispatch(),
+                    v.into_dispatch(),
+                    AttentionHeads(self.n_heads),
+                ),
+            ),
+            FusionKernel::TensorOps => {
+                let [b, lq, d] = q.dims();
+                let [_, lk, _] = k.dims();
+                let h = self.n_heads;
+                let dk = d / h;
+                let heads = |t: Tensor<3>, l: usize| t.reshape([b, l, h, dk]).swap_dims(1, 2); // [B,H,L,dk]
+                let (q, k, v) = (heads(q, lq), heads(k, lk), heads(v, lk));
+                let scores = q.matmul(k.swap_dims(2, 3)) / (dk as f64).sqrt();
+                softmax(scores, 3)
+                    .matmul(v) // [B,H,Lq,dk]
+                    .swap_dims(1, 2)
+                    .reshape([b, lq, d])
+            }
+        }
+    }
+
+    /// `norm(x + residual)`.
+    fn add_norm(
+        &self,
+        norm: &LayerNorm,
+        x: Tensor<3>,
+        residual: Tensor<3>,
+        kernel: FusionKernel,
+    ) -> Tensor<3> {
+        match (kernel, &norm.beta) {
+            (FusionKernel::HostOps, Some(beta)) => Tensor::from_dispatch(
+                <burn::backend::Dispatch as AddLayerNormOps>::add_layer_norm(
+                    x.into_dispatch(),
+                    residual.into_dispatch(),
+                    norm.gamma.val().into_dispatch(),
+                    beta.val().into_dispatch(),
+                    LayerNormEpsilon(self.layer_norm_eps),
+                ),
+            ),
+            _ => norm.forward(x + residual),
+        }
+    }
+}
+
+/// The two-layer fusion block.
+#[derive(Config, Debug)]
+pub struct FusionConfig {
+    /// Feature width per view (1152 in the paper config).
+    pub d_model: usize,
+    /// Attention heads (6 in the paper config).
+    #[config(default = 6)]
+    pub n_heads: usize,
+    /// Dropout (training only).
+    #[config(default = 0.1)]
+    pub dropout: f64,
+}
+
+/// See [`FusionConfig`].
+#[derive(Module, Debug)]
+pub struct Fusion {
+    /// Self-attention across the views of one vertex.
+    pub views: AttentionLayer,
+    /// Cross-attention from the vertex embedding into the fused views.
+    pub query: AttentionLayer,
+}
+
+impl FusionConfig {
+    /// Builds the fusion block (feed-forward width = `d_model`, as in the reference).
+    pub fn init(&self, device: &Device) -> Fusion {
+        let layer = AttentionLayerConfig::new(self.d_model, self.d_model, self.n_heads)
+            .with_dropout(self.dropout);
+        Fusion {
+            views: layer.init(device),
+            query: layer.init(device),
+        }
+    }
+}
+
+impl Fusion {
+    /// Fuses per-view features `[V, N, D]` into one `[V, D]` per vertex, queried by `embed`
+    /// `[V, D]`.
+    pub fn forward(&self, features: Tensor<3>, embed: Tensor<2>) -> Tensor<2> {
+        self.forward_with(features, embed, FusionMasks::Device)
+    }
+
+    /// [`Self::forward`] with its four dropout masks' seeds chosen by the caller.
+    pub fn forward_with(
+        &self,
+        features: Tensor<3>,
+        embed: Tensor<2>,
+        masks: FusionMasks,
+    ) -> Tensor<2> {
+        let [v, _, d] = features.dims();
+        let kernel = FusionKernel::for_device(&features.device());
+        let seeds = match masks {
+            FusionMasks::Device => [MaskSeed::Device; 4],
+            FusionMasks::Given(seeds) => seeds,
+        };
+        let across_views =
+            self.views
+                .forward_with(features.clone(), features, kernel, [seeds[0], seeds[1]]);
+        self.query
+            .forward_with(
+                embed.reshape([v, 1, d]),
+                across_views,
+                kernel,
+                [seeds[2], seeds[3]],
+            )
+            .reshape([v, d])
+    }
+
+    /// The four dropout masks one training call of [`Self::forward`] on `device` would apply,
+    /// as seeds drawn now from the device's RNG in the same order ([`MaskSeed::Off`] where a
+    /// layer draws none: frozen, not training, no autodiff, dropout 0). `None` on a CubeCL
+    /// device, where Burn draws the masks on the device. With them, a call on an inference copy
+    /// of the weights ([`Module::valid`]) applies the same masks without building a graph, on
+    /// any thread.
+    pub fn draw_mask_seeds(&self, device: &Device) -> Option<[MaskSeed; 4]> {
+        if !runs_on_host(device) {
+            return None;
+        }
+        let layers = [&self.views, &self.views, &self.query, &self.query];
+        Some(layers.map(|l| {
+            if draws_host_mask(&l.dropout, device) {
+                MaskSeed::Given(draw_seed(device))
+            } else {
+                MaskSeed::Off
+            }
+        }))
+    }
+}
+
+/// Where a [`Fusion`] call's four dropout masks come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FusionMasks {
+    /// Drawn from the device's RNG as the call goes (Burn's training rule).
+    Device,
+    /// From [`Fusion::draw_mask_seeds`]: fixed before the call, so the call may run on
+    /// inference weights and on any thread.
+    Given([MaskSeed; 4]),
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(deprecated)]
+    use super::*;
+    use burn::tensor::{Distribution, TensorData};
+
+    use lifegom_render::testing::read;
+
+    fn shapes_and_view_permutation(device: &Device) {
+        let fusion = FusionConfig::new(24).with_n_heads(3).init(device);
+        let feats = Tensor::<3>::random([5, 4, 24], Distribution::Normal(0.0, 1.0), device);
+        let embed = Tensor::<2>::random([5, 24], Distribution::Normal(0.0, 1.0), device);
+        let out = fusion.forward(feats.clone(), embed.clone());
+        assert_eq!(out.dims(), [5, 24]);
+        // Views are a set: permuting them leaves the fused vertex feature unchanged.
+        let perm = Tensor::<1, burn::tensor::Int>::from_data(
+            TensorData::new(vec![2i64, 0, 3, 1], [4]),
+            device,
+        );
+        let out_perm = fusion.forward(feats.select(1, perm), embed);
+        for (a, b) in read(out).iter().zip(read(out_perm)) {
+            assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+        }
+    }
+
+    /// A single head over a single view is a plain MLP-like map: check against a hand-computed
+    /// attention (softmax over one key is 1, so the output is LN-layers of W_o·W_v·x).
+    fn single_view_attention_is_value_projection(device: &Device) {
+        let layer = AttentionLayerConfig::new(4, 4, 1)
+            .with_dropout(0.0)
+            .init(device);
+        let q = Tensor::<3>::random([2, 1, 4], Distribution::Normal(0.0, 1.0), device);
+        let c = Tensor::<3>::random([2, 1, 4], Distribution::Normal(0.0, 1.0), device);
+        let out = layer.forward(q.clone(), c.clone());
+        let attn = layer.w_o.forward(layer.w_v.forward(c));
+        let x = layer.norm1.forward(q + attn);
+        let expect = layer
+            .norm2
+            .forward(x.clone() + layer.fc2.forward(relu(layer.fc1.forward(x))));
+        for (a, b) in read(out).iter().zip(read(expect)) {
+            assert!((a - b).abs() < 1e-5);
+        }
+    }
+
+    fn gradients_reach_every_parameter(device: &Device) {
+        let ad = device.clone().autodiff();
+        let fusion = FusionConfig::new(12)
+            .with_n_heads(2)
+            .with_dropout(0.0)
+            .init(&ad);
+        let feats = Tensor::<3>::random([3, 2, 12], Distribution::Normal(0.0, 1.0), &ad);
+        let embed =
+            Tensor::<2>::random([3, 12], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+        let grads = (fusion.forward(feats, embed.clone()).powi_scalar(2))
+            .sum()
+            .backward();
+        assert!(embed.grad(&grads).is_some());
+        for layer in [&fusion.views, &fusion.query] {
+            for lin in [
+                &layer.w_q, &layer.w_k, &layer.w_v, &layer.w_o, &layer.fc1, &layer.fc2,
+            ] {
+                let g = lin
+                    .weight
+                    .val()
+                    .grad(&grads)
+                    .expect("every linear gets a gradient");
+                assert!(read(g).iter().all(|v| v.is_finite()));
+            }
+        }
+    }
+
+    /// The custom ops give the tensor-op compositions' outputs and gradients (inputs and every
+    /// parameter) up to float summation order, for self-attention over views (Lq = Lk) and the
+    /// single-query cross-attention.
+    fn host_ops_equal_tensor_ops(device: &Device) {
+        let ad = device.clone().autodiff();
+        let layer = AttentionLayerConfig::new(24, 24, 4)
+            .with_dropout(0.0)
+            .init(&ad);
+        for (lq, lk) in [(3, 3), (1, 3), (1, 5)] {
+            let b = 150; // more than one rayon task of the kernels
+            let q = Tensor::<3>::random([b, lq, 24], Distribution::Normal(0.0, 1.0), &ad)
+                .require_grad();
+            let c = Tensor::<3>::random([b, lk, 24], Distribution::Normal(0.0, 1.0), &ad)
+                .require_grad();
+            let w = Tensor::<3>::random([b, lq, 24], Distribution::Normal(0.0, 1.0), &ad);
+            let run = |kernel| {
+                let out = layer.forward_with(q.clone(), c.clone(), kernel, [MaskSeed::Device; 2]);
+                let grads = (out.clone() * w.clone()).sum().backward();
+                (out, grads)
+            };
+            let (out_ops, g_ops) = run(FusionKernel::HostOps);
+            let (out_ref, g_ref) = run(FusionKernel::TensorOps);
+            let close = |a: Tensor<3>, b: Tensor<3>, what: &str| {
+                let (a, b) = (read(a), read(b));
+                let scale = b.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
+                for (i, (x, y)) in a.iter().zip(&b).enumerate() {
+                    assert!(
+                        (x - y).abs() <= 1e-5 * scale,
+                        "{what}[{i}] (Lq {lq}, Lk {lk}): ops {x} vs tensor ops {y}"
+                    );
+                }
+            };
+            close(out_ops, out_ref, "output");
+            close(
+                q.grad(&g_ops).expect("query gradient"),
+                q.grad(&g_ref).expect("query gradient"),
+                "query gradient",
+            );
+            close(
+                c.grad(&g_ops).expect("context gradient"),
+                c.grad(&g_ref).expect("context gradient"),
+                "context gradient",
+            );
+            let params = |g: &burn::tensor::Gradients| {
+                let mut all: Vec<f32> = Vec::new();
+                for lin in [
+                    &layer.w_q, &layer.w_k, &layer.w_v, &layer.w_o, &layer.fc1, &layer.fc2,
+                ] {
+                    all.extend(read(lin.weight.val().grad(g).expect("weight gradient")));
+                    let bias = lin.bias.as_ref().expect("biases").val();
+                    all.extend(read(bias.grad(g).expect("bias gradient")));
+                }
+                for norm in [&layer.norm1, &layer.norm2] {
+                    all.extend(read(norm.gamma.val().grad(g).expect("gamma gradient")));
+                    let beta = norm.beta.as_ref().expect("beta").val();
+                    all.extend(read(beta.grad(g).expect("beta gradient")));
+                }
+                all
+            };
+            let (a, b) = (params(&g_ops), params(&g_ref));
+            let scale = b.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
+            for (i, (x, y)) in a.iter().zip(&b).enumerate() {
+                assert!(
+                    (x - y).abs() <= 1e-5 * scale,
+                    "parameter gradient {i} (Lq {lq}, Lk {lk}): ops {x} vs tensor ops {y}"
+                );
+            }
+        }
+    }
+
+    lifegom_render::cpu_backend_tests!(host_ops => host_ops_equal_tensor_ops);
+
+    /// Mask seeds drawn ahead reproduce a sequential source-then-rendered pair of training
+    /// calls exactly, also when the second call runs on an inference copy of the weights
+    /// (what `Reconstructor::fuse_branches` does on a second thread).
+    fn drawn_masks_repeat_the_sequential_calls(device: &Device) {
+        let ad = device.clone().autodiff();
+        let fusion = FusionConfig::new(12)
+            .with_n_heads(2)
+            .with_dropout(0.3)
+            .init(&ad);
+        let normal =
+            |shape: [usize; 3]| Tensor::<3>::random(shape, Distribution::Normal(0.0, 1.0), &ad);
+        let (src, ren) = (normal([40, 3, 12]), normal([40, 3, 12]));
+        let embed = Tensor::<2>::random([40, 12], Distribution::Normal(0.0, 1.0), &ad);
+        ad.seed(5);
+        let seq_src = read(fusion.forward(src.clone(), embed.clone()));
+        let seq_ren = read(fusion.forward(ren.clone(), embed.clone()));
+        ad.seed(5);
+        let src_masks = fusion.draw_mask_seeds(&ad).expect("a host device");
+        let ren_masks = fusion.draw_mask_seeds(&ad).expect("a host device");
+        assert!(
+            src_masks.iter().all(|m| matches!(m, MaskSeed::Given(_))),
+            "a training call draws four masks"
+        );
+        let ahead_src =
+            read(fusion.forward_with(src, embed.clone(), FusionMasks::Given(src_masks)));
+        let inference = fusion.valid();
+        let ahead_ren = read(inference.forward_with(
+            ren.clone().inner(),
+            embed.clone().inner(),
+            FusionMasks::Given(ren_masks),
+        ));
+        assert_eq!(seq_src, ahead_src);
+        assert_eq!(seq_ren, ahead_ren);
+        // The masks were applied: without them the inference copy gives another result.
+        let unmasked = read(inference.forward(ren.inner(), embed.inner()));
+        assert_ne!(seq_ren, unmasked);
+        // Off the autodiff device no mask is drawn.
+        assert_eq!(
+            fusion.valid().draw_mask_seeds(device),
+            Some([MaskSeed::Off; 4])
+        );
+    }
+
+    lifegom_render::cpu_backend_tests!(drawn_masks => drawn_masks_repeat_the_sequential_calls);
+
+    #[test]
+    fn fusion_ndarray() {
+        let d = Device::ndarray();
+        shapes_and_view_permutation(&d);
+        single_view_attention_is_value_projection(&d);
+        gradients_reach_every_parameter(&d);
+    }
+
+    #[test]
+    fn fusion_flex() {
+        let d = Device::flex();
+        shapes_and_view_permutation(&d);
+        single_view_attention_is_value_projection(&d);
+        gradients_reach_every_parameter(&d);
+    }
+}

@@ -1,0 +1,440 @@
+//! The fusion layers' attention core and residual LayerNorm as custom Burn ops on the CPU
+//! backends (design.md §7.4).
+//!
+//! [`FusionAttentionOps`] and [`AddLayerNormOps`] are backend extensions like the sampling op
+//! ([`crate::sampling`]): `#[backend_extension]` generates their `Dispatch` implementations,
+//! they are implemented for NdArray and Flex (both run [`super::kernels`]) and for
+//! `Autodiff<B, C>` over them, with the hand-written backwards of that module. Burn's autodiff
+//! runs attention and LayerNorm as compositions of small ops (reshapes, batched matmuls of
+//! `N×d_k` matrices, a five-op softmax; eight ops per LayerNorm), each with its own node and
+//! intermediate; on a CPU those cost more than the arithmetic (BENCHMARKS.md, "Training step
+//! profile").
+//!
+//! CubeCL devices keep the composition ([`super::AttentionLayer`] routes by
+//! `lifegom_render::device::runs_on_host`), which is also the reference the ops are tested
+//! against. The autodiff nodes keep the inputs (handles, no copies) and recompute what the
+//! backward needs.
+
+// NdArray is deprecated in Burn 0.22 in favour of Flex; ndarray is the CI backend the project
+// requires (design.md §1.4).
+#![allow(deprecated)]
+
+use burn::backend::TensorMetadata;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
+use burn::tensor::{DType, Element, Shape, TensorData};
+
+use super::kernels::{self, AttentionShape, Real};
+use lifegom_render::readback::cpu_float_as;
+
+/// Multi-head scaled dot-product attention over short sequences, without mask or dropout.
+///
+/// Inputs: `query` `[B, L_q, D]`, `key` and `value` `[B, L_k, D]` (already projected, heads
+/// side by side in the channels); output `[B, L_q, D]` in `query`'s dtype. Gradients flow to all
+/// three. Callers check shapes (see [`super::AttentionLayer`]).
+#[backend_extension(NdArray, Flex, Autodiff)]
+pub trait FusionAttentionOps: Backend {
+    /// Attends every problem's queries to its keys, `heads` heads at once.
+    fn fusion_attention(
+        query: FloatTensor<Self>,
+        key: FloatTensor<Self>,
+        value: FloatTensor<Self>,
+        heads: AttentionHeads,
+    ) -> FloatTensor<Self>;
+}
+
+/// How many heads the channels split into.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AttentionHeads(pub usize);
+
+/// `LayerNorm(x + residual)·γ + β` over the last dimension.
+///
+/// Inputs: `x` and `residual` of one shape `[.., D]`, `gamma` and `beta` `[D]`; output the
+/// shape of `x`. Gradients flow to all four.
+#[backend_extension(NdArray, Flex, Autodiff)]
+pub trait AddLayerNormOps: Backend {
+    /// Normalises the residual sum.
+    fn add_layer_norm(
+        x: FloatTensor<Self>,
+        residual: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        epsilon: LayerNormEpsilon,
+    ) -> FloatTensor<Self>;
+}
+
+/// The LayerNorm's `ε`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LayerNormEpsilon(pub f64);
+
+/// The attention op's inputs on one backend: what the forward takes and the node keeps.
+#[derive(Debug, Clone)]
+pub struct AttentionInputs<B: Backend> {
+    query: FloatTensor<B>,
+    key: FloatTensor<B>,
+    value: FloatTensor<B>,
+    heads: usize,
+}
+
+/// The LayerNorm op's inputs on one backend.
+#[derive(Debug, Clone)]
+pub struct LayerNormInputs<B: Backend> {
+    x: FloatTensor<B>,
+    residual: FloatTensor<B>,
+    gamma: FloatTensor<B>,
+    beta: FloatTensor<B>,
+    epsilon: f64,
+}
+
+/// What a backend implements so that `Autodiff<B>` can differentiate the ops.
+#[doc(hidden)]
+pub trait FusionKernels: Backend {
+    /// The attention forward.
+    fn attention_forward(inputs: AttentionInputs<Self>) -> FloatTensor<Self>;
+    /// `[∂query, ∂key, ∂value]`.
+    fn attention_backward(
+        inputs: AttentionInputs<Self>,
+        grad: FloatTensor<Self>,
+    ) -> [FloatTensor<Self>; 3];
+    /// The LayerNorm forward.
+    fn layer_norm_forward(inputs: LayerNormInputs<Self>) -> FloatTensor<Self>;
+    /// `[∂(x + residual), ∂γ, ∂β]`.
+    fn layer_norm_backward(
+        inputs: LayerNormInputs<Self>,
+        grad: FloatTensor<Self>,
+    ) -> [FloatTensor<Self>; 3];
+}
+
+/// Runs `f::<B, T>` in `f64` when `dtype` is `f64` (the precision tests), else in `f32`.
+macro_rules! in_precision {
+    ($dtype:expr, $f:ident ( $($arg:expr),* )) => {
+        match $dtype {
+            DType::F64 => $f::<B, f64>($($arg),*),
+            _ => $f::<B, f32>($($arg),*),
+        }
+    };
+}
+
+/// `values` as a tensor of `shape` in `dtype` on `device`.
+fn tensor<B: Backend, T: Element>(
+    values: Vec<T>,
+    shape: Shape,
+    dtype: DType,
+    device: &B::Device,
+) -> FloatTensor<B> {
+    let t = B::float_from_data(TensorData::new(values, shape), device);
+    if t.dtype() == dtype {
+        t
+    } else {
+        B::float_cast(t, dtype.into())
+    }
+}
+
+fn attention_shape<B: Backend>(inputs: &AttentionInputs<B>) -> AttentionShape {
+    let (q, k) = (inputs.query.shape(), inputs.key.shape());
+    AttentionShape {
+        batch: q[0],
+        len_q: q[1],
+        len_k: k[1],
+        d_model: q[2],
+        heads: inputs.heads,
+    }
+}
+
+fn cpu_attention_forward<B: Backend>(inputs: AttentionInputs<B>) -> FloatTensor<B> {
+    in_precision!(inputs.query.dtype(), cpu_attention_forward_in(inputs))
+}
+
+fn cpu_attention_forward_in<B: Backend, T: Real + Element>(
+    inputs: AttentionInputs<B>,
+) -> FloatTensor<B> {
+    let (device, dtype, shape) = (
+        inputs.query.device(),
+        inputs.query.dtype(),
+        inputs.query.shape(),
+    );
+    let dims = attention_shape(&inputs);
+    let q = cpu_float_as::<B, T>("attention query", inputs.query);
+    let k = cpu_float_as::<B, T>("attention key", inputs.key);
+    let v = cpu_float_as::<B, T>("attention value", inputs.value);
+    let out = kernels::attention_forward(&q, &k, &v, dims);
+    tensor::<B, T>(out, shape, dtype, &device)
+}
+
+fn cpu_attention_backward<B: Backend>(
+    inputs: AttentionInputs<B>,
+    grad: FloatTensor<B>,
+) -> [FloatTensor<B>; 3] {
+    in_precision!(
+        inputs.query.dtype(),
+        cpu_attention_backward_in(inputs, grad)
+    )
+}
+
+fn cpu_attention_backward_in<B: Backend, T: Real + Element>(
+    inputs: AttentionInputs<B>,
+    grad: FloatTensor<B>,
+) -> [FloatTensor<B>; 3] {
+    let device = inputs.query.device();
+    let dims = attention_shape(&inputs);
+    let shapes = [
+        (inputs.query.shape(), inputs.query.dtype()),
+        (inputs.key.shape(), inputs.key.dtype()),
+        (inputs.value.shape(), inputs.value.dtype()),
+    ];
+    let g = cpu_float_as::<B, T>("attention gradient", grad);
+    let q = cpu_float_as::<B, T>("attention query", inputs.query);
+    let k = cpu_float_as::<B, T>("attention key", inputs.key);
+    let v = cpu_float_as::<B, T>("attention value", inputs.value);
+    let (dq, dk, dv) = kernels::attention_backward(&q, &k, &v, &g, dims);
+    let [(sq, tq), (sk, tk), (sv, tv)] = shapes;
+    [
+        tensor::<B, T>(dq, sq, tq, &device),
+        tensor::<B, T>(dk, sk, tk, &device),
+        tensor::<B, T>(dv, sv, tv, &device),
+    ]
+}
+
+fn cpu_layer_norm_forward<B: Backend>(inputs: LayerNormInputs<B>) -> FloatTensor<B> {
+    in_precision!(inputs.x.dtype(), cpu_layer_norm_forward_in(inputs))
+}
+
+fn cpu_layer_norm_forward_in<B: Backend, T: Real + Element>(
+    inputs: LayerNormInputs<B>,
+) -> FloatTensor<B> {
+    let (device, dtype, shape) = (inputs.x.device(), inputs.x.dtype(), inputs.x.shape());
+    let x = cpu_float_as::<B, T>("layer norm input", inputs.x);
+    let r = cpu_float_as::<B, T>("layer norm residual", inputs.residual);
+    let gamma = cpu_float_as::<B, T>("layer norm gamma", inputs.gamma);
+    let beta = cpu_float_as::<B, T>("layer norm beta", inputs.beta);
+    let out = kernels::add_layer_norm_forward(&x, &r, &gamma, &beta, inputs.epsilon);
+    tensor::<B, T>(out, shape, dtype, &device)
+}
+
+fn cpu_layer_norm_backward<B: Backend>(
+    inputs: LayerNormInputs<B>,
+    grad: FloatTensor<B>,
+) -> [FloatTensor<B>; 3] {
+    in_precision!(inputs.x.dtype(), cpu_layer_norm_backward_in(inputs, grad))
+}
+
+fn cpu_layer_norm_backward_in<B: Backend, T: Real + Element>(
+    inputs: LayerNormInputs<B>,
+    grad: FloatTensor<B>,
+) -> [FloatTensor<B>; 3] {
+    let device = inputs.x.device();
+    let (x_shape, x_dtype) = (inputs.x.shape(), inputs.x.dtype());
+    let (p_shape, p_dtype) = (inputs.gamma.shape(), inputs.gamma.dtype());
+    let b_dtype = inputs.beta.dtype();
+    let g = cpu_float_as::<B, T>("layer norm gradient", grad);
+    let x = cpu_float_as::<B, T>("layer norm input", inputs.x);
+    let r = cpu_float_as::<B, T>("layer norm residual", inputs.residual);
+    let gamma = cpu_float_as::<B, T>("layer norm gamma", inputs.gamma);
+    let (dz, dgamma, dbeta) = kernels::add_layer_norm_backward(&x, &r, &gamma, &g, inputs.epsilon);
+    [
+        tensor::<B, T>(dz, x_shape, x_dtype, &device),
+        tensor::<B, T>(dgamma, p_shape.clone(), p_dtype, &device),
+        tensor::<B, T>(dbeta, p_shape, b_dtype, &device),
+    ]
+}
+
+/// Implements both ops for a CPU backend through the shared slice kernels.
+macro_rules! cpu_fusion_backend {
+    ($backend:ty) => {
+        impl FusionAttentionOps for $backend {
+            fn fusion_attention(
+                query: FloatTensor<Self>,
+                key: FloatTensor<Self>,
+                value: FloatTensor<Self>,
+                heads: AttentionHeads,
+            ) -> FloatTensor<Self> {
+                cpu_attention_forward::<Self>(AttentionInputs {
+                    query,
+                    key,
+                    value,
+                    heads: heads.0,
+                })
+            }
+        }
+
+        impl AddLayerNormOps for $backend {
+            fn add_layer_norm(
+                x: FloatTensor<Self>,
+                residual: FloatTensor<Self>,
+                gamma: FloatTensor<Self>,
+                beta: FloatTensor<Self>,
+                epsilon: LayerNormEpsilon,
+            ) -> FloatTensor<Self> {
+                cpu_layer_norm_forward::<Self>(LayerNormInputs {
+                    x,
+                    residual,
+                    gamma,
+                    beta,
+                    epsilon: epsilon.0,
+                })
+            }
+        }
+
+        impl FusionKernels for $backend {
+            fn attention_forward(inputs: AttentionInputs<Self>) -> FloatTensor<Self> {
+                cpu_attention_forward::<Self>(inputs)
+            }
+
+            fn attention_backward(
+                inputs: AttentionInputs<Self>,
+                grad: FloatTensor<Self>,
+            ) -> [FloatTensor<Self>; 3] {
+                cpu_attention_backward::<Self>(inputs, grad)
+            }
+
+            fn layer_norm_forward(inputs: LayerNormInputs<Self>) -> FloatTensor<Self> {
+                cpu_layer_norm_forward::<Self>(inputs)
+            }
+
+            fn layer_norm_backward(
+                inputs: LayerNormInputs<Self>,
+                grad: FloatTensor<Self>,
+            ) -> [FloatTensor<Self>; 3] {
+                cpu_layer_norm_backward::<Self>(inputs, grad)
+            }
+        }
+    };
+}
+
+cpu_fusion_backend!(NdArray);
+cpu_fusion_backend!(Flex);
+
+#[derive(Debug)]
+struct AttentionBackward;
+
+impl<B: FusionKernels> Backward<B, 3> for AttentionBackward {
+    type State = AttentionInputs<B>;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 3>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let gradients = B::attention_backward(ops.state, grad);
+        for (parent, g) in ops.parents.into_iter().zip(gradients) {
+            if let Some(parent) = parent {
+                grads.register::<B>(parent.id, g);
+            }
+        }
+    }
+}
+
+impl<B: FusionAttentionOps + FusionKernels, C: CheckpointStrategy> FusionAttentionOps
+    for Autodiff<B, C>
+{
+    fn fusion_attention(
+        query: FloatTensor<Self>,
+        key: FloatTensor<Self>,
+        value: FloatTensor<Self>,
+        heads: AttentionHeads,
+    ) -> FloatTensor<Self> {
+        let (query, q_node) = query.into_parts();
+        let (key, k_node) = key.into_parts();
+        let (value, v_node) = value.into_parts();
+        let inputs = AttentionInputs {
+            query,
+            key,
+            value,
+            heads: heads.0,
+        };
+        match AttentionBackward
+            .prepare::<C>([q_node, k_node, v_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let out = B::attention_forward(inputs.clone());
+                prep.finish(inputs, out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::fusion_attention(
+                inputs.query,
+                inputs.key,
+                inputs.value,
+                heads,
+            )),
+        }
+    }
+}
+
+#[derive(Debug)]
+struct LayerNormBackward;
+
+impl<B: FusionKernels> Backward<B, 4> for LayerNormBackward {
+    type State = LayerNormInputs<B>;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 4>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let [x_parent, r_parent, gamma_parent, beta_parent] = ops.parents;
+        let [dz, dgamma, dbeta] = B::layer_norm_backward(ops.state, grad);
+        // The residual sum's two terms share one gradient.
+        match (x_parent, r_parent) {
+            (Some(x), Some(r)) => {
+                grads.register::<B>(x.id, dz.clone());
+                grads.register::<B>(r.id, dz);
+            }
+            (Some(p), None) | (None, Some(p)) => grads.register::<B>(p.id, dz),
+            (None, None) => {}
+        }
+        if let Some(parent) = gamma_parent {
+            grads.register::<B>(parent.id, dgamma);
+        }
+        if let Some(parent) = beta_parent {
+            grads.register::<B>(parent.id, dbeta);
+        }
+    }
+}
+
+impl<B: AddLayerNormOps + FusionKernels, C: CheckpointStrategy> AddLayerNormOps for Autodiff<B, C> {
+    fn add_layer_norm(
+        x: FloatTensor<Self>,
+        residual: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        epsilon: LayerNormEpsilon,
+    ) -> FloatTensor<Self> {
+        let (x, x_node) = x.into_parts();
+        let (residual, r_node) = residual.into_parts();
+        let (gamma, gamma_node) = gamma.into_parts();
+        let (beta, beta_node) = beta.into_parts();
+        let inputs = LayerNormInputs {
+            x,
+            residual,
+            gamma,
+            beta,
+            epsilon: epsilon.0,
+        };
+        match LayerNormBackward
+            .prepare::<C>([x_node, r_node, gamma_node, beta_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let out = B::layer_norm_forward(inputs.clone());
+                prep.finish(inputs, out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::add_layer_norm(
+                inputs.x,
+                inputs.residual,
+                inputs.gamma,
+                inputs.beta,
+                epsilon,
+            )),
+        }
+    }
+}
