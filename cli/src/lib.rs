@@ -14,8 +14,8 @@
 //! | `turntable` | renders the body template as a Gaussians-on-Mesh turntable |
 //! | `render-bench`, `recon-bench`, `train-bench` | benchmarks, one JSON line each (BENCHMARKS.md) |
 //!
-//! The library part holds what the binaries share: start-up ([`init_tracing`],
-//! [`stop_on_ctrl_c`]), the training loop behind the train command ([`train_run`]) and the
+//! The library part holds what the binaries share: start-up ([`allocator::keep_freed_memory`],
+//! [`init_tracing`], [`stop_on_ctrl_c`]), the training loop behind the train command ([`train_run`]) and the
 //! evaluation behind the eval command ([`eval_run`]).
 //!
 //! ```no_run
@@ -31,6 +31,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Context;
 
+pub mod allocator;
 pub mod eval_run;
 pub mod profile;
 pub mod reconstruct_run;

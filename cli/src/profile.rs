@@ -103,6 +103,20 @@ where
 /// CPU time (user + system) this process has used, from `/proc/self/stat`; `None` where that
 /// file does not exist (not Linux). Resolution: one clock tick (10 ms at the usual 100 Hz).
 pub fn process_cpu_seconds() -> Option<f64> {
+    process_cpu_times().map(|t| t.user + t.system)
+}
+
+/// CPU seconds a process has spent in user and in kernel mode.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CpuTimes {
+    /// In the program's own code and its libraries.
+    pub user: f64,
+    /// In the kernel on its behalf: system calls and page faults (zero-filling fresh memory).
+    pub system: f64,
+}
+
+/// [`CpuTimes`] of this process so far, from `/proc/self/stat`; `None` off Linux.
+pub fn process_cpu_times() -> Option<CpuTimes> {
     let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
     // Fields after the parenthesised command name (which may hold spaces): state is field 3,
     // utime and stime are fields 14 and 15, in clock ticks.
@@ -111,7 +125,25 @@ pub fn process_cpu_seconds() -> Option<f64> {
     let utime: f64 = fields.get(11)?.parse().ok()?;
     let stime: f64 = fields.get(12)?.parse().ok()?;
     // USER_HZ is 100 on every Linux architecture Rust targets (it is fixed by the ABI).
-    Some((utime + stime) / 100.0)
+    Some(CpuTimes {
+        user: utime / 100.0,
+        system: stime / 100.0,
+    })
+}
+
+/// The process's peak resident memory so far in MiB (`VmHWM` of `/proc/self/status`); `None`
+/// off Linux.
+pub fn peak_resident_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kib: f64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))?
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .ok()?;
+    Some(kib / 1024.0)
 }
 
 /// The median of `values` (the upper middle one for an even count); `None` when empty.
@@ -125,6 +157,22 @@ pub fn median(values: &[f64]) -> Option<f64> {
 mod tests {
     use super::*;
     use tracing_subscriber::layer::SubscriberExt;
+
+    #[test]
+    fn process_figures_are_read_on_linux() {
+        if cfg!(target_os = "linux") {
+            let t = process_cpu_times().expect("/proc/self/stat");
+            assert!(t.user >= 0.0 && t.system >= 0.0);
+            let before = peak_resident_mib().expect("/proc/self/status");
+            let block = vec![1u8; 64 << 20];
+            std::hint::black_box(&block);
+            let after = peak_resident_mib().expect("/proc/self/status");
+            assert!(
+                after >= before + 60.0,
+                "peak {before} → {after} MiB after touching 64 MiB"
+            );
+        }
+    }
 
     #[test]
     fn nested_and_repeated_spans_sum_per_path() {

@@ -90,6 +90,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
     let mut cfg = lifegom_data::config::ConfigFile::load(&args.config)?;

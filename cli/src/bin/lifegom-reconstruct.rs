@@ -77,6 +77,7 @@ fn parse_tree(s: &str) -> Result<KinematicTree, String> {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
     let cfg = ConfigFile::load(&args.config)?;

@@ -38,6 +38,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
     let cfg = ConfigFile::load(&args.config)?.with_root(&args.out);

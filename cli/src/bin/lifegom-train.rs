@@ -52,6 +52,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
     if let Some(dest) = &args.export {

@@ -69,6 +69,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
     let device = args.device.device();

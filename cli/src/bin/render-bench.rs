@@ -68,6 +68,7 @@ fn sync<const D: usize>(t: Tensor<D>) -> usize {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
     let template_path = args.template.clone().unwrap_or_else(full_template_path);

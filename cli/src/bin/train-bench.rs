@@ -8,9 +8,12 @@
 //!
 //! Runs the trainer's real step (the same data schedule, model and losses as `lifegom-train`) on
 //! a config's synthetic split, after warm-up steps, and prints ONE JSON line: the median step
-//! time, the process's CPU time per wall second (2.0 = both cores of a 2-core machine busy), and
-//! the median milliseconds of every stage, keyed by span path (`profile` module docs), e.g.
-//! `train_step/reconstruct/feedback_step/render_views` (summed over the T feedback steps).
+//! time, the process's CPU time per wall second (2.0 = both cores of a 2-core machine busy) and
+//! the kernel's share of it (`system_per_wall`: page faults on fresh memory land there), the
+//! peak resident memory, and the median milliseconds of every stage, keyed by span path
+//! (`profile` module docs), e.g. `train_step/reconstruct/feedback_step/render_views` (summed
+//! over the T feedback steps; the source and rendered fusion branches run on two threads, so
+//! their sum can exceed their parent). Each step's wall time also goes to stderr as it ends.
 //!
 //! If the config trains on its split (`[train] subjects = "split"`) and the split is missing, it
 //! is generated first, with at most `--subjects` training subjects (the timing does not depend on
@@ -23,7 +26,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Parser;
-use lifegom_cli::profile::{StageTimer, median, process_cpu_seconds};
+use lifegom_cli::profile::{StageTimer, median, peak_resident_mib, process_cpu_times};
 use lifegom_data::synth;
 use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::MeshPurpose;
@@ -75,6 +78,7 @@ fn ms(seconds: f64) -> serde_json::Value {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::allocator::keep_freed_memory();
     let args = Args::parse();
     let mut cfg = ExperimentConfig::load(&args.config)?;
     let stem = args
@@ -135,11 +139,12 @@ fn main() -> anyhow::Result<()> {
     let mut step_seconds = Vec::new();
     let mut stages: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
     let mut cpu_seconds = 0.0;
+    let mut system_seconds = 0.0;
     let mut wall_seconds = 0.0;
     let mut prefetch = (args.data == DataLoading::Prefetch)
         .then(|| Prefetcher::new(source.clone(), trainer.seed(), trainer.step));
     for i in 0..args.warmup + args.steps.max(1) {
-        let cpu_before = process_cpu_seconds();
+        let cpu_before = process_cpu_times();
         let start = Instant::now();
         {
             let _span = tracing::info_span!("step").entered();
@@ -155,13 +160,21 @@ fn main() -> anyhow::Result<()> {
         }
         let wall = start.elapsed().as_secs_f64();
         let totals = timer.take();
+        // A slow preset may be stopped before the JSON line: each step's time is on stderr.
+        eprintln!(
+            "{} step {}: {:.0} ms",
+            if i < args.warmup { "warm-up" } else { "timed" },
+            i + 1,
+            wall * 1e3
+        );
         if i < args.warmup {
             continue;
         }
         step_seconds.push(wall);
         wall_seconds += wall;
-        if let (Some(a), Some(b)) = (cpu_before, process_cpu_seconds()) {
-            cpu_seconds += b - a;
+        if let (Some(a), Some(b)) = (cpu_before, process_cpu_times()) {
+            cpu_seconds += (b.user + b.system) - (a.user + a.system);
+            system_seconds += b.system - a.system;
         }
         for (path, d) in totals {
             stages.entry(path).or_default().push(d.as_secs_f64());
@@ -189,6 +202,9 @@ fn main() -> anyhow::Result<()> {
         "median_step_ms": ms(median(&step_seconds).unwrap_or(f64::NAN)),
         "min_step_ms": ms(step_seconds.iter().copied().fold(f64::INFINITY, f64::min)),
         "cpu_per_wall": (cpu_seconds / wall_seconds * 100.0).round() / 100.0,
+        // Kernel time per wall second: page faults on fresh memory show up here.
+        "system_per_wall": (system_seconds / wall_seconds * 100.0).round() / 100.0,
+        "peak_rss_mib": peak_resident_mib().map(f64::round),
         "threads": rayon::current_num_threads(),
         "stages_ms": stage_ms,
     });

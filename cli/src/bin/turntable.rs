@@ -48,6 +48,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
+    lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
     let path = args.template.clone().unwrap_or_else(full_template_path);

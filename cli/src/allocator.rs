@@ -1,0 +1,28 @@
+//! How the binaries' allocator treats freed memory.
+//!
+//! A training step allocates and frees the same large tensors again and again (op outputs,
+//! autodiff intermediates, their gradients). glibc serves every block above its mmap threshold
+//! (at most 32 MiB) with a fresh `mmap` and returns it with `munmap` on free, so the next step
+//! touches brand-new pages and the kernel zero-fills each 4 KiB page on its first write. On
+//! the cpu preset that was ~59 million page faults in one training step, two thirds of its
+//! wall time spent in the kernel (BENCHMARKS.md, "Training step profile"). With mmap disabled
+//! and a high trim threshold, freed blocks stay in the heap and are reused as they are.
+//!
+//! The cost is resident memory: the heap keeps what it once held, and fragmentation raises the
+//! peak (cpu preset: 13.4 → 19 GB). jemalloc and mimalloc with their default purging were
+//! measured too, and were slower than glibc untuned on the quickstart step (they return freed
+//! pages to the kernel after a delay shorter than a step).
+
+/// Keeps freed memory in the process for reuse (module docs). Call first thing in `main`,
+/// before any thread starts. A no-op outside Linux with glibc.
+pub fn keep_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        // SAFETY: `mallopt` only sets glibc's allocation parameters; it is called before the
+        // program starts threads, and any value is valid (a refused one leaves the default).
+        unsafe {
+            libc::mallopt(libc::M_MMAP_MAX, 0);
+            libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+        }
+    }
+}
