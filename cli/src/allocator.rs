@@ -6,7 +6,7 @@
 //! touches brand-new pages and the kernel zero-fills each 4 KiB page on its first write. On
 //! the cpu preset that was ~59 million page faults in one training step, two thirds of its
 //! wall time spent in the kernel (BENCHMARKS.md, "Training step profile"). With mmap disabled
-//! and a high trim threshold, freed blocks stay in the heap and are reused as they are.
+//! and trimming off, freed blocks stay in the heap and are reused as they are.
 //!
 //! The cost is resident memory: the heap keeps what it once held, and fragmentation raises the
 //! peak (cpu preset: 13.4 → 19 GB). jemalloc and mimalloc with their default purging were
@@ -22,7 +22,9 @@ pub fn keep_freed_memory() {
         // program starts threads, and any value is valid (a refused one leaves the default).
         unsafe {
             libc::mallopt(libc::M_MMAP_MAX, 0);
-            libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+            // -1 disables trimming (mallopt(3)); any finite threshold fits in an `int`, at most
+            // 2 GiB, and the cpu preset's backward frees and retakes more than that at a time.
+            libc::mallopt(libc::M_TRIM_THRESHOLD, -1);
         }
     }
 }

@@ -472,6 +472,10 @@ impl Reconstructor {
         embed: &Tensor<2>,
     ) -> (Tensor<2>, Tensor<2>) {
         let device = src.device();
+        // The inference copy first: Burn initialises parameters lazily from the same RNG, and a
+        // first use here, on this thread, keeps those draws ahead of the mask seeds and out of
+        // the second thread.
+        let inference = self.fusion.valid();
         // Source first, then rendered: the order a sequential run draws them in.
         let masks = self.fusion.draw_mask_seeds(&device).map(|src_seeds| {
             let ren_seeds = self
@@ -492,7 +496,6 @@ impl Reconstructor {
             return (fused_src, fused_ren);
         };
         let parent = tracing::Span::current();
-        let inference = self.fusion.valid();
         let (ren, ren_embed) = (ren.inner(), embed.clone().inner());
         let (fused_src, fused_ren) = std::thread::scope(|scope| {
             let rendered = scope.spawn(move || {
