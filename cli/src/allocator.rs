@@ -8,10 +8,10 @@
 //! wall time spent in the kernel (BENCHMARKS.md, "Training step profile"). With mmap disabled
 //! and trimming off, freed blocks stay in the heap and are reused as they are.
 //!
-//! The cost is resident memory: the heap keeps what it once held, and fragmentation raises the
-//! peak (cpu preset: 13.4 → 19 GB). jemalloc and mimalloc with their default purging were
-//! measured too, and were slower than glibc untuned on the quickstart step (they return freed
-//! pages to the kernel after a delay shorter than a step).
+//! The cost is resident memory: the heap keeps what it once held (cpu preset: 16.5 GB peak,
+//! against 14.2 GB before, with the step 3–4× faster). jemalloc and mimalloc with their default
+//! purging were measured too, and were slower than untuned glibc on the quickstart step (they
+//! return freed pages to the kernel after a delay shorter than a step).
 
 /// Keeps freed memory in the process for reuse (module docs). Call first thing in `main`,
 /// before any thread starts. A no-op outside Linux with glibc.
