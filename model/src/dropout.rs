@@ -68,15 +68,10 @@ pub fn dropout_with<const D: usize>(
     let seed = match seed {
         MaskSeed::Given(seed) if layer.prob > 0.0 => seed,
         MaskSeed::Given(_) | MaskSeed::Off => return input,
-        MaskSeed::Device => {
-            if !layer.training.is_enabled() || !device.is_autodiff() || layer.prob == 0.0 {
-                return input;
-            }
-            if !runs_on_host(&device) {
-                return layer.forward(input);
-            }
-            draw_seed(&device)
-        }
+        MaskSeed::Device if draws_host_mask(layer, &device) => draw_seed(&device),
+        // Burn's own layer applies the same rule: the identity off training, autodiff or
+        // `prob > 0`, and on CubeCL devices its mask drawn on the device.
+        MaskSeed::Device => return layer.forward(input),
     };
     let keep = 1.0 - layer.prob;
     let mask = host_mask(input.shape().num_elements(), keep, seed);

@@ -21,9 +21,10 @@
 //! ```
 
 use burn::backend::Backend;
+use burn::backend::TensorMetadata;
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::tensor::kind::Basic;
-use burn::tensor::{Element, Tensor};
+use burn::tensor::{DType, Element, Shape, Tensor, TensorData};
 
 /// A tensor whose values could not be brought to the host.
 #[derive(Debug, thiserror::Error)]
@@ -86,6 +87,23 @@ pub fn cpu_float_as<B: Backend, E: Element>(tensor: &'static str, t: FloatTensor
         .map_err(|e| format!("{e:?}"))
         .and_then(|data| data.try_into_vec_as::<E>().map_err(|e| e.to_string()))
         .unwrap_or_else(|reason| panic!("{CPU_READ}; reading `{tensor}`: {reason}"))
+}
+
+/// Host values as a float primitive of `shape` in `dtype` on a CPU backend's `device`: the way
+/// back of [`cpu_float_as`], for op implementations that compute in `f32` or `f64` and answer
+/// in their inputs' float type (a cast only when the types differ).
+pub fn cpu_float_from<B: Backend, E: Element>(
+    values: Vec<E>,
+    shape: impl Into<Shape>,
+    dtype: DType,
+    device: &B::Device,
+) -> FloatTensor<B> {
+    let t = B::float_from_data(TensorData::new(values, shape), device);
+    if t.dtype() == dtype {
+        t
+    } else {
+        B::float_cast(t, dtype.into())
+    }
 }
 
 /// [`read_int_primitive`] for a CPU backend's op implementation, which cannot return errors.

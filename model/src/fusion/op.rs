@@ -26,10 +26,10 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
-use burn::tensor::{DType, Element, Shape, TensorData};
+use burn::tensor::{DType, Element};
 
 use super::kernels::{self, AttentionShape, Real};
-use lifegom_render::readback::cpu_float_as;
+use lifegom_render::readback::{cpu_float_as, cpu_float_from};
 
 /// Multi-head scaled dot-product attention over short sequences, without mask or dropout.
 ///
@@ -119,21 +119,6 @@ macro_rules! in_precision {
     };
 }
 
-/// `values` as a tensor of `shape` in `dtype` on `device`.
-fn tensor<B: Backend, T: Element>(
-    values: Vec<T>,
-    shape: Shape,
-    dtype: DType,
-    device: &B::Device,
-) -> FloatTensor<B> {
-    let t = B::float_from_data(TensorData::new(values, shape), device);
-    if t.dtype() == dtype {
-        t
-    } else {
-        B::float_cast(t, dtype.into())
-    }
-}
-
 fn attention_shape<B: Backend>(inputs: &AttentionInputs<B>) -> AttentionShape {
     let (q, k) = (inputs.query.shape(), inputs.key.shape());
     AttentionShape {
@@ -162,7 +147,7 @@ fn cpu_attention_forward_in<B: Backend, T: Real + Element>(
     let k = cpu_float_as::<B, T>("attention key", inputs.key);
     let v = cpu_float_as::<B, T>("attention value", inputs.value);
     let out = kernels::attention_forward(&q, &k, &v, dims);
-    tensor::<B, T>(out, shape, dtype, &device)
+    cpu_float_from::<B, T>(out, shape, dtype, &device)
 }
 
 fn cpu_attention_backward<B: Backend>(
@@ -193,9 +178,9 @@ fn cpu_attention_backward_in<B: Backend, T: Real + Element>(
     let (dq, dk, dv) = kernels::attention_backward(&q, &k, &v, &g, dims);
     let [(sq, tq), (sk, tk), (sv, tv)] = shapes;
     [
-        tensor::<B, T>(dq, sq, tq, &device),
-        tensor::<B, T>(dk, sk, tk, &device),
-        tensor::<B, T>(dv, sv, tv, &device),
+        cpu_float_from::<B, T>(dq, sq, tq, &device),
+        cpu_float_from::<B, T>(dk, sk, tk, &device),
+        cpu_float_from::<B, T>(dv, sv, tv, &device),
     ]
 }
 
@@ -212,7 +197,7 @@ fn cpu_layer_norm_forward_in<B: Backend, T: Real + Element>(
     let gamma = cpu_float_as::<B, T>("layer norm gamma", inputs.gamma);
     let beta = cpu_float_as::<B, T>("layer norm beta", inputs.beta);
     let out = kernels::add_layer_norm_forward(&x, &r, &gamma, &beta, inputs.epsilon);
-    tensor::<B, T>(out, shape, dtype, &device)
+    cpu_float_from::<B, T>(out, shape, dtype, &device)
 }
 
 fn cpu_layer_norm_backward<B: Backend>(
@@ -236,9 +221,9 @@ fn cpu_layer_norm_backward_in<B: Backend, T: Real + Element>(
     let gamma = cpu_float_as::<B, T>("layer norm gamma", inputs.gamma);
     let (dz, dgamma, dbeta) = kernels::add_layer_norm_backward(&x, &r, &gamma, &g, inputs.epsilon);
     [
-        tensor::<B, T>(dz, x_shape, x_dtype, &device),
-        tensor::<B, T>(dgamma, p_shape.clone(), p_dtype, &device),
-        tensor::<B, T>(dbeta, p_shape, b_dtype, &device),
+        cpu_float_from::<B, T>(dz, x_shape, x_dtype, &device),
+        cpu_float_from::<B, T>(dgamma, p_shape.clone(), p_dtype, &device),
+        cpu_float_from::<B, T>(dbeta, p_shape, b_dtype, &device),
     ]
 }
 

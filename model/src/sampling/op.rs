@@ -26,10 +26,10 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
-use burn::tensor::{DType, Element, TensorData};
+use burn::tensor::{DType, Element};
 
 use super::bilinear::{self, Maps, Real};
-use lifegom_render::readback::cpu_float_as;
+use lifegom_render::readback::{cpu_float_as, cpu_float_from};
 
 /// The layout of the maps of one call: `views × height × width` rows of `channels` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -92,14 +92,6 @@ pub trait BilinearKernels: Backend {
     );
 }
 
-fn cast_to<B: Backend>(t: FloatTensor<B>, dtype: DType) -> FloatTensor<B> {
-    if t.dtype() == dtype {
-        t
-    } else {
-        B::float_cast(t, dtype.into())
-    }
-}
-
 /// Runs `f` in `f64` when the maps are `f64` (the precision tests), else in `f32`.
 macro_rules! in_precision {
     ($dtype:expr, $f:ident ( $($arg:expr),* )) => {
@@ -154,13 +146,7 @@ fn cpu_forward_in<B: Backend, T: Real + Element>(inputs: SampleInputs<B>) -> Flo
     let host = HostInputs::<T>::read(inputs);
     let l = host.layout;
     let out = bilinear::forward(&host.maps(), &host.x, &host.y);
-    cast_to::<B>(
-        B::float_from_data(
-            TensorData::new(out, [host.points(), l.views, l.channels]),
-            &device,
-        ),
-        dtype,
-    )
+    cpu_float_from::<B, T>(out, [host.points(), l.views, l.channels], dtype, &device)
 }
 
 type SampleGrads<B> = (Option<FloatTensor<B>>, FloatTensor<B>, FloatTensor<B>);
@@ -189,10 +175,7 @@ fn cpu_backward_in<B: Backend, T: Real + Element>(
     let (grad_rows, grad_x, grad_y) =
         bilinear::backward(&host.maps(), &host.x, &host.y, &grad, want_rows);
     let tensor = |values: Vec<T>, shape: [usize; 2], dtype: DType| {
-        cast_to::<B>(
-            B::float_from_data(TensorData::new(values, shape), &device),
-            dtype,
-        )
+        cpu_float_from::<B, T>(values, shape, dtype, &device)
     };
     let rows_shape = [l.views * l.height * l.width, l.channels];
     (

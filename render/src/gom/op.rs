@@ -22,7 +22,7 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
-use burn::tensor::{DType, TensorData};
+use burn::tensor::DType;
 
 use super::cpu::{self, GeometrySlices, OUT_LANES};
 use crate::readback;
@@ -77,8 +77,8 @@ pub trait GomKernels: Backend {
     fn gom_backward(inputs: GomInputs<Self>, grad: FloatTensor<Self>) -> [FloatTensor<Self>; 4];
 }
 
-/// `t` in `dtype` (a no-op when it already is): the kernels compute in `f32`, the op answers in
-/// its inputs' float type.
+/// `t` in `dtype` (a no-op when it already is): the GPU kernels compute in `f32`, the op answers
+/// in its inputs' float type.
 pub(crate) fn cast_to<B: Backend>(t: FloatTensor<B>, dtype: DType) -> FloatTensor<B> {
     if t.dtype() == dtype {
         t
@@ -128,10 +128,7 @@ fn cpu_forward<B: Backend>(inputs: GomInputs<B>) -> FloatTensor<B> {
     let slices = host.slices();
     let f = slices.num_faces();
     let out = cpu::forward(&slices);
-    cast_to::<B>(
-        B::float_from_data(TensorData::new(out, [f, OUT_LANES]), &device),
-        dtype,
-    )
+    readback::cpu_float_from::<B, f32>(out, [f, OUT_LANES], dtype, &device)
 }
 
 fn cpu_backward<B: Backend>(inputs: GomInputs<B>, grad: FloatTensor<B>) -> [FloatTensor<B>; 4] {
@@ -149,10 +146,7 @@ fn cpu_backward<B: Backend>(inputs: GomInputs<B>, grad: FloatTensor<B>) -> [Floa
     let grad = readback::cpu_float::<B>("gom output gradient", grad);
     let grads = cpu::backward(&slices, &grad);
     let tensor = |values: Vec<f32>, rows: usize, dtype: DType| {
-        cast_to::<B>(
-            B::float_from_data(TensorData::new(values, [rows, 3]), &device),
-            dtype,
-        )
+        readback::cpu_float_from::<B, f32>(values, [rows, 3], dtype, &device)
     };
     [
         tensor(grads.vertices, v, dtypes[0]),
