@@ -20,11 +20,14 @@
 //! # Ok::<(), readback::ReadbackError>(())
 //! ```
 
-use burn::backend::Backend;
+use std::borrow::Cow;
+
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::{FloatTensor, IntTensor};
+use burn::backend::{Backend, Flex};
 use burn::tensor::kind::Basic;
 use burn::tensor::{DType, Element, Shape, Tensor, TensorData};
+use bytemuck::Pod;
 
 /// A tensor whose values could not be brought to the host.
 #[derive(Debug, thiserror::Error)]
@@ -75,6 +78,66 @@ pub fn read_int_primitive<B: Backend>(
 /// tensors already live in host memory, so [`read_float_primitive`] cannot fail there.
 const CPU_READ: &str = "CPU backend tensors are in host memory: reading them back cannot fail";
 
+/// A CPU backend's tensor values lent to a host kernel without a copy where the backend allows
+/// it: Flex keeps a contiguous tensor's values in one shared buffer, which a kernel can read in
+/// place when the element type is the one it computes in. Everything else (ndarray, a strided
+/// view, another dtype) is read back and converted, as [`cpu_float`] does.
+///
+/// The GoM op's corner table (`[F·9]` indices and weights, 32 MB at two subdivisions of the full
+/// template) was copied and widened on every call; lent, it costs nothing.
+pub trait HostLend: Backend {
+    /// `t`'s values as `E` (`f32`, or `f64` in the precision tests), in row-major order.
+    fn lend_float<'a, E: Element + Pod>(
+        tensor: &'static str,
+        t: &'a FloatTensor<Self>,
+    ) -> Cow<'a, [E]>;
+
+    /// `t`'s values as `i32`, in row-major order. A value outside `i32` becomes `-1`: the host
+    /// kernels index tables with these and treat a negative index as out of range.
+    fn lend_int<'a>(tensor: &'static str, t: &'a IntTensor<Self>) -> Cow<'a, [i32]>;
+}
+
+fn narrow_indices(values: Vec<i64>) -> Vec<i32> {
+    values
+        .into_iter()
+        .map(|v| i32::try_from(v).unwrap_or(-1))
+        .collect()
+}
+
+impl HostLend for Flex {
+    fn lend_float<'a, E: Element + Pod>(
+        tensor: &'static str,
+        t: &'a FloatTensor<Self>,
+    ) -> Cow<'a, [E]> {
+        match t.as_slice::<E>() {
+            Some(values) => Cow::Borrowed(values),
+            None => Cow::Owned(cpu_float_as::<Self, E>(tensor, t.clone())),
+        }
+    }
+
+    fn lend_int<'a>(tensor: &'static str, t: &'a IntTensor<Self>) -> Cow<'a, [i32]> {
+        match t.as_slice::<i32>() {
+            Some(values) => Cow::Borrowed(values),
+            None => Cow::Owned(narrow_indices(cpu_int::<Self>(tensor, t.clone()))),
+        }
+    }
+}
+
+// NdArray is deprecated in Burn 0.22 in favour of Flex; it stays the CI backend (design.md §1.4).
+#[allow(deprecated)]
+impl HostLend for burn::backend::NdArray {
+    fn lend_float<'a, E: Element + Pod>(
+        tensor: &'static str,
+        t: &'a FloatTensor<Self>,
+    ) -> Cow<'a, [E]> {
+        Cow::Owned(cpu_float_as::<Self, E>(tensor, t.clone()))
+    }
+
+    fn lend_int<'a>(tensor: &'static str, t: &'a IntTensor<Self>) -> Cow<'a, [i32]> {
+        Cow::Owned(narrow_indices(cpu_int::<Self>(tensor, t.clone())))
+    }
+}
+
 /// [`read_float_primitive`] for a CPU backend's op implementation, which cannot return errors.
 pub(crate) fn cpu_float<B: Backend>(tensor: &'static str, t: FloatTensor<B>) -> Vec<f32> {
     read_float_primitive::<B>(tensor, t).expect(CPU_READ)
@@ -115,6 +178,51 @@ pub(crate) fn cpu_int<B: Backend>(tensor: &'static str, t: IntTensor<B>) -> Vec<
 mod tests {
     use super::*;
     use burn::tensor::{Device, Int};
+
+    /// Flex lends a contiguous buffer of the asked type in place; a strided view, another
+    /// float type and wide indices are read back instead, with the same values as ndarray's
+    /// copies. An index outside `i32` reads as -1 (out of range for the host kernels).
+    #[test]
+    fn flex_lends_in_place_and_falls_back_to_a_copy() {
+        #[allow(deprecated)]
+        use burn::backend::NdArray;
+        use burn::backend::ops::{FloatTensorOps, IntTensorOps};
+
+        let flex = Default::default();
+        let values: Vec<f32> = (0..6).map(|i| i as f32 - 2.5).collect();
+        let t = Flex::float_from_data(TensorData::new(values.clone(), [2, 3]), &flex);
+        let lent = Flex::lend_float::<f32>("t", &t);
+        assert!(matches!(lent, Cow::Borrowed(_)), "contiguous f32 is lent");
+        assert_eq!(lent.as_ptr(), t.bytes().as_ptr().cast::<f32>(), "in place");
+        assert_eq!(&*lent, values.as_slice());
+
+        let wide = Flex::lend_float::<f64>("t", &t);
+        assert!(
+            matches!(wide, Cow::Owned(_)),
+            "another float type is converted"
+        );
+        assert_eq!(wide[5], 2.5);
+
+        let swapped = Flex::float_swap_dims(t, 0, 1);
+        let strided = Flex::lend_float::<f32>("swapped", &swapped);
+        assert!(
+            matches!(strided, Cow::Owned(_)),
+            "a strided view is read back"
+        );
+        assert_eq!(&*strided, &[-2.5, 0.5, -1.5, 1.5, -0.5, 2.5]);
+
+        let nd =
+            NdArray::float_from_data(TensorData::new(values.clone(), [2, 3]), &Default::default());
+        assert_eq!(&*NdArray::lend_float::<f32>("nd", &nd), values.as_slice());
+
+        let narrow = Flex::int_from_data(TensorData::new(vec![4i32, -1, 7], [3]), &flex);
+        assert!(matches!(
+            Flex::lend_int("i32", &narrow),
+            Cow::Borrowed([4, -1, 7])
+        ));
+        let wide = Flex::int_from_data(TensorData::new(vec![4i64, 1 << 40, 7], [3]), &flex);
+        assert_eq!(&*Flex::lend_int("i64", &wide), &[4, -1, 7]);
+    }
 
     #[test]
     fn reads_float_and_int_tensors_with_conversion() {

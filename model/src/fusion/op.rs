@@ -27,9 +27,10 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::{DType, Element};
+use bytemuck::Pod;
 
 use super::kernels::{self, AttentionShape, Real};
-use lifegom_render::readback::{cpu_float_as, cpu_float_from};
+use lifegom_render::readback::{HostLend, cpu_float_from};
 
 /// Multi-head scaled dot-product attention over short sequences, without mask or dropout.
 ///
@@ -130,11 +131,11 @@ fn attention_shape<B: Backend>(inputs: &AttentionInputs<B>) -> AttentionShape {
     }
 }
 
-fn cpu_attention_forward<B: Backend>(inputs: AttentionInputs<B>) -> FloatTensor<B> {
+fn cpu_attention_forward<B: HostLend>(inputs: AttentionInputs<B>) -> FloatTensor<B> {
     in_precision!(inputs.query.dtype(), cpu_attention_forward_in(inputs))
 }
 
-fn cpu_attention_forward_in<B: Backend, T: Real + Element>(
+fn cpu_attention_forward_in<B: HostLend, T: Real + Element + Pod>(
     inputs: AttentionInputs<B>,
 ) -> FloatTensor<B> {
     let (device, dtype, shape) = (
@@ -143,14 +144,14 @@ fn cpu_attention_forward_in<B: Backend, T: Real + Element>(
         inputs.query.shape(),
     );
     let dims = attention_shape(&inputs);
-    let q = cpu_float_as::<B, T>("attention query", inputs.query);
-    let k = cpu_float_as::<B, T>("attention key", inputs.key);
-    let v = cpu_float_as::<B, T>("attention value", inputs.value);
+    let q = B::lend_float::<T>("attention query", &inputs.query);
+    let k = B::lend_float::<T>("attention key", &inputs.key);
+    let v = B::lend_float::<T>("attention value", &inputs.value);
     let out = kernels::attention_forward(&q, &k, &v, dims);
     cpu_float_from::<B, T>(out, shape, dtype, &device)
 }
 
-fn cpu_attention_backward<B: Backend>(
+fn cpu_attention_backward<B: HostLend>(
     inputs: AttentionInputs<B>,
     grad: FloatTensor<B>,
 ) -> [FloatTensor<B>; 3] {
@@ -160,7 +161,7 @@ fn cpu_attention_backward<B: Backend>(
     )
 }
 
-fn cpu_attention_backward_in<B: Backend, T: Real + Element>(
+fn cpu_attention_backward_in<B: HostLend, T: Real + Element + Pod>(
     inputs: AttentionInputs<B>,
     grad: FloatTensor<B>,
 ) -> [FloatTensor<B>; 3] {
@@ -171,10 +172,10 @@ fn cpu_attention_backward_in<B: Backend, T: Real + Element>(
         (inputs.key.shape(), inputs.key.dtype()),
         (inputs.value.shape(), inputs.value.dtype()),
     ];
-    let g = cpu_float_as::<B, T>("attention gradient", grad);
-    let q = cpu_float_as::<B, T>("attention query", inputs.query);
-    let k = cpu_float_as::<B, T>("attention key", inputs.key);
-    let v = cpu_float_as::<B, T>("attention value", inputs.value);
+    let g = B::lend_float::<T>("attention gradient", &grad);
+    let q = B::lend_float::<T>("attention query", &inputs.query);
+    let k = B::lend_float::<T>("attention key", &inputs.key);
+    let v = B::lend_float::<T>("attention value", &inputs.value);
     let (dq, dk, dv) = kernels::attention_backward(&q, &k, &v, &g, dims);
     let [(sq, tq), (sk, tk), (sv, tv)] = shapes;
     [
@@ -184,30 +185,30 @@ fn cpu_attention_backward_in<B: Backend, T: Real + Element>(
     ]
 }
 
-fn cpu_layer_norm_forward<B: Backend>(inputs: LayerNormInputs<B>) -> FloatTensor<B> {
+fn cpu_layer_norm_forward<B: HostLend>(inputs: LayerNormInputs<B>) -> FloatTensor<B> {
     in_precision!(inputs.x.dtype(), cpu_layer_norm_forward_in(inputs))
 }
 
-fn cpu_layer_norm_forward_in<B: Backend, T: Real + Element>(
+fn cpu_layer_norm_forward_in<B: HostLend, T: Real + Element + Pod>(
     inputs: LayerNormInputs<B>,
 ) -> FloatTensor<B> {
     let (device, dtype, shape) = (inputs.x.device(), inputs.x.dtype(), inputs.x.shape());
-    let x = cpu_float_as::<B, T>("layer norm input", inputs.x);
-    let r = cpu_float_as::<B, T>("layer norm residual", inputs.residual);
-    let gamma = cpu_float_as::<B, T>("layer norm gamma", inputs.gamma);
-    let beta = cpu_float_as::<B, T>("layer norm beta", inputs.beta);
+    let x = B::lend_float::<T>("layer norm input", &inputs.x);
+    let r = B::lend_float::<T>("layer norm residual", &inputs.residual);
+    let gamma = B::lend_float::<T>("layer norm gamma", &inputs.gamma);
+    let beta = B::lend_float::<T>("layer norm beta", &inputs.beta);
     let out = kernels::add_layer_norm_forward(&x, &r, &gamma, &beta, inputs.epsilon);
     cpu_float_from::<B, T>(out, shape, dtype, &device)
 }
 
-fn cpu_layer_norm_backward<B: Backend>(
+fn cpu_layer_norm_backward<B: HostLend>(
     inputs: LayerNormInputs<B>,
     grad: FloatTensor<B>,
 ) -> [FloatTensor<B>; 3] {
     in_precision!(inputs.x.dtype(), cpu_layer_norm_backward_in(inputs, grad))
 }
 
-fn cpu_layer_norm_backward_in<B: Backend, T: Real + Element>(
+fn cpu_layer_norm_backward_in<B: HostLend, T: Real + Element + Pod>(
     inputs: LayerNormInputs<B>,
     grad: FloatTensor<B>,
 ) -> [FloatTensor<B>; 3] {
@@ -215,10 +216,10 @@ fn cpu_layer_norm_backward_in<B: Backend, T: Real + Element>(
     let (x_shape, x_dtype) = (inputs.x.shape(), inputs.x.dtype());
     let (p_shape, p_dtype) = (inputs.gamma.shape(), inputs.gamma.dtype());
     let b_dtype = inputs.beta.dtype();
-    let g = cpu_float_as::<B, T>("layer norm gradient", grad);
-    let x = cpu_float_as::<B, T>("layer norm input", inputs.x);
-    let r = cpu_float_as::<B, T>("layer norm residual", inputs.residual);
-    let gamma = cpu_float_as::<B, T>("layer norm gamma", inputs.gamma);
+    let g = B::lend_float::<T>("layer norm gradient", &grad);
+    let x = B::lend_float::<T>("layer norm input", &inputs.x);
+    let r = B::lend_float::<T>("layer norm residual", &inputs.residual);
+    let gamma = B::lend_float::<T>("layer norm gamma", &inputs.gamma);
     let (dz, dgamma, dbeta) = kernels::add_layer_norm_backward(&x, &r, &gamma, &g, inputs.epsilon);
     [
         cpu_float_from::<B, T>(dz, x_shape, x_dtype, &device),

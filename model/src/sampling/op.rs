@@ -19,6 +19,8 @@
 // requires (design.md §1.4).
 #![allow(deprecated)]
 
+use std::borrow::Cow;
+
 use burn::backend::TensorMetadata;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -27,9 +29,10 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::{DType, Element};
+use bytemuck::Pod;
 
 use super::bilinear::{self, Maps, Real};
-use lifegom_render::readback::{cpu_float_as, cpu_float_from};
+use lifegom_render::readback::{HostLend, cpu_float_from};
 
 /// The layout of the maps of one call: `views × height × width` rows of `channels` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -102,24 +105,24 @@ macro_rules! in_precision {
     };
 }
 
-fn cpu_forward<B: Backend>(inputs: SampleInputs<B>) -> FloatTensor<B> {
+fn cpu_forward<B: HostLend>(inputs: SampleInputs<B>) -> FloatTensor<B> {
     in_precision!(inputs.rows.dtype(), cpu_forward_in(inputs))
 }
 
-/// The op's inputs read back to host memory in precision `T`.
-struct HostInputs<T> {
-    rows: Vec<T>,
-    x: Vec<T>,
-    y: Vec<T>,
+/// The op's inputs as host slices in precision `T`, lent in place where the backend allows it.
+struct HostInputs<'a, T: Clone> {
+    rows: Cow<'a, [T]>,
+    x: Cow<'a, [T]>,
+    y: Cow<'a, [T]>,
     layout: MapLayout,
 }
 
-impl<T: Real + Element> HostInputs<T> {
-    fn read<B: Backend>(inputs: SampleInputs<B>) -> Self {
+impl<'a, T: Real + Element + Pod> HostInputs<'a, T> {
+    fn lend<B: HostLend>(inputs: &'a SampleInputs<B>) -> Self {
         Self {
-            rows: cpu_float_as::<B, T>("maps", inputs.rows),
-            x: cpu_float_as::<B, T>("x", inputs.x),
-            y: cpu_float_as::<B, T>("y", inputs.y),
+            rows: B::lend_float::<T>("maps", &inputs.rows),
+            x: B::lend_float::<T>("x", &inputs.x),
+            y: B::lend_float::<T>("y", &inputs.y),
             layout: inputs.layout,
         }
     }
@@ -140,10 +143,10 @@ impl<T: Real + Element> HostInputs<T> {
     }
 }
 
-fn cpu_forward_in<B: Backend, T: Real + Element>(inputs: SampleInputs<B>) -> FloatTensor<B> {
+fn cpu_forward_in<B: HostLend, T: Real + Element + Pod>(inputs: SampleInputs<B>) -> FloatTensor<B> {
     let device = inputs.rows.device();
     let dtype = inputs.rows.dtype();
-    let host = HostInputs::<T>::read(inputs);
+    let host = HostInputs::<T>::lend(&inputs);
     let l = host.layout;
     let out = bilinear::forward(&host.maps(), &host.x, &host.y);
     cpu_float_from::<B, T>(out, [host.points(), l.views, l.channels], dtype, &device)
@@ -151,7 +154,7 @@ fn cpu_forward_in<B: Backend, T: Real + Element>(inputs: SampleInputs<B>) -> Flo
 
 type SampleGrads<B> = (Option<FloatTensor<B>>, FloatTensor<B>, FloatTensor<B>);
 
-fn cpu_backward<B: Backend>(
+fn cpu_backward<B: HostLend>(
     inputs: SampleInputs<B>,
     grad: FloatTensor<B>,
     want_rows: bool,
@@ -162,15 +165,15 @@ fn cpu_backward<B: Backend>(
     )
 }
 
-fn cpu_backward_in<B: Backend, T: Real + Element>(
+fn cpu_backward_in<B: HostLend, T: Real + Element + Pod>(
     inputs: SampleInputs<B>,
     grad: FloatTensor<B>,
     want_rows: bool,
 ) -> SampleGrads<B> {
     let device = inputs.rows.device();
     let dtypes = [inputs.rows.dtype(), inputs.x.dtype(), inputs.y.dtype()];
-    let grad: Vec<T> = cpu_float_as::<B, T>("sample gradient", grad);
-    let host = HostInputs::<T>::read(inputs);
+    let grad = B::lend_float::<T>("sample gradient", &grad);
+    let host = HostInputs::<T>::lend(&inputs);
     let (l, p) = (host.layout, host.points());
     let (grad_rows, grad_x, grad_y) =
         bilinear::backward(&host.maps(), &host.x, &host.y, &grad, want_rows);

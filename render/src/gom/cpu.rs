@@ -288,7 +288,7 @@ pub struct GeometrySlices<'a> {
     /// `[F*3]`.
     pub offsets: &'a [f32],
     /// `[F*9]`: face `f`, corner `k`, slot `m` at `9f + 3k + m`.
-    pub corner_index: &'a [i64],
+    pub corner_index: &'a [i32],
     /// `[F*9]`, matching `corner_index`.
     pub corner_weight: &'a [f32],
 }
@@ -383,8 +383,14 @@ pub struct GeometryGrads {
     pub offsets: Vec<f32>,
 }
 
-/// The op's backward given `dL/d(output)` (`[F*9]`). Faces run in parallel; the scatter into
-/// the shared low-res vertices then runs serially in face order, so the sums are deterministic.
+/// Faces per block of the backward's vertex scatter. Each block sums its corner gradients into
+/// its own low-res vertex array in face order, and the blocks are added in block order: the
+/// result depends on this constant, not on the number of threads, so it is deterministic.
+const FACES_PER_SCATTER_BLOCK: usize = 1 << 15;
+
+/// The op's backward given `dL/d(output)` (`[F*9]`). Faces run in parallel, writing their own
+/// `so3`/`scale`/`offset` rows; the scatter into the shared low-res vertices is blocked as
+/// [`FACES_PER_SCATTER_BLOCK`] describes.
 pub fn backward(inputs: &GeometrySlices<'_>, grad_out: &[f32]) -> GeometryGrads {
     let f = inputs.num_faces();
     assert_eq!(
@@ -392,38 +398,53 @@ pub fn backward(inputs: &GeometrySlices<'_>, grad_out: &[f32]) -> GeometryGrads 
         OUT_LANES * f,
         "gom backward: the output gradient has the wrong length"
     );
-    let per_face: Vec<FaceGrads> = (0..f)
-        .into_par_iter()
-        .with_min_len(FACES_PER_TASK)
-        .map(|face| {
-            let g = &grad_out[OUT_LANES * face..OUT_LANES * (face + 1)];
-            let g: [f64; OUT_LANES] = std::array::from_fn(|i| f64::from(g[i]));
-            face_backward(&inputs.face(face), &g)
+    let v = inputs.num_vertices();
+    let mut so3 = vec![0.0f32; 3 * f];
+    let mut scales = vec![0.0f32; 3 * f];
+    let mut offsets = vec![0.0f32; 3 * f];
+    let store = |out: &mut [f32], g: DVec3| {
+        out.copy_from_slice(&[g.x as f32, g.y as f32, g.z as f32]);
+    };
+    let blocks: Vec<Vec<DVec3>> = so3
+        .par_chunks_mut(3 * FACES_PER_SCATTER_BLOCK)
+        .zip(scales.par_chunks_mut(3 * FACES_PER_SCATTER_BLOCK))
+        .zip(offsets.par_chunks_mut(3 * FACES_PER_SCATTER_BLOCK))
+        .enumerate()
+        .map(|(block, ((so3, scales), offsets))| {
+            let first = block * FACES_PER_SCATTER_BLOCK;
+            let mut vertices = vec![DVec3::ZERO; v];
+            let rows = so3
+                .chunks_exact_mut(3)
+                .zip(scales.chunks_exact_mut(3))
+                .zip(offsets.chunks_exact_mut(3));
+            for (i, ((so3, scale), offset)) in rows.enumerate() {
+                let face = first + i;
+                let g = &grad_out[OUT_LANES * face..OUT_LANES * (face + 1)];
+                let g: [f64; OUT_LANES] = std::array::from_fn(|i| f64::from(g[i]));
+                let grads = face_backward(&inputs.face(face), &g);
+                for (k, g_corner) in grads.corners.iter().enumerate() {
+                    for m in 0..3 {
+                        let e = CORNER_LANES * face + 3 * k + m;
+                        if let Some(v) = inputs.slot(e) {
+                            vertices[v] += *g_corner * f64::from(inputs.corner_weight[e]);
+                        }
+                    }
+                }
+                store(so3, grads.so3);
+                store(scale, grads.scale);
+                store(offset, grads.offset);
+            }
+            vertices
         })
         .collect();
-    let mut vertices = vec![DVec3::ZERO; inputs.num_vertices()];
-    let mut so3 = Vec::with_capacity(3 * f);
-    let mut scales = Vec::with_capacity(3 * f);
-    let mut offsets = Vec::with_capacity(3 * f);
-    let push = |out: &mut Vec<f32>, v: DVec3| out.extend([v.x as f32, v.y as f32, v.z as f32]);
-    for (face, g) in per_face.iter().enumerate() {
-        for (k, g_corner) in g.corners.iter().enumerate() {
-            for m in 0..3 {
-                let e = CORNER_LANES * face + 3 * k + m;
-                if let Some(v) = inputs.slot(e) {
-                    vertices[v] += *g_corner * f64::from(inputs.corner_weight[e]);
-                }
-            }
-        }
-        push(&mut so3, g.so3);
-        push(&mut scales, g.scale);
-        push(&mut offsets, g.offset);
-    }
+    let vertices = (0..v)
+        .flat_map(|i| {
+            let sum = blocks.iter().fold(DVec3::ZERO, |acc, b| acc + b[i]);
+            [sum.x as f32, sum.y as f32, sum.z as f32]
+        })
+        .collect();
     GeometryGrads {
-        vertices: vertices
-            .iter()
-            .flat_map(|v| [v.x as f32, v.y as f32, v.z as f32])
-            .collect(),
+        vertices,
         so3,
         scales,
         offsets,
@@ -668,7 +689,7 @@ mod tests {
         ];
         // One face: corner 0 = v0, corner 1 = (v1 + v2)/2, corner 2 = v3 (index 9 is out of
         // range and contributes nothing).
-        let corner_index = [0i64, 0, 0, 1, 2, 0, 3, 9, 0];
+        let corner_index = [0i32, 0, 0, 1, 2, 0, 3, 9, 0];
         let corner_weight = [1.0f32, 0.0, 0.0, 0.5, 0.5, 0.0, 1.0, 1.0, 0.0];
         let so3 = [0.2f32, -0.1, 0.3];
         let scales = [1.0f32, 0.5, -2.0];

@@ -203,7 +203,12 @@ impl GomMesh {
             subdivision,
             tables,
             highres_faces,
-            corner_index: Tensor::from_data(TensorData::new(index, [entries]), device),
+            // `i32`, the width the host and GPU kernels index with: Flex then lends the table to
+            // the op in place instead of widening a copy per call (`readback::HostLend`).
+            corner_index: Tensor::from_data(
+                TensorData::new(index, [entries]),
+                (device, DType::I32),
+            ),
             corner_weight: Tensor::from_data(TensorData::new(weight, [entries]), device),
             geometry: GomGeometry::default(),
         })
@@ -356,7 +361,7 @@ impl GomMesh {
 
 /// The per-high-res-face corner table (`[F·9]` indices and weights): each corner's barycentric
 /// slots in the low-res mesh, i.e. the subdivision table composed with the high-res faces.
-fn corner_table(subdivision: &Subdivision) -> (Vec<i64>, Vec<f32>) {
+fn corner_table(subdivision: &Subdivision) -> (Vec<i32>, Vec<f32>) {
     let slots = || {
         subdivision
             .highres
@@ -366,7 +371,9 @@ fn corner_table(subdivision: &Subdivision) -> (Vec<i64>, Vec<f32>) {
             .flat_map(|&v| subdivision.highres_from_lowres[v as usize])
     };
     (
-        slots().map(|(i, _)| i64::from(i)).collect(),
+        slots()
+            .map(|(i, _)| i32::try_from(i).unwrap_or(-1))
+            .collect(),
         slots().map(|(_, w)| w).collect(),
     )
 }

@@ -15,6 +15,8 @@
 // requires (design.md §1.4).
 #![allow(deprecated)]
 
+use std::borrow::Cow;
+
 use burn::backend::TensorMetadata;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -25,7 +27,7 @@ use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::DType;
 
 use super::cpu::{self, GeometrySlices, OUT_LANES};
-use crate::readback;
+use crate::readback::{self, HostLend};
 
 /// Gaussians-on-Mesh geometry, fused: corner interpolation, Steiner frame, `so3` exponential,
 /// mean and covariance of every high-res face in one op.
@@ -87,25 +89,25 @@ pub(crate) fn cast_to<B: Backend>(t: FloatTensor<B>, dtype: DType) -> FloatTenso
     }
 }
 
-/// The inputs read back to host memory.
-struct HostInputs {
-    vertices: Vec<f32>,
-    so3: Vec<f32>,
-    scales: Vec<f32>,
-    offsets: Vec<f32>,
-    corner_index: Vec<i64>,
-    corner_weight: Vec<f32>,
+/// The inputs as host slices: lent in place where the backend allows it ([`HostLend`]).
+struct HostInputs<'a> {
+    vertices: Cow<'a, [f32]>,
+    so3: Cow<'a, [f32]>,
+    scales: Cow<'a, [f32]>,
+    offsets: Cow<'a, [f32]>,
+    corner_index: Cow<'a, [i32]>,
+    corner_weight: Cow<'a, [f32]>,
 }
 
-impl HostInputs {
-    fn read<B: Backend>(inputs: GomInputs<B>) -> Self {
+impl<'a> HostInputs<'a> {
+    fn lend<B: HostLend>(inputs: &'a GomInputs<B>) -> Self {
         Self {
-            vertices: readback::cpu_float::<B>("vertices", inputs.vertices),
-            so3: readback::cpu_float::<B>("so3", inputs.so3),
-            scales: readback::cpu_float::<B>("scales", inputs.scales),
-            offsets: readback::cpu_float::<B>("offsets", inputs.offsets),
-            corner_index: readback::cpu_int::<B>("corner_index", inputs.corner_index),
-            corner_weight: readback::cpu_float::<B>("corner_weight", inputs.corner_weight),
+            vertices: B::lend_float::<f32>("vertices", &inputs.vertices),
+            so3: B::lend_float::<f32>("so3", &inputs.so3),
+            scales: B::lend_float::<f32>("scales", &inputs.scales),
+            offsets: B::lend_float::<f32>("offsets", &inputs.offsets),
+            corner_index: B::lend_int("corner_index", &inputs.corner_index),
+            corner_weight: B::lend_float::<f32>("corner_weight", &inputs.corner_weight),
         }
     }
 
@@ -121,17 +123,17 @@ impl HostInputs {
     }
 }
 
-fn cpu_forward<B: Backend>(inputs: GomInputs<B>) -> FloatTensor<B> {
+fn cpu_forward<B: HostLend>(inputs: GomInputs<B>) -> FloatTensor<B> {
     let device = inputs.vertices.device();
     let dtype = inputs.vertices.dtype();
-    let host = HostInputs::read(inputs);
+    let host = HostInputs::lend(&inputs);
     let slices = host.slices();
     let f = slices.num_faces();
     let out = cpu::forward(&slices);
     readback::cpu_float_from::<B, f32>(out, [f, OUT_LANES], dtype, &device)
 }
 
-fn cpu_backward<B: Backend>(inputs: GomInputs<B>, grad: FloatTensor<B>) -> [FloatTensor<B>; 4] {
+fn cpu_backward<B: HostLend>(inputs: GomInputs<B>, grad: FloatTensor<B>) -> [FloatTensor<B>; 4] {
     let device = inputs.vertices.device();
     let dtypes = [
         inputs.vertices.dtype(),
@@ -139,11 +141,11 @@ fn cpu_backward<B: Backend>(inputs: GomInputs<B>, grad: FloatTensor<B>) -> [Floa
         inputs.scales.dtype(),
         inputs.offsets.dtype(),
     ];
-    let host = HostInputs::read(inputs);
+    let host = HostInputs::lend(&inputs);
     let slices = host.slices();
     let f = slices.num_faces();
     let v = slices.vertices.len() / 3;
-    let grad = readback::cpu_float::<B>("gom output gradient", grad);
+    let grad = B::lend_float::<f32>("gom output gradient", &grad);
     let grads = cpu::backward(&slices, &grad);
     let tensor = |values: Vec<f32>, rows: usize, dtype: DType| {
         readback::cpu_float_from::<B, f32>(values, [rows, 3], dtype, &device)

@@ -30,7 +30,7 @@ use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::TensorData;
 
 use super::cpu::{self, GaussianSlices, RasterConfig};
-use crate::readback;
+use crate::readback::{self, HostLend};
 
 /// The differentiable Gaussian rasterizer, as a Burn backend extension.
 ///
@@ -137,7 +137,7 @@ fn cpu_forward<B: Backend>(
     )
 }
 
-fn cpu_backward<B: Backend>(
+fn cpu_backward<B: HostLend>(
     saved: &SavedRaster,
     grad_image: FloatTensor<B>,
 ) -> [FloatTensor<B>; 4] {
@@ -146,7 +146,7 @@ fn cpu_backward<B: Backend>(
         .downcast_ref::<CpuSaved>()
         .expect("CPU backward given a CPU forward state");
     let device = grad_image.device();
-    let grad_image = readback::cpu_float::<B>("grad_image", grad_image);
+    let grad_image = B::lend_float::<f32>("grad_image", &grad_image);
     let grads = cpu::backward(&saved.slices(), &saved.state, &grad_image);
     let n = saved.state.num_gaussians;
     [
