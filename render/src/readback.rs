@@ -9,7 +9,9 @@
 //! Two levels:
 //! - [`read`] takes a `Tensor<D>` (model, train, eval and binaries);
 //! - [`read_float_primitive`] / [`read_int_primitive`] take a backend primitive, for the
-//!   CPU implementations of our backend extensions (rasterizer, visibility).
+//!   CPU implementations of our backend extensions (rasterizer, visibility);
+//! - [`HostLend`] lends a CPU backend's primitive to a host kernel, in place where the backend
+//!   allows it (Flex), for the ops that run every step.
 //!
 //! ```
 //! use burn::tensor::{Device, Tensor};
@@ -81,10 +83,11 @@ const CPU_READ: &str = "CPU backend tensors are in host memory: reading them bac
 /// A CPU backend's tensor values lent to a host kernel without a copy where the backend allows
 /// it: Flex keeps a contiguous tensor's values in one shared buffer, which a kernel can read in
 /// place when the element type is the one it computes in. Everything else (ndarray, a strided
-/// view, another dtype) is read back and converted, as [`cpu_float`] does.
+/// view, another dtype) is read back and converted, as [`cpu_float_as`] does.
 ///
-/// The GoM op's corner table (`[F·9]` indices and weights, 32 MB at two subdivisions of the full
-/// template) was copied and widened on every call; lent, it costs nothing.
+/// The GoM op's corner table (`[F·9]` indices and weights: 47 MB per call at two subdivisions of
+/// the full template while the indices were `i64`) was copied, and widened, on every call; lent,
+/// it costs nothing.
 pub trait HostLend: Backend {
     /// `t`'s values as `E` (`f32`, or `f64` in the precision tests), in row-major order.
     fn lend_float<'a, E: Element + Pod>(
