@@ -186,8 +186,8 @@ mod tests {
     /// float type and wide indices are read back instead, with the same values as ndarray's
     /// copies. An index outside `i32` reads as -1 (out of range for the host kernels).
     #[test]
+    #[allow(deprecated)] // ndarray, the CI backend (design.md §1.4)
     fn flex_lends_in_place_and_falls_back_to_a_copy() {
-        #[allow(deprecated)]
         use burn::backend::NdArray;
         use burn::backend::ops::{FloatTensorOps, IntTensorOps};
 
