@@ -386,7 +386,7 @@ pub struct GeometryGrads {
 /// Faces per block of the backward's vertex scatter. Each block sums its corner gradients into
 /// its own low-res vertex array in face order, and the blocks are added in block order: the
 /// result depends on this constant, not on the number of threads, so it is deterministic.
-const FACES_PER_SCATTER_BLOCK: usize = 1 << 15;
+pub const FACES_PER_SCATTER_BLOCK: usize = 1 << 15;
 
 /// The op's backward given `dL/d(output)` (`[F*9]`). Faces run in parallel, writing their own
 /// `so3`/`scale`/`offset` rows; the scatter into the shared low-res vertices is blocked as
