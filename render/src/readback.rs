@@ -89,57 +89,62 @@ const CPU_READ: &str = "CPU backend tensors are in host memory: reading them bac
 /// the full template while the indices were `i64`) was copied, and widened, on every call; lent,
 /// it costs nothing.
 pub trait HostLend: Backend {
-    /// `t`'s values as `E` (`f32`, or `f64` in the precision tests), in row-major order.
+    /// `t`'s values as `E` (`f32`, or `f64` in the precision tests), in row-major order. By
+    /// default a copy; a backend that can lend overrides this.
     fn lend_float<'a, E: Element + Pod>(
         tensor: &'static str,
         t: &'a FloatTensor<Self>,
-    ) -> Cow<'a, [E]>;
+    ) -> Cow<'a, [E]> {
+        copied_float::<Self, E>(tensor, t)
+    }
 
     /// `t`'s values as `i32`, in row-major order. A value outside `i32` becomes `-1`: the host
-    /// kernels index tables with these and treat a negative index as out of range.
-    fn lend_int<'a>(tensor: &'static str, t: &'a IntTensor<Self>) -> Cow<'a, [i32]>;
+    /// kernels index tables with these and treat a negative index as out of range. By default a
+    /// copy; a backend that can lend overrides this.
+    fn lend_int<'a>(tensor: &'static str, t: &'a IntTensor<Self>) -> Cow<'a, [i32]> {
+        copied_int::<Self>(tensor, t)
+    }
 }
 
-fn narrow_indices(values: Vec<i64>) -> Vec<i32> {
-    values
-        .into_iter()
-        .map(|v| i32::try_from(v).unwrap_or(-1))
-        .collect()
+/// [`HostLend`]'s copy: read back and converted.
+fn copied_float<'a, B: Backend, E: Element + Pod>(
+    tensor: &'static str,
+    t: &FloatTensor<B>,
+) -> Cow<'a, [E]> {
+    Cow::Owned(cpu_float_as::<B, E>(tensor, t.clone()))
 }
 
+/// [`HostLend`]'s copy of indices: read back and narrowed to `i32` (-1 outside).
+fn copied_int<'a, B: Backend>(tensor: &'static str, t: &IntTensor<B>) -> Cow<'a, [i32]> {
+    let values = cpu_int::<B>(tensor, t.clone());
+    Cow::Owned(
+        values
+            .into_iter()
+            .map(|v| i32::try_from(v).unwrap_or(-1))
+            .collect(),
+    )
+}
+
+/// Flex lends a contiguous buffer of the asked type and falls back to the copy otherwise.
 impl HostLend for Flex {
     fn lend_float<'a, E: Element + Pod>(
         tensor: &'static str,
         t: &'a FloatTensor<Self>,
     ) -> Cow<'a, [E]> {
-        match t.as_slice::<E>() {
-            Some(values) => Cow::Borrowed(values),
-            None => Cow::Owned(cpu_float_as::<Self, E>(tensor, t.clone())),
-        }
+        t.as_slice::<E>()
+            .map_or_else(|| copied_float::<Self, E>(tensor, t), Cow::Borrowed)
     }
 
     fn lend_int<'a>(tensor: &'static str, t: &'a IntTensor<Self>) -> Cow<'a, [i32]> {
-        match t.as_slice::<i32>() {
-            Some(values) => Cow::Borrowed(values),
-            None => Cow::Owned(narrow_indices(cpu_int::<Self>(tensor, t.clone()))),
-        }
+        t.as_slice::<i32>()
+            .map_or_else(|| copied_int::<Self>(tensor, t), Cow::Borrowed)
     }
 }
 
 // NdArray is deprecated in Burn 0.22 in favour of Flex; it stays the CI backend (design.md §1.4).
+// Its tensors are copied (the default methods).
 #[allow(deprecated)]
-impl HostLend for burn::backend::NdArray {
-    fn lend_float<'a, E: Element + Pod>(
-        tensor: &'static str,
-        t: &'a FloatTensor<Self>,
-    ) -> Cow<'a, [E]> {
-        Cow::Owned(cpu_float_as::<Self, E>(tensor, t.clone()))
-    }
-
-    fn lend_int<'a>(tensor: &'static str, t: &'a IntTensor<Self>) -> Cow<'a, [i32]> {
-        Cow::Owned(narrow_indices(cpu_int::<Self>(tensor, t.clone())))
-    }
-}
+impl HostLend for burn::backend::NdArray {}
 
 /// [`read_float_primitive`] for a CPU backend's op implementation, which cannot return errors.
 pub(crate) fn cpu_float<B: Backend>(tensor: &'static str, t: FloatTensor<B>) -> Vec<f32> {
