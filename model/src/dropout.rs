@@ -20,6 +20,7 @@ use burn::tensor::{Distribution, Tensor, TensorData};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::readback;
 use lifegom_render::rng::Rng;
+use rayon::prelude::*;
 
 /// Where a host-drawn dropout mask's randomness comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -83,21 +84,33 @@ pub fn dropout_with<const D: usize>(
     input * mask
 }
 
+/// Mask values per rayon task of [`host_mask`]: large enough to amortise a task, small enough
+/// that the fusion's ~0.5 M-element masks split over two cores.
+const MASK_VALUES_PER_TASK: usize = 1 << 15;
+
 /// `n` mask values in `{0, 1/keep}`, each `1/keep` with probability `keep` (to 2⁻³²).
+///
+/// Value `2i` is the low and value `2i + 1` the high half of the stream's draw `i`. Tasks start
+/// their own copy of the stream at their first draw ([`Rng::skipped`]), so the mask is the same
+/// whatever the thread count: the one a single thread drawing in order makes.
 fn host_mask(n: usize, keep: f64, seed: u64) -> Vec<f32> {
     let threshold = (keep * 4_294_967_296.0).round().min(u32::MAX as f64) as u32;
     let scale = (1.0 / keep) as f32;
-    let mut rng = Rng::new(seed);
-    let mut mask = Vec::with_capacity(n);
+    let stream = Rng::new(seed);
     let draw = |bits: u32| if bits < threshold { scale } else { 0.0 };
-    for _ in 0..n / 2 {
-        let bits = rng.next_u64();
-        mask.push(draw(bits as u32));
-        mask.push(draw((bits >> 32) as u32));
-    }
-    if n % 2 == 1 {
-        mask.push(draw(rng.next_u64() as u32));
-    }
+    let mut mask = vec![0.0f32; n];
+    mask.par_chunks_mut(MASK_VALUES_PER_TASK)
+        .enumerate()
+        .for_each(|(task, chunk)| {
+            let mut rng = stream.skipped((task * MASK_VALUES_PER_TASK / 2) as u64);
+            for pair in chunk.chunks_mut(2) {
+                let bits = rng.next_u64();
+                pair[0] = draw(bits as u32);
+                if let Some(high) = pair.get_mut(1) {
+                    *high = draw((bits >> 32) as u32);
+                }
+            }
+        });
     mask
 }
 
@@ -142,6 +155,35 @@ mod tests {
         let grads = y.clone().sum().backward();
         let g = read(x.grad(&grads).expect("x takes part"));
         assert_eq!(g, read(y), "d(x·m)/dx = m and x = 1");
+    }
+
+    /// The parallel draw is the single stream drawn in order, low half then high half of each
+    /// draw, at lengths around the task boundaries (odd lengths end on a low half).
+    #[test]
+    fn host_mask_is_the_sequential_stream() {
+        let keep = 0.9;
+        let threshold = (keep * 4_294_967_296.0f64).round() as u32;
+        let scale = (1.0 / keep) as f32;
+        for n in [
+            0,
+            1,
+            2,
+            MASK_VALUES_PER_TASK - 1,
+            MASK_VALUES_PER_TASK,
+            MASK_VALUES_PER_TASK + 1,
+            3 * MASK_VALUES_PER_TASK + 5,
+        ] {
+            let mut rng = Rng::new(5);
+            let sequential: Vec<f32> = (0..n.div_ceil(2))
+                .flat_map(|_| {
+                    let bits = rng.next_u64();
+                    [bits as u32, (bits >> 32) as u32]
+                })
+                .take(n)
+                .map(|b| if b < threshold { scale } else { 0.0 })
+                .collect();
+            assert_eq!(host_mask(n, keep, 5), sequential, "n = {n}");
+        }
     }
 
     #[test]

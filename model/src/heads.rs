@@ -142,27 +142,34 @@ impl UpdateHeads {
         }
     }
 
-    /// Face parameters from the face inputs `[F, face_input_dim]` (see [`face_inputs`]):
-    /// the constant init (so3 0, scale 1, offset 0, rgb 0, opacity 1) plus each head's output.
+    /// Face parameters from the face inputs (see [`face_inputs`]): the constant init (so3 0,
+    /// scale 1, offset 0, rgb 0, opacity 1) plus each head's output.
     ///
-    /// The four heads' first layers run as **one** matmul over their concatenated weights
+    /// The four heads' first layers run as **one** product over their concatenated weights
     /// (`[G, 4·hidden]`): the face inputs (`G = 3·32 + N·1152` wide, one row per high-res face)
     /// are by far the largest operand of a feedback step, and one product reads them once
-    /// instead of four times, forward and backward. The parameters keep their own names and
-    /// shapes, so checkpoints and their import are unchanged; the result equals four separate
-    /// heads up to float summation order (tested below).
-    pub fn faces(&self, inputs: Tensor<2>) -> GomParams {
-        let [f, _] = inputs.dims();
-        let device = inputs.device();
+    /// instead of four times, forward and backward. That product is split by rows of the weight
+    /// into the corner block and the image block, `z = c·W_c + m·W_m + b`, which is the product
+    /// with `[c ‖ m]` without ever building the `[F, G]` concatenation (nor, in the backward,
+    /// slicing its gradient apart again). The parameters keep their own names and shapes, so
+    /// checkpoints and their import are unchanged; the result equals four separate heads on the
+    /// concatenated input up to float summation order (tested below).
+    pub fn faces(&self, inputs: FaceInputs) -> GomParams {
+        let FaceInputs { corners, images } = inputs;
+        let [f, corner_width] = corners.dims();
+        let device = corners.device();
         let init = GomParams::init(f, &device);
         let heads = [&self.so3, &self.scale, &self.offset, &self.rgb];
         let weight = Tensor::cat(heads.iter().map(|m| m.l0.weight.val()).collect(), 1);
+        let [g, _] = weight.dims();
         let bias = heads
             .iter()
             .map(|m| m.l0.bias.as_ref().map(|b| b.val()))
             .collect::<Option<Vec<_>>>()
             .map(|b| Tensor::cat(b, 0));
-        let hidden = relu(linear(inputs, weight, bias));
+        let w_corners = weight.clone().narrow(0, 0, corner_width);
+        let w_images = weight.narrow(0, corner_width, g - corner_width);
+        let hidden = relu(linear(corners, w_corners, bias) + linear(images, w_images, None));
         let widths: Vec<usize> = heads.iter().map(|m| m.l0.weight.dims()[1]).collect();
         let mut start = 0;
         let mut out = heads.iter().zip(&widths).map(|(m, &w)| {
@@ -181,24 +188,41 @@ impl UpdateHeads {
     }
 }
 
+/// Each high-res face's head input (design.md §7.7) as its two blocks: the official code's
+/// `[F, 3P + N·D]` input is [`FaceInputs::concatenated`], which [`UpdateHeads::faces`] never
+/// needs to build.
+#[derive(Debug, Clone)]
+pub struct FaceInputs {
+    /// The three corners' point features in face-vertex order, `[F, 3P]`.
+    pub corners: Tensor<2>,
+    /// The source-image features of each view in view order, `[F, N·D]`, zero for a view in
+    /// which the face is not fully visible.
+    pub images: Tensor<2>,
+}
+
+impl FaceInputs {
+    /// `[corners ‖ images]`, `[F, 3P + N·D]`: the input as the official code builds it.
+    pub fn concatenated(self) -> Tensor<2> {
+        Tensor::cat(vec![self.corners, self.images], 1)
+    }
+}
+
 /// Builds each high-res face's head input (design.md §7.7).
 ///
 /// - `h` `[V↓, P]`: per low-res vertex features;
 /// - `highres_index` `[Vh·3]`, `highres_weight` `[Vh, 3]`: the subdivision's barycentric tables
 ///   (each high-res vertex as ≤3 weighted low-res vertices);
 /// - `faces` `[F·3]`: high-res face corners, in face-vertex order;
-/// - `image_features` `[F, N, D]`: source-image features at each face's projected centroid;
-/// - `face_visible` `[F, N]`: 1 where all three corners are visible in that view, else 0.
-///
-/// Returns `[F, 3P + N·D]`.
+/// - `image_features` `[F, N, D]`: source-image features at each face's projected centroid,
+///   already zero in a view where the face is not fully visible (the reconstructor samples
+///   hidden faces outside the maps, [`crate::sampling::hide_invisible`]).
 pub fn face_inputs(
     h: Tensor<2>,
     highres_index: Tensor<1, Int>,
     highres_weight: Tensor<2>,
     faces: Tensor<1, Int>,
     image_features: Tensor<3>,
-    face_visible: Tensor<2>,
-) -> Tensor<2> {
+) -> FaceInputs {
     let [_, p] = h.dims();
     let [vh, k] = highres_weight.dims();
     let [f, n, d] = image_features.dims();
@@ -206,9 +230,10 @@ pub fn face_inputs(
         * highres_weight.reshape([vh, k, 1]))
     .sum_dim(1)
     .reshape([vh, p]);
-    let corners = select_rows(h_hr, 0, faces).reshape([f, 3 * p]);
-    let images = (image_features * face_visible.reshape([f, n, 1])).reshape([f, n * d]);
-    Tensor::cat(vec![corners, images], 1)
+    FaceInputs {
+        corners: select_rows(h_hr, 0, faces).reshape([f, 3 * p]),
+        images: image_features.reshape([f, n * d]),
+    }
 }
 
 #[cfg(test)]
@@ -241,24 +266,21 @@ mod tests {
         let f = sub.highres.faces.len();
         let h4 = Tensor::<2>::random([4, 4], Distribution::Normal(0.0, 1.0), device);
         let feats = Tensor::<3>::random([f, 2, 8], Distribution::Normal(0.0, 1.0), device);
-        let mut vis = vec![1.0f32; f * 2];
-        vis[1] = 0.0; // face 0 is hidden in view 1
-        let vis = Tensor::<2>::from_data(TensorData::new(vis, [f, 2]), device);
         let inputs = face_inputs(
             h4.clone(),
             tables.index.clone(),
             tables.weight.clone(),
             faces,
-            feats,
-            vis,
+            feats.clone(),
         );
-        assert_eq!(inputs.dims(), [f, cfg.face_input_dim()]);
-        let x = read(inputs.clone());
-        let row0 = &x[..cfg.face_input_dim()];
-        assert!(
-            row0[12 + 8..12 + 16].iter().all(|v| *v == 0.0),
-            "hidden view's block is zeroed"
+        assert_eq!(inputs.corners.dims(), [f, 12]);
+        assert_eq!(
+            inputs.clone().concatenated().dims(),
+            [f, cfg.face_input_dim()]
         );
+        // The image block is the features, view after view.
+        assert_eq!(read(inputs.images.clone()), read(feats.reshape([f, 16])));
+        let row0 = &read(inputs.corners.clone())[..12];
         // Corner 0 of child face 0 is low-res vertex 0 itself: its feature is copied exactly.
         let h4v = read(h4);
         for c in 0..4 {
@@ -273,18 +295,25 @@ mod tests {
         assert_eq!(params.colors.dims(), [f, 3]);
     }
 
-    /// The fused first layer gives the four separate heads' outputs and gradients (inputs and
-    /// every parameter), up to float summation order.
+    /// The fused first layer, split into the corner and image blocks, gives the four separate
+    /// heads' outputs and gradients on the concatenated input (inputs and every parameter), up
+    /// to float summation order.
     fn fused_faces_equal_separate_heads(device: &Device) {
         let ad = device.clone().autodiff();
         let heads = UpdateHeadsConfig::new(16, 3)
             .with_point_dim(5)
             .with_hidden(7)
             .init(&ad);
-        let g = 3 * 5 + 3 * 16;
-        let x = Tensor::<2>::random([11, g], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+        let corners =
+            Tensor::<2>::random([11, 3 * 5], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+        let images =
+            Tensor::<2>::random([11, 3 * 16], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+        let x = Tensor::cat(vec![corners.clone(), images.clone()], 1);
         let w = Tensor::<2>::random([11, 3], Distribution::Normal(0.0, 1.0), &ad);
-        let fused = heads.faces(x.clone());
+        let fused = heads.faces(FaceInputs {
+            corners: corners.clone(),
+            images: images.clone(),
+        });
         let separate = [
             heads.so3.forward(x.clone()),
             heads.scale.forward(x.clone()) + 1.0,
@@ -317,9 +346,19 @@ mod tests {
         }
         let grads_fused = loss(&fused_out).backward();
         let grads_sep = loss(&separate).backward();
+        // The separate heads read the concatenation, whose gradient is the two blocks'.
+        let block_grads = |grads: &burn::tensor::Gradients| {
+            Tensor::cat(
+                vec![
+                    corners.grad(grads).expect("corner gradient"),
+                    images.grad(grads).expect("image gradient"),
+                ],
+                1,
+            )
+        };
         close(
-            &read(x.grad(&grads_fused).expect("input gradient")),
-            &read(x.grad(&grads_sep).expect("input gradient")),
+            &read(block_grads(&grads_fused)),
+            &read(block_grads(&grads_sep)),
             "input gradient",
         );
         for (name, m) in [

@@ -40,7 +40,7 @@ use crate::error::{ModelError, Result};
 use crate::fusion::{Fusion, FusionConfig, FusionMasks};
 use crate::heads::{UpdateHeads, UpdateHeadsConfig, face_inputs};
 use crate::point_transformer::{PointTransformer, PointTransformerConfig};
-use crate::sampling::{project_points, sample_single};
+use crate::sampling::{hide_invisible, project_points, sample_single};
 use lifegom_render::select::select_rows;
 
 /// Width of the encoder's concatenated pyramid for a configuration (1152 for the paper's).
@@ -605,15 +605,18 @@ impl Reconstructor {
         drop(span);
 
         // Faces: source features at the projected centroid of each high-res face of the current
-        // (pre-update) mesh, zeroed where the face is not fully visible in that view.
+        // (pre-update) mesh, zeroed where the face is not fully visible in that view. The zeros
+        // come from sampling hidden faces outside the maps, which equals the product with the
+        // visibility in values and gradients without a `[F, N, D]` product (`hide_invisible`).
         let span = tracing::debug_span!("face_sampling").entered();
         let uv_faces = {
             let _span = tracing::debug_span!("face_centroids").entered();
             let proj_hr = project_points(Tensor::stack(posed_hr, 0), &sources.cameras)?;
-            select_rows(proj_hr.uv, 1, faces_flat.clone())
+            let centroids = select_rows(proj_hr.uv, 1, faces_flat.clone())
                 .reshape([n, f, 3, 2])
                 .mean_dim(2)
-                .reshape([n, f, 2])
+                .reshape([n, f, 2]);
+            hide_invisible(centroids, face_vis)
         };
         let face_feats = {
             let _span = tracing::debug_span!("sample_maps").entered();
@@ -627,7 +630,6 @@ impl Reconstructor {
             tables.weight.clone(),
             faces_flat,
             face_feats,
-            face_vis,
         );
         let faces = self.heads.faces(inputs);
         drop(span);

@@ -7,6 +7,9 @@
 //! [`Rng::fork`] derives a child generator from a key (a subject index, a frame index), so
 //! parallel work gives the same numbers whatever the thread count or order.
 
+/// SplitMix64's increment per draw (the golden ratio in 64 bits).
+const GAMMA: u64 = 0x9e37_79b9_7f4a_7c15;
+
 /// SplitMix64.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Rng {
@@ -24,15 +27,24 @@ impl Rng {
     /// An independent generator derived from this one's seed and `key` (does not advance self).
     pub fn fork(&self, key: u64) -> Self {
         let mut child = Self {
-            state: self.state ^ key.wrapping_mul(0x9e37_79b9_7f4a_7c15),
+            state: self.state ^ key.wrapping_mul(GAMMA),
         };
         child.next_u64();
         Self::new(child.next_u64())
     }
 
+    /// This generator as it will be after `n` more draws, in constant time. SplitMix64's state
+    /// only advances by a constant per draw, so one long stream can be cut into chunks that
+    /// threads draw independently, with exactly the numbers one thread would draw in order.
+    pub fn skipped(&self, n: u64) -> Self {
+        Self {
+            state: self.state.wrapping_add(n.wrapping_mul(GAMMA)),
+        }
+    }
+
     /// The next 64 random bits.
     pub fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        self.state = self.state.wrapping_add(GAMMA);
         let mut z = self.state;
         z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
         z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
@@ -99,6 +111,18 @@ mod tests {
         let r = Rng::new(7);
         assert_ne!(r.fork(1).next_u64(), r.fork(2).next_u64());
         assert_eq!(r.fork(1), r.fork(1));
+    }
+
+    /// Skipping `n` draws lands where `n` draws do, from any point of a stream.
+    #[test]
+    fn skipping_equals_drawing() {
+        let mut walked = Rng::new(11).fork(3);
+        let start = walked.clone();
+        for n in 0..300u64 {
+            assert_eq!(start.skipped(n), walked, "after {n} draws");
+            walked.next_u64();
+        }
+        assert_eq!(start.skipped(100).skipped(200), start.skipped(300));
     }
 
     #[test]

@@ -46,6 +46,11 @@ use op::MapLayout;
 /// Depth used in place of `Z` for points with `Z < MIN_DEPTH` (at or behind the camera).
 pub const MIN_DEPTH: f64 = 1e-6;
 
+/// An image coordinate outside every feature map by far: a point there samples exactly zero.
+/// Coordinates are clamped to a map's border band before any index is formed (see
+/// `Level::map_coordinates`), so this value never overflows an index.
+pub const OUTSIDE_EVERY_MAP: f64 = -1e6;
+
 /// Errors raised by the projection and sampling functions (shape contracts only).
 #[derive(Debug, thiserror::Error)]
 pub enum SamplingError {
@@ -144,6 +149,23 @@ pub fn project_points(points: Tensor<3>, cameras: &[Camera]) -> Result<Projectio
         uv,
         depth: z.reshape([n, v]),
     })
+}
+
+/// `uv` `[N, V, 2]` with every point whose `visible` `[V, N]` entry is 0 moved outside every
+/// map ([`OUTSIDE_EVERY_MAP`]); entries are 0 or 1.
+///
+/// Sampling the result gives exactly `sample(uv) · visible`, values and gradients alike: a
+/// hidden point samples zero, its gradient to the maps is zero, and its coordinate gradient is
+/// zero because the moved coordinate is a constant (the product's is `0 · ∂sample/∂uv`). The
+/// product would be a `[V, N, C]` tensor op with its own backward; this is an `[N, V, 2]` mask.
+pub fn hide_invisible(uv: Tensor<3>, visible: Tensor<2>) -> Tensor<3> {
+    let [n, v, _] = uv.dims();
+    let hidden = visible
+        .transpose()
+        .reshape([n, v, 1])
+        .repeat_dim(2, 2)
+        .lower_elem(0.5);
+    uv.mask_fill(hidden, OUTSIDE_EVERY_MAP)
 }
 
 /// Feature maps stored channel-last (`[N·H·W, C]` each) so that sampling is one row-select per
@@ -249,7 +271,7 @@ impl PreparedMaps {
             });
         }
         // NaN would survive clamping and turn into an arbitrary index: park it far outside.
-        let uv = uv.clone().mask_fill(uv.is_nan(), -1e6);
+        let uv = uv.clone().mask_fill(uv.is_nan(), OUTSIDE_EVERY_MAP);
         let u = uv.clone().slice(s![.., .., 0..1]).reshape([n, v]);
         let y = uv.slice(s![.., .., 1..2]).reshape([n, v]);
         let fused = runs_on_host(&u.device());
@@ -850,6 +872,64 @@ mod tests {
         }
     }
     lifegom_render::cpu_backend_tests!(fused_op_matches_reference => fused_matches_reference);
+
+    /// Sampling at [`hide_invisible`] coordinates equals sampling and then multiplying by the
+    /// visibility: values, map gradients and coordinate gradients, on several levels, with
+    /// hidden and visible points inside, on the border of and outside the maps.
+    fn hidden_points_sample_like_a_visibility_product(device: &Device) {
+        let ad = device.clone().autodiff();
+        let mut rng = Rng::new(29);
+        let (n, p, size) = (3usize, 400usize, 24u32);
+        let shapes = [(4usize, 12usize, 12usize), (6, 6, 6), (3, 3, 3)];
+        let (host, _) = random_maps(&mut rng, n, &shapes, device);
+        let uv: Vec<f64> = (0..n * p * 2)
+            .map(|_| rng.range(-3.0, f64::from(size) + 3.0))
+            .collect();
+        let visible: Vec<f64> = (0..p * n)
+            .map(|_| if rng.uniform() < 0.6 { 1.0 } else { 0.0 })
+            .collect();
+        let c: usize = shapes.iter().map(|s| s.0).sum();
+        let weight: Vec<f64> = (0..p * n * c).map(|_| rng.range(-1.0, 1.0)).collect();
+        let run = |masked_coordinates: bool| {
+            let maps: Vec<Tensor<4>> = host
+                .iter()
+                .zip(&shapes)
+                .map(|(v, &(c, h, w))| tensor(v.clone(), [n, c, h, w], &ad).require_grad())
+                .collect();
+            let uv_t = tensor(uv.clone(), [n, p, 2], &ad).require_grad();
+            let vis = tensor(visible.clone(), [p, n], &ad);
+            let out = if masked_coordinates {
+                sample_maps(&maps, hide_invisible(uv_t.clone(), vis), size, size).unwrap()
+            } else {
+                sample_maps(&maps, uv_t.clone(), size, size).unwrap() * vis.reshape([p, n, 1])
+            };
+            let grads = (out.clone() * tensor(weight.clone(), [p, n, c], &ad))
+                .sum()
+                .backward();
+            let mut parts = vec![read(out), read(uv_t.grad(&grads).expect("uv gradient"))];
+            parts.extend(
+                maps.iter()
+                    .map(|m| read(m.grad(&grads).expect("map gradient"))),
+            );
+            parts
+        };
+        let (masked, product) = (run(true), run(false));
+        for (k, (a, b)) in masked.iter().zip(&product).enumerate() {
+            assert_eq!(a.len(), b.len());
+            let diff = a
+                .iter()
+                .zip(b)
+                .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
+            assert!(diff <= 1e-12, "part {k}: max diff {diff:.2e}");
+        }
+        assert!(
+            masked[1].iter().any(|g| g.abs() > 1e-3),
+            "visible points keep their coordinate gradient"
+        );
+    }
+    lifegom_render::cpu_backend_tests!(
+        hidden_points_sample_like_a_visibility_product => hidden_points_sample_like_a_visibility_product
+    );
 
     /// Shape contracts are checked and the offending input is named.
     #[test]

@@ -383,14 +383,30 @@ pub struct GeometryGrads {
     pub offsets: Vec<f32>,
 }
 
-/// Faces per block of the backward's vertex scatter. Each block sums its corner gradients into
-/// its own low-res vertex array in face order, and the blocks are added in block order: the
-/// result depends on this constant, not on the number of threads, so it is deterministic.
-pub const FACES_PER_SCATTER_BLOCK: usize = 1 << 15;
+/// The most blocks the backward's vertex scatter is split into: enough to keep two to eight
+/// cores busy, few enough that the blocks' private vertex arrays (`24·V` bytes each) and their
+/// final sum stay small beside the faces' work.
+pub const MAX_SCATTER_BLOCKS: usize = 16;
+
+/// The fewest faces a scatter block holds: below this a block's task overhead and its private
+/// vertex array outweigh its faces.
+pub const MIN_FACES_PER_SCATTER_BLOCK: usize = 1024;
+
+/// Faces per block of the backward's vertex scatter for a mesh of `faces` faces. Each block sums
+/// its corner gradients into its own low-res vertex array in face order, and the blocks are
+/// added in block order: the result depends on the face count alone, not on the number of
+/// threads, so it is deterministic. A training mesh (9,816 faces at one subdivision of the
+/// low-res template) gets ten blocks instead of one, so both cores share its backward.
+pub fn faces_per_scatter_block(faces: usize) -> usize {
+    let blocks = faces
+        .div_ceil(MIN_FACES_PER_SCATTER_BLOCK)
+        .clamp(1, MAX_SCATTER_BLOCKS);
+    faces.div_ceil(blocks).max(1)
+}
 
 /// The op's backward given `dL/d(output)` (`[F*9]`). Faces run in parallel, writing their own
 /// `so3`/`scale`/`offset` rows; the scatter into the shared low-res vertices is blocked as
-/// [`FACES_PER_SCATTER_BLOCK`] describes.
+/// [`faces_per_scatter_block`] describes.
 pub fn backward(inputs: &GeometrySlices<'_>, grad_out: &[f32]) -> GeometryGrads {
     let f = inputs.num_faces();
     assert_eq!(
@@ -402,16 +418,17 @@ pub fn backward(inputs: &GeometrySlices<'_>, grad_out: &[f32]) -> GeometryGrads 
     let mut so3 = vec![0.0f32; 3 * f];
     let mut scales = vec![0.0f32; 3 * f];
     let mut offsets = vec![0.0f32; 3 * f];
+    let block_faces = faces_per_scatter_block(f);
     let store = |out: &mut [f32], g: DVec3| {
         out.copy_from_slice(&[g.x as f32, g.y as f32, g.z as f32]);
     };
     let blocks: Vec<Vec<DVec3>> = so3
-        .par_chunks_mut(3 * FACES_PER_SCATTER_BLOCK)
-        .zip(scales.par_chunks_mut(3 * FACES_PER_SCATTER_BLOCK))
-        .zip(offsets.par_chunks_mut(3 * FACES_PER_SCATTER_BLOCK))
+        .par_chunks_mut(3 * block_faces)
+        .zip(scales.par_chunks_mut(3 * block_faces))
+        .zip(offsets.par_chunks_mut(3 * block_faces))
         .enumerate()
         .map(|(block, ((so3, scales), offsets))| {
-            let first = block * FACES_PER_SCATTER_BLOCK;
+            let first = block * block_faces;
             let mut vertices = vec![DVec3::ZERO; v];
             let rows = so3
                 .chunks_exact_mut(3)
@@ -457,6 +474,40 @@ mod tests {
     //! input component, on the configurations where the frame or the exponential map branch.
     use super::*;
     use crate::rng::Rng;
+
+    /// The scatter blocks cover every face once, number at most [`MAX_SCATTER_BLOCKS`], hold at
+    /// least [`MIN_FACES_PER_SCATTER_BLOCK`] faces unless the mesh has fewer, and depend on the
+    /// face count alone.
+    #[test]
+    fn scatter_blocks_cover_the_faces_within_their_bounds() {
+        for f in [
+            1,
+            7,
+            1023,
+            1024,
+            1025,
+            9_816,
+            16_384,
+            16_385,
+            109_680,
+            438_720,
+            1 << 22,
+        ] {
+            let b = faces_per_scatter_block(f);
+            let blocks = f.div_ceil(b);
+            assert!(
+                blocks * b >= f && (blocks - 1) * b < f,
+                "{f} faces in blocks of {b}"
+            );
+            assert!(blocks <= MAX_SCATTER_BLOCKS, "{f} faces: {blocks} blocks");
+            assert!(
+                b >= MIN_FACES_PER_SCATTER_BLOCK.min(f),
+                "{f} faces: blocks of {b}"
+            );
+        }
+        // The quickstart's training mesh is shared by both cores.
+        assert_eq!(9_816usize.div_ceil(faces_per_scatter_block(9_816)), 10);
+    }
 
     fn loss(face: &FaceInputs, w: &[f64; OUT_LANES]) -> f64 {
         face_forward(face).iter().zip(w).map(|(a, b)| a * b).sum()
