@@ -63,6 +63,7 @@ pub mod fusion;
 pub mod heads;
 pub mod inputs;
 pub mod knn;
+mod lanes;
 pub mod point_transformer;
 pub mod reconstructor;
 pub mod rig_export;

@@ -29,14 +29,16 @@ use std::ops::AddAssign;
 use num_traits::Float;
 use rayon::prelude::*;
 
+use crate::lanes;
+
 /// Vertices per rayon task in the attention kernels: two cores get dozens of tasks each.
 const BATCH_PER_TASK: usize = 64;
 /// Rows per rayon task in the LayerNorm kernels.
 const ROWS_PER_TASK: usize = 128;
 
 /// The float types the kernels run in (`f32`, and `f64` for the precision tests).
-pub trait Real: Float + Send + Sync + AddAssign {}
-impl<T: Float + Send + Sync + AddAssign> Real for T {}
+pub trait Real: Float + Send + Sync + AddAssign + Default {}
+impl<T: Float + Send + Sync + AddAssign + Default> Real for T {}
 
 /// Shape of one attention call: `batch` independent problems of `len_q` queries against
 /// `len_k` keys and values, `d_model` channels split into `heads` heads.
@@ -67,17 +69,13 @@ impl AttentionShape {
     }
 }
 
-fn dot<T: Real>(a: &[T], b: &[T]) -> T {
-    a.iter().zip(b).fold(T::zero(), |acc, (&x, &y)| acc + x * y)
-}
-
 /// `p ← softmax(s·⟨q, k_j⟩)` over the keys of one head; `keys` is the problem's `[L_k, D]` block
 /// and `c` the head's first channel.
 fn head_probabilities<T: Real>(p: &mut [T], q: &[T], keys: &[T], c: usize, dk: usize, scale: T) {
     let d = keys.len() / p.len().max(1);
     let mut max = T::neg_infinity();
     for (j, pj) in p.iter_mut().enumerate() {
-        *pj = scale * dot(q, &keys[j * d + c..j * d + c + dk]);
+        *pj = scale * lanes::dot(q, &keys[j * d + c..j * d + c + dk]);
         max = max.max(*pj);
     }
     let mut sum = T::zero();
@@ -179,7 +177,7 @@ pub fn attention_backward<T: Real>(
                         head_probabilities(&mut p, qi, kb, c, dk, scale);
                         let mut weighted = T::zero();
                         for (j, dsj) in ds.iter_mut().enumerate() {
-                            *dsj = dot(gi, &vb[j * d + c..][..dk]);
+                            *dsj = lanes::dot(gi, &vb[j * d + c..][..dk]);
                             weighted += p[j] * *dsj;
                             for (dvv, &g) in dv_b[j * d + c..][..dk].iter_mut().zip(gi) {
                                 *dvv += p[j] * g;
@@ -205,16 +203,11 @@ pub fn attention_backward<T: Real>(
 /// Row statistics of `z = x + r`: writes `z` into `z_out` and returns `(μ, ρ)`.
 fn residual_row<T: Real>(x: &[T], r: &[T], z_out: &mut [T], epsilon: T) -> (T, T) {
     let n = T::from(x.len()).expect("a row length is a float");
-    let mut sum = T::zero();
     for ((z, &a), &b) in z_out.iter_mut().zip(x).zip(r) {
         *z = a + b;
-        sum += *z;
     }
-    let mean = sum / n;
-    let var = z_out
-        .iter()
-        .fold(T::zero(), |acc, &z| acc + (z - mean) * (z - mean))
-        / n;
+    let mean = lanes::sum(z_out) / n;
+    let var = lanes::sum_squared_deviation(z_out, mean) / n;
     (mean, T::one() / (var + epsilon).sqrt())
 }
 
@@ -263,22 +256,20 @@ pub fn add_layer_norm_backward<T: Real>(
             let mut dgamma = vec![T::zero(); d];
             let mut dbeta = vec![T::zero(); d];
             let mut xhat = vec![T::zero(); d];
+            let mut a = vec![T::zero(); d];
             for (local, dz_row) in dz.chunks_mut(d).enumerate() {
                 let row = (task * ROWS_PER_TASK + local) * d;
                 let (mean, rstd) = residual_row(&x[row..][..d], &r[row..][..d], &mut xhat, eps);
                 let g = &grad[row..][..d];
-                let (mut mean_a, mut mean_ax) = (T::zero(), T::zero());
                 for c in 0..d {
                     xhat[c] = (xhat[c] - mean) * rstd;
-                    let a = g[c] * gamma[c];
-                    mean_a += a;
-                    mean_ax += a * xhat[c];
+                    a[c] = g[c] * gamma[c];
                     dgamma[c] += g[c] * xhat[c];
                     dbeta[c] += g[c];
                 }
-                let (mean_a, mean_ax) = (mean_a / n, mean_ax / n);
+                let (mean_a, mean_ax) = (lanes::sum(&a) / n, lanes::dot(&a, &xhat) / n);
                 for c in 0..d {
-                    dz_row[c] = rstd * (g[c] * gamma[c] - mean_a - xhat[c] * mean_ax);
+                    dz_row[c] = rstd * (a[c] - mean_a - xhat[c] * mean_ax);
                 }
             }
             (dgamma, dbeta)

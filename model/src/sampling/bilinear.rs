@@ -21,6 +21,8 @@ use std::ops::{Add, AddAssign, Mul, Sub};
 
 use rayon::prelude::*;
 
+use crate::lanes;
+
 /// Points per rayon task: small enough to balance two cores, large enough to amortise the task.
 const POINTS_PER_TASK: usize = 256;
 
@@ -34,6 +36,7 @@ pub trait Real:
     + Sub<Output = Self>
     + Mul<Output = Self>
     + AddAssign
+    + Default
 {
     /// 0.
     const ZERO: Self;
@@ -172,7 +175,6 @@ pub fn backward<T: Real>(
     let (n, c) = (maps.views, maps.channels);
     let p = x.len() / n.max(1);
     let grad_at = |point: usize, view: usize| &grad[(point * n + view) * c..][..c];
-    let dot = |a: &[T], b: &[T]| a.iter().zip(b).fold(T::ZERO, |s, (&u, &v)| s + u * v);
 
     let mut grad_xy = vec![(T::ZERO, T::ZERO); n * p];
     grad_xy
@@ -189,7 +191,7 @@ pub fn backward<T: Real>(
                     if fp.row[corner] == usize::MAX {
                         continue;
                     }
-                    let gv = dot(g, maps.row(fp.row[corner]));
+                    let gv = lanes::dot(g, maps.row(fp.row[corner]));
                     gx += fp.d_dx[corner] * gv;
                     gy += fp.d_dy[corner] * gv;
                 }
