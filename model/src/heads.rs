@@ -21,6 +21,8 @@ use burn::tensor::activation::relu;
 use burn::tensor::module::linear;
 use burn::tensor::{Device, Int, Tensor};
 
+use crate::linear_op;
+use lifegom_render::device::runs_on_host;
 use lifegom_render::gom::GomParams;
 use lifegom_render::select::select_rows;
 
@@ -67,7 +69,7 @@ impl Mlp {
 
     /// `[.., input] → [.., output]`.
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        self.l2.forward(relu(self.l0.forward(x)))
+        linear_op::forward(&self.l2, relu(linear_op::forward(&self.l0, x)))
     }
 }
 
@@ -138,7 +140,7 @@ impl UpdateHeads {
     pub fn vertices(&self, h: Tensor<2>) -> VertexUpdate {
         VertexUpdate {
             delta_xyz: self.xyz.forward(h.clone()),
-            embed: self.embed.forward(h),
+            embed: linear_op::forward(&self.embed, h),
         }
     }
 
@@ -169,13 +171,18 @@ impl UpdateHeads {
             .map(|b| Tensor::cat(b, 0));
         let w_corners = weight.clone().narrow(0, 0, corner_width);
         let w_images = weight.narrow(0, corner_width, g - corner_width);
-        let hidden = relu(linear(corners, w_corners, bias) + linear(images, w_images, None));
+        // The image block is the large product: on the CPU backends it runs as the Linear op.
+        let images = match bias {
+            Some(bias) if runs_on_host(&device) => linear_op::linear(images, w_images, bias),
+            bias => linear(images, w_images, bias),
+        };
+        let hidden = relu(images + linear(corners, w_corners, None));
         let widths: Vec<usize> = heads.iter().map(|m| m.l0.weight.dims()[1]).collect();
         let mut start = 0;
         let mut out = heads.iter().zip(&widths).map(|(m, &w)| {
             let chunk = hidden.clone().narrow(1, start, w);
             start += w;
-            m.l2.forward(chunk)
+            linear_op::forward(&m.l2, chunk)
         });
         let mut next = || out.next().expect("four heads");
         GomParams {
@@ -240,7 +247,7 @@ pub fn face_inputs(
 mod tests {
     #![allow(deprecated)]
     use super::*;
-    use burn::tensor::{Distribution, TensorData};
+    use burn::tensor::Distribution;
     use lifegom_render::mesh::MeshTopology;
     use lifegom_render::subdivision::Subdivision;
 

@@ -64,6 +64,7 @@ pub mod heads;
 pub mod inputs;
 pub mod knn;
 mod lanes;
+pub mod linear_op;
 pub mod point_transformer;
 pub mod reconstructor;
 pub mod rig_export;

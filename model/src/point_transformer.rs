@@ -87,6 +87,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::readback::{self, ReadbackError};
 
 use crate::knn::{Neighbours, farthest_point_sampling, knn};
+use crate::linear_op;
 use lifegom_render::select::select_rows;
 
 /// Weight-sharing groups must divide every width; this is the paper's value.
@@ -418,7 +419,7 @@ pub struct TransitionDown {
 impl TransitionDown {
     /// Stride 1: `ReLU(BN(Linear(x)))`, `[n, in] → [n, out]`.
     pub fn forward_pointwise(&self, x: Tensor<2>) -> Tensor<2> {
-        relu(bn_last(&self.bn, self.linear.forward(x)))
+        relu(bn_last(&self.bn, linear_op::forward(&self.linear, x)))
     }
 
     /// Stride 1 on `cat(p, x)` without forming it: `p·W[0..3] + x·W[3..]`. For the paper's
@@ -446,7 +447,7 @@ impl TransitionDown {
         let [m, k, _] = rel.dims();
         let c_in = x.dims()[1];
         let grouped = select_rows(x, 0, idx).reshape([m, k, c_in]);
-        let h = self.linear.forward(Tensor::cat(vec![rel, grouped], 2));
+        let h = linear_op::forward(&self.linear, Tensor::cat(vec![rel, grouped], 2));
         let h = relu(bn_last(&self.bn, h));
         let c = h.dims()[2];
         h.max_dim(1).reshape([m, c])
@@ -486,9 +487,9 @@ impl PointTransformerBlock {
     /// `x` `[n, c]` with the level's self-kNN (`rel` `[n, k, 3]`, `nbr` `[n·k]`) → `[n, c]`.
     pub fn forward(&self, x: Tensor<2>, rel: Tensor<3>, nbr: Tensor<1, Int>) -> Tensor<2> {
         let identity = x.clone();
-        let h = relu(bn_last(&self.bn1, self.linear1.forward(x)));
+        let h = relu(bn_last(&self.bn1, linear_op::forward(&self.linear1, x)));
         let h = relu(bn_last(&self.bn2, self.transformer2.forward(h, rel, nbr)));
-        let h = bn_last(&self.bn3, self.linear3.forward(h));
+        let h = bn_last(&self.bn3, linear_op::forward(&self.linear3, h));
         relu(h + identity)
     }
 }
@@ -570,18 +571,26 @@ impl PointTransformerLayer {
         let [n, c] = x.dims();
         let [_, k, _] = rel.dims();
         let s = self.share_planes;
-        let q = self.linear_q.forward(x.clone());
+        let q = linear_op::forward(&self.linear_q, x.clone());
         // Project before gathering: n rows instead of n·k.
-        let kf = select_rows(self.linear_k.forward(x.clone()), 0, nbr.clone()).reshape([n, k, c]);
-        let vf = select_rows(self.linear_v.forward(x), 0, nbr).reshape([n, k, c]);
+        let kf = select_rows(
+            linear_op::forward(&self.linear_k, x.clone()),
+            0,
+            nbr.clone(),
+        )
+        .reshape([n, k, c]);
+        let vf = select_rows(linear_op::forward(&self.linear_v, x), 0, nbr).reshape([n, k, c]);
 
         let mp = &self.linear_p;
-        let delta = mp.fc3.forward(relu(bn_last(&mp.bn1, mp.fc0.forward(rel)))); // [n, k, c]
+        let delta = linear_op::forward(
+            &mp.fc3,
+            relu(bn_last(&mp.bn1, linear_op::forward(&mp.fc0, rel))),
+        ); // [n, k, c]
 
         let mw = &self.linear_w;
         let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
-        let w = mw.fc2.forward(relu(bn_last(&mw.bn0, w)));
-        let w = mw.fc5.forward(relu(bn_last(&mw.bn3, w))); // [n, k, c/s]
+        let w = linear_op::forward(&mw.fc2, relu(bn_last(&mw.bn0, w)));
+        let w = linear_op::forward(&mw.fc5, relu(bn_last(&mw.bn3, w))); // [n, k, c/s]
         let w = softmax(w, 1);
 
         let values = (vf + delta).reshape([n, k, s, c / s]);
@@ -646,18 +655,18 @@ impl TransitionUp {
     /// Head (coarsest level, global context): `[n, c] → [n, c]`.
     pub fn forward_head(&self, x: Tensor<2>) -> Tensor<2> {
         let [n, c] = x.dims();
-        let global = relu(self.linear2.forward(x.clone().mean_dim(0))).expand([n, c]);
+        let global = relu(linear_op::forward(&self.linear2, x.clone().mean_dim(0))).expand([n, c]);
         relu(bn_last(
             &self.bn1,
-            self.linear1.forward(Tensor::cat(vec![x, global], 1)),
+            linear_op::forward(&self.linear1, Tensor::cat(vec![x, global], 1)),
         ))
     }
 
     /// `skip` `[n_fine, c]` (encoder features of this level) plus the interpolated decoder
     /// features of the coarser level `coarse` `[n_coarse, c_coarse]` → `[n_fine, c]`.
     fn forward(&self, skip: Tensor<2>, coarse: Tensor<2>, interp: &Interpolation) -> Tensor<2> {
-        let fine = relu(bn_last(&self.bn1, self.linear1.forward(skip)));
-        let mut up = self.linear2.forward(coarse);
+        let fine = relu(bn_last(&self.bn1, linear_op::forward(&self.linear1, skip)));
+        let mut up = linear_op::forward(&self.linear2, coarse);
         if let Some(bn) = &self.bn2 {
             up = bn_last(bn, up);
         }

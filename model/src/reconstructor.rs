@@ -29,7 +29,7 @@ use glam::Affine3A;
 use lifegom_render::camera::Camera;
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::mesh::MeshTopology;
-use lifegom_render::rasterizer::{RasterSettings, rasterize};
+use lifegom_render::rasterizer::{Gaussians, RasterSettings, rasterize};
 use lifegom_render::skeleton::Skeleton;
 use lifegom_render::skinning::skin_vertices;
 use lifegom_render::visibility::rasterize_on_device;
@@ -306,6 +306,12 @@ impl Reconstruction {
 }
 
 /// Renders `state` posed into each source view.
+///
+/// Views with the same skinning transforms (the N cameras of one frame, as in the THuman
+/// setting) share one posed mesh and one set of Gaussians: skinning and the Gaussians-on-Mesh
+/// geometry run once per distinct pose, not once per view, forward and backward (the rasterizers'
+/// gradients add up on the shared Gaussians, which is the same sum the separate copies' gradients
+/// made on the vertices).
 pub fn render_views(
     mesh: &GomMesh,
     state_xyz: &Tensor<2>,
@@ -318,9 +324,22 @@ pub fn render_views(
     let _span = tracing::debug_span!("render_views", views = cameras.len()).entered();
     let mut rgb = Vec::with_capacity(cameras.len());
     let mut alpha = Vec::with_capacity(cameras.len());
+    let mut posed_gaussians: Vec<(&[Affine3A], Gaussians)> = Vec::new();
     for (camera, transforms) in cameras.iter().zip(skinning) {
-        let posed = skin_vertices(state_xyz.clone(), subject.lbs_weights.clone(), transforms)?;
-        let rendered = rasterize(&mesh.gaussians(posed, faces), &RasterSettings::new(*camera))?;
+        let known = posed_gaussians
+            .iter()
+            .find(|(pose, _)| *pose == transforms.as_slice());
+        let gaussians = match known {
+            Some((_, gaussians)) => gaussians.clone(),
+            None => {
+                let posed =
+                    skin_vertices(state_xyz.clone(), subject.lbs_weights.clone(), transforms)?;
+                let gaussians = mesh.gaussians(posed, faces);
+                posed_gaussians.push((transforms, gaussians.clone()));
+                gaussians
+            }
+        };
+        let rendered = rasterize(&gaussians, &RasterSettings::new(*camera))?;
         rgb.push(rendered.composite_reference(background).permute([2, 0, 1]));
         alpha.push(rendered.alpha().unsqueeze_dim::<3>(0));
     }

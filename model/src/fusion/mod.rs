@@ -29,6 +29,7 @@ use burn::tensor::activation::{relu, softmax};
 use burn::tensor::{Device, Tensor};
 
 use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with};
+use crate::linear_op;
 use lifegom_render::device::runs_on_host;
 use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
 
@@ -132,17 +133,17 @@ impl AttentionLayer {
         kernel: FusionKernel,
         masks: [MaskSeed; 2],
     ) -> Tensor<3> {
-        let q = self.w_q.forward(query.clone());
-        let k = self.w_k.forward(context.clone());
-        let v = self.w_v.forward(context);
-        let attn = self.w_o.forward(self.attend(q, k, v, kernel));
+        let q = linear_op::forward(&self.w_q, query.clone());
+        let k = linear_op::forward(&self.w_k, context.clone());
+        let v = linear_op::forward(&self.w_v, context);
+        let attn = linear_op::forward(&self.w_o, self.attend(q, k, v, kernel));
         let x = self.add_norm(
             &self.norm1,
             query,
             dropout_with(&self.dropout, attn, masks[0]),
             kernel,
         );
-        let ff = self.fc2.forward(relu(self.fc1.forward(x.clone())));
+        let ff = linear_op::forward(&self.fc2, relu(linear_op::forward(&self.fc1, x.clone())));
         self.add_norm(
             &self.norm2,
             x,

@@ -396,11 +396,9 @@ pub const MIN_FACES_PER_SCATTER_BLOCK: usize = 1024;
 /// its corner gradients into its own low-res vertex array in face order, and the blocks are
 /// added in block order: the result depends on the face count alone, not on the number of
 /// threads, so it is deterministic. A training mesh (9,816 faces at one subdivision of the
-/// low-res template) gets ten blocks instead of one, so both cores share its backward.
+/// low-res template) gets nine blocks instead of one, so both cores share its backward.
 pub fn faces_per_scatter_block(faces: usize) -> usize {
-    let blocks = faces
-        .div_ceil(MIN_FACES_PER_SCATTER_BLOCK)
-        .clamp(1, MAX_SCATTER_BLOCKS);
+    let blocks = (faces / MIN_FACES_PER_SCATTER_BLOCK).clamp(1, MAX_SCATTER_BLOCKS);
     faces.div_ceil(blocks).max(1)
 }
 
@@ -506,7 +504,7 @@ mod tests {
             );
         }
         // The quickstart's training mesh is shared by both cores.
-        assert_eq!(9_816usize.div_ceil(faces_per_scatter_block(9_816)), 10);
+        assert_eq!(9_816usize.div_ceil(faces_per_scatter_block(9_816)), 9);
     }
 
     fn loss(face: &FaceInputs, w: &[f64; OUT_LANES]) -> f64 {
