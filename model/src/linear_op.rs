@@ -27,7 +27,7 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::nn::Linear;
-use burn::tensor::{DType, Element, Shape, Tensor};
+use burn::tensor::{Element, Shape, Tensor};
 use bytemuck::Pod;
 use rayon::prelude::*;
 
@@ -253,16 +253,6 @@ fn backward_kernel<T: GemmFloat>(x: &[T], w: &[T], g: &[T], o: usize) -> (Vec<T>
         }
     }
     (dx, dw, db)
-}
-
-/// Runs `f::<B, T>` in `f64` when `dtype` is `f64` (the precision tests), else in `f32`.
-macro_rules! in_precision {
-    ($dtype:expr, $f:ident ( $($arg:expr),* )) => {
-        match $dtype {
-            DType::F64 => $f::<B, f64>($($arg),*),
-            _ => $f::<B, f32>($($arg),*),
-        }
-    };
 }
 
 fn output_shape(x: &Shape, out_features: usize) -> Shape {

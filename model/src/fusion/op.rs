@@ -26,7 +26,7 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
-use burn::tensor::{DType, Element};
+use burn::tensor::Element;
 use bytemuck::Pod;
 
 use super::kernels::{self, AttentionShape, Real};
@@ -108,16 +108,6 @@ pub trait FusionKernels: Backend {
         inputs: LayerNormInputs<Self>,
         grad: FloatTensor<Self>,
     ) -> [FloatTensor<Self>; 3];
-}
-
-/// Runs `f::<B, T>` in `f64` when `dtype` is `f64` (the precision tests), else in `f32`.
-macro_rules! in_precision {
-    ($dtype:expr, $f:ident ( $($arg:expr),* )) => {
-        match $dtype {
-            DType::F64 => $f::<B, f64>($($arg),*),
-            _ => $f::<B, f32>($($arg),*),
-        }
-    };
 }
 
 fn attention_shape<B: Backend>(inputs: &AttentionInputs<B>) -> AttentionShape {

@@ -95,16 +95,6 @@ pub trait BilinearKernels: Backend {
     );
 }
 
-/// Runs `f` in `f64` when the maps are `f64` (the precision tests), else in `f32`.
-macro_rules! in_precision {
-    ($dtype:expr, $f:ident ( $($arg:expr),* )) => {
-        match $dtype {
-            DType::F64 => $f::<B, f64>($($arg),*),
-            _ => $f::<B, f32>($($arg),*),
-        }
-    };
-}
-
 fn cpu_forward<B: HostLend>(inputs: SampleInputs<B>) -> FloatTensor<B> {
     in_precision!(inputs.rows.dtype(), cpu_forward_in(inputs))
 }
