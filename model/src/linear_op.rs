@@ -112,6 +112,26 @@ struct View<'a, T> {
     col: usize,
 }
 
+impl<'a, T> View<'a, T> {
+    /// A row-major matrix `width` elements wide.
+    fn row_major(data: &'a [T], width: usize) -> Self {
+        Self {
+            data,
+            row: width,
+            col: 1,
+        }
+    }
+
+    /// The transpose of a row-major matrix `width` elements wide: its data, strides swapped.
+    fn transposed(data: &'a [T], width: usize) -> Self {
+        Self {
+            data,
+            row: 1,
+            col: width,
+        }
+    }
+}
+
 /// `dst` `[m, n]` (row-major) `+= lhs·rhs` (when `accumulate`, else `=`), `lhs` `[m, k]`, `rhs`
 /// `[k, n]`.
 fn gemm_into<T: GemmFloat>(
@@ -181,17 +201,13 @@ fn forward_kernel<T: GemmFloat>(x: &[T], w: &[T], b: &[T]) -> Vec<T> {
     for _ in 0..rows {
         out.extend_from_slice(b);
     }
-    let x = View {
-        data: x,
-        row: i,
-        col: 1,
-    };
-    let w = View {
-        data: w,
-        row: o,
-        col: 1,
-    };
-    gemm_into(&mut out, (rows, o, i), x, w, true);
+    gemm_into(
+        &mut out,
+        (rows, o, i),
+        View::row_major(x, i),
+        View::row_major(w, o),
+        true,
+    );
     out
 }
 
@@ -204,16 +220,8 @@ fn backward_kernel<T: GemmFloat>(x: &[T], w: &[T], g: &[T], o: usize) -> (Vec<T>
     gemm_into(
         &mut dx,
         (rows, i, o),
-        View {
-            data: g,
-            row: o,
-            col: 1,
-        },
-        View {
-            data: w,
-            row: 1,
-            col: o,
-        },
+        View::row_major(g, o),
+        View::transposed(w, o),
         false,
     );
     // ∂W = xᵀ·g.
@@ -221,16 +229,8 @@ fn backward_kernel<T: GemmFloat>(x: &[T], w: &[T], g: &[T], o: usize) -> (Vec<T>
     gemm_into(
         &mut dw,
         (i, o, rows),
-        View {
-            data: x,
-            row: 1,
-            col: i,
-        },
-        View {
-            data: g,
-            row: o,
-            col: 1,
-        },
+        View::transposed(x, i),
+        View::row_major(g, o),
         false,
     );
     // ∂b = Σ_rows g, in fixed blocks of rows added in block order.
