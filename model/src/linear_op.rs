@@ -32,6 +32,7 @@ use bytemuck::Pod;
 use rayon::prelude::*;
 
 use lifegom_render::device::runs_on_host;
+use lifegom_render::op_backward::gradient_per_input;
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
 /// Products of at least this many multiply-adds run on rayon's threads; smaller ones cost less
@@ -342,13 +343,7 @@ impl<B: LinearKernels> Backward<B, 3> for LinearBackward {
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
-        let grad = grads.consume::<B>(&ops.node);
-        let gradients = B::linear_backward(ops.state, grad);
-        for (parent, g) in ops.parents.into_iter().zip(gradients) {
-            if let Some(parent) = parent {
-                grads.register::<B>(parent.id, g);
-            }
-        }
+        gradient_per_input::<B, _, 3>(ops, grads, B::linear_backward);
     }
 }
 

@@ -45,6 +45,7 @@ pub mod error;
 pub mod gom;
 pub mod mesh;
 pub mod motion;
+pub mod op_backward;
 pub mod rasterizer;
 pub mod readback;
 pub mod rng;

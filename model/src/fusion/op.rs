@@ -30,6 +30,7 @@ use burn::tensor::Element;
 use bytemuck::Pod;
 
 use super::kernels::{self, AttentionShape, Real};
+use lifegom_render::op_backward::gradient_per_input;
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
 /// Multi-head scaled dot-product attention over short sequences, without mask or dropout.
@@ -296,13 +297,7 @@ impl<B: FusionKernels> Backward<B, 3> for AttentionBackward {
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
-        let grad = grads.consume::<B>(&ops.node);
-        let gradients = B::attention_backward(ops.state, grad);
-        for (parent, g) in ops.parents.into_iter().zip(gradients) {
-            if let Some(parent) = parent {
-                grads.register::<B>(parent.id, g);
-            }
-        }
+        gradient_per_input::<B, _, 3>(ops, grads, B::attention_backward);
     }
 }
 

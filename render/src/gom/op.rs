@@ -27,6 +27,7 @@ use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::DType;
 
 use super::cpu::{self, GeometrySlices, OUT_LANES};
+use crate::op_backward::gradient_per_input;
 use crate::readback::{self, HostLend};
 
 /// Gaussians-on-Mesh geometry, fused: corner interpolation, Steiner frame, `so3` exponential,
@@ -211,13 +212,7 @@ impl<B: GomKernels> Backward<B, 4> for GomBackward {
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
-        let grad = grads.consume::<B>(&ops.node);
-        let input_grads = B::gom_backward(ops.state, grad);
-        for (parent, grad) in ops.parents.into_iter().zip(input_grads) {
-            if let Some(parent) = parent {
-                grads.register::<B>(parent.id, grad);
-            }
-        }
+        gradient_per_input::<B, _, 4>(ops, grads, B::gom_backward);
     }
 }
 

@@ -20,6 +20,7 @@ use std::any::Any;
 use std::fmt;
 use std::sync::Arc;
 
+use crate::op_backward::gradient_per_input;
 use burn::backend::TensorMetadata;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -210,13 +211,9 @@ impl<B: RasterKernels> Backward<B, 4> for RasterBackward {
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
-        let grad_image = grads.consume::<B>(&ops.node);
-        let input_grads = B::rasterize_backward(&ops.state, grad_image);
-        for (parent, grad) in ops.parents.into_iter().zip(input_grads) {
-            if let Some(parent) = parent {
-                grads.register::<B>(parent.id, grad);
-            }
-        }
+        gradient_per_input::<B, _, 4>(ops, grads, |state, grad_image| {
+            B::rasterize_backward(&state, grad_image)
+        });
     }
 }
 
