@@ -153,7 +153,8 @@ impl UpdateHeads {
     /// instead of four times, forward and backward. That product is split by rows of the weight
     /// into the corner block and the image block, `z = c·W_c + m·W_m + b`, which is the product
     /// with `[c ‖ m]` without ever building the `[F, G]` concatenation (nor, in the backward,
-    /// slicing its gradient apart again). The parameters keep their own names and shapes, so
+    /// slicing its gradient apart again). The second layers run as one block-diagonal product
+    /// likewise. The parameters keep their own names and shapes, so
     /// checkpoints and their import are unchanged; the result equals four separate heads on the
     /// concatenated input up to float summation order (tested below).
     pub fn faces(&self, inputs: FaceInputs) -> GomParams {
@@ -177,12 +178,25 @@ impl UpdateHeads {
             bias => linear(images, w_images, bias),
         };
         let hidden = relu(images + linear(corners, w_corners, None));
-        let widths: Vec<usize> = heads.iter().map(|m| m.l0.weight.dims()[1]).collect();
+        // The second layers as one block-diagonal product `[F, 4·hidden] · [4·hidden, 12]`,
+        // whose output is split by head: slicing `hidden` by head instead costs, in the
+        // backward, one zeroed `[F, 4·hidden]` gradient per head and three sums of them, far
+        // more than the product's zero blocks.
+        let second = block_diagonal(heads.iter().map(|m| m.l2.weight.val()).collect());
+        let second_bias = heads
+            .iter()
+            .map(|m| m.l2.bias.as_ref().map(|b| b.val()))
+            .collect::<Option<Vec<_>>>()
+            .map(|b| Tensor::cat(b, 0));
+        let outputs = match second_bias {
+            Some(bias) if runs_on_host(&device) => linear_op::linear(hidden, second, bias),
+            bias => linear(hidden, second, bias),
+        };
         let mut start = 0;
-        let mut out = heads.iter().zip(&widths).map(|(m, &w)| {
-            let chunk = hidden.clone().narrow(1, start, w);
-            start += w;
-            linear_op::forward(&m.l2, chunk)
+        let mut out = heads.iter().map(|m| {
+            let width = m.l2.weight.dims()[1];
+            start += width;
+            outputs.clone().narrow(1, start - width, width)
         });
         let mut next = || out.next().expect("four heads");
         GomParams {
@@ -193,6 +207,31 @@ impl UpdateHeads {
             opacities: init.opacities,
         }
     }
+}
+
+/// The matrices `blocks` (`[rows_k, cols_k]`) on the diagonal of one `[Σ rows, Σ cols]` matrix,
+/// zero elsewhere.
+fn block_diagonal(blocks: Vec<Tensor<2>>) -> Tensor<2> {
+    let widths: Vec<usize> = blocks.iter().map(|b| b.dims()[1]).collect();
+    let total: usize = widths.iter().sum();
+    let mut before = 0;
+    let rows = blocks
+        .into_iter()
+        .zip(&widths)
+        .map(|(block, &width)| {
+            let [rows, _] = block.dims();
+            let device = block.device();
+            let after = total - before - width;
+            let zeros = |cols: usize| (cols > 0).then(|| Tensor::zeros([rows, cols], &device));
+            let row: Vec<Tensor<2>> = [zeros(before), Some(block), zeros(after)]
+                .into_iter()
+                .flatten()
+                .collect();
+            before += width;
+            Tensor::cat(row, 1)
+        })
+        .collect();
+    Tensor::cat(rows, 0)
 }
 
 /// Each high-res face's head input (design.md §7.7) as its two blocks: the official code's
