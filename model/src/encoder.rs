@@ -449,9 +449,9 @@ impl ImageEncoder {
             Some(b) => b.val().reshape([1, c_rgb]),
             None => w.clone().slice(s![0..1, ..]).zeros_like(),
         };
+        let rgb_projection = Tensor::cat(vec![w, b], 0);
         Ok(EncodedViews {
-            maps: PreparedMaps::new(&[f0, f1, f2, f3, f4, affine])?,
-            rgb_projection: Tensor::cat(vec![w, b], 0),
+            maps: PreparedMaps::with_tail(&[f0, f1, f2, f3, f4, affine], rgb_projection)?,
         })
     }
 
@@ -560,10 +560,9 @@ impl ImageEncoder {
 /// 3-channel normalised image (and a ones channel that carries the zero-padding weight).
 #[derive(Debug, Clone)]
 pub struct EncodedViews {
-    /// Levels 0–4 and `[x̂ | 1]` (4 channels), channel-last.
+    /// Levels 0–4 and `[x̂ | 1]` (4 channels), channel-last, with `[Wᵀ; bᵀ]` of `rgb_embed`
+    /// (`[4, C_rgb]`) as the last level's tail.
     maps: PreparedMaps,
-    /// `[Wᵀ; bᵀ]` of `rgb_embed`, `[4, C_rgb]`.
-    rgb_projection: Tensor<2>,
 }
 
 impl EncodedViews {
@@ -575,31 +574,18 @@ impl EncodedViews {
         width: u32,
         height: u32,
     ) -> Result<Tensor<3>, SamplingError> {
-        // Levels are sampled separately and concatenated once, after the rgb projection of the
-        // last one: no slicing of a concatenated sample (whose backward would copy it twice).
-        let mut levels = self.maps.sample_levels(uv, width, height)?;
-        let affine = levels.pop().expect("PreparedMaps has at least one level");
-        let [v, n, _] = affine.dims();
-        let c_rgb = self.rgb_projection.dims()[1];
-        let rgb = affine
-            .reshape([v * n, 4])
-            .matmul(self.rgb_projection.clone())
-            .reshape([v, n, c_rgb]);
-        levels.push(rgb);
-        Ok(Tensor::cat(levels, 2))
+        self.maps.sample(uv, width, height)
     }
 
     /// Channels of one sample (1152 at width 1).
     pub fn feature_dim(&self) -> usize {
-        let ch = self.maps.channels();
-        ch[..ch.len() - 1].iter().sum::<usize>() + self.rgb_projection.dims()[1]
+        self.maps.out_channels()
     }
 
     /// The same views detached from the autodiff graph (the feedback branch, design.md §7.3).
     pub fn detach(self) -> Self {
         Self {
             maps: self.maps.detach(),
-            rgb_projection: self.rgb_projection.detach(),
         }
     }
 }

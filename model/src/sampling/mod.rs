@@ -41,7 +41,8 @@ use lifegom_render::select::select_rows;
 pub mod bilinear;
 pub mod op;
 
-use op::MapLayout;
+use bilinear::LevelShape;
+use op::PyramidLayout;
 
 /// Depth used in place of `Z` for points with `Z < MIN_DEPTH` (at or behind the camera).
 pub const MIN_DEPTH: f64 = 1e-6;
@@ -168,13 +169,47 @@ pub fn hide_invisible(uv: Tensor<3>, visible: Tensor<2>) -> Tensor<3> {
     uv.mask_fill(hidden, OUTSIDE_EVERY_MAP)
 }
 
-/// Feature maps stored channel-last (`[N·H·W, C]` each) so that sampling is one row-select per
-/// level. Build once, sample many times: the source-view maps are sampled at new vertex
-/// positions every feedback iteration.
+/// Feature maps stored channel-last, ready to be sampled at many point sets: the source-view
+/// maps are sampled at new vertex positions every feedback iteration.
+///
+/// The last level may carry a per-texel linear map, its **tail** `[C_last, C_out]`, applied
+/// after sampling (bilinear weights are linear, so this equals sampling the mapped level; the
+/// encoder uses it for its rgb embedding, [`crate::encoder::EncodedViews`]).
 #[derive(Debug, Clone)]
 pub struct PreparedMaps {
-    levels: Vec<Level>,
+    storage: Storage,
+    shapes: Vec<LevelShape>,
     batch: usize,
+    tail: Option<Tensor<2>>,
+}
+
+/// How [`PreparedMaps`] holds its levels, by [`SampleKernel`].
+#[derive(Debug, Clone)]
+enum Storage {
+    /// Every level's `[N·H·W, C]` rows flattened, level after level: the custom op's input.
+    Flat(Box<Tensor<1>>),
+    /// One [`Level`] per level, for the tensor-op composition.
+    Levels(Vec<Level>),
+}
+
+/// How [`PreparedMaps::sample`] is computed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SampleKernel {
+    /// The fused custom op of [`op`] (CPU backends).
+    HostOp,
+    /// Burn tensor ops per level (CubeCL devices; the reference in tests).
+    TensorOps,
+}
+
+impl SampleKernel {
+    /// The fast choice for `device`.
+    pub fn for_device(device: &burn::tensor::Device) -> Self {
+        if runs_on_host(device) {
+            Self::HostOp
+        } else {
+            Self::TensorOps
+        }
+    }
 }
 
 /// One level of [`PreparedMaps`].
@@ -191,14 +226,31 @@ pub struct Level {
 impl PreparedMaps {
     /// Takes the maps `[N, C_l, H_l, W_l]` (one batch size `N` for all levels).
     pub fn new(maps: &[Tensor<4>]) -> Result<Self, SamplingError> {
-        let Some(first) = maps.first() else {
-            return Err(SamplingError::InvalidInput {
-                what: "maps",
-                reason: "no feature maps given".into(),
-            });
-        };
-        let batch = first.dims()[0];
-        let mut levels = Vec::with_capacity(maps.len());
+        let kernel = SampleKernel::for_device(&Self::first(maps)?.device());
+        Self::with_kernel(maps, None, kernel)
+    }
+
+    /// [`Self::new`] with the last level mapped by `tail` `[C_last, C_out]` after sampling.
+    pub fn with_tail(maps: &[Tensor<4>], tail: Tensor<2>) -> Result<Self, SamplingError> {
+        let kernel = SampleKernel::for_device(&Self::first(maps)?.device());
+        Self::with_kernel(maps, Some(tail), kernel)
+    }
+
+    fn first(maps: &[Tensor<4>]) -> Result<&Tensor<4>, SamplingError> {
+        maps.first().ok_or_else(|| SamplingError::InvalidInput {
+            what: "maps",
+            reason: "no feature maps given".into(),
+        })
+    }
+
+    /// [`Self::with_tail`] computed by `kernel` (tests compare the two).
+    pub fn with_kernel(
+        maps: &[Tensor<4>],
+        tail: Option<Tensor<2>>,
+        kernel: SampleKernel,
+    ) -> Result<Self, SamplingError> {
+        let batch = Self::first(maps)?.dims()[0];
+        let mut shapes = Vec::with_capacity(maps.len());
         for (l, map) in maps.iter().enumerate() {
             let [n, c, h, w] = map.dims();
             if n != batch || c == 0 || h == 0 || w == 0 {
@@ -208,54 +260,85 @@ impl PreparedMaps {
                     &[n, c, h, w],
                 ));
             }
-            levels.push(Level {
-                rows: map.clone().permute([0, 2, 3, 1]).reshape([n * h * w, c]),
+            shapes.push(LevelShape {
                 height: h,
                 width: w,
                 channels: c,
             });
         }
-        Ok(Self { levels, batch })
+        let c_last = shapes.last().map_or(0, |s| s.channels);
+        if let Some(tail) = &tail {
+            let dims = tail.dims();
+            if dims[0] != c_last || dims[1] == 0 {
+                return Err(shape_err(
+                    "tail",
+                    format!("[C_last = {c_last}, C_out > 0]"),
+                    &dims,
+                ));
+            }
+        }
+        let channel_last = |map: &Tensor<4>| map.clone().permute([0, 2, 3, 1]);
+        let storage = match kernel {
+            SampleKernel::HostOp => Storage::Flat(Box::new(Tensor::cat(
+                maps.iter().map(|m| channel_last(m).reshape([-1])).collect(),
+                0,
+            ))),
+            SampleKernel::TensorOps => Storage::Levels(
+                maps.iter()
+                    .zip(&shapes)
+                    .map(|(m, s)| Level {
+                        rows: channel_last(m).reshape([batch * s.height * s.width, s.channels]),
+                        height: s.height,
+                        width: s.width,
+                        channels: s.channels,
+                    })
+                    .collect(),
+            ),
+        };
+        Ok(Self {
+            storage,
+            shapes,
+            batch,
+            tail,
+        })
     }
 
     /// The same maps detached from the autodiff graph.
     pub fn detach(self) -> Self {
+        let storage = match self.storage {
+            Storage::Flat(rows) => Storage::Flat(Box::new(rows.detach())),
+            Storage::Levels(levels) => Storage::Levels(
+                levels
+                    .into_iter()
+                    .map(|l| Level {
+                        rows: l.rows.detach(),
+                        ..l
+                    })
+                    .collect(),
+            ),
+        };
         Self {
-            levels: self
-                .levels
-                .into_iter()
-                .map(|l| Level {
-                    rows: l.rows.detach(),
-                    ..l
-                })
-                .collect(),
-            batch: self.batch,
+            storage,
+            tail: self.tail.map(Tensor::detach),
+            ..self
         }
     }
 
-    /// Channels per level.
-    pub fn channels(&self) -> Vec<usize> {
-        self.levels.iter().map(|l| l.channels).collect()
+    /// Channels of one sample: every level's, the last one's after the tail.
+    pub fn out_channels(&self) -> usize {
+        let (last, rest) = self.shapes.split_last().expect("at least one level");
+        rest.iter().map(|s| s.channels).sum::<usize>()
+            + self.tail.as_ref().map_or(last.channels, |t| t.dims()[1])
     }
 
     /// Samples every level at `uv` `[N, V, 2]` (pixels of a `width × height` image) and
-    /// concatenates the channels: `[V, N, ΣC]`.
+    /// concatenates the channels (the last level's after the tail): `[V, N, C]`.
     pub fn sample(
         &self,
         uv: Tensor<3>,
         width: u32,
         height: u32,
     ) -> Result<Tensor<3>, SamplingError> {
-        Ok(Tensor::cat(self.sample_levels(uv, width, height)?, 2))
-    }
-
-    /// [`Self::sample`] without the concatenation: one `[V, N, C_l]` per level.
-    pub fn sample_levels(
-        &self,
-        uv: Tensor<3>,
-        width: u32,
-        height: u32,
-    ) -> Result<Vec<Tensor<3>>, SamplingError> {
         let [n, v, two] = uv.dims();
         if n != self.batch || two != 2 {
             return Err(shape_err(
@@ -270,24 +353,77 @@ impl PreparedMaps {
                 reason: format!("image size must be > 0, got {width}x{height}"),
             });
         }
+        match &self.storage {
+            Storage::Flat(rows) => {
+                let tail = match &self.tail {
+                    Some(tail) => tail.clone(),
+                    None => identity(
+                        self.shapes.last().expect("at least one level").channels,
+                        rows,
+                    ),
+                };
+                let rows: &Tensor<1> = rows;
+                let layout = PyramidLayout {
+                    views: n,
+                    image: (width as usize, height as usize),
+                    levels: self.shapes.clone(),
+                };
+                Ok(Tensor::from_dispatch(
+                    <burn::backend::Dispatch as op::BilinearSampleOps>::bilinear_sample(
+                        rows.clone().into_dispatch(),
+                        uv.into_dispatch(),
+                        tail.into_dispatch(),
+                        layout,
+                    ),
+                ))
+            }
+            Storage::Levels(levels) => Ok(self.sample_reference(levels, uv, width, height)),
+        }
+    }
+
+    /// [`Self::sample`] as tensor ops, level by level.
+    fn sample_reference(
+        &self,
+        levels: &[Level],
+        uv: Tensor<3>,
+        width: u32,
+        height: u32,
+    ) -> Tensor<3> {
+        let [n, v, _] = uv.dims();
         // NaN would survive clamping and turn into an arbitrary index: park it far outside.
         let uv = uv.clone().mask_fill(uv.is_nan(), OUTSIDE_EVERY_MAP);
         let u = uv.clone().slice(s![.., .., 0..1]).reshape([n, v]);
         let y = uv.slice(s![.., .., 1..2]).reshape([n, v]);
-        let fused = runs_on_host(&u.device());
-        Ok(self
-            .levels
+        let mut sampled: Vec<Tensor<3>> = levels
             .iter()
             .map(|level| {
                 let (x, y) = level.map_coordinates(u.clone(), y.clone(), width, height);
-                if fused {
-                    level.sample_fused(x, y)
-                } else {
-                    level.sample_reference(x, y).swap_dims(0, 1)
-                }
+                level.sample_reference(x, y).swap_dims(0, 1)
             })
-            .collect())
+            .collect();
+        if let Some(tail) = &self.tail {
+            let last = sampled.pop().expect("at least one level");
+            let [v, n, c] = last.dims();
+            let c_out = tail.dims()[1];
+            sampled.push(
+                last.reshape([v * n, c])
+                    .matmul(tail.clone())
+                    .reshape([v, n, c_out]),
+            );
+        }
+        Tensor::cat(sampled, 2)
     }
+}
+
+/// The `size × size` identity in `like`'s dtype and device: the tail of maps that have none.
+fn identity(size: usize, like: &Tensor<1>) -> Tensor<2> {
+    let values: Vec<f64> = (0..size * size)
+        .map(|i| if i / size == i % size { 1.0 } else { 0.0 })
+        .collect();
+    Tensor::from_data(
+        TensorData::new(values, [size, size]),
+        (&like.device(), like.dtype()),
+    )
 }
 
 impl Level {
@@ -305,24 +441,6 @@ impl Level {
         (
             (u * (w as f64 / width as f64) - 0.5).clamp(-2.0, w as f64 + 1.0),
             (v * (h as f64 / height as f64) - 0.5).clamp(-2.0, h as f64 + 1.0),
-        )
-    }
-
-    /// Map-pixel coordinates `[N, V]` → `[V, N, C]` through the fused op ([`op`]).
-    fn sample_fused(&self, x: Tensor<2>, y: Tensor<2>) -> Tensor<3> {
-        let layout = MapLayout {
-            views: x.dims()[0],
-            height: self.height,
-            width: self.width,
-            channels: self.channels,
-        };
-        Tensor::from_dispatch(
-            <burn::backend::Dispatch as op::BilinearSampleOps>::bilinear_sample(
-                self.rows.clone().into_dispatch(),
-                x.into_dispatch(),
-                y.into_dispatch(),
-                layout,
-            ),
         )
     }
 
@@ -805,71 +923,96 @@ mod tests {
     }
     lifegom_render::cpu_backend_tests!(projection_gradients_reach_points => projection_gradients);
 
-    /// The fused op equals the tensor-op composition it replaces ([`Level::sample_reference`]),
-    /// values and gradients (maps and both coordinates), in f32, at points inside, on the
-    /// border and outside the maps. On CubeCL devices `sample` runs the composition itself.
+    /// The fused op equals the tensor-op composition it replaces (per level
+    /// [`Level::sample_reference`], then the tail's product and the concatenation), values and
+    /// gradients (every level's maps, the coordinates and the tail), in f32, at points inside,
+    /// on the border and outside the maps, and at NaN. On CubeCL devices `sample` runs the
+    /// composition itself.
     fn fused_matches_reference(device: &Device) {
         let ad = device.clone().autodiff();
         let mut rng = Rng::new(13);
-        let (n, p) = (3usize, 700usize);
-        for (c, h, w) in [(8usize, 12usize, 20usize), (5, 3, 5), (4, 1, 1)] {
-            let map: Vec<f32> = (0..n * c * h * w)
-                .map(|_| rng.range_f32(-1.0, 1.0))
-                .collect();
-            let x: Vec<f32> = (0..n * p)
-                .map(|_| rng.range_f32(-2.0, w as f32 + 1.0))
-                .collect();
-            let y: Vec<f32> = (0..n * p)
-                .map(|_| rng.range_f32(-2.0, h as f32 + 1.0))
-                .collect();
-            let weight: Vec<f32> = (0..p * n * c).map(|_| rng.range_f32(-1.0, 1.0)).collect();
-            let run = |fused: bool| {
-                let map_t = Tensor::<4>::from_data(TensorData::new(map.clone(), [n, c, h, w]), &ad)
-                    .require_grad();
-                let x_t =
-                    Tensor::<2>::from_data(TensorData::new(x.clone(), [n, p]), &ad).require_grad();
-                let y_t =
-                    Tensor::<2>::from_data(TensorData::new(y.clone(), [n, p]), &ad).require_grad();
-                let prepared = PreparedMaps::new(std::slice::from_ref(&map_t)).unwrap();
-                let level = &prepared.levels[0];
-                let out = if fused {
-                    level.sample_fused(x_t.clone(), y_t.clone())
-                } else {
-                    level
-                        .sample_reference(x_t.clone(), y_t.clone())
-                        .swap_dims(0, 1)
-                };
-                let wt = Tensor::<1>::from_data(TensorData::new(weight.clone(), [p * n * c]), &ad)
-                    .reshape([p, n, c]);
-                let grads = (out.clone() * wt).sum().backward();
-                [
-                    out.reshape([-1]),
-                    map_t.grad(&grads).expect("map gradient").reshape([-1]),
-                    x_t.grad(&grads).expect("x gradient").reshape([-1]),
-                    y_t.grad(&grads).expect("y gradient").reshape([-1]),
-                ]
-                .map(read)
-            };
-            let (fused, reference) = (run(true), run(false));
-            for (k, name) in ["values", "map gradient", "x gradient", "y gradient"]
+        let (n, p, size) = (3usize, 700usize, (40u32, 24u32));
+        let shapes = [(8usize, 12usize, 20usize), (5, 3, 5), (4, 24, 40)];
+        let maps: Vec<Vec<f32>> = shapes
+            .iter()
+            .map(|&(c, h, w)| {
+                (0..n * c * h * w)
+                    .map(|_| rng.range_f32(-1.0, 1.0))
+                    .collect()
+            })
+            .collect();
+        let mut uv: Vec<f32> = (0..n * p)
+            .flat_map(|_| [rng.range_f32(-3.0, 43.0), rng.range_f32(-3.0, 27.0)])
+            .collect();
+        uv[10] = f32::NAN;
+        uv[13] = f32::INFINITY;
+        let tail: Vec<f32> = (0..4 * 6).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let c_out = 8 + 5 + 6;
+        let weight: Vec<f32> = (0..p * n * c_out)
+            .map(|_| rng.range_f32(-1.0, 1.0))
+            .collect();
+        let run = |kernel: SampleKernel| {
+            let map_t: Vec<Tensor<4>> = maps
                 .iter()
-                .enumerate()
-            {
-                let scale = reference[k].iter().fold(1.0f64, |m, v| m.max(v.abs()));
-                let diff = fused[k]
+                .zip(&shapes)
+                .map(|(m, &(c, h, w))| {
+                    Tensor::<4>::from_data(TensorData::new(m.clone(), [n, c, h, w]), &ad)
+                        .require_grad()
+                })
+                .collect();
+            let uv_t =
+                Tensor::<3>::from_data(TensorData::new(uv.clone(), [n, p, 2]), &ad).require_grad();
+            let tail_t =
+                Tensor::<2>::from_data(TensorData::new(tail.clone(), [4, 6]), &ad).require_grad();
+            let prepared = PreparedMaps::with_kernel(&map_t, Some(tail_t.clone()), kernel).unwrap();
+            assert_eq!(prepared.out_channels(), c_out);
+            let out = prepared.sample(uv_t.clone(), size.0, size.1).unwrap();
+            assert_eq!(out.dims(), [p, n, c_out]);
+            let wt = Tensor::<1>::from_data(TensorData::new(weight.clone(), [p * n * c_out]), &ad)
+                .reshape([p, n, c_out]);
+            let grads = (out.clone() * wt).sum().backward();
+            let mut parts = vec![
+                out.reshape([-1]),
+                uv_t.grad(&grads).expect("uv gradient").reshape([-1]),
+                tail_t.grad(&grads).expect("tail gradient").reshape([-1]),
+            ];
+            parts.extend(
+                map_t
                     .iter()
-                    .zip(&reference[k])
-                    .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
-                assert!(
-                    diff <= 1e-5 * scale,
-                    "{c}x{h}x{w} {name}: max diff {diff:.2e} (scale {scale:.2e})"
-                );
-            }
+                    .map(|m| m.grad(&grads).expect("map gradient").reshape([-1])),
+            );
+            parts.into_iter().map(read).collect::<Vec<_>>()
+        };
+        let (fused, reference) = (run(SampleKernel::HostOp), run(SampleKernel::TensorOps));
+        let names = [
+            "values",
+            "uv gradient",
+            "tail gradient",
+            "map 0",
+            "map 1",
+            "map 2",
+        ];
+        for (k, name) in names.iter().enumerate() {
+            assert_eq!(fused[k].len(), reference[k].len(), "{name}");
+            let scale = reference[k].iter().fold(1.0f64, |m, v| m.max(v.abs()));
+            let diff = fused[k]
+                .iter()
+                .zip(&reference[k])
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
             assert!(
-                fused[2].iter().any(|g| g.abs() > 1e-3),
-                "x gradients vanished"
+                diff <= 1e-5 * scale,
+                "{name}: max diff {diff:.2e} (scale {scale:.2e})"
             );
         }
+        assert!(
+            fused[1].iter().any(|g| g.abs() > 1e-3),
+            "uv gradients vanished"
+        );
+        assert_eq!(
+            &fused[1][10..14],
+            &[0.0; 4],
+            "NaN and Inf points have no gradient"
+        );
     }
     lifegom_render::cpu_backend_tests!(fused_op_matches_reference => fused_matches_reference);
 

@@ -1,16 +1,21 @@
-//! Bilinear feature sampling as one custom Burn op on the CPU backends (design.md §7.2).
+//! Bilinear sampling of a whole feature pyramid as one custom Burn op on the CPU backends
+//! (design.md §7.2).
 //!
 //! [`BilinearSampleOps`] is a Burn backend extension like the renderer's: `#[backend_extension]`
 //! generates its `Dispatch` implementation, so [`super::PreparedMaps::sample`] calls it on plain
 //! tensors. It is implemented for NdArray and Flex (both run [`super::bilinear`]) and for
-//! `Autodiff<B, C>` over them. It replaces about fifteen tensor ops per level and call (index
-//! arithmetic, a four-corner row gather, weights, a weighted sum) whose intermediates and
-//! autodiff nodes cost more than the sampling itself on a CPU: the profile in BENCHMARKS.md
-//! ("Training step profile") put them at a third of a training step.
+//! `Autodiff<B, C>` over them. One call samples every level at the same image positions and
+//! writes all of them into one output, the last level through its per-texel linear tail (the
+//! encoder's rgb embedding). It replaces, per level and call, the map coordinates (a scale, a
+//! shift and a clamp per axis), about fifteen ops of index arithmetic, gather and weighted sum,
+//! and then a concatenation of the levels and the tail's product: on a CPU their intermediates
+//! and autodiff nodes cost more than the sampling, and the concatenation's backward handed each
+//! level a strided slice of the gradient to copy (BENCHMARKS.md, sessions 5 and 9).
 //!
 //! There is no CubeCL implementation: on a GPU the same tensor-op composition
-//! ([`super::Level::sample_reference`]) already runs as parallel kernels, and `sample` routes
-//! CubeCL devices there (`lifegom_render::device::runs_on_host`).
+//! ([`super::Level::sample_reference`] per level, then the tail and the concatenation) already
+//! runs as parallel kernels, and `sample` routes CubeCL devices there
+//! (`lifegom_render::device::runs_on_host`).
 //!
 //! The autodiff node keeps the op's inputs (handles, no copies); the backward recomputes each
 //! point's footprint, which costs about what storing it would.
@@ -28,72 +33,83 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
-use burn::tensor::{DType, Element};
+use burn::tensor::Element;
 use bytemuck::Pod;
 
-use super::bilinear::{self, Maps, Real};
+use super::bilinear::{self, LevelShape, Pyramid, Real};
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
-/// The layout of the maps of one call: `views × height × width` rows of `channels` values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct MapLayout {
+/// The layout of one call: the views, the image the coordinates are in, and the levels.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PyramidLayout {
     /// Views N.
     pub views: usize,
-    /// Map height H.
-    pub height: usize,
-    /// Map width W.
-    pub width: usize,
-    /// Channels C.
-    pub channels: usize,
+    /// `(width, height)` of the image, in pixels.
+    pub image: (usize, usize),
+    /// The levels in output order; the last one passes through the tail.
+    pub levels: Vec<LevelShape>,
 }
 
-/// Bilinear sampling with zero padding, fused.
+/// Bilinear sampling of a whole feature pyramid with zero padding, fused.
 ///
-/// Inputs: `rows` `[N·H·W, C]` (the maps channel-last), `x`, `y` `[N, P]`: finite map-pixel
-/// coordinates (pixel `i` has its centre at `x = i`). Output `[P, N, C]` in `rows`' float dtype.
+/// Inputs: `rows` `[Σ_l N·H_l·W_l·C_l]` (each level's maps channel-last, level after level),
+/// `uv` `[N, P, 2]` image-pixel coordinates, `tail` `[C_last, C_out]`. Output
+/// `[P, N, Σ_{l<L−1} C_l + C_out]` in `rows`' float dtype; see [`Pyramid`] for the exact map.
 /// Gradients flow to all three inputs. Callers check shapes (see [`super::PreparedMaps`]).
 #[backend_extension(NdArray, Flex, Autodiff)]
 pub trait BilinearSampleOps: Backend {
-    /// Samples every view's maps at its points.
+    /// Samples every level of every view at its points.
     fn bilinear_sample(
         rows: FloatTensor<Self>,
-        x: FloatTensor<Self>,
-        y: FloatTensor<Self>,
-        layout: MapLayout,
+        uv: FloatTensor<Self>,
+        tail: FloatTensor<Self>,
+        layout: PyramidLayout,
     ) -> FloatTensor<Self>;
 }
 
 /// The op's inputs on one backend: what the forward takes and the autodiff node keeps.
 #[derive(Debug, Clone)]
 pub struct SampleInputs<B: Backend> {
-    /// `[N·H·W, C]`.
+    /// `[Σ_l N·H_l·W_l·C_l]`.
     pub rows: FloatTensor<B>,
-    /// `[N, P]`.
-    pub x: FloatTensor<B>,
-    /// `[N, P]`.
-    pub y: FloatTensor<B>,
-    /// The maps' layout.
-    pub layout: MapLayout,
+    /// `[N, P, 2]`.
+    pub uv: FloatTensor<B>,
+    /// `[C_last, C_out]`.
+    pub tail: FloatTensor<B>,
+    /// The pyramid's layout.
+    pub layout: PyramidLayout,
+}
+
+/// Which gradients a backward call computes (the coordinates' always).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Wanted {
+    /// The maps'.
+    pub rows: bool,
+    /// The tail's.
+    pub tail: bool,
 }
 
 /// What a backend implements so that `Autodiff<B>` can differentiate the op.
 #[doc(hidden)]
 pub trait BilinearKernels: Backend {
-    /// The forward, `[P, N, C]`.
+    /// The forward, `[P, N, C_out]`.
     fn bilinear_forward(inputs: SampleInputs<Self>) -> FloatTensor<Self>;
 
-    /// Gradients w.r.t. `rows` (only when `want_rows`), `x` and `y` given `dL/d(output)`, each
-    /// in its input's dtype.
+    /// Gradients w.r.t. `rows` and `tail` (each only when wanted) and `uv` given
+    /// `dL/d(output)`, each in its input's dtype.
     fn bilinear_backward(
         inputs: SampleInputs<Self>,
         grad: FloatTensor<Self>,
-        want_rows: bool,
-    ) -> (
-        Option<FloatTensor<Self>>,
-        FloatTensor<Self>,
-        FloatTensor<Self>,
-    );
+        wanted: Wanted,
+    ) -> SampleGrads<Self>;
 }
+
+/// `(∂rows, ∂uv, ∂tail)`.
+pub type SampleGrads<B> = (
+    Option<FloatTensor<B>>,
+    FloatTensor<B>,
+    Option<FloatTensor<B>>,
+);
 
 fn cpu_forward<B: HostLend>(inputs: SampleInputs<B>) -> FloatTensor<B> {
     in_precision!(inputs.rows.dtype(), cpu_forward_in(inputs))
@@ -102,34 +118,34 @@ fn cpu_forward<B: HostLend>(inputs: SampleInputs<B>) -> FloatTensor<B> {
 /// The op's inputs as host slices in precision `T`, lent in place where the backend allows it.
 struct HostInputs<'a, T: Clone> {
     rows: Cow<'a, [T]>,
-    x: Cow<'a, [T]>,
-    y: Cow<'a, [T]>,
-    layout: MapLayout,
+    uv: Cow<'a, [T]>,
+    tail: Cow<'a, [T]>,
+    layout: &'a PyramidLayout,
 }
 
 impl<'a, T: Real + Element + Pod> HostInputs<'a, T> {
     fn lend<B: HostLend>(inputs: &'a SampleInputs<B>) -> Self {
         Self {
             rows: B::lend_float::<T>("maps", &inputs.rows),
-            x: B::lend_float::<T>("x", &inputs.x),
-            y: B::lend_float::<T>("y", &inputs.y),
-            layout: inputs.layout,
+            uv: B::lend_float::<T>("uv", &inputs.uv),
+            tail: B::lend_float::<T>("tail", &inputs.tail),
+            layout: &inputs.layout,
         }
     }
 
-    fn maps(&self) -> Maps<'_, T> {
-        Maps {
+    fn pyramid(&self) -> Pyramid<'_, T> {
+        Pyramid {
             rows: &self.rows,
             views: self.layout.views,
-            height: self.layout.height,
-            width: self.layout.width,
-            channels: self.layout.channels,
+            levels: &self.layout.levels,
+            image: self.layout.image,
+            tail: &self.tail,
         }
     }
 
     /// Points per view P.
     fn points(&self) -> usize {
-        self.x.len() / self.layout.views.max(1)
+        self.uv.len() / (2 * self.layout.views).max(1)
     }
 }
 
@@ -137,44 +153,38 @@ fn cpu_forward_in<B: HostLend, T: Real + Element + Pod>(inputs: SampleInputs<B>)
     let device = inputs.rows.device();
     let dtype = inputs.rows.dtype();
     let host = HostInputs::<T>::lend(&inputs);
-    let l = host.layout;
-    let out = bilinear::forward(&host.maps(), &host.x, &host.y);
-    cpu_float_from::<B, T>(out, [host.points(), l.views, l.channels], dtype, &device)
+    let pyramid = host.pyramid();
+    let out = bilinear::forward(&pyramid, &host.uv);
+    let shape = [host.points(), host.layout.views, pyramid.out_channels()];
+    cpu_float_from::<B, T>(out, shape, dtype, &device)
 }
-
-type SampleGrads<B> = (Option<FloatTensor<B>>, FloatTensor<B>, FloatTensor<B>);
 
 fn cpu_backward<B: HostLend>(
     inputs: SampleInputs<B>,
     grad: FloatTensor<B>,
-    want_rows: bool,
+    wanted: Wanted,
 ) -> SampleGrads<B> {
-    in_precision!(
-        inputs.rows.dtype(),
-        cpu_backward_in(inputs, grad, want_rows)
-    )
+    in_precision!(inputs.rows.dtype(), cpu_backward_in(inputs, grad, wanted))
 }
 
 fn cpu_backward_in<B: HostLend, T: Real + Element + Pod>(
     inputs: SampleInputs<B>,
     grad: FloatTensor<B>,
-    want_rows: bool,
+    wanted: Wanted,
 ) -> SampleGrads<B> {
     let device = inputs.rows.device();
-    let dtypes = [inputs.rows.dtype(), inputs.x.dtype(), inputs.y.dtype()];
+    let shapes = [inputs.rows.shape(), inputs.uv.shape(), inputs.tail.shape()];
+    let dtypes = [inputs.rows.dtype(), inputs.uv.dtype(), inputs.tail.dtype()];
     let grad = B::lend_float::<T>("sample gradient", &grad);
     let host = HostInputs::<T>::lend(&inputs);
-    let (l, p) = (host.layout, host.points());
-    let (grad_rows, grad_x, grad_y) =
-        bilinear::backward(&host.maps(), &host.x, &host.y, &grad, want_rows);
-    let tensor = |values: Vec<T>, shape: [usize; 2], dtype: DType| {
-        cpu_float_from::<B, T>(values, shape, dtype, &device)
+    let grads = bilinear::backward(&host.pyramid(), &host.uv, &grad, wanted.rows, wanted.tail);
+    let tensor = |values: Vec<T>, i: usize| {
+        cpu_float_from::<B, T>(values, shapes[i].clone(), dtypes[i], &device)
     };
-    let rows_shape = [l.views * l.height * l.width, l.channels];
     (
-        grad_rows.map(|g| tensor(g, rows_shape, dtypes[0])),
-        tensor(grad_x, [l.views, p], dtypes[1]),
-        tensor(grad_y, [l.views, p], dtypes[2]),
+        grads.rows.map(|g| tensor(g, 0)),
+        tensor(grads.uv, 1),
+        grads.tail.map(|g| tensor(g, 2)),
     )
 }
 
@@ -184,11 +194,16 @@ macro_rules! cpu_sample_backend {
         impl BilinearSampleOps for $backend {
             fn bilinear_sample(
                 rows: FloatTensor<Self>,
-                x: FloatTensor<Self>,
-                y: FloatTensor<Self>,
-                layout: MapLayout,
+                uv: FloatTensor<Self>,
+                tail: FloatTensor<Self>,
+                layout: PyramidLayout,
             ) -> FloatTensor<Self> {
-                cpu_forward::<Self>(SampleInputs { rows, x, y, layout })
+                cpu_forward::<Self>(SampleInputs {
+                    rows,
+                    uv,
+                    tail,
+                    layout,
+                })
             }
         }
 
@@ -200,9 +215,9 @@ macro_rules! cpu_sample_backend {
             fn bilinear_backward(
                 inputs: SampleInputs<Self>,
                 grad: FloatTensor<Self>,
-                want_rows: bool,
+                wanted: Wanted,
             ) -> SampleGrads<Self> {
-                cpu_backward::<Self>(inputs, grad, want_rows)
+                cpu_backward::<Self>(inputs, grad, wanted)
             }
         }
     };
@@ -224,17 +239,20 @@ impl<B: BilinearKernels> Backward<B, 3> for SampleBackward {
         _checkpointer: &mut Checkpointer,
     ) {
         let grad = grads.consume::<B>(&ops.node);
-        let [rows_parent, x_parent, y_parent] = ops.parents;
-        let (grad_rows, grad_x, grad_y) =
-            B::bilinear_backward(ops.state, grad, rows_parent.is_some());
+        let [rows_parent, uv_parent, tail_parent] = ops.parents;
+        let wanted = Wanted {
+            rows: rows_parent.is_some(),
+            tail: tail_parent.is_some(),
+        };
+        let (grad_rows, grad_uv, grad_tail) = B::bilinear_backward(ops.state, grad, wanted);
         if let (Some(parent), Some(g)) = (rows_parent, grad_rows) {
             grads.register::<B>(parent.id, g);
         }
-        if let Some(parent) = x_parent {
-            grads.register::<B>(parent.id, grad_x);
+        if let Some(parent) = uv_parent {
+            grads.register::<B>(parent.id, grad_uv);
         }
-        if let Some(parent) = y_parent {
-            grads.register::<B>(parent.id, grad_y);
+        if let (Some(parent), Some(g)) = (tail_parent, grad_tail) {
+            grads.register::<B>(parent.id, g);
         }
     }
 }
@@ -244,16 +262,21 @@ impl<B: BilinearSampleOps + BilinearKernels, C: CheckpointStrategy> BilinearSamp
 {
     fn bilinear_sample(
         rows: FloatTensor<Self>,
-        x: FloatTensor<Self>,
-        y: FloatTensor<Self>,
-        layout: MapLayout,
+        uv: FloatTensor<Self>,
+        tail: FloatTensor<Self>,
+        layout: PyramidLayout,
     ) -> FloatTensor<Self> {
         let (rows, rows_node) = rows.into_parts();
-        let (x, x_node) = x.into_parts();
-        let (y, y_node) = y.into_parts();
-        let inputs = SampleInputs { rows, x, y, layout };
+        let (uv, uv_node) = uv.into_parts();
+        let (tail, tail_node) = tail.into_parts();
+        let inputs = SampleInputs {
+            rows,
+            uv,
+            tail,
+            layout,
+        };
         match SampleBackward
-            .prepare::<C>([rows_node, x_node, y_node])
+            .prepare::<C>([rows_node, uv_node, tail_node])
             .compute_bound()
             .stateful()
         {
@@ -261,9 +284,12 @@ impl<B: BilinearSampleOps + BilinearKernels, C: CheckpointStrategy> BilinearSamp
                 let out = B::bilinear_forward(inputs.clone());
                 prep.finish(inputs, out)
             }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::bilinear_sample(inputs.rows, inputs.x, inputs.y, layout))
-            }
+            OpsKind::UnTracked(prep) => prep.finish(B::bilinear_sample(
+                inputs.rows,
+                inputs.uv,
+                inputs.tail,
+                inputs.layout,
+            )),
         }
     }
 }
