@@ -32,6 +32,7 @@ use bytemuck::Pod;
 use rayon::prelude::*;
 
 use lifegom_render::device::runs_on_host;
+use lifegom_render::host_buffer;
 use lifegom_render::op_backward::gradient_per_input;
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
@@ -198,10 +199,7 @@ fn gemm_into<T: GemmFloat>(
 fn forward_kernel<T: GemmFloat>(x: &[T], w: &[T], b: &[T]) -> Vec<T> {
     let (i, o) = (w.len() / b.len().max(1), b.len());
     let rows = x.len() / i.max(1);
-    let mut out: Vec<T> = Vec::with_capacity(rows * o);
-    for _ in 0..rows {
-        out.extend_from_slice(b);
-    }
+    let mut out = host_buffer::repeated(b, rows);
     gemm_into(
         &mut out,
         (rows, o, i),

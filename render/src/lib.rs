@@ -43,6 +43,7 @@ pub(crate) mod cube;
 pub mod device;
 pub mod error;
 pub mod gom;
+pub mod host_buffer;
 pub mod mesh;
 pub mod motion;
 pub mod op_backward;
