@@ -211,28 +211,47 @@ fn forward_kernel<T: GemmFloat>(x: &[T], w: &[T], b: &[T]) -> Vec<T> {
 }
 
 /// Gradients of [`forward_kernel`] given `g` `[rows, O]`: `(∂x, ∂W, ∂b)`.
+///
+/// `∂x` and `(∂W, ∂b)` are independent: above [`PARALLEL_MACS`] they are computed side by side
+/// (`rayon::join`), so that allocating and zeroing the large `∂x` on one thread overlaps the
+/// `∂W` product on the other instead of running while that core waits.
 fn backward_kernel<T: GemmFloat>(x: &[T], w: &[T], g: &[T], o: usize) -> (Vec<T>, Vec<T>, Vec<T>) {
     let i = w.len() / o.max(1);
     let rows = g.len() / o.max(1);
-    // ∂x = g·Wᵀ: Wᵀ[c][r] = W[r][c] is W read with its strides swapped.
-    let mut dx = vec![T::default(); rows * i];
-    gemm_into(
-        &mut dx,
-        (rows, i, o),
-        View::row_major(g, o),
-        View::transposed(w, o),
-        false,
-    );
-    // ∂W = xᵀ·g.
-    let mut dw = vec![T::default(); i * o];
-    gemm_into(
-        &mut dw,
-        (i, o, rows),
-        View::transposed(x, i),
-        View::row_major(g, o),
-        false,
-    );
-    // ∂b = Σ_rows g, in fixed blocks of rows added in block order.
+    let input_grad = || {
+        // ∂x = g·Wᵀ: Wᵀ[c][r] = W[r][c] is W read with its strides swapped.
+        let mut dx = vec![T::default(); rows * i];
+        gemm_into(
+            &mut dx,
+            (rows, i, o),
+            View::row_major(g, o),
+            View::transposed(w, o),
+            false,
+        );
+        dx
+    };
+    let parameter_grads = || {
+        // ∂W = xᵀ·g.
+        let mut dw = vec![T::default(); i * o];
+        gemm_into(
+            &mut dw,
+            (i, o, rows),
+            View::transposed(x, i),
+            View::row_major(g, o),
+            false,
+        );
+        (dw, bias_grad(g, o))
+    };
+    let (dx, (dw, db)) = if rows.saturating_mul(i).saturating_mul(o) >= PARALLEL_MACS {
+        rayon::join(input_grad, parameter_grads)
+    } else {
+        (input_grad(), parameter_grads())
+    };
+    (dx, dw, db)
+}
+
+/// `∂b = Σ_rows g` for `g` `[rows, O]`, in fixed blocks of rows added in block order.
+fn bias_grad<T: GemmFloat>(g: &[T], o: usize) -> Vec<T> {
     let partials: Vec<Vec<T>> = g
         .par_chunks(BIAS_ROWS_PER_BLOCK * o.max(1))
         .map(|block| {
@@ -251,7 +270,7 @@ fn backward_kernel<T: GemmFloat>(x: &[T], w: &[T], g: &[T], o: usize) -> (Vec<T>
             *s += v;
         }
     }
-    (dx, dw, db)
+    db
 }
 
 fn output_shape(x: &Shape, out_features: usize) -> Shape {
