@@ -22,7 +22,6 @@ use burn::tensor::module::linear;
 use burn::tensor::{Device, Int, Tensor};
 
 use crate::linear_op;
-use lifegom_render::device::runs_on_host;
 use lifegom_render::gom::GomParams;
 use lifegom_render::select::select_rows;
 
@@ -173,10 +172,7 @@ impl UpdateHeads {
         let w_corners = weight.clone().narrow(0, 0, corner_width);
         let w_images = weight.narrow(0, corner_width, g - corner_width);
         // The image block is the large product: on the CPU backends it runs as the Linear op.
-        let images = match bias {
-            Some(bias) if runs_on_host(&device) => linear_op::linear(images, w_images, bias),
-            bias => linear(images, w_images, bias),
-        };
+        let images = linear_op::affine(images, w_images, bias);
         let hidden = relu(images + linear(corners, w_corners, None));
         // The second layers as one block-diagonal product `[F, 4·hidden] · [4·hidden, 12]`,
         // whose output is split by head: slicing `hidden` by head instead costs, in the
@@ -188,10 +184,7 @@ impl UpdateHeads {
             .map(|m| m.l2.bias.as_ref().map(|b| b.val()))
             .collect::<Option<Vec<_>>>()
             .map(|b| Tensor::cat(b, 0));
-        let outputs = match second_bias {
-            Some(bias) if runs_on_host(&device) => linear_op::linear(hidden, second, bias),
-            bias => linear(hidden, second, bias),
-        };
+        let outputs = linear_op::affine(hidden, second, second_bias);
         let mut start = 0;
         let mut out = heads.iter().map(|m| {
             let width = m.l2.weight.dims()[1];

@@ -48,14 +48,24 @@ const BIAS_ROWS_PER_BLOCK: usize = 2048;
 /// `layer` applied to `x` `[.., I]`: the custom op on the CPU backends when the layer has a
 /// bias, else Burn's own `Linear::forward`.
 pub fn forward<const D: usize>(layer: &Linear, x: Tensor<D>) -> Tensor<D> {
-    match &layer.bias {
-        Some(bias) if runs_on_host(&x.device()) => linear(x, layer.weight.val(), bias.val()),
-        _ => layer.forward(x),
+    affine(x, layer.weight.val(), layer.bias.as_ref().map(|b| b.val()))
+}
+
+/// `x·weight + bias` for `x` `[.., I]`, `weight` `[I, O]`, `bias` `[O]` on any device: the
+/// custom op on the CPU backends when there is a bias, else Burn's `linear`.
+pub fn affine<const D: usize>(
+    x: Tensor<D>,
+    weight: Tensor<2>,
+    bias: Option<Tensor<1>>,
+) -> Tensor<D> {
+    match bias {
+        Some(bias) if runs_on_host(&x.device()) => linear(x, weight, bias),
+        bias => burn::tensor::module::linear(x, weight, bias),
     }
 }
 
 /// `x·weight + bias` for `x` `[.., I]`, `weight` `[I, O]`, `bias` `[O]`, through the custom op
-/// (CPU backends only; callers route, see [`forward`]).
+/// (CPU backends only; callers route, see [`forward`] and [`affine`]).
 pub fn linear<const D: usize>(x: Tensor<D>, weight: Tensor<2>, bias: Tensor<1>) -> Tensor<D> {
     Tensor::from_dispatch(<burn::backend::Dispatch as HostLinearOps>::host_linear(
         x.into_dispatch(),

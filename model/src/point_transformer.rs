@@ -246,15 +246,38 @@ pub fn frozen_bn(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
 /// on axis 1. It uses the running statistics whatever the layer's training flag says (the flag
 /// is off anyway, see [`frozen_bn`]).
 fn bn_last<const D: usize>(bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
-    let device = x.device();
     let c = x.dims()[D - 1];
-    let mean = bn.running_mean.value().to_device(&device);
-    let var = bn.running_var.value().to_device(&device);
-    let scale = bn.gamma.val() / (var + bn.epsilon).sqrt();
-    let shift = bn.beta.val() - mean * scale.clone();
+    let (scale, shift) = bn_affine(bn, &x.device());
     let mut shape = [1; D];
     shape[D - 1] = c;
     x * scale.reshape(shape) + shift.reshape(shape)
+}
+
+/// The eval-mode BN as `x·scale + shift` per channel: `scale = γ/√(σ²+ε)`,
+/// `shift = β − μ·scale`, each `[C]`.
+fn bn_affine(bn: &BatchNorm, device: &Device) -> (Tensor<1>, Tensor<1>) {
+    let mean = bn.running_mean.value().to_device(device);
+    let var = bn.running_var.value().to_device(device);
+    let scale = bn.gamma.val() / (var + bn.epsilon).sqrt();
+    let shift = bn.beta.val() - mean * scale.clone();
+    (scale, shift)
+}
+
+/// `BN(Linear(x))` as one affine layer: the frozen BN's per-channel `scale`/`shift` folded into
+/// the layer, `x·(W·diag(scale)) + (b·scale + shift)` (`b = 0` for a layer without bias). The
+/// fold is two small ops on `[in, out]` and `[out]`; on the `[rows, out]` activations it saves
+/// the BN's multiply and add (and their backward), and runs a bias-free layer through the
+/// Linear op too ([`linear_op`]). Equal to `bn_last(bn, linear.forward(x))` up to float
+/// summation order (tested below).
+fn linear_bn<const D: usize>(linear: &Linear, bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
+    let device = x.device();
+    let (scale, shift) = bn_affine(bn, &device);
+    let weight = linear.weight.val() * scale.clone().unsqueeze_dim(0);
+    let bias = match &linear.bias {
+        Some(b) => b.val() * scale + shift,
+        None => shift,
+    };
+    linear_op::affine(x, weight, Some(bias))
 }
 
 /// The Point Transformer encoder–decoder (module docs). Build with [`PointTransformerConfig`].
@@ -419,7 +442,7 @@ pub struct TransitionDown {
 impl TransitionDown {
     /// Stride 1: `ReLU(BN(Linear(x)))`, `[n, in] → [n, out]`.
     pub fn forward_pointwise(&self, x: Tensor<2>) -> Tensor<2> {
-        relu(bn_last(&self.bn, linear_op::forward(&self.linear, x)))
+        relu(linear_bn(&self.linear, &self.bn, x))
     }
 
     /// Stride 1 on `cat(p, x)` without forming it: `p·W[0..3] + x·W[3..]`. For the paper's
@@ -433,12 +456,17 @@ impl TransitionDown {
             d_in,
             "features must be [V, in_dim − 3]"
         );
-        let mut h = positions.matmul(w.clone().slice([0..3, 0..d_out]))
-            + features.matmul(w.slice([3..d_in, 0..d_out]));
-        if let Some(b) = &self.linear.bias {
-            h = h + b.val().unsqueeze_dim(0);
-        }
-        relu(bn_last(&self.bn, h))
+        // The BN folded into the layer as in `linear_bn`; the feature block carries the bias.
+        let device = features.device();
+        let (scale, shift) = bn_affine(&self.bn, &device);
+        let w = w * scale.clone().unsqueeze_dim(0);
+        let bias = match &self.linear.bias {
+            Some(b) => b.val() * scale + shift,
+            None => shift,
+        };
+        let w_features = w.clone().slice([3..d_in, 0..d_out]);
+        let from_features = linear_op::affine(features, w_features, Some(bias));
+        relu(positions.matmul(w.slice([0..3, 0..d_out])) + from_features)
     }
 
     /// Stride > 1: `x` `[n, in]` of the previous level, `idx` `[m·k]` neighbour indices into
@@ -447,8 +475,11 @@ impl TransitionDown {
         let [m, k, _] = rel.dims();
         let c_in = x.dims()[1];
         let grouped = select_rows(x, 0, idx).reshape([m, k, c_in]);
-        let h = linear_op::forward(&self.linear, Tensor::cat(vec![rel, grouped], 2));
-        let h = relu(bn_last(&self.bn, h));
+        let h = relu(linear_bn(
+            &self.linear,
+            &self.bn,
+            Tensor::cat(vec![rel, grouped], 2),
+        ));
         let c = h.dims()[2];
         h.max_dim(1).reshape([m, c])
     }
@@ -487,9 +518,9 @@ impl PointTransformerBlock {
     /// `x` `[n, c]` with the level's self-kNN (`rel` `[n, k, 3]`, `nbr` `[n·k]`) → `[n, c]`.
     pub fn forward(&self, x: Tensor<2>, rel: Tensor<3>, nbr: Tensor<1, Int>) -> Tensor<2> {
         let identity = x.clone();
-        let h = relu(bn_last(&self.bn1, linear_op::forward(&self.linear1, x)));
+        let h = relu(linear_bn(&self.linear1, &self.bn1, x));
         let h = relu(bn_last(&self.bn2, self.transformer2.forward(h, rel, nbr)));
-        let h = bn_last(&self.bn3, linear_op::forward(&self.linear3, h));
+        let h = linear_bn(&self.linear3, &self.bn3, h);
         relu(h + identity)
     }
 }
@@ -582,10 +613,7 @@ impl PointTransformerLayer {
         let vf = select_rows(linear_op::forward(&self.linear_v, x), 0, nbr).reshape([n, k, c]);
 
         let mp = &self.linear_p;
-        let delta = linear_op::forward(
-            &mp.fc3,
-            relu(bn_last(&mp.bn1, linear_op::forward(&mp.fc0, rel))),
-        ); // [n, k, c]
+        let delta = linear_op::forward(&mp.fc3, relu(linear_bn(&mp.fc0, &mp.bn1, rel))); // [n, k, c]
 
         let mw = &self.linear_w;
         let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
@@ -656,20 +684,21 @@ impl TransitionUp {
     pub fn forward_head(&self, x: Tensor<2>) -> Tensor<2> {
         let [n, c] = x.dims();
         let global = relu(linear_op::forward(&self.linear2, x.clone().mean_dim(0))).expand([n, c]);
-        relu(bn_last(
+        relu(linear_bn(
+            &self.linear1,
             &self.bn1,
-            linear_op::forward(&self.linear1, Tensor::cat(vec![x, global], 1)),
+            Tensor::cat(vec![x, global], 1),
         ))
     }
 
     /// `skip` `[n_fine, c]` (encoder features of this level) plus the interpolated decoder
     /// features of the coarser level `coarse` `[n_coarse, c_coarse]` → `[n_fine, c]`.
     fn forward(&self, skip: Tensor<2>, coarse: Tensor<2>, interp: &Interpolation) -> Tensor<2> {
-        let fine = relu(bn_last(&self.bn1, linear_op::forward(&self.linear1, skip)));
-        let mut up = linear_op::forward(&self.linear2, coarse);
-        if let Some(bn) = &self.bn2 {
-            up = bn_last(bn, up);
-        }
+        let fine = relu(linear_bn(&self.linear1, &self.bn1, skip));
+        let up = match &self.bn2 {
+            Some(bn) => linear_bn(&self.linear2, bn, coarse),
+            None => linear_op::forward(&self.linear2, coarse),
+        };
         fine + interp.apply(relu(up))
     }
 }
@@ -744,6 +773,71 @@ mod tests {
     }
 
     lifegom_render::cpu_backend_tests!(point_transformer_input_split => check_input_split);
+
+    /// The BN folded into the linear layer equals the layer followed by the BN, with and
+    /// without a bias, on 2-D and 3-D inputs: values, and the gradients of the input and of
+    /// the layer's parameters (the BN is frozen: its statistics and γ/β take none).
+    fn check_linear_bn_fold(device: &Device) {
+        let ad = device.clone().autodiff();
+        let mut rng = Rng::new(12);
+        for (bias, rows) in [(true, [7usize, 1]), (false, [5, 4])] {
+            let layer = linear(6, 5, bias, &ad);
+            let mut bn = frozen_bn(5, 1e-5, &ad);
+            let stat = |rng: &mut Rng, lo: f32| {
+                let v: Vec<f32> = (0..5).map(|_| lo + rng.next_f32()).collect();
+                Tensor::<1>::from_data(TensorData::new(v, [5]), &ad)
+            };
+            bn.running_mean = burn::module::RunningState::new(stat(&mut rng, -0.5));
+            bn.running_var = burn::module::RunningState::new(stat(&mut rng, 0.5));
+            bn.gamma =
+                burn::module::Param::from_tensor(stat(&mut rng, 0.5)).set_require_grad(false);
+            bn.beta =
+                burn::module::Param::from_tensor(stat(&mut rng, -0.5)).set_require_grad(false);
+            let v: Vec<f32> = (0..rows[0] * rows[1] * 6)
+                .map(|_| centred(&mut rng))
+                .collect();
+            let x = Tensor::<3>::from_data(TensorData::new(v, [rows[0], rows[1], 6]), &ad)
+                .require_grad();
+            let w = Tensor::<3>::from_data(
+                TensorData::new(
+                    (0..rows[0] * rows[1] * 5)
+                        .map(|_| centred(&mut rng))
+                        .collect::<Vec<f32>>(),
+                    [rows[0], rows[1], 5],
+                ),
+                &ad,
+            );
+            let run = |folded: bool| {
+                let y = if folded {
+                    linear_bn(&layer, &bn, x.clone())
+                } else {
+                    bn_last(&bn, layer.forward(x.clone()))
+                };
+                let grads = (y.clone() * w.clone()).sum().backward();
+                let mut parts = vec![
+                    read(y),
+                    read(x.grad(&grads).expect("input gradient")),
+                    read(layer.weight.val().grad(&grads).expect("weight gradient")),
+                ];
+                if let Some(b) = &layer.bias {
+                    parts.push(read(b.val().grad(&grads).expect("bias gradient")));
+                }
+                parts
+            };
+            let (folded, reference) = (run(true), run(false));
+            for (k, (a, b)) in folded.iter().zip(&reference).enumerate() {
+                assert_eq!(a.len(), b.len());
+                for (p, q) in a.iter().zip(b) {
+                    assert!(
+                        (p - q).abs() <= 1e-5 * (1.0 + q.abs()),
+                        "bias {bias}, part {k}: folded {p} vs reference {q}"
+                    );
+                }
+            }
+        }
+    }
+
+    lifegom_render::cpu_backend_tests!(linear_bn_fold_equals_linear_then_bn => check_linear_bn_fold);
 
     lifegom_render::cpu_backend_tests!(point_transformer_layer_shapes => check_layer_shapes);
 
