@@ -512,6 +512,66 @@ mod tests {
     }];
     const IDENTITY: [f64; 4] = [1.0, 0.0, 0.0, 1.0];
 
+    /// `backward`'s gradients against central differences of `Σ grad·forward` for the
+    /// coordinates `check_uv` selects, and against unit steps for every `row_step`-th map value
+    /// and every tail value (the loss is linear in both, so a unit step is exact). Returns the
+    /// gradients.
+    fn assert_matches_differences(
+        pyr: &Pyramid<'_, f64>,
+        uv: &[f64],
+        grad: &[f64],
+        check_uv: impl Fn(usize) -> bool,
+        row_step: usize,
+    ) -> PyramidGrads<f64> {
+        let grads = backward(pyr, uv, grad, true, true);
+        let loss = |pyr: &Pyramid<'_, f64>, uv: &[f64]| {
+            forward(pyr, uv)
+                .iter()
+                .zip(grad)
+                .map(|(a, b)| a * b)
+                .sum::<f64>()
+        };
+        let eps = 1e-6;
+        for k in (0..uv.len()).filter(|&k| check_uv(k)) {
+            let (mut plus, mut minus) = (uv.to_vec(), uv.to_vec());
+            plus[k] += eps;
+            minus[k] -= eps;
+            let fd = (loss(pyr, &plus) - loss(pyr, &minus)) / (2.0 * eps);
+            assert!(
+                (grads.uv[k] - fd).abs() < 1e-6,
+                "uv[{k}]: {} vs {fd}",
+                grads.uv[k]
+            );
+        }
+        let rows_g = grads.rows.as_ref().expect("asked for");
+        for r in (0..pyr.rows.len()).step_by(row_step) {
+            let mut plus = pyr.rows.to_vec();
+            plus[r] += 1.0;
+            let fd = loss(
+                &Pyramid {
+                    rows: &plus,
+                    ..*pyr
+                },
+                uv,
+            ) - loss(pyr, uv);
+            assert!((rows_g[r] - fd).abs() < 1e-9, "row value {r}");
+        }
+        let tail_g = grads.tail.as_ref().expect("asked for");
+        for t in 0..pyr.tail.len() {
+            let mut plus = pyr.tail.to_vec();
+            plus[t] += 1.0;
+            let fd = loss(
+                &Pyramid {
+                    tail: &plus,
+                    ..*pyr
+                },
+                uv,
+            ) - loss(pyr, uv);
+            assert!((tail_g[t] - fd).abs() < 1e-9, "tail value {t}");
+        }
+        grads
+    }
+
     /// A 2×3 one-view map sampled at image = map resolution (so `x = u − ½`): inside, on the
     /// border and outside, against hand-computed values, and central differences of the
     /// forward for the coordinate gradients.
@@ -550,43 +610,7 @@ mod tests {
         let y = [0.5, 0.3, 0.5, 0.7, 0.2];
         let uv = at(&x, &y);
         let grad: Vec<f64> = (0..out.len()).map(|i| 1.0 + 0.1 * i as f64).collect();
-        let grads = backward(&pyr, &uv, &grad, true, true);
-        let loss = |pyr: &Pyramid<'_, f64>, uv: &[f64]| {
-            forward(pyr, uv)
-                .iter()
-                .zip(&grad)
-                .map(|(a, b)| a * b)
-                .sum::<f64>()
-        };
-        let eps = 1e-6;
-        for k in 0..uv.len() {
-            let (mut plus, mut minus) = (uv.clone(), uv.clone());
-            plus[k] += eps;
-            minus[k] -= eps;
-            let fd = (loss(&pyr, &plus) - loss(&pyr, &minus)) / (2.0 * eps);
-            assert!(
-                (grads.uv[k] - fd).abs() < 1e-6,
-                "uv[{k}]: {} vs {fd}",
-                grads.uv[k]
-            );
-        }
-        // The loss is linear in the rows and in the tail: a unit step of each value is exact.
-        let rows_g = grads.rows.expect("asked for");
-        for r in 0..rows.len() {
-            let mut plus = rows.clone();
-            plus[r] += 1.0;
-            let stepped = Pyramid { rows: &plus, ..pyr };
-            let fd = loss(&stepped, &uv) - loss(&pyr, &uv);
-            assert!((rows_g[r] - fd).abs() < 1e-9, "row value {r}");
-        }
-        let tail_g = grads.tail.expect("asked for");
-        for t in 0..IDENTITY.len() {
-            let mut plus = IDENTITY;
-            plus[t] += 1.0;
-            let stepped = Pyramid { tail: &plus, ..pyr };
-            let fd = loss(&stepped, &uv) - loss(&pyr, &uv);
-            assert!((tail_g[t] - fd).abs() < 1e-9, "tail value {t}");
-        }
+        assert_matches_differences(&pyr, &uv, &grad, |_| true, 1);
     }
 
     /// Several views and levels with a projecting tail: the backward against central
@@ -641,41 +665,9 @@ mod tests {
             let row = &out[(point * views + view) * 10..][..10];
             assert!(row.iter().all(|&v| v == 0.0), "point {k} samples zero");
         }
-        let grads = backward(&pyr, &uv, &grad, true, true);
+        let grads =
+            assert_matches_differences(&pyr, &uv, &grad, |k| uv[k].is_finite() && uv[k] < 1e8, 5);
         assert_eq!(&grads.uv[2..6], &[0.0; 4]);
-        let loss = |pyr: &Pyramid<'_, f64>, uv: &[f64]| {
-            forward(pyr, uv)
-                .iter()
-                .zip(&grad)
-                .map(|(a, b)| a * b)
-                .sum::<f64>()
-        };
-        let eps = 1e-6;
-        for k in (0..uv.len()).filter(|k| uv[*k].is_finite() && uv[*k] < 1e8) {
-            let (mut plus, mut minus) = (uv.clone(), uv.clone());
-            plus[k] += eps;
-            minus[k] -= eps;
-            let fd = (loss(&pyr, &plus) - loss(&pyr, &minus)) / (2.0 * eps);
-            assert!(
-                (grads.uv[k] - fd).abs() < 1e-6,
-                "uv[{k}]: {} vs {fd}",
-                grads.uv[k]
-            );
-        }
-        let rows_g = grads.rows.expect("asked for");
-        for r in (0..rows.len()).step_by(5) {
-            let mut plus = rows.clone();
-            plus[r] += 1.0;
-            let fd = loss(&Pyramid { rows: &plus, ..pyr }, &uv) - loss(&pyr, &uv);
-            assert!((rows_g[r] - fd).abs() < 1e-9, "row value {r}");
-        }
-        let tail_g = grads.tail.expect("asked for");
-        for t in 0..tail.len() {
-            let mut plus = tail.clone();
-            plus[t] += 1.0;
-            let fd = loss(&Pyramid { tail: &plus, ..pyr }, &uv) - loss(&pyr, &uv);
-            assert!((tail_g[t] - fd).abs() < 1e-9, "tail value {t}");
-        }
         // Without the rows and tail asked for, the coordinate gradient is the same.
         let only_uv = backward(&pyr, &uv, &grad, false, false);
         assert_eq!(only_uv.uv, grads.uv);
