@@ -42,4 +42,5 @@ pub mod fit;
 pub mod losses;
 pub mod prefetch;
 pub mod source;
+pub mod ssim_op;
 pub mod trainer;

@@ -40,8 +40,11 @@ use burn::config::Config;
 use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Int, Tensor, TensorData};
+use lifegom_render::device::runs_on_host;
 use lifegom_render::readback::{self, ReadbackError};
 use lifegom_render::select::select_rows;
+
+use crate::ssim_op::{SsimOps, SsimWindow};
 
 /// Errors of the loss helpers.
 #[derive(Debug, thiserror::Error)]
@@ -158,9 +161,28 @@ impl SsimConfig {
         map
     }
 
-    /// Mean of [`Self::ssim_map`] over all images, channels and pixels.
+    /// Mean of [`Self::ssim_map`] over all images, channels and pixels: on the CPU backends one
+    /// custom op ([`crate::ssim_op`]), on CubeCL devices the map's tensor ops.
     pub fn ssim(&self, pred: Tensor<4>, gt: Tensor<4>) -> Tensor<1> {
-        self.ssim_map(pred, gt).mean()
+        if !runs_on_host(&pred.device()) {
+            return self.ssim_map(pred, gt).mean();
+        }
+        assert_eq!(
+            pred.dims(),
+            gt.dims(),
+            "ssim: image batches differ in shape"
+        );
+        assert!(self.window_size % 2 == 1, "ssim: window size must be odd");
+        let window = SsimWindow {
+            taps: self.gaussian_1d(),
+            c1: self.c1,
+            c2: self.c2,
+        };
+        Tensor::from_dispatch(<burn::backend::Dispatch as SsimOps>::ssim_mean(
+            pred.into_dispatch(),
+            gt.into_dispatch(),
+            window,
+        ))
     }
 }
 
@@ -766,7 +788,61 @@ mod tests {
         );
     }
 
+    /// The CPU op ([`crate::ssim_op`]) equals the mean of the tensor-op map it replaces (the
+    /// CubeCL path), values and the gradients of both images, in f32 and f64, on a batch with
+    /// several images and channels whose planes are smaller and larger than the window.
+    fn ssim_op_matches_tensor_ops(device: &Device) {
+        let ad = device.clone().autodiff();
+        let cfg = SsimConfig::new();
+        for (shape, dtype, tol) in [
+            ([3usize, 2usize, 13usize, 17usize], DType::F64, 1e-12),
+            ([2, 3, 6, 9], DType::F32, 2e-5),
+        ] {
+            let n: usize = shape.iter().product();
+            let make = |seed: u64| {
+                Tensor::<4>::from_data(TensorData::new(pseudo_random(n, seed), shape), (&ad, dtype))
+                    .require_grad()
+            };
+            let (x, y) = (make(21), make(22));
+            let weights =
+                Tensor::<4>::from_data(TensorData::new(pseudo_random(n, 23), shape), (&ad, dtype));
+            let run = |fused: bool| {
+                let s = if fused {
+                    cfg.ssim(x.clone(), y.clone())
+                } else {
+                    cfg.ssim_map(x.clone(), y.clone()).mean()
+                };
+                // A loss that is not the SSIM alone, so the upstream gradient is not 1.
+                let loss = s.clone() * 3.0 + (x.clone() * weights.clone()).sum() * 0.0;
+                let grads = loss.backward();
+                [
+                    read(s),
+                    read(x.grad(&grads).expect("prediction gradient")),
+                    read(y.grad(&grads).expect("target gradient")),
+                ]
+            };
+            let (fused, reference) = (run(true), run(false));
+            for (k, name) in ["mean", "prediction gradient", "target gradient"]
+                .iter()
+                .enumerate()
+            {
+                let scale = reference[k].iter().fold(1e-3f64, |m, v| m.max(v.abs()));
+                for (a, b) in fused[k].iter().zip(&reference[k]) {
+                    assert!(
+                        (a - b).abs() <= tol * scale,
+                        "{shape:?} {dtype:?} {name}: op {a} vs tensor ops {b}"
+                    );
+                }
+            }
+            assert!(
+                fused[1].iter().any(|g| g.abs() > 1e-6),
+                "gradients vanished"
+            );
+        }
+    }
+
     fn run_all(device: &Device) {
+        ssim_op_matches_tensor_ops(device);
         identical_images(device);
         constant_shift_matches_hand_computation(device);
         ssim_matches_slow_reference_symmetric_and_bounded(device);
