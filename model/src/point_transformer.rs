@@ -617,8 +617,8 @@ impl PointTransformerLayer {
 
         let mw = &self.linear_w;
         let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
-        let w = linear_op::forward(&mw.fc2, relu(bn_last(&mw.bn0, w)));
-        let w = linear_op::forward(&mw.fc5, relu(bn_last(&mw.bn3, w))); // [n, k, c/s]
+        let w = linear_bn(&mw.fc2, &mw.bn3, relu(bn_last(&mw.bn0, w)));
+        let w = linear_op::forward(&mw.fc5, relu(w)); // [n, k, c/s]
         let w = softmax(w, 1);
 
         let values = (vf + delta).reshape([n, k, s, c / s]);
