@@ -18,7 +18,9 @@
 //!   depthwise convolutions (11 taps each instead of 121). With zero padding this is exactly
 //!   the 2-D filter: the horizontal pass over the padded rows yields zeros, which is what the
 //!   2-D filter sees there. The five filtered quantities (x, y, x², y², xy) go through one
-//!   grouped convolution call.
+//!   grouped convolution call. On the CPU backends [`SsimConfig::ssim`] is one custom op with a
+//!   hand-written backward instead ([`crate::ssim_op`]); the tensor ops stay for CubeCL devices
+//!   and as its test reference.
 //! - **Laplacian** ([`laplacian_uniform`], [`UniformLaplacian`]): the uniform Laplacian of
 //!   pytorch3d's `laplacian_packed`, `(L v)_i = Σ_{j∈N(i)} v_j / deg(i) − v_i`, with N(i) from
 //!   the mesh's unique undirected edges. The loss is the mean over vertices of `‖(L v)_i‖²`
