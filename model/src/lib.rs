@@ -54,17 +54,6 @@
 //! Flex and wgpu (CubeCL kernels for the rasterizer and visibility), with `.autodiff()` for training. Without trained
 //! weights every network is randomly initialised; binaries say so when they print results.
 
-/// Runs `f::<B, T>` in `f64` when `dtype` is `f64` (the precision tests), else in `f32`: the
-/// CPU ops' one step from a tensor's float type to the element type of their host kernels.
-macro_rules! in_precision {
-    ($dtype:expr, $f:ident ( $($arg:expr),* )) => {
-        match $dtype {
-            burn::tensor::DType::F64 => $f::<B, f64>($($arg),*),
-            _ => $f::<B, f32>($($arg),*),
-        }
-    };
-}
-
 pub mod avatar;
 pub mod checkpoint;
 pub mod dropout;

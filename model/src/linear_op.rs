@@ -33,6 +33,7 @@ use rayon::prelude::*;
 
 use lifegom_render::device::runs_on_host;
 use lifegom_render::host_buffer;
+use lifegom_render::in_precision;
 use lifegom_render::op_backward::gradient_per_input;
 use lifegom_render::readback::{HostLend, cpu_float_from};
 

@@ -37,6 +37,20 @@
 //! # Ok(()) }
 //! ```
 
+/// Runs `f::<B, T>` in `f64` when `dtype` is `f64` (the precision tests), else in `f32`: the
+/// CPU ops' one step from a tensor's float type to the element type of their host kernels
+/// (here and in the model and training crates). The caller names its backend `B` and has
+/// `burn` in scope.
+#[macro_export]
+macro_rules! in_precision {
+    ($dtype:expr, $f:ident ( $($arg:expr),* )) => {
+        match $dtype {
+            burn::tensor::DType::F64 => $f::<B, f64>($($arg),*),
+            _ => $f::<B, f32>($($arg),*),
+        }
+    };
+}
+
 pub mod atomic_file;
 pub mod camera;
 pub(crate) mod cube;

@@ -35,11 +35,12 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
-use burn::tensor::{DType, Element};
+use burn::tensor::Element;
 use bytemuck::Pod;
 use num_traits::Float;
 use rayon::prelude::*;
 
+use lifegom_render::in_precision;
 use lifegom_render::op_backward::gradient_per_input;
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
@@ -162,7 +163,7 @@ trait Real: Float + Send + Sync {}
 impl<T: Float + Send + Sync> Real for T {}
 
 /// The window's taps and constants in `T`.
-fn in_precision<T: Real>(window: &SsimWindow) -> (Vec<T>, (T, T)) {
+fn window_as<T: Real>(window: &SsimWindow) -> (Vec<T>, (T, T)) {
     let cast = |v: f64| T::from(v).expect("a float converts to f32 and f64");
     (
         window.taps.iter().map(|&g| cast(g)).collect(),
@@ -174,7 +175,7 @@ fn in_precision<T: Real>(window: &SsimWindow) -> (Vec<T>, (T, T)) {
 /// planes' in plane order.
 fn ssim_sum<T: Real>(x: &[T], y: &[T], size: (usize, usize), window: &SsimWindow) -> f64 {
     let n = size.0 * size.1;
-    let (taps, constants) = in_precision::<T>(window);
+    let (taps, constants) = window_as::<T>(window);
     let per_plane: Vec<f64> = x
         .par_chunks(n.max(1))
         .zip(y.par_chunks(n.max(1)))
@@ -200,7 +201,7 @@ fn ssim_sum_grads<T: Real>(
     scale: T,
 ) -> (Vec<T>, Vec<T>) {
     let n = size.0 * size.1;
-    let (taps, constants) = in_precision::<T>(window);
+    let (taps, constants) = window_as::<T>(window);
     let two = T::one() + T::one();
     let mut gx = vec![T::zero(); x.len()];
     let mut gy = vec![T::zero(); y.len()];
@@ -249,10 +250,7 @@ fn planes_of(shape: &[usize]) -> (usize, (usize, usize)) {
 }
 
 fn cpu_forward<B: HostLend>(inputs: SsimInputs<B>) -> FloatTensor<B> {
-    match inputs.pred.dtype() {
-        DType::F64 => cpu_forward_in::<B, f64>(inputs),
-        _ => cpu_forward_in::<B, f32>(inputs),
-    }
+    in_precision!(inputs.pred.dtype(), cpu_forward_in(inputs))
 }
 
 fn cpu_forward_in<B: HostLend, T: Real + Element + Pod>(inputs: SsimInputs<B>) -> FloatTensor<B> {
@@ -266,10 +264,7 @@ fn cpu_forward_in<B: HostLend, T: Real + Element + Pod>(inputs: SsimInputs<B>) -
 }
 
 fn cpu_backward<B: HostLend>(inputs: SsimInputs<B>, grad: FloatTensor<B>) -> [FloatTensor<B>; 2] {
-    match inputs.pred.dtype() {
-        DType::F64 => cpu_backward_in::<B, f64>(inputs, grad),
-        _ => cpu_backward_in::<B, f32>(inputs, grad),
-    }
+    in_precision!(inputs.pred.dtype(), cpu_backward_in(inputs, grad))
 }
 
 fn cpu_backward_in<B: HostLend, T: Real + Element + Pod>(

@@ -30,6 +30,7 @@ use burn::tensor::Element;
 use bytemuck::Pod;
 
 use super::kernels::{self, AttentionShape, Real};
+use lifegom_render::in_precision;
 use lifegom_render::op_backward::gradient_per_input;
 use lifegom_render::readback::{HostLend, cpu_float_from};
 

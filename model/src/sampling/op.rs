@@ -37,6 +37,7 @@ use burn::tensor::Element;
 use bytemuck::Pod;
 
 use super::bilinear::{self, LevelShape, Pyramid, Real};
+use lifegom_render::in_precision;
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
 /// The layout of one call: the views, the image the coordinates are in, and the levels.
