@@ -23,7 +23,7 @@ use burn::backend::TensorMetadata;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::ops::{Backward, Ops};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::nn::Linear;
@@ -34,7 +34,7 @@ use rayon::prelude::*;
 use lifegom_render::device::runs_on_host;
 use lifegom_render::host_buffer;
 use lifegom_render::in_precision;
-use lifegom_render::op_backward::gradient_per_input;
+use lifegom_render::op_backward::{gradient_per_input, record};
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
 /// Products of at least this many multiply-adds run on rayon's threads; smaller ones cost less
@@ -385,19 +385,12 @@ impl<B: HostLinearOps + LinearKernels, C: CheckpointStrategy> HostLinearOps for 
         let (weight, w_node) = weight.into_parts();
         let (bias, b_node) = bias.into_parts();
         let inputs = LinearInputs { x, weight, bias };
-        match LinearBackward
-            .prepare::<C>([x_node, w_node, b_node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::linear_forward(inputs.clone());
-                prep.finish(inputs, out)
-            }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::host_linear(inputs.x, inputs.weight, inputs.bias))
-            }
-        }
+        record::<B, C, _, _, 3>(
+            LinearBackward,
+            [x_node, w_node, b_node],
+            inputs,
+            B::linear_forward,
+        )
     }
 }
 

@@ -1,15 +1,17 @@
 //! What the custom ops' autodiff nodes share (design.md §1.4).
 //!
-//! Every custom op here (GoM geometry, the rasterizer, and the model crate's attention and
-//! Linear ops) differentiates the same way: take the node's output gradient, let the backend's
-//! hand-written backward turn it into one gradient per input, and hand each to its parent when
-//! that parent is tracked. [`gradient_per_input`] is that step, so the nodes only name their
-//! backward.
+//! Every custom op here (GoM geometry, the rasterizer, and the model and training crates' ops)
+//! differentiates the same way: take the node's output gradient, let the backend's hand-written
+//! backward turn it into one gradient per input, and hand each to its parent when that parent is
+//! tracked. [`gradient_per_input`] is that step, so the nodes only name their backward.
+//! [`record`] is the forward's side: run the op and, when an input is tracked, keep its inputs
+//! as the node's state.
 
-use burn::backend::Backend;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::Ops;
+use burn::backend::autodiff::ops::{Backward, NodeGuard, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
+use burn::backend::{Autodiff, Backend};
 
 /// Consumes the gradient of `ops`'s output, runs `backward(state, ∂output)` and registers its
 /// `i`-th result as the gradient of input `i` (inputs that need no gradient are skipped).
@@ -24,5 +26,31 @@ pub fn gradient_per_input<B: Backend, S, const N: usize>(
         if let Some(parent) = parent {
             grads.register::<B>(parent.id, grad);
         }
+    }
+}
+
+/// Runs a custom op on `Autodiff<B, C>`: `forward(inputs)` computes the output on `B`; when any
+/// of the `nodes` (the inputs' autodiff halves, in `backward`'s input order) is tracked, the
+/// node keeps `inputs` as its state for `backward`. The ops whose forward is the same kernel
+/// with and without a graph use this; the rasterizer saves extra state when tracked and writes
+/// its own.
+pub fn record<B, C, BW, S, const N: usize>(
+    backward: BW,
+    nodes: [NodeGuard; N],
+    inputs: S,
+    forward: impl FnOnce(S) -> FloatTensor<B>,
+) -> FloatTensor<Autodiff<B, C>>
+where
+    B: Backend,
+    C: CheckpointStrategy,
+    S: Clone + Send + std::fmt::Debug + 'static,
+    BW: Backward<B, N, State = S>,
+{
+    match backward.prepare::<C>(nodes).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => {
+            let out = forward(inputs.clone());
+            prep.finish(inputs, out)
+        }
+        OpsKind::UnTracked(prep) => prep.finish(forward(inputs)),
     }
 }

@@ -32,7 +32,7 @@ use burn::backend::TensorMetadata;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::ops::{Backward, Ops};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::Element;
@@ -41,7 +41,7 @@ use num_traits::Float;
 use rayon::prelude::*;
 
 use lifegom_render::in_precision;
-use lifegom_render::op_backward::gradient_per_input;
+use lifegom_render::op_backward::{gradient_per_input, record};
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
 /// The window and constants of one SSIM (see [`crate::losses::SsimConfig`]).
@@ -343,19 +343,7 @@ impl<B: SsimOps + SsimKernels, C: CheckpointStrategy> SsimOps for Autodiff<B, C>
         let (pred, pred_node) = pred.into_parts();
         let (gt, gt_node) = gt.into_parts();
         let inputs = SsimInputs { pred, gt, window };
-        match SsimBackward
-            .prepare::<C>([pred_node, gt_node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::ssim_forward(inputs.clone());
-                prep.finish(inputs, out)
-            }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::ssim_mean(inputs.pred, inputs.gt, inputs.window))
-            }
-        }
+        record::<B, C, _, _, 2>(SsimBackward, [pred_node, gt_node], inputs, B::ssim_forward)
     }
 }
 

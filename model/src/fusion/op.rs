@@ -23,7 +23,7 @@ use burn::backend::TensorMetadata;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::ops::{Backward, Ops};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::Element;
@@ -31,7 +31,7 @@ use bytemuck::Pod;
 
 use super::kernels::{self, AttentionShape, Real};
 use lifegom_render::in_precision;
-use lifegom_render::op_backward::gradient_per_input;
+use lifegom_render::op_backward::{gradient_per_input, record};
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
 /// Multi-head scaled dot-product attention over short sequences, without mask or dropout.
@@ -320,22 +320,12 @@ impl<B: FusionAttentionOps + FusionKernels, C: CheckpointStrategy> FusionAttenti
             value,
             heads: heads.0,
         };
-        match AttentionBackward
-            .prepare::<C>([q_node, k_node, v_node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::attention_forward(inputs.clone());
-                prep.finish(inputs, out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::fusion_attention(
-                inputs.query,
-                inputs.key,
-                inputs.value,
-                heads,
-            )),
-        }
+        record::<B, C, _, _, 3>(
+            AttentionBackward,
+            [q_node, k_node, v_node],
+            inputs,
+            B::attention_forward,
+        )
     }
 }
 
@@ -391,22 +381,11 @@ impl<B: AddLayerNormOps + FusionKernels, C: CheckpointStrategy> AddLayerNormOps 
             beta,
             epsilon: epsilon.0,
         };
-        match LayerNormBackward
-            .prepare::<C>([x_node, r_node, gamma_node, beta_node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::layer_norm_forward(inputs.clone());
-                prep.finish(inputs, out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::add_layer_norm(
-                inputs.x,
-                inputs.residual,
-                inputs.gamma,
-                inputs.beta,
-                epsilon,
-            )),
-        }
+        record::<B, C, _, _, 4>(
+            LayerNormBackward,
+            [x_node, r_node, gamma_node, beta_node],
+            inputs,
+            B::layer_norm_forward,
+        )
     }
 }

@@ -30,7 +30,7 @@ use burn::backend::TensorMetadata;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::ops::{Backward, Ops};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::Element;
@@ -38,6 +38,7 @@ use bytemuck::Pod;
 
 use super::bilinear::{self, LevelShape, Pyramid, Real};
 use lifegom_render::in_precision;
+use lifegom_render::op_backward::record;
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
 /// The layout of one call: the views, the image the coordinates are in, and the levels.
@@ -276,21 +277,11 @@ impl<B: BilinearSampleOps + BilinearKernels, C: CheckpointStrategy> BilinearSamp
             tail,
             layout,
         };
-        match SampleBackward
-            .prepare::<C>([rows_node, uv_node, tail_node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::bilinear_forward(inputs.clone());
-                prep.finish(inputs, out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::bilinear_sample(
-                inputs.rows,
-                inputs.uv,
-                inputs.tail,
-                inputs.layout,
-            )),
-        }
+        record::<B, C, _, _, 3>(
+            SampleBackward,
+            [rows_node, uv_node, tail_node],
+            inputs,
+            B::bilinear_forward,
+        )
     }
 }

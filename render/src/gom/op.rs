@@ -21,13 +21,13 @@ use burn::backend::TensorMetadata;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::ops::{Backward, Ops};
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::DType;
 
 use super::cpu::{self, GeometrySlices, OUT_LANES};
-use crate::op_backward::gradient_per_input;
+use crate::op_backward::{gradient_per_input, record};
 use crate::readback::{self, HostLend};
 
 /// Gaussians-on-Mesh geometry, fused: corner interpolation, Steiner frame, `so3` exponential,
@@ -239,24 +239,12 @@ impl<B: GomGeometryOps + GomKernels, C: CheckpointStrategy> GomGeometryOps for A
             corner_index,
             corner_weight,
         };
-        match GomBackward
-            .prepare::<C>([vertices_node, so3_node, scales_node, offsets_node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::gom_forward(inputs.clone());
-                prep.finish(inputs, out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::gom_geometry(
-                inputs.vertices,
-                inputs.so3,
-                inputs.scales,
-                inputs.offsets,
-                inputs.corner_index,
-                inputs.corner_weight,
-            )),
-        }
+        record::<B, C, _, _, 4>(
+            GomBackward,
+            [vertices_node, so3_node, scales_node, offsets_node],
+            inputs,
+            B::gom_forward,
+        )
     }
 }
 
