@@ -61,7 +61,6 @@ pub mod encoder;
 pub mod error;
 pub mod fusion;
 pub mod heads;
-mod host_gemm;
 pub mod inputs;
 pub mod knn;
 mod lanes;

@@ -4,7 +4,7 @@
 //! as a matrix product plus a broadcast bias add, and on Flex every product's output is a zeroed
 //! byte buffer that is then copied once more into an aligned allocation; the autodiff backward
 //! repeats that for both of its products and reduces the bias gradient as a third op. The
-//! fusion block alone called twelve of them per call, so on the quickstart's training step that
+//! fusion block alone calls twelve of them per call, so on the quickstart's training step that
 //! bookkeeping was about 35 ms of one core's time (BENCHMARKS.md, session 8).
 //!
 //! Here the forward writes the bias into the output rows and accumulates `x·W` onto them with
@@ -27,17 +27,20 @@ use burn::backend::autodiff::ops::{Backward, Ops};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::nn::Linear;
-use burn::tensor::{Shape, Tensor};
+use burn::tensor::{Element, Shape, Tensor};
+use bytemuck::Pod;
 use rayon::prelude::*;
-
-pub use crate::host_gemm::PARALLEL_MACS;
-use crate::host_gemm::{GemmFloat, Out, View, Write, gemm_into};
 
 use lifegom_render::device::runs_on_host;
 use lifegom_render::host_buffer;
 use lifegom_render::in_precision;
 use lifegom_render::op_backward::{gradient_per_input, record};
 use lifegom_render::readback::{HostLend, cpu_float_from};
+
+/// Products of at least this many multiply-adds run on rayon's threads; smaller ones cost less
+/// on the calling thread than a hand-off. Burn's Flex uses `192³` ≈ 7.1 M, which leaves the
+/// Point Transformer's and the heads' ~1–5 M products on one of two cores.
+pub const PARALLEL_MACS: usize = 1 << 21;
 
 /// Rows per block of the bias gradient's sum: blocks are summed in parallel, then added in block
 /// order.
@@ -103,18 +106,117 @@ pub trait LinearKernels: Backend {
     ) -> [FloatTensor<Self>; 3];
 }
 
+/// The float types the kernels run in (`f32`, and `f64` for the precision tests).
+trait GemmFloat: Element + Pod + Copy + Send + Sync + Default + std::ops::AddAssign {
+    const ONE: Self;
+}
+impl GemmFloat for f32 {
+    const ONE: Self = 1.0;
+}
+impl GemmFloat for f64 {
+    const ONE: Self = 1.0;
+}
+
+/// A row-major or transposed view for [`gemm_into`]: element `(r, c)` at `r·row + c·col`.
+#[derive(Clone, Copy)]
+struct View<'a, T> {
+    data: &'a [T],
+    row: usize,
+    col: usize,
+}
+
+impl<'a, T> View<'a, T> {
+    /// A row-major matrix `width` elements wide.
+    fn row_major(data: &'a [T], width: usize) -> Self {
+        Self {
+            data,
+            row: width,
+            col: 1,
+        }
+    }
+
+    /// The transpose of a row-major matrix `width` elements wide: its data, strides swapped.
+    fn transposed(data: &'a [T], width: usize) -> Self {
+        Self {
+            data,
+            row: 1,
+            col: width,
+        }
+    }
+}
+
+/// `dst` `[m, n]` (row-major) `+= lhs·rhs` (when `accumulate`, else `=`), `lhs` `[m, k]`, `rhs`
+/// `[k, n]`.
+fn gemm_into<T: GemmFloat>(
+    dst: &mut [T],
+    (m, n, k): (usize, usize, usize),
+    lhs: View<'_, T>,
+    rhs: View<'_, T>,
+    accumulate: bool,
+) {
+    assert!(dst.len() >= m * n, "linear: output buffer too small");
+    let last = |v: View<'_, T>, rows: usize, cols: usize| {
+        (rows > 0 && cols > 0).then(|| (rows - 1) * v.row + (cols - 1) * v.col)
+    };
+    assert!(
+        last(lhs, m, k).is_none_or(|i| i < lhs.data.len())
+            && last(rhs, k, n).is_none_or(|i| i < rhs.data.len()),
+        "linear: operand views out of bounds"
+    );
+    if m == 0 || n == 0 {
+        return;
+    }
+    if k == 0 {
+        if !accumulate {
+            dst[..m * n].fill(T::default());
+        }
+        return;
+    }
+    let parallelism = if m.saturating_mul(n).saturating_mul(k) >= PARALLEL_MACS {
+        gemm::Parallelism::Rayon(0)
+    } else {
+        gemm::Parallelism::None
+    };
+    // SAFETY: every index gemm reads is `r·row + c·col` for `r < rows`, `c < cols` of a view,
+    // at most the last index checked above, and it writes `dst[i·n + j]` for `i < m`, `j < n`
+    // within the checked length. `dst` is borrowed mutably, so nothing else aliases it. `T` is
+    // f32 or f64, which gemm supports.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            n as isize,
+            accumulate,
+            lhs.data.as_ptr(),
+            lhs.col as isize,
+            lhs.row as isize,
+            rhs.data.as_ptr(),
+            rhs.col as isize,
+            rhs.row as isize,
+            T::ONE,
+            T::ONE,
+            false,
+            false,
+            false,
+            parallelism,
+        );
+    }
+}
+
 /// `x` `[rows, I]`, `w` `[I, O]`, `b` `[O]` → `[rows, O]`.
 fn forward_kernel<T: GemmFloat>(x: &[T], w: &[T], b: &[T]) -> Vec<T> {
     let (i, o) = (w.len() / b.len().max(1), b.len());
     let rows = x.len() / i.max(1);
     let mut out = host_buffer::repeated(b, rows);
     gemm_into(
-        Out::row_major(&mut out, o),
+        &mut out,
         (rows, o, i),
         View::row_major(x, i),
         View::row_major(w, o),
-        Write::Accumulate,
-        T::ONE,
+        true,
     );
     out
 }
@@ -131,12 +233,11 @@ fn backward_kernel<T: GemmFloat>(x: &[T], w: &[T], g: &[T], o: usize) -> (Vec<T>
         // ∂x = g·Wᵀ: Wᵀ[c][r] = W[r][c] is W read with its strides swapped.
         let mut dx = vec![T::default(); rows * i];
         gemm_into(
-            Out::row_major(&mut dx, i),
+            &mut dx,
             (rows, i, o),
             View::row_major(g, o),
             View::transposed(w, o),
-            Write::Overwrite,
-            T::ONE,
+            false,
         );
         dx
     };
@@ -144,12 +245,11 @@ fn backward_kernel<T: GemmFloat>(x: &[T], w: &[T], g: &[T], o: usize) -> (Vec<T>
         // ∂W = xᵀ·g.
         let mut dw = vec![T::default(); i * o];
         gemm_into(
-            Out::row_major(&mut dw, o),
+            &mut dw,
             (i, o, rows),
             View::transposed(x, i),
             View::row_major(g, o),
-            Write::Overwrite,
-            T::ONE,
+            false,
         );
         (dw, bias_grad(g, o))
     };

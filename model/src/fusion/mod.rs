@@ -19,7 +19,6 @@
 //! [`kernels`]); on CubeCL devices, and as their test reference, they are the tensor-op
 //! compositions written here.
 
-pub mod head_product;
 pub mod kernels;
 pub mod op;
 
@@ -31,7 +30,6 @@ use burn::tensor::{Device, Tensor};
 
 use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with};
 use crate::linear_op;
-use head_product::{HeadMap, HeadProduct, head_product};
 use lifegom_render::device::runs_on_host;
 use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
 
@@ -135,16 +133,10 @@ impl AttentionLayer {
         kernel: FusionKernel,
         masks: [MaskSeed; 2],
     ) -> Tensor<3> {
-        let attended = match (kernel, query.dims()[1]) {
-            (FusionKernel::HostOps, 1) => self.attend_single_query(query.clone(), context),
-            _ => {
-                let q = linear_op::forward(&self.w_q, query.clone());
-                let k = linear_op::forward(&self.w_k, context.clone());
-                let v = linear_op::forward(&self.w_v, context);
-                self.attend(q, k, v, kernel)
-            }
-        };
-        let attn = linear_op::forward(&self.w_o, attended);
+        let q = linear_op::forward(&self.w_q, query.clone());
+        let k = linear_op::forward(&self.w_k, context.clone());
+        let v = linear_op::forward(&self.w_v, context);
+        let attn = linear_op::forward(&self.w_o, self.attend(q, k, v, kernel));
         let x = self.add_norm(
             &self.norm1,
             query,
@@ -186,58 +178,6 @@ impl AttentionLayer {
                     .reshape([b, lq, d])
             }
         }
-    }
-
-    /// The attention of one query per problem, `query` `[B, 1, D]` over `context` `[B, L_k, D]`,
-    /// before `W_o`; `[B, 1, D]`. The same values as projecting keys and values and calling
-    /// [`Self::attend`], with the products reassociated so that the `L_k` context tokens are
-    /// never projected (design.md §7.4). Per head `h` with query `q_h = (query·W_q + b_q)_h`:
-    ///
-    /// - scores: `⟨q_h, W_{k,h}ᵀ x_j + b_{k,h}⟩ = ⟨W_{k,h} q_h, x_j⟩ + ⟨q_h, b_{k,h}⟩`. The second
-    ///   term is the same for every key, so the softmax cancels it (and `b_k`'s gradient is
-    ///   exactly zero: the op gives it none);
-    /// - values: `Σ_j p_j (W_{v,h}ᵀ x_j + b_{v,h}) = W_{v,h}ᵀ (Σ_j p_j x_j) + b_{v,h}`, since the
-    ///   probabilities sum to one.
-    ///
-    /// So per vertex the attention op runs with H queries `r_h = W_{k,h} q_h` of the full width
-    /// D (one head of width D, its `1/√D` scale corrected to `1/√d_k` by scaling `r` by `√H`)
-    /// against the raw context, and `W_v` is applied once to each head's mixture. That is
-    /// `2·D²` multiply-adds per vertex instead of `2·L_k·D²` for the two projections.
-    fn attend_single_query(&self, query: Tensor<3>, context: Tensor<3>) -> Tensor<3> {
-        let [b, _, d] = query.dims();
-        let h = self.n_heads;
-        let q = linear_op::forward(&self.w_q, query.reshape([b, d]));
-        let keys = head_product(
-            q,
-            self.w_k.weight.val(),
-            HeadProduct {
-                heads: h,
-                map: HeadMap::Adjoint,
-                scale: (h as f64).sqrt(),
-            },
-        );
-        let mixed = Tensor::<3>::from_dispatch(
-            <burn::backend::Dispatch as FusionAttentionOps>::fusion_attention(
-                keys.reshape([b, h, d]).into_dispatch(),
-                context.clone().into_dispatch(),
-                context.into_dispatch(),
-                AttentionHeads(1),
-            ),
-        );
-        let values = head_product(
-            mixed.reshape([b, h * d]),
-            self.w_v.weight.val(),
-            HeadProduct {
-                heads: h,
-                map: HeadMap::Forward,
-                scale: 1.0,
-            },
-        );
-        let values = match &self.w_v.bias {
-            Some(bias) => values + bias.val().unsqueeze_dim(0),
-            None => values,
-        };
-        values.reshape([b, 1, d])
     }
 
     /// `norm(x + residual)`.
@@ -434,8 +374,7 @@ mod tests {
 
     /// The custom ops give the tensor-op compositions' outputs and gradients (inputs and every
     /// parameter) up to float summation order, for self-attention over views (Lq = Lk) and the
-    /// single-query cross-attention (which the host path computes reassociated: unprojected
-    /// context, no `b_k`).
+    /// single-query cross-attention.
     fn host_ops_equal_tensor_ops(device: &Device) {
         let ad = device.clone().autodiff();
         let layer = AttentionLayerConfig::new(24, 24, 4)
@@ -483,15 +422,7 @@ mod tests {
                 ] {
                     all.extend(read(lin.weight.val().grad(g).expect("weight gradient")));
                     let bias = lin.bias.as_ref().expect("biases").val();
-                    match bias.grad(g) {
-                        Some(grad) => all.extend(read(grad)),
-                        // The single-query path never adds `b_k` (the softmax cancels it), so
-                        // its gradient is exactly zero; the reference must agree below.
-                        None if lq == 1 && std::ptr::eq(lin, &layer.w_k) => {
-                            all.extend(std::iter::repeat_n(0.0, bias.dims()[0]))
-                        }
-                        None => panic!("bias gradient"),
-                    }
+                    all.extend(read(bias.grad(g).expect("bias gradient")));
                 }
                 for norm in [&layer.norm1, &layer.norm2] {
                     all.extend(read(norm.gamma.val().grad(g).expect("gamma gradient")));
