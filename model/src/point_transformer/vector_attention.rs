@@ -12,11 +12,9 @@
 //!
 //! As tensor ops those are a subtraction, an addition, the BN's multiply and add and a ReLU for
 //! (1), and a five-op softmax, an addition, a broadcast multiply and a sum for (3): about a
-//! dozen autodiff nodes per layer, each a pass over the layer's `[n, k, c]` with an
-//! intermediate. Here each is one pass and one node. Calls of at least 2¹⁸ elements split over
-//! rayon tasks by point; smaller ones run on the calling thread, where waking the pool would
-//! cost more than the pass. Measured (BENCHMARKS.md, session 10): 15–20 % less time per layer
-//! at the paper's widths on the full template, about even at the tiny preset's widths.
+//! dozen autodiff nodes per layer, each with an intermediate of the layer's `[n, k, c]`, on one
+//! core. At the tiny preset's widths (8–64 channels) the Point Transformer is dominated by that
+//! per-op cost. Here each is one pass, one rayon task per block of points, and one node.
 //!
 //! Backwards, with `g` the output gradient:
 //!
@@ -51,56 +49,9 @@ use lifegom_render::in_precision;
 use lifegom_render::op_backward::{gradient_per_input, record};
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
-/// Points per rayon task: the finest levels split into dozens of tasks.
+/// Points per rayon task: the layers have 4 to 1,229 points, so the finest level splits into
+/// dozens of tasks and the coarsest runs as one.
 const POINTS_PER_TASK: usize = 32;
-
-/// Calls over fewer `n·k·c` elements than this run on the calling thread: a hand-off to rayon's
-/// sleeping workers costs more than the whole pass (every layer of the tiny preset).
-const PARALLEL_ELEMENTS: usize = 1 << 18;
-
-/// `task(index, block)` over `data` in blocks of `block` elements, on rayon's threads when
-/// `parallel`, else in order on this one.
-fn for_each_block<T: Send>(
-    data: &mut [T],
-    block: usize,
-    parallel: bool,
-    task: impl Fn(usize, &mut [T]) + Sync + Send,
-) {
-    let block = block.max(1);
-    if parallel {
-        data.par_chunks_mut(block)
-            .enumerate()
-            .for_each(|(i, b)| task(i, b));
-    } else {
-        data.chunks_mut(block)
-            .enumerate()
-            .for_each(|(i, b)| task(i, b));
-    }
-}
-
-/// [`for_each_block`] over two buffers split into the same number of blocks, collecting each
-/// task's result in block order.
-fn map_block_pairs<T: Send, U: Send, R: Send>(
-    (a, a_block): (&mut [T], usize),
-    (b, b_block): (&mut [U], usize),
-    parallel: bool,
-    task: impl Fn(usize, &mut [T], &mut [U]) -> R + Sync + Send,
-) -> Vec<R> {
-    let (a_block, b_block) = (a_block.max(1), b_block.max(1));
-    if parallel {
-        a.par_chunks_mut(a_block)
-            .zip(b.par_chunks_mut(b_block))
-            .enumerate()
-            .map(|(i, (x, y))| task(i, x, y))
-            .collect()
-    } else {
-        a.chunks_mut(a_block)
-            .zip(b.chunks_mut(b_block))
-            .enumerate()
-            .map(|(i, (x, y))| task(i, x, y))
-            .collect()
-    }
-}
 
 /// How the PT layer's relation and aggregation are computed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -241,11 +192,6 @@ impl PointShape {
     }
 }
 
-/// `ReLU` that keeps a NaN (`≤ 0` rather than `max`), as Burn's does.
-fn relu_keep_nan<T: Real>(y: T) -> T {
-    if y <= T::zero() { T::zero() } else { y }
-}
-
 /// The relation forward on host slices (module docs).
 pub fn relation_forward<T: Real>(
     keys: &[T],
@@ -261,25 +207,23 @@ pub fn relation_forward<T: Real>(
         ..
     } = shape;
     let mut out = vec![T::zero(); keys.len()];
-    let parallel = keys.len() >= PARALLEL_ELEMENTS;
-    for_each_block(&mut out, POINTS_PER_TASK * k * c, parallel, |task, out| {
-        for (local, out_i) in out.chunks_mut(k * c).enumerate() {
-            let i = task * POINTS_PER_TASK + local;
-            let q = &query[i * c..][..c];
-            let at = i * k * c;
-            let pairs = keys[at..][..k * c]
-                .chunks_exact(c)
-                .zip(delta[at..][..k * c].chunks_exact(c));
-            for (o_j, (k_j, d_j)) in out_i.chunks_exact_mut(c).zip(pairs) {
-                for (o, ((((&kv, &dv), &qv), &sv), &tv)) in o_j
-                    .iter_mut()
-                    .zip(k_j.iter().zip(d_j).zip(q).zip(scale).zip(shift))
-                {
-                    *o = relu_keep_nan(sv * (kv - qv + dv) + tv);
+    out.par_chunks_mut(POINTS_PER_TASK * k * c)
+        .enumerate()
+        .for_each(|(task, out)| {
+            for (local, out_i) in out.chunks_mut(k * c).enumerate() {
+                let i = task * POINTS_PER_TASK + local;
+                let q = &query[i * c..][..c];
+                for j in 0..k {
+                    let at = (i * k + j) * c;
+                    let (kj, dj) = (&keys[at..][..c], &delta[at..][..c]);
+                    for (m, o) in out_i[j * c..][..c].iter_mut().enumerate() {
+                        let y = scale[m] * (kj[m] - q[m] + dj[m]) + shift[m];
+                        // `≤ 0` rather than `max`: a NaN stays NaN, as in Burn's ReLU.
+                        *o = if y <= T::zero() { T::zero() } else { y };
+                    }
                 }
             }
-        }
-    });
+        });
     out
 }
 
@@ -300,12 +244,11 @@ pub fn relation_backward<T: Real>(
     } = shape;
     let mut d_pair = vec![T::zero(); keys.len()];
     let mut d_query = vec![T::zero(); query.len()];
-    let parallel = keys.len() >= PARALLEL_ELEMENTS;
-    let partials: Vec<(Vec<T>, Vec<T>)> = map_block_pairs(
-        (&mut d_pair, POINTS_PER_TASK * k * c),
-        (&mut d_query, POINTS_PER_TASK * c),
-        parallel,
-        |task, d_pair, d_query| {
+    let partials: Vec<(Vec<T>, Vec<T>)> = d_pair
+        .par_chunks_mut(POINTS_PER_TASK * k * c)
+        .zip(d_query.par_chunks_mut(POINTS_PER_TASK * c))
+        .enumerate()
+        .map(|(task, (d_pair, d_query))| {
             let (mut d_scale, mut d_shift) = (vec![T::zero(); c], vec![T::zero(); c]);
             for (local, (dp_i, dq_i)) in d_pair
                 .chunks_mut(k * c)
@@ -314,30 +257,23 @@ pub fn relation_backward<T: Real>(
             {
                 let i = task * POINTS_PER_TASK + local;
                 let q = &query[i * c..][..c];
-                let at = i * k * c;
-                let rows = keys[at..][..k * c]
-                    .chunks_exact(c)
-                    .zip(delta[at..][..k * c].chunks_exact(c))
-                    .zip(grad[at..][..k * c].chunks_exact(c));
-                for (dp_j, ((k_j, d_j), g_j)) in dp_i.chunks_exact_mut(c).zip(rows) {
-                    for (m, dp) in dp_j.iter_mut().enumerate() {
-                        let z = k_j[m] - q[m] + d_j[m];
-                        let h = if scale[m] * z + shift[m] <= T::zero() {
-                            T::zero()
-                        } else {
-                            g_j[m]
-                        };
-                        let sh = scale[m] * h;
-                        *dp = sh;
-                        dq_i[m] = dq_i[m] - sh;
+                for j in 0..k {
+                    let at = (i * k + j) * c;
+                    let (kj, dj, gj) = (&keys[at..][..c], &delta[at..][..c], &grad[at..][..c]);
+                    for m in 0..c {
+                        let z = kj[m] - q[m] + dj[m];
+                        let y = scale[m] * z + shift[m];
+                        let h = if y <= T::zero() { T::zero() } else { gj[m] };
+                        dp_i[j * c + m] = scale[m] * h;
+                        dq_i[m] = dq_i[m] - scale[m] * h;
                         d_scale[m] += h * z;
                         d_shift[m] += h;
                     }
                 }
             }
             (d_scale, d_shift)
-        },
-    );
+        })
+        .collect();
     let (mut d_scale, mut d_shift) = (vec![T::zero(); c], vec![T::zero(); c]);
     for (ds, dt) in partials {
         for m in 0..c {
@@ -350,23 +286,17 @@ pub fn relation_backward<T: Real>(
 
 /// `a ← softmax_j(logits_i·[m])` for every attention channel `m` of point `i`; `logits_i` and `a`
 /// are `[k, c_w]`.
-fn point_softmax<T: Real>(a: &mut [T], logits_i: &[T], cw: usize) {
-    let mut max = vec![T::neg_infinity(); cw];
-    for l_j in logits_i.chunks_exact(cw) {
-        for (mx, &l) in max.iter_mut().zip(l_j) {
-            *mx = mx.max(l);
+fn point_softmax<T: Real>(a: &mut [T], logits_i: &[T], k: usize, cw: usize) {
+    for m in 0..cw {
+        let max = (0..k).fold(T::neg_infinity(), |mx, j| mx.max(logits_i[j * cw + m]));
+        let mut sum = T::zero();
+        for j in 0..k {
+            let e = (logits_i[j * cw + m] - max).exp();
+            a[j * cw + m] = e;
+            sum += e;
         }
-    }
-    let mut sum = vec![T::zero(); cw];
-    for (a_j, l_j) in a.chunks_exact_mut(cw).zip(logits_i.chunks_exact(cw)) {
-        for (((a, &l), &mx), s) in a_j.iter_mut().zip(l_j).zip(&max).zip(sum.iter_mut()) {
-            *a = (l - mx).exp();
-            *s += *a;
-        }
-    }
-    for a_j in a.chunks_exact_mut(cw) {
-        for (a, &s) in a_j.iter_mut().zip(&sum) {
-            *a = *a / s;
+        for j in 0..k {
+            a[j * cw + m] = a[j * cw + m] / sum;
         }
     }
 }
@@ -385,30 +315,22 @@ pub fn aggregation_forward<T: Real>(
         weights: cw,
     } = shape;
     let mut out = vec![T::zero(); n * c];
-    let parallel = values.len() >= PARALLEL_ELEMENTS;
-    for_each_block(&mut out, POINTS_PER_TASK * c, parallel, |task, out| {
-        let mut a = vec![T::zero(); k * cw];
-        for (local, out_i) in out.chunks_mut(c).enumerate() {
-            let i = task * POINTS_PER_TASK + local;
-            point_softmax(&mut a, &logits[i * k * cw..][..k * cw], cw);
-            let at = i * k * c;
-            let pairs = values[at..][..k * c]
-                .chunks_exact(c)
-                .zip(delta[at..][..k * c].chunks_exact(c));
-            for (a_j, (v_j, d_j)) in a.chunks_exact(cw).zip(pairs) {
-                // The `c/c_w` groups of value channels share the neighbour's weights.
-                for ((o_g, v_g), d_g) in out_i
-                    .chunks_exact_mut(cw)
-                    .zip(v_j.chunks_exact(cw))
-                    .zip(d_j.chunks_exact(cw))
-                {
-                    for (((o, &w), &v), &d) in o_g.iter_mut().zip(a_j).zip(v_g).zip(d_g) {
-                        *o += w * (v + d);
+    out.par_chunks_mut(POINTS_PER_TASK * c)
+        .enumerate()
+        .for_each(|(task, out)| {
+            let mut a = vec![T::zero(); k * cw];
+            for (local, out_i) in out.chunks_mut(c).enumerate() {
+                let i = task * POINTS_PER_TASK + local;
+                point_softmax(&mut a, &logits[i * k * cw..][..k * cw], k, cw);
+                for j in 0..k {
+                    let at = (i * k + j) * c;
+                    let (vj, dj, aj) = (&values[at..][..c], &delta[at..][..c], &a[j * cw..][..cw]);
+                    for (ch, o) in out_i.iter_mut().enumerate() {
+                        *o += aj[ch % cw] * (vj[ch] + dj[ch]);
                     }
                 }
             }
-        }
-    });
+        });
     out
 }
 
@@ -428,14 +350,12 @@ pub fn aggregation_backward<T: Real>(
     } = shape;
     let mut d_pair = vec![T::zero(); values.len()];
     let mut d_logits = vec![T::zero(); logits.len()];
-    let parallel = values.len() >= PARALLEL_ELEMENTS;
-    map_block_pairs(
-        (&mut d_pair, POINTS_PER_TASK * k * c),
-        (&mut d_logits, POINTS_PER_TASK * k * cw),
-        parallel,
-        |task, d_pair, d_logits| {
+    d_pair
+        .par_chunks_mut(POINTS_PER_TASK * k * c)
+        .zip(d_logits.par_chunks_mut(POINTS_PER_TASK * k * cw))
+        .enumerate()
+        .for_each(|(task, (d_pair, d_logits))| {
             let (mut a, mut da) = (vec![T::zero(); k * cw], vec![T::zero(); k * cw]);
-            let mut dot = vec![T::zero(); cw];
             for (local, (dp_i, dl_i)) in d_pair
                 .chunks_mut(k * c)
                 .zip(d_logits.chunks_mut(k * cw))
@@ -443,53 +363,25 @@ pub fn aggregation_backward<T: Real>(
             {
                 let i = task * POINTS_PER_TASK + local;
                 let g = &grad[i * c..][..c];
-                point_softmax(&mut a, &logits[i * k * cw..][..k * cw], cw);
+                point_softmax(&mut a, &logits[i * k * cw..][..k * cw], k, cw);
                 da.fill(T::zero());
-                dot.fill(T::zero());
-                let at = i * k * c;
-                let pairs = values[at..][..k * c]
-                    .chunks_exact(c)
-                    .zip(delta[at..][..k * c].chunks_exact(c));
-                for (((dp_j, (v_j, d_j)), a_j), da_j) in dp_i
-                    .chunks_exact_mut(c)
-                    .zip(pairs)
-                    .zip(a.chunks_exact(cw))
-                    .zip(da.chunks_exact_mut(cw))
-                {
-                    for (((dp_g, g_g), v_g), d_g) in dp_j
-                        .chunks_exact_mut(cw)
-                        .zip(g.chunks_exact(cw))
-                        .zip(v_j.chunks_exact(cw))
-                        .zip(d_j.chunks_exact(cw))
-                    {
-                        for (((((dp, &gv), &v), &d), &w), dw) in dp_g
-                            .iter_mut()
-                            .zip(g_g)
-                            .zip(v_g)
-                            .zip(d_g)
-                            .zip(a_j)
-                            .zip(da_j.iter_mut())
-                        {
-                            *dp = w * gv;
-                            *dw += gv * (v + d);
-                        }
-                    }
-                    for ((s, &w), &dw) in dot.iter_mut().zip(a_j).zip(da_j.iter()) {
-                        *s += w * dw;
+                for j in 0..k {
+                    let at = (i * k + j) * c;
+                    let (vj, dj) = (&values[at..][..c], &delta[at..][..c]);
+                    for ch in 0..c {
+                        let m = ch % cw;
+                        dp_i[j * c + ch] = a[j * cw + m] * g[ch];
+                        da[j * cw + m] += g[ch] * (vj[ch] + dj[ch]);
                     }
                 }
-                for ((dl_j, a_j), da_j) in dl_i
-                    .chunks_exact_mut(cw)
-                    .zip(a.chunks_exact(cw))
-                    .zip(da.chunks_exact(cw))
-                {
-                    for (((dl, &w), &dw), &s) in dl_j.iter_mut().zip(a_j).zip(da_j).zip(&dot) {
-                        *dl = w * (dw - s);
+                for m in 0..cw {
+                    let dot = (0..k).fold(T::zero(), |s, j| s + a[j * cw + m] * da[j * cw + m]);
+                    for j in 0..k {
+                        dl_i[j * cw + m] = a[j * cw + m] * (da[j * cw + m] - dot);
                     }
                 }
             }
-        },
-    );
+        });
     (d_pair, d_logits)
 }
 
@@ -545,13 +437,11 @@ fn cpu_relation_backward_in<B: HostLend, T: Real + Element + Pod>(
     let shift = B::lend_float::<T>("relation shift", &inputs.shift);
     let (d_pair, d_query, d_scale, d_shift) =
         relation_backward(&keys, &query, &delta, &scale, &shift, &g, dims);
-    // `∂keys` and `∂delta` are the same values: one buffer, two handles.
-    debug_assert_eq!((&sk, tk), (&sd, td));
-    let d_pair = cpu_float_from::<B, T>(d_pair, sk, tk, &device);
+    let d_delta = cpu_float_from::<B, T>(d_pair.clone(), sd, td, &device);
     [
-        d_pair.clone(),
+        cpu_float_from::<B, T>(d_pair, sk, tk, &device),
         cpu_float_from::<B, T>(d_query, sq, tq, &device),
-        d_pair,
+        d_delta,
         cpu_float_from::<B, T>(d_scale, ss, ts, &device),
         cpu_float_from::<B, T>(d_shift, st, tt, &device),
     ]
@@ -601,12 +491,10 @@ fn cpu_aggregation_backward_in<B: HostLend, T: Real + Element + Pod>(
     let delta = B::lend_float::<T>("aggregation positional encoding", &inputs.delta);
     let logits = B::lend_float::<T>("aggregation logits", &inputs.logits);
     let (d_pair, d_logits) = aggregation_backward(&values, &delta, &logits, &g, dims);
-    // `∂values` and `∂delta` are the same values: one buffer, two handles.
-    debug_assert_eq!((&sv, tv), (&sd, td));
-    let d_pair = cpu_float_from::<B, T>(d_pair, sv, tv, &device);
+    let d_delta = cpu_float_from::<B, T>(d_pair.clone(), sd, td, &device);
     [
-        d_pair.clone(),
-        d_pair,
+        cpu_float_from::<B, T>(d_pair, sv, tv, &device),
+        d_delta,
         cpu_float_from::<B, T>(d_logits, sl, tl, &device),
     ]
 }
@@ -800,8 +688,8 @@ mod tests {
         }
     }
 
-    /// Both ops against their tensor-op compositions: values and every input's gradient, at
-    /// sizes run on the calling thread and one split over rayon's tasks, with inputs that put
+    /// Both ops against their tensor-op compositions: values and every input's gradient, at a
+    /// size that splits into several rayon tasks and one that does not, with inputs that put
     /// some relations below the ReLU's kink.
     fn ops_match_tensor_ops(device: &Device) {
         let ad = device.clone().autodiff();
@@ -813,12 +701,10 @@ mod tests {
             )
             .require_grad()
         };
-        // The last size is above `PARALLEL_ELEMENTS`: several rayon tasks.
         for (n, k, c, share) in [
             (3usize, 4usize, 8usize, 4usize),
             (100, 16, 16, 4),
             (70, 8, 8, 1),
-            (1_100, 16, 16, 4),
         ] {
             let (keys, delta, values) = (
                 normal(vec![n, k, c], 1.0),
