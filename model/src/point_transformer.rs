@@ -89,9 +89,6 @@ use lifegom_render::readback::{self, ReadbackError};
 use crate::knn::{Neighbours, farthest_point_sampling, knn};
 use crate::linear_op;
 use lifegom_render::select::select_rows;
-use vector_attention::{VectorAttentionKernel, point_aggregation, point_relation};
-
-pub mod vector_attention;
 
 /// Weight-sharing groups must divide every width; this is the paper's value.
 const PAPER_SHARE_PLANES: usize = 8;
@@ -602,19 +599,6 @@ impl PointTransformerLayer {
     /// `x` `[n, c]`, relative neighbour positions `rel` `[n, k, 3]` (`p_j − p_i`) and the
     /// flattened neighbour indices `nbr` `[n·k]` → `[n, c]`.
     pub fn forward(&self, x: Tensor<2>, rel: Tensor<3>, nbr: Tensor<1, Int>) -> Tensor<2> {
-        let kernel = VectorAttentionKernel::for_device(&x.device());
-        self.forward_with(x, rel, nbr, kernel)
-    }
-
-    /// [`Self::forward`] with the relation and aggregation computed by `kernel` (tests compare
-    /// the two).
-    pub fn forward_with(
-        &self,
-        x: Tensor<2>,
-        rel: Tensor<3>,
-        nbr: Tensor<1, Int>,
-        kernel: VectorAttentionKernel,
-    ) -> Tensor<2> {
         let [n, c] = x.dims();
         let [_, k, _] = rel.dims();
         let s = self.share_planes;
@@ -632,28 +616,15 @@ impl PointTransformerLayer {
         let delta = linear_op::forward(&mp.fc3, relu(linear_bn(&mp.fc0, &mp.bn1, rel))); // [n, k, c]
 
         let mw = &self.linear_w;
-        let relation = match kernel {
-            VectorAttentionKernel::HostOps => {
-                let (scale, shift) = bn_affine(&mw.bn0, &q.device());
-                point_relation(kf, q, delta.clone(), scale, shift)
-            }
-            VectorAttentionKernel::TensorOps => relu(bn_last(
-                &mw.bn0,
-                kf - q.unsqueeze_dim::<3>(1) + delta.clone(),
-            )),
-        };
-        let w = linear_bn(&mw.fc2, &mw.bn3, relation);
+        let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
+        let w = linear_bn(&mw.fc2, &mw.bn3, relu(bn_last(&mw.bn0, w)));
         let w = linear_op::forward(&mw.fc5, relu(w)); // [n, k, c/s]
+        let w = softmax(w, 1);
 
-        match kernel {
-            VectorAttentionKernel::HostOps => point_aggregation(vf, delta, w),
-            VectorAttentionKernel::TensorOps => {
-                let values = (vf + delta).reshape([n, k, s, c / s]);
-                (values * softmax(w, 1).unsqueeze_dim::<4>(2))
-                    .sum_dim(1)
-                    .reshape([n, c])
-            }
-        }
+        let values = (vf + delta).reshape([n, k, s, c / s]);
+        (values * w.unsqueeze_dim::<4>(2))
+            .sum_dim(1)
+            .reshape([n, c])
     }
 }
 
@@ -869,72 +840,6 @@ mod tests {
     lifegom_render::cpu_backend_tests!(linear_bn_fold_equals_linear_then_bn => check_linear_bn_fold);
 
     lifegom_render::cpu_backend_tests!(point_transformer_layer_shapes => check_layer_shapes);
-
-    /// The layer through the vector-attention ops equals its tensor-op composition: output and
-    /// the gradients of the input features, the positions (through the relative positions) and
-    /// every Linear, with a non-trivial `linear_w.0` BN so that the relation's affine map is
-    /// exercised.
-    fn check_layer_host_ops(device: &Device) {
-        let ad = device.clone().autodiff();
-        let mut rng = Rng::new(21);
-        let (n, c, k, s) = (90, 16, 8, 4);
-        let mut layer = PointTransformerLayer::new(c, s, 1e-5, &ad);
-        let stat = |rng: &mut Rng, lo: f32| {
-            let v: Vec<f32> = (0..c).map(|_| lo + rng.next_f32()).collect();
-            Tensor::<1>::from_data(TensorData::new(v, [c]), &ad)
-        };
-        let bn = &mut layer.linear_w.bn0;
-        bn.running_mean = burn::module::RunningState::new(stat(&mut rng, -0.5));
-        bn.running_var = burn::module::RunningState::new(stat(&mut rng, 0.5));
-        bn.beta = burn::module::Param::from_tensor(stat(&mut rng, -0.5)).set_require_grad(false);
-        let p = random_tensor(&mut rng, [n, 3], &ad).require_grad();
-        let x = random_tensor(&mut rng, [n, c], &ad).require_grad();
-        let mix = random_tensor(&mut rng, [n, c], &ad);
-        let host: Vec<[f32; 3]> = read(p.clone())
-            .chunks(3)
-            .map(|c| [c[0], c[1], c[2]])
-            .collect();
-        let nb = knn(&host, &host, k);
-        let run = |kernel| {
-            let (nbr, rel) = group_positions(&nb, &p, &p);
-            let out = layer.forward_with(x.clone(), rel, nbr, kernel);
-            let grads = (out.clone() * mix.clone()).sum().backward();
-            let mut parts = vec![
-                read(out),
-                read(x.grad(&grads).expect("feature gradient")),
-                read(p.grad(&grads).expect("position gradient")),
-            ];
-            for lin in [
-                &layer.linear_q,
-                &layer.linear_k,
-                &layer.linear_v,
-                &layer.linear_p.fc0,
-                &layer.linear_p.fc3,
-                &layer.linear_w.fc2,
-                &layer.linear_w.fc5,
-            ] {
-                parts.push(read(
-                    lin.weight.val().grad(&grads).expect("weight gradient"),
-                ));
-            }
-            parts
-        };
-        let (ours, theirs) = (
-            run(VectorAttentionKernel::HostOps),
-            run(VectorAttentionKernel::TensorOps),
-        );
-        for (part, (a, b)) in ours.iter().zip(&theirs).enumerate() {
-            let scale = b.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
-            for (i, (x, y)) in a.iter().zip(b).enumerate() {
-                assert!(
-                    (x - y).abs() <= 2e-5 * scale,
-                    "part {part} [{i}]: ops {x} vs tensor ops {y}"
-                );
-            }
-        }
-    }
-
-    lifegom_render::cpu_backend_tests!(point_transformer_layer_host_ops => check_layer_host_ops);
 
     /// A hand-computed PT layer output: with unit BN and identity-like weights the layer must
     /// follow the shared-plane formula of the module docs.
