@@ -14,10 +14,6 @@
 //! 16-bit draws from the device's own RNG, so `Device::seed` (which the trainer sets per step)
 //! still fixes every mask. On CubeCL devices the mask is drawn on the device as Burn does (a host
 //! draw would cost an upload per call, and the GPU's generator is not the bottleneck there).
-//!
-//! A mask is fully described by its seed and keep probability ([`HostMask`]), so an op can take
-//! those instead of a mask tensor and draw the values itself, as often as it needs them: the
-//! fusion's `LN(x + r)` op folds its residual's dropout in that way ([`crate::fusion::op`]).
 
 use burn::nn::Dropout;
 use burn::tensor::{Distribution, Tensor, TensorData};
@@ -70,77 +66,39 @@ pub fn dropout_with<const D: usize>(
     seed: MaskSeed,
 ) -> Tensor<D> {
     let device = input.device();
-    if seed == MaskSeed::Device && !runs_on_host(&device) {
-        // Burn's own layer: the identity off training, autodiff or `prob > 0`, else its mask
-        // drawn on the device.
-        return layer.forward(input);
-    }
-    match HostMask::resolve(layer, seed, &device) {
-        None => input,
-        Some(host) => {
-            let n = input.shape().num_elements();
-            let mask = Tensor::<1>::from_data(
-                TensorData::new(host.values::<f32>(n), [n]),
-                (&device, input.dtype()),
-            )
-            .reshape(input.shape());
-            input * mask
-        }
-    }
-}
-
-/// A host-drawn dropout mask, as its seed and keep probability: [`HostMask::values`] draws it,
-/// the same values wherever and however often it is drawn (the fused ops of
-/// [`crate::fusion`] draw it again in their backward instead of keeping it).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct HostMask {
-    /// The stream's seed.
-    pub seed: u64,
-    /// Keep probability `1 − p`.
-    pub keep: f64,
-}
-
-impl HostMask {
-    /// The mask [`dropout_with`]`(layer, _, seed)` applies on a CPU device, `None` where it is
-    /// the identity. For [`MaskSeed::Device`] the seed is drawn now, from the device's RNG, as
-    /// [`dropout_with`] would draw it.
-    pub fn resolve(layer: &Dropout, seed: MaskSeed, device: &burn::tensor::Device) -> Option<Self> {
-        let seed = match seed {
-            MaskSeed::Given(seed) if layer.prob > 0.0 => seed,
-            MaskSeed::Given(_) | MaskSeed::Off => return None,
-            MaskSeed::Device if draws_host_mask(layer, device) => draw_seed(device),
-            MaskSeed::Device => return None,
-        };
-        Some(Self {
-            seed,
-            keep: 1.0 - layer.prob,
-        })
-    }
-
-    /// The first `n` mask values (module docs), in the precision of the tensor they multiply.
-    pub fn values<T: num_traits::Float + Send + Sync>(&self, n: usize) -> Vec<T> {
-        host_mask(n, self.keep, self.seed)
-    }
+    let seed = match seed {
+        MaskSeed::Given(seed) if layer.prob > 0.0 => seed,
+        MaskSeed::Given(_) | MaskSeed::Off => return input,
+        MaskSeed::Device if draws_host_mask(layer, &device) => draw_seed(&device),
+        // Burn's own layer applies the same rule: the identity off training, autodiff or
+        // `prob > 0`, and on CubeCL devices its mask drawn on the device.
+        MaskSeed::Device => return layer.forward(input),
+    };
+    let keep = 1.0 - layer.prob;
+    let mask = host_mask(input.shape().num_elements(), keep, seed);
+    let mask = Tensor::<1>::from_data(
+        TensorData::new(mask, [input.shape().num_elements()]),
+        (&device, input.dtype()),
+    )
+    .reshape(input.shape());
+    input * mask
 }
 
 /// Mask values per rayon task of [`host_mask`]: large enough to amortise a task, small enough
 /// that the fusion's ~0.5 M-element masks split over two cores.
-pub(crate) const MASK_VALUES_PER_TASK: usize = 1 << 15;
+const MASK_VALUES_PER_TASK: usize = 1 << 15;
 
 /// `n` mask values in `{0, 1/keep}`, each `1/keep` with probability `keep` (to 2⁻³²).
 ///
 /// Value `2i` is the low and value `2i + 1` the high half of the stream's draw `i`. Tasks start
 /// their own copy of the stream at their first draw ([`Rng::skipped`]), so the mask is the same
 /// whatever the thread count: the one a single thread drawing in order makes.
-///
-/// The kept value is `1/keep` rounded to `f32` whatever `T` is, so that an `f64` mask holds the
-/// same values as the `f32` one the training runs.
-fn host_mask<T: num_traits::Float + Send + Sync>(n: usize, keep: f64, seed: u64) -> Vec<T> {
+fn host_mask(n: usize, keep: f64, seed: u64) -> Vec<f32> {
     let threshold = (keep * 4_294_967_296.0).round().min(u32::MAX as f64) as u32;
-    let scale = T::from((1.0 / keep) as f32).expect("a mask value is a float");
+    let scale = (1.0 / keep) as f32;
     let stream = Rng::new(seed);
-    let draw = |bits: u32| if bits < threshold { scale } else { T::zero() };
-    let mut mask = vec![T::zero(); n];
+    let draw = |bits: u32| if bits < threshold { scale } else { 0.0 };
+    let mut mask = vec![0.0f32; n];
     mask.par_chunks_mut(MASK_VALUES_PER_TASK)
         .enumerate()
         .for_each(|(task, chunk)| {
@@ -224,14 +182,14 @@ mod tests {
                 .take(n)
                 .map(|b| if b < threshold { scale } else { 0.0 })
                 .collect();
-            assert_eq!(host_mask::<f32>(n, keep, 5), sequential, "n = {n}");
+            assert_eq!(host_mask(n, keep, 5), sequential, "n = {n}");
         }
     }
 
     #[test]
     fn host_mask_matches_keep_probability_exactly_at_the_ends() {
-        assert!(host_mask::<f32>(1001, 1.0, 3).iter().all(|&v| v == 1.0));
-        assert_eq!(host_mask::<f32>(1001, 0.5, 3).len(), 1001);
+        assert!(host_mask(1001, 1.0, 3).iter().all(|&v| v == 1.0));
+        assert_eq!(host_mask(1001, 0.5, 3).len(), 1001);
     }
 
     lifegom_render::cpu_backend_tests!(dropout_statistics_and_seeding => statistics_and_seeding);

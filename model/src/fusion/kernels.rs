@@ -200,39 +200,21 @@ pub fn attention_backward<T: Real>(
     (dq, dkv, dv)
 }
 
-/// Row statistics of `z = x + r` (`z = x + r·m` with a dropout mask row `m`): writes `z` into
-/// `z_out` and returns `(μ, ρ)`.
-fn residual_row<T: Real>(
-    x: &[T],
-    r: &[T],
-    mask: Option<&[T]>,
-    z_out: &mut [T],
-    epsilon: T,
-) -> (T, T) {
+/// Row statistics of `z = x + r`: writes `z` into `z_out` and returns `(μ, ρ)`.
+fn residual_row<T: Real>(x: &[T], r: &[T], z_out: &mut [T], epsilon: T) -> (T, T) {
     let n = T::from(x.len()).expect("a row length is a float");
-    match mask {
-        Some(m) => {
-            for (((z, &a), &b), &m) in z_out.iter_mut().zip(x).zip(r).zip(m) {
-                *z = a + b * m;
-            }
-        }
-        None => {
-            for ((z, &a), &b) in z_out.iter_mut().zip(x).zip(r) {
-                *z = a + b;
-            }
-        }
+    for ((z, &a), &b) in z_out.iter_mut().zip(x).zip(r) {
+        *z = a + b;
     }
     let mean = lanes::sum(z_out) / n;
     let var = lanes::sum_squared_deviation(z_out, mean) / n;
     (mean, T::one() / (var + epsilon).sqrt())
 }
 
-/// `LN(x + r)·γ + β` over rows of `gamma.len()` channels; with `mask`, `LN(x + r·mask)` (the
-/// residual's dropout, folded in).
+/// `LN(x + r)·γ + β` over rows of `gamma.len()` channels.
 pub fn add_layer_norm_forward<T: Real>(
     x: &[T],
     r: &[T],
-    mask: Option<&[T]>,
     gamma: &[T],
     beta: &[T],
     epsilon: f64,
@@ -245,8 +227,7 @@ pub fn add_layer_norm_forward<T: Real>(
         .for_each(|(task, out)| {
             for (local, y) in out.chunks_mut(d).enumerate() {
                 let row = (task * ROWS_PER_TASK + local) * d;
-                let m = mask.map(|m| &m[row..][..d]);
-                let (mean, rstd) = residual_row(&x[row..][..d], &r[row..][..d], m, y, eps);
+                let (mean, rstd) = residual_row(&x[row..][..d], &r[row..][..d], y, eps);
                 for ((y, &g), &b) in y.iter_mut().zip(gamma).zip(beta) {
                     *y = (*y - mean) * rstd * g + b;
                 }
@@ -256,11 +237,10 @@ pub fn add_layer_norm_forward<T: Real>(
 }
 
 /// Gradients of [`add_layer_norm_forward`] given `grad` `= ∂L/∂y`: `(∂z, ∂γ, ∂β)`, where `∂z`
-/// is the gradient of `x` and, without a mask, of `r` (with one, `∂r = ∂z·mask`).
+/// is the gradient of both `x` and `r`.
 pub fn add_layer_norm_backward<T: Real>(
     x: &[T],
     r: &[T],
-    mask: Option<&[T]>,
     gamma: &[T],
     grad: &[T],
     epsilon: f64,
@@ -279,8 +259,7 @@ pub fn add_layer_norm_backward<T: Real>(
             let mut a = vec![T::zero(); d];
             for (local, dz_row) in dz.chunks_mut(d).enumerate() {
                 let row = (task * ROWS_PER_TASK + local) * d;
-                let m = mask.map(|m| &m[row..][..d]);
-                let (mean, rstd) = residual_row(&x[row..][..d], &r[row..][..d], m, &mut xhat, eps);
+                let (mean, rstd) = residual_row(&x[row..][..d], &r[row..][..d], &mut xhat, eps);
                 let g = &grad[row..][..d];
                 for c in 0..d {
                     xhat[c] = (xhat[c] - mean) * rstd;
@@ -446,7 +425,7 @@ mod tests {
         let (x, r) = (random(rows * d, &mut rng), random(rows * d, &mut rng));
         let (gamma, beta) = (random(d, &mut rng), random(d, &mut rng));
         let eps = 1e-5;
-        let y = add_layer_norm_forward(&x, &r, None, &gamma, &beta, eps);
+        let y = add_layer_norm_forward(&x, &r, &gamma, &beta, eps);
         for row in 0..rows {
             let z: Vec<f64> = (0..d).map(|c| x[row * d + c] + r[row * d + c]).collect();
             let mean = z.iter().sum::<f64>() / d as f64;
@@ -460,9 +439,9 @@ mod tests {
         let small = 3 * d;
         let (xs, rs) = (&x[..small], &r[..small]);
         let w = random(small, &mut rng);
-        let (dz, dgamma, dbeta) = add_layer_norm_backward(xs, rs, None, &gamma, &w, eps);
+        let (dz, dgamma, dbeta) = add_layer_norm_backward(xs, rs, &gamma, &w, eps);
         let loss = |x: &[f64], r: &[f64], g: &[f64], b: &[f64]| {
-            weighted(&add_layer_norm_forward(x, r, None, g, b, eps), &w)
+            weighted(&add_layer_norm_forward(x, r, g, b, eps), &w)
         };
         check_gradient("dx", xs, &dz, &|v| loss(v, rs, &gamma, &beta));
         check_gradient("dr", rs, &dz, &|v| loss(xs, v, &gamma, &beta));
@@ -470,13 +449,12 @@ mod tests {
         check_gradient("dbeta", &beta, &dbeta, &|v| loss(xs, rs, &gamma, v));
         // Across tasks: the parameter gradients of all rows equal a serial sum.
         let w = random(rows * d, &mut rng);
-        let (_, dgamma, dbeta) = add_layer_norm_backward(&x, &r, None, &gamma, &w, eps);
+        let (_, dgamma, dbeta) = add_layer_norm_backward(&x, &r, &gamma, &w, eps);
         let mut serial = (vec![0.0; d], vec![0.0; d]);
         for row in 0..rows {
             let (_, g1, b1) = add_layer_norm_backward(
                 &x[row * d..][..d],
                 &r[row * d..][..d],
-                None,
                 &gamma,
                 &w[row * d..][..d],
                 eps,
@@ -491,29 +469,5 @@ mod tests {
                 (dgamma[c] - serial.0[c]).abs() < 1e-9 && (dbeta[c] - serial.1[c]).abs() < 1e-9
             );
         }
-    }
-
-    /// With a dropout mask, the forward is the unmasked one of `r·mask` and the backward's
-    /// `∂z` is unchanged (so `∂r = ∂z·mask`); finite differences of `x` agree.
-    #[test]
-    fn masked_residual_is_the_product_folded_in() {
-        let mut rng = Rng::new(13);
-        let (rows, d) = (ROWS_PER_TASK + 5, 6);
-        let (x, r) = (random(rows * d, &mut rng), random(rows * d, &mut rng));
-        let (gamma, beta) = (random(d, &mut rng), random(d, &mut rng));
-        let mask: Vec<f64> = (0..rows * d)
-            .map(|_| if rng.uniform() < 0.9 { 1.0 / 0.9 } else { 0.0 })
-            .collect();
-        let masked_r: Vec<f64> = r.iter().zip(&mask).map(|(a, m)| a * m).collect();
-        let eps = 1e-5;
-        assert_eq!(
-            add_layer_norm_forward(&x, &r, Some(&mask), &gamma, &beta, eps),
-            add_layer_norm_forward(&x, &masked_r, None, &gamma, &beta, eps)
-        );
-        let w = random(rows * d, &mut rng);
-        assert_eq!(
-            add_layer_norm_backward(&x, &r, Some(&mask), &gamma, &w, eps),
-            add_layer_norm_backward(&x, &masked_r, None, &gamma, &w, eps)
-        );
     }
 }

@@ -28,10 +28,10 @@ use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, Linea
 use burn::tensor::activation::{relu, softmax};
 use burn::tensor::{Device, Tensor};
 
-use crate::dropout::{HostMask, MaskSeed, draw_seed, draws_host_mask, dropout_with};
+use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with};
 use crate::linear_op;
 use lifegom_render::device::runs_on_host;
-use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon, ResidualMask};
+use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
 
 /// How the attention core and the residual LayerNorms are computed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -137,9 +137,19 @@ impl AttentionLayer {
         let k = linear_op::forward(&self.w_k, context.clone());
         let v = linear_op::forward(&self.w_v, context);
         let attn = linear_op::forward(&self.w_o, self.attend(q, k, v, kernel));
-        let x = self.add_norm(&self.norm1, query, attn, masks[0], kernel);
+        let x = self.add_norm(
+            &self.norm1,
+            query,
+            dropout_with(&self.dropout, attn, masks[0]),
+            kernel,
+        );
         let ff = linear_op::forward(&self.fc2, relu(linear_op::forward(&self.fc1, x.clone())));
-        self.add_norm(&self.norm2, x, ff, masks[1], kernel)
+        self.add_norm(
+            &self.norm2,
+            x,
+            dropout_with(&self.dropout, ff, masks[1]),
+            kernel,
+        )
     }
 
     /// Scaled dot-product attention of projected `q` `[B, Lq, D]` over `k`, `v` `[B, Lk, D]`,
@@ -170,32 +180,25 @@ impl AttentionLayer {
         }
     }
 
-    /// `norm(x + Dropout(residual))`, the dropout's mask from `mask`. The host ops multiply by
-    /// the mask inside the LayerNorm op (no mask tensor, no product node); the values are
-    /// those of `dropout_with` followed by the sum, bit for bit.
+    /// `norm(x + residual)`.
     fn add_norm(
         &self,
         norm: &LayerNorm,
         x: Tensor<3>,
         residual: Tensor<3>,
-        mask: MaskSeed,
         kernel: FusionKernel,
     ) -> Tensor<3> {
         match (kernel, &norm.beta) {
-            (FusionKernel::HostOps, Some(beta)) => {
-                let mask = HostMask::resolve(&self.dropout, mask, &x.device());
-                Tensor::from_dispatch(
-                    <burn::backend::Dispatch as AddLayerNormOps>::add_layer_norm(
-                        x.into_dispatch(),
-                        residual.into_dispatch(),
-                        norm.gamma.val().into_dispatch(),
-                        beta.val().into_dispatch(),
-                        LayerNormEpsilon(self.layer_norm_eps),
-                        ResidualMask(mask),
-                    ),
-                )
-            }
-            _ => norm.forward(x + dropout_with(&self.dropout, residual, mask)),
+            (FusionKernel::HostOps, Some(beta)) => Tensor::from_dispatch(
+                <burn::backend::Dispatch as AddLayerNormOps>::add_layer_norm(
+                    x.into_dispatch(),
+                    residual.into_dispatch(),
+                    norm.gamma.val().into_dispatch(),
+                    beta.val().into_dispatch(),
+                    LayerNormEpsilon(self.layer_norm_eps),
+                ),
+            ),
+            _ => norm.forward(x + residual),
         }
     }
 }
@@ -374,20 +377,8 @@ mod tests {
     /// single-query cross-attention.
     fn host_ops_equal_tensor_ops(device: &Device) {
         let ad = device.clone().autodiff();
-        // Without dropout, and with both masks given (the host ops fold them into the
-        // LayerNorm op, the reference multiplies by `dropout_with`'s mask tensor).
-        for (dropout, masks) in [
-            (0.0, [MaskSeed::Device; 2]),
-            (0.3, [MaskSeed::Given(11), MaskSeed::Given(12)]),
-        ] {
-            host_ops_equal_tensor_ops_with(&ad, dropout, masks);
-        }
-    }
-
-    fn host_ops_equal_tensor_ops_with(ad: &Device, dropout: f64, masks: [MaskSeed; 2]) {
-        let ad = ad.clone();
         let layer = AttentionLayerConfig::new(24, 24, 4)
-            .with_dropout(dropout)
+            .with_dropout(0.0)
             .init(&ad);
         for (lq, lk) in [(3, 3), (1, 3), (1, 5)] {
             let b = 150; // more than one rayon task of the kernels
@@ -397,7 +388,7 @@ mod tests {
                 .require_grad();
             let w = Tensor::<3>::random([b, lq, 24], Distribution::Normal(0.0, 1.0), &ad);
             let run = |kernel| {
-                let out = layer.forward_with(q.clone(), c.clone(), kernel, masks);
+                let out = layer.forward_with(q.clone(), c.clone(), kernel, [MaskSeed::Device; 2]);
                 let grads = (out.clone() * w.clone()).sum().backward();
                 (out, grads)
             };
@@ -409,7 +400,7 @@ mod tests {
                 for (i, (x, y)) in a.iter().zip(&b).enumerate() {
                     assert!(
                         (x - y).abs() <= 1e-5 * scale,
-                        "{what}[{i}] (Lq {lq}, Lk {lk}, dropout {dropout}): ops {x} vs tensor ops {y}"
+                        "{what}[{i}] (Lq {lq}, Lk {lk}): ops {x} vs tensor ops {y}"
                     );
                 }
             };
@@ -445,7 +436,7 @@ mod tests {
             for (i, (x, y)) in a.iter().zip(&b).enumerate() {
                 assert!(
                     (x - y).abs() <= 1e-5 * scale,
-                    "parameter gradient {i} (Lq {lq}, Lk {lk}, dropout {dropout}): ops {x} vs tensor ops {y}"
+                    "parameter gradient {i} (Lq {lq}, Lk {lk}): ops {x} vs tensor ops {y}"
                 );
             }
         }

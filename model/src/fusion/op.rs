@@ -29,10 +29,7 @@ use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::Element;
 use bytemuck::Pod;
 
-use rayon::prelude::*;
-
 use super::kernels::{self, AttentionShape, Real};
-use crate::dropout::{HostMask, MASK_VALUES_PER_TASK};
 use lifegom_render::in_precision;
 use lifegom_render::op_backward::{gradient_per_input, record};
 use lifegom_render::readback::{HostLend, cpu_float_from};
@@ -57,9 +54,7 @@ pub trait FusionAttentionOps: Backend {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct AttentionHeads(pub usize);
 
-/// `LayerNorm(x + residual)·γ + β` over the last dimension, with the residual's dropout folded
-/// in when `mask` holds one: `LayerNorm(x + residual·m)` for the host mask `m` (the same values
-/// as [`crate::dropout::dropout_with`], drawn again in the backward instead of kept).
+/// `LayerNorm(x + residual)·γ + β` over the last dimension.
 ///
 /// Inputs: `x` and `residual` of one shape `[.., D]`, `gamma` and `beta` `[D]`; output the
 /// shape of `x`. Gradients flow to all four.
@@ -72,17 +67,12 @@ pub trait AddLayerNormOps: Backend {
         gamma: FloatTensor<Self>,
         beta: FloatTensor<Self>,
         epsilon: LayerNormEpsilon,
-        mask: ResidualMask,
     ) -> FloatTensor<Self>;
 }
 
 /// The LayerNorm's `ε`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LayerNormEpsilon(pub f64);
-
-/// The dropout mask on [`AddLayerNormOps`]' residual, if any.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ResidualMask(pub Option<HostMask>);
 
 /// The attention op's inputs on one backend: what the forward takes and the node keeps.
 #[derive(Debug, Clone)]
@@ -101,7 +91,6 @@ pub struct LayerNormInputs<B: Backend> {
     gamma: FloatTensor<B>,
     beta: FloatTensor<B>,
     epsilon: f64,
-    mask: Option<HostMask>,
 }
 
 /// What a backend implements so that `Autodiff<B>` can differentiate the ops.
@@ -116,11 +105,11 @@ pub trait FusionKernels: Backend {
     ) -> [FloatTensor<Self>; 3];
     /// The LayerNorm forward.
     fn layer_norm_forward(inputs: LayerNormInputs<Self>) -> FloatTensor<Self>;
-    /// `[∂x, ∂residual, ∂γ, ∂β]`.
+    /// `[∂(x + residual), ∂γ, ∂β]`.
     fn layer_norm_backward(
         inputs: LayerNormInputs<Self>,
         grad: FloatTensor<Self>,
-    ) -> [FloatTensor<Self>; 4];
+    ) -> [FloatTensor<Self>; 3];
 }
 
 fn attention_shape<B: Backend>(inputs: &AttentionInputs<B>) -> AttentionShape {
@@ -200,50 +189,32 @@ fn cpu_layer_norm_forward_in<B: HostLend, T: Real + Element + Pod>(
     let r = B::lend_float::<T>("layer norm residual", &inputs.residual);
     let gamma = B::lend_float::<T>("layer norm gamma", &inputs.gamma);
     let beta = B::lend_float::<T>("layer norm beta", &inputs.beta);
-    let mask = inputs.mask.map(|m| m.values::<T>(x.len()));
-    let out =
-        kernels::add_layer_norm_forward(&x, &r, mask.as_deref(), &gamma, &beta, inputs.epsilon);
+    let out = kernels::add_layer_norm_forward(&x, &r, &gamma, &beta, inputs.epsilon);
     cpu_float_from::<B, T>(out, shape, dtype, &device)
 }
 
 fn cpu_layer_norm_backward<B: HostLend>(
     inputs: LayerNormInputs<B>,
     grad: FloatTensor<B>,
-) -> [FloatTensor<B>; 4] {
+) -> [FloatTensor<B>; 3] {
     in_precision!(inputs.x.dtype(), cpu_layer_norm_backward_in(inputs, grad))
 }
 
 fn cpu_layer_norm_backward_in<B: HostLend, T: Real + Element + Pod>(
     inputs: LayerNormInputs<B>,
     grad: FloatTensor<B>,
-) -> [FloatTensor<B>; 4] {
+) -> [FloatTensor<B>; 3] {
     let device = inputs.x.device();
     let (x_shape, x_dtype) = (inputs.x.shape(), inputs.x.dtype());
-    let (r_shape, r_dtype) = (inputs.residual.shape(), inputs.residual.dtype());
     let (p_shape, p_dtype) = (inputs.gamma.shape(), inputs.gamma.dtype());
     let b_dtype = inputs.beta.dtype();
     let g = B::lend_float::<T>("layer norm gradient", &grad);
     let x = B::lend_float::<T>("layer norm input", &inputs.x);
     let r = B::lend_float::<T>("layer norm residual", &inputs.residual);
     let gamma = B::lend_float::<T>("layer norm gamma", &inputs.gamma);
-    let mask = inputs.mask.map(|m| m.values::<T>(x.len()));
-    let (dz, dgamma, dbeta) =
-        kernels::add_layer_norm_backward(&x, &r, mask.as_deref(), &gamma, &g, inputs.epsilon);
-    let dx = cpu_float_from::<B, T>(dz, x_shape, x_dtype, &device);
-    // The residual sum's two terms share one gradient, the residual's times its mask.
-    let dr = match mask {
-        None => dx.clone(),
-        Some(mut mask) => {
-            let dz = B::lend_float::<T>("layer norm gradient", &dx);
-            mask.par_chunks_mut(MASK_VALUES_PER_TASK)
-                .zip(dz.par_chunks(MASK_VALUES_PER_TASK))
-                .for_each(|(m, g)| m.iter_mut().zip(g).for_each(|(m, &g)| *m = g * *m));
-            cpu_float_from::<B, T>(mask, r_shape, r_dtype, &device)
-        }
-    };
+    let (dz, dgamma, dbeta) = kernels::add_layer_norm_backward(&x, &r, &gamma, &g, inputs.epsilon);
     [
-        dx,
-        dr,
+        cpu_float_from::<B, T>(dz, x_shape, x_dtype, &device),
         cpu_float_from::<B, T>(dgamma, p_shape.clone(), p_dtype, &device),
         cpu_float_from::<B, T>(dbeta, p_shape, b_dtype, &device),
     ]
@@ -275,7 +246,6 @@ macro_rules! cpu_fusion_backend {
                 gamma: FloatTensor<Self>,
                 beta: FloatTensor<Self>,
                 epsilon: LayerNormEpsilon,
-                mask: ResidualMask,
             ) -> FloatTensor<Self> {
                 cpu_layer_norm_forward::<Self>(LayerNormInputs {
                     x,
@@ -283,7 +253,6 @@ macro_rules! cpu_fusion_backend {
                     gamma,
                     beta,
                     epsilon: epsilon.0,
-                    mask: mask.0,
                 })
             }
         }
@@ -307,7 +276,7 @@ macro_rules! cpu_fusion_backend {
             fn layer_norm_backward(
                 inputs: LayerNormInputs<Self>,
                 grad: FloatTensor<Self>,
-            ) -> [FloatTensor<Self>; 4] {
+            ) -> [FloatTensor<Self>; 3] {
                 cpu_layer_norm_backward::<Self>(inputs, grad)
             }
         }
@@ -372,7 +341,24 @@ impl<B: FusionKernels> Backward<B, 4> for LayerNormBackward {
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
-        gradient_per_input::<B, _, 4>(ops, grads, B::layer_norm_backward);
+        let grad = grads.consume::<B>(&ops.node);
+        let [x_parent, r_parent, gamma_parent, beta_parent] = ops.parents;
+        let [dz, dgamma, dbeta] = B::layer_norm_backward(ops.state, grad);
+        // The residual sum's two terms share one gradient.
+        match (x_parent, r_parent) {
+            (Some(x), Some(r)) => {
+                grads.register::<B>(x.id, dz.clone());
+                grads.register::<B>(r.id, dz);
+            }
+            (Some(p), None) | (None, Some(p)) => grads.register::<B>(p.id, dz),
+            (None, None) => {}
+        }
+        if let Some(parent) = gamma_parent {
+            grads.register::<B>(parent.id, dgamma);
+        }
+        if let Some(parent) = beta_parent {
+            grads.register::<B>(parent.id, dbeta);
+        }
     }
 }
 
@@ -383,7 +369,6 @@ impl<B: AddLayerNormOps + FusionKernels, C: CheckpointStrategy> AddLayerNormOps 
         gamma: FloatTensor<Self>,
         beta: FloatTensor<Self>,
         epsilon: LayerNormEpsilon,
-        mask: ResidualMask,
     ) -> FloatTensor<Self> {
         let (x, x_node) = x.into_parts();
         let (residual, r_node) = residual.into_parts();
@@ -395,7 +380,6 @@ impl<B: AddLayerNormOps + FusionKernels, C: CheckpointStrategy> AddLayerNormOps 
             gamma,
             beta,
             epsilon: epsilon.0,
-            mask: mask.0,
         };
         record::<B, C, _, _, 4>(
             LayerNormBackward,
