@@ -543,32 +543,28 @@ mod tests {
                 grads.uv[k]
             );
         }
+        // The loss is linear in the map rows and in the tail: a unit step is its derivative.
+        let base = loss(pyr, uv);
+        let unit_steps = |what: &str,
+                          values: &[f64],
+                          analytic: &[f64],
+                          step: usize,
+                          loss_with: &dyn Fn(&[f64]) -> f64| {
+            for i in (0..values.len()).step_by(step) {
+                let mut plus = values.to_vec();
+                plus[i] += 1.0;
+                let fd = loss_with(&plus) - base;
+                assert!((analytic[i] - fd).abs() < 1e-9, "{what} value {i}");
+            }
+        };
         let rows_g = grads.rows.as_ref().expect("asked for");
-        for r in (0..pyr.rows.len()).step_by(row_step) {
-            let mut plus = pyr.rows.to_vec();
-            plus[r] += 1.0;
-            let fd = loss(
-                &Pyramid {
-                    rows: &plus,
-                    ..*pyr
-                },
-                uv,
-            ) - loss(pyr, uv);
-            assert!((rows_g[r] - fd).abs() < 1e-9, "row value {r}");
-        }
+        unit_steps("row", pyr.rows, rows_g, row_step, &|rows| {
+            loss(&Pyramid { rows, ..*pyr }, uv)
+        });
         let tail_g = grads.tail.as_ref().expect("asked for");
-        for t in 0..pyr.tail.len() {
-            let mut plus = pyr.tail.to_vec();
-            plus[t] += 1.0;
-            let fd = loss(
-                &Pyramid {
-                    tail: &plus,
-                    ..*pyr
-                },
-                uv,
-            ) - loss(pyr, uv);
-            assert!((tail_g[t] - fd).abs() < 1e-9, "tail value {t}");
-        }
+        unit_steps("tail", pyr.tail, tail_g, 1, &|tail| {
+            loss(&Pyramid { tail, ..*pyr }, uv)
+        });
         grads
     }
 
