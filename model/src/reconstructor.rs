@@ -720,6 +720,10 @@ mod tests {
 
     fn end_to_end(device: &Device) {
         let ad = device.clone().autodiff();
+        // A fixed seed for the random weights and images: at some draws the tiny network's
+        // Point Transformer starts with a whole ReLU layer dead, which zeroes every gradient
+        // behind it (seen once on lavapipe in CI) and says nothing about the code.
+        ad.seed(3);
         let fx = fixture(&ad, 32);
         let model = ReconstructorConfig::tiny(2)
             .with_iterations(2)
