@@ -174,6 +174,7 @@ impl ReconstructorConfig {
                 device,
             )),
             iterations: self.iterations,
+            concurrency: HostConcurrency::default(),
             num_views: self.num_views,
         })
     }
@@ -197,6 +198,22 @@ pub struct Reconstructor {
     pub vertex_embed: Param<Tensor<2>>,
     iterations: usize,
     num_views: usize,
+    #[module(skip)]
+    concurrency: HostConcurrency,
+}
+
+/// How a forward pass on a host (CPU) device spreads a feedback step over threads, beyond the
+/// rayon parallelism inside each op (design.md §7.4). The result is the same either way, up to
+/// float summation order; on CubeCL devices every op is queued from the calling thread.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum HostConcurrency {
+    /// Independent parts of a feedback step run side by side: the fusion's rendered branch
+    /// beside its source branch.
+    #[default]
+    Branches,
+    /// Everything in program order on the calling thread: for one process per core, and to
+    /// measure what [`HostConcurrency::Branches`] gains.
+    Sequential,
 }
 
 /// The person's body in canonical T-pose: low-res vertices and skinning weights.
@@ -362,6 +379,17 @@ impl Reconstructor {
         self
     }
 
+    /// How a host forward pass uses threads.
+    pub fn concurrency(&self) -> HostConcurrency {
+        self.concurrency
+    }
+
+    /// The same model with `concurrency`.
+    pub fn with_concurrency(mut self, concurrency: HostConcurrency) -> Self {
+        self.concurrency = concurrency;
+        self
+    }
+
     /// Reconstructs the avatar (inference): the forward pass, keeping only the final state.
     pub fn reconstruct(
         &self,
@@ -478,9 +506,9 @@ impl Reconstructor {
     /// branch is detached.
     ///
     /// The branches are independent, and much of a fusion call is ops that the CPU backends run
-    /// on one core, so the rendered branch runs on a second thread (design.md §7.4), on an
-    /// inference copy of the weights (no graph is built for a branch whose output is detached
-    /// anyway). In training its dropout masks stay what a sequential source-then-rendered run
+    /// on one core, so with [`HostConcurrency::Branches`] the rendered branch runs on a second
+    /// thread (design.md §7.4). It runs on an inference copy of the weights: no graph is built
+    /// for a branch whose output is detached anyway. In training its dropout masks stay what a sequential source-then-rendered run
     /// draws: both branches' mask seeds are drawn from the device's seeded RNG first, in that
     /// order, and handed to each branch. Where masks are drawn by Burn on the device (CubeCL),
     /// the branches run in order on the calling thread.
@@ -516,20 +544,25 @@ impl Reconstructor {
         };
         let parent = tracing::Span::current();
         let (ren, ren_embed) = (ren.inner(), embed.clone().inner());
-        let (fused_src, fused_ren) = std::thread::scope(|scope| {
-            let rendered = scope.spawn(move || {
-                let _span = tracing::debug_span!(parent: &parent, "rendered").entered();
-                inference.forward_with(ren, ren_embed, ren_masks)
-            });
-            let fused_src = {
-                let _span = tracing::debug_span!("source").entered();
-                self.fusion.forward_with(src, embed.clone(), src_masks)
-            };
-            let fused_ren = rendered
-                .join()
-                .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-            (fused_src, fused_ren)
-        });
+        let rendered = move || {
+            let _span = tracing::debug_span!(parent: &parent, "rendered").entered();
+            inference.forward_with(ren, ren_embed, ren_masks)
+        };
+        let source = || {
+            let _span = tracing::debug_span!("source").entered();
+            self.fusion.forward_with(src, embed.clone(), src_masks)
+        };
+        let (fused_src, fused_ren) = match self.concurrency {
+            HostConcurrency::Branches => std::thread::scope(|scope| {
+                let rendered = scope.spawn(rendered);
+                let fused_src = source();
+                let fused_ren = rendered
+                    .join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                (fused_src, fused_ren)
+            }),
+            HostConcurrency::Sequential => (source(), rendered()),
+        };
         // Back on the caller's device, as a tensor without a graph (detached).
         let fused_ren = if device.is_autodiff() {
             Tensor::from_inner(fused_ren)

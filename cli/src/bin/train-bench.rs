@@ -20,6 +20,12 @@
 //! how many there are), under `bench-data/<config>`. With `subjects = "procedural"` each step
 //! generates its own subject (on the prefetch thread, or in the `data` stage with `--data
 //! serial`).
+//!
+//! `--concurrency alternate` compares the model's two host threading modes
+//! ([`HostConcurrency`]) in one process: timed steps alternate between them, and the line gains
+//! each mode's median step, forward and backward (`by_concurrency`). The VM this project is
+//! measured on drifts by more than such a change between runs; within one process, the drift
+//! hits both modes alike.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -29,7 +35,7 @@ use clap::Parser;
 use lifegom_cli::profile::{StageTimer, median, peak_resident_mib, process_cpu_times};
 use lifegom_data::synth;
 use lifegom_model::inputs::model_inputs;
-use lifegom_model::reconstructor::MeshPurpose;
+use lifegom_model::reconstructor::{HostConcurrency, MeshPurpose};
 use lifegom_render::device::DeviceChoice;
 use lifegom_train::config::{ExperimentConfig, TrainingSubjects};
 use lifegom_train::losses::UniformLaplacian;
@@ -44,6 +50,30 @@ enum DataLoading {
     Prefetch,
     /// On the training thread, before each step.
     Serial,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Concurrency {
+    /// Independent parts of a feedback step on their own threads (the default).
+    Branches,
+    /// Everything on the training thread, in program order.
+    Sequential,
+    /// Timed steps alternate between the two (module docs).
+    Alternate,
+}
+
+impl Concurrency {
+    /// The mode of step `i`. Alternating, steps `2p` and `2p + 1` train on the same sample,
+    /// one in each mode, in the order `(Branches, Sequential)` for even `p` and the reverse for
+    /// odd `p`: neither the sample nor the position in a pair favours a mode.
+    fn mode(self, i: u64) -> HostConcurrency {
+        match self {
+            Self::Branches => HostConcurrency::Branches,
+            Self::Sequential => HostConcurrency::Sequential,
+            Self::Alternate if (i % 2 == 0) == ((i / 2) % 2 == 0) => HostConcurrency::Branches,
+            Self::Alternate => HostConcurrency::Sequential,
+        }
+    }
 }
 
 #[derive(Parser, Debug)]
@@ -68,6 +98,9 @@ struct Args {
     /// thread (to measure what prefetching saves).
     #[arg(long, value_enum, default_value = "prefetch")]
     data: DataLoading,
+    /// How the model spreads a step over threads on the host (module docs).
+    #[arg(long, value_enum, default_value = "branches")]
+    concurrency: Concurrency,
     /// Training subjects to generate when the split is missing.
     #[arg(long, default_value_t = 3)]
     subjects: usize,
@@ -137,6 +170,10 @@ fn main() -> anyhow::Result<()> {
         .context("installing the stage timer")?;
 
     let mut step_seconds = Vec::new();
+    // Alternating, the sample of the pair's first step, for its second.
+    let mut repeat = None;
+    // Per mode: step, forward and backward seconds of its timed steps.
+    let mut by_mode: std::collections::BTreeMap<String, [Vec<f64>; 3]> = Default::default();
     let mut stages: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
     let mut cpu_seconds = 0.0;
     let mut system_seconds = 0.0;
@@ -144,17 +181,26 @@ fn main() -> anyhow::Result<()> {
     let mut prefetch = (args.data == DataLoading::Prefetch)
         .then(|| Prefetcher::new(source.clone(), trainer.seed(), trainer.step));
     for i in 0..args.warmup + args.steps.max(1) {
+        let mode = args.concurrency.mode(i);
+        trainer.model = trainer.model.clone().with_concurrency(mode);
         let cpu_before = process_cpu_times();
         let start = Instant::now();
         {
             let _span = tracing::info_span!("step").entered();
-            let inputs = {
-                let _span = tracing::debug_span!("data").entered();
-                let StepSample { sample, rig } = match prefetch.as_mut() {
-                    Some(p) => p.next_sample()?,
-                    None => source.sample(trainer.seed(), trainer.step)?,
-                };
-                model_inputs(&rig, &sample, w, h, trainer.device())?
+            let inputs = match repeat.take() {
+                Some(inputs) => inputs,
+                None => {
+                    let _span = tracing::debug_span!("data").entered();
+                    let StepSample { sample, rig } = match prefetch.as_mut() {
+                        Some(p) => p.next_sample()?,
+                        None => source.sample(trainer.seed(), trainer.step)?,
+                    };
+                    let inputs = model_inputs(&rig, &sample, w, h, trainer.device())?;
+                    if args.concurrency == Concurrency::Alternate {
+                        repeat = Some(inputs.clone());
+                    }
+                    inputs
+                }
             };
             trainer.train_step(&inputs, &mesh, &laplacian)?;
         }
@@ -176,6 +222,17 @@ fn main() -> anyhow::Result<()> {
             cpu_seconds += (b.user + b.system) - (a.user + a.system);
             system_seconds += b.system - a.system;
         }
+        let stage = |name: &str| {
+            totals
+                .get(&format!("step/train_step/{name}"))
+                .map_or(f64::NAN, |d| d.as_secs_f64())
+        };
+        let mode_times = by_mode
+            .entry(format!("{mode:?}").to_lowercase())
+            .or_default();
+        mode_times[0].push(wall);
+        mode_times[1].push(stage("reconstruct"));
+        mode_times[2].push(stage("backward"));
         for (path, d) in totals {
             stages.entry(path).or_default().push(d.as_secs_f64());
         }
@@ -185,6 +242,21 @@ fn main() -> anyhow::Result<()> {
     let stage_ms: serde_json::Map<String, serde_json::Value> = stages
         .iter()
         .filter_map(|(path, v)| Some((path.clone(), ms(median(v)?))))
+        .collect();
+    let by_concurrency: serde_json::Map<String, serde_json::Value> = by_mode
+        .iter()
+        .map(|(mode, [step, forward, backward])| {
+            let m = |v: &Vec<f64>| ms(median(v).unwrap_or(f64::NAN));
+            (
+                mode.clone(),
+                serde_json::json!({
+                    "steps": step.len(),
+                    "median_step_ms": m(step),
+                    "reconstruct_ms": m(forward),
+                    "backward_ms": m(backward),
+                }),
+            )
+        })
         .collect();
     let line = serde_json::json!({
         "bench": "train-step",
@@ -206,6 +278,8 @@ fn main() -> anyhow::Result<()> {
         "system_per_wall": (system_seconds / wall_seconds * 100.0).round() / 100.0,
         "peak_rss_mib": peak_resident_mib().map(f64::round),
         "threads": rayon::current_num_threads(),
+        "concurrency": format!("{:?}", args.concurrency).to_lowercase(),
+        "by_concurrency": by_concurrency,
         "stages_ms": stage_ms,
     });
     println!("{line}");
