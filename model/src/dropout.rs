@@ -14,20 +14,12 @@
 //! 16-bit draws from the device's own RNG, so `Device::seed` (which the trainer sets per step)
 //! still fixes every mask. On CubeCL devices the mask is drawn on the device as Burn does (a host
 //! draw would cost an upload per call, and the GPU's generator is not the bottleneck there).
-//!
-//! On the CPU backends the product is one custom op ([`op`]): the mask is drawn and applied in
-//! one pass on rayon's threads and kept as bits for the backward, instead of a float mask tensor
-//! and Burn's product, whose forward and backward run on one core.
-
-pub mod op;
 
 use burn::nn::Dropout;
 use burn::tensor::{Distribution, Tensor, TensorData};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::readback;
 use lifegom_render::rng::Rng;
-
-use op::HostDropoutOps;
 use rayon::prelude::*;
 
 /// Where a host-drawn dropout mask's randomness comes from.
@@ -82,18 +74,8 @@ pub fn dropout_with<const D: usize>(
         // `prob > 0`, and on CubeCL devices its mask drawn on the device.
         MaskSeed::Device => return layer.forward(input),
     };
-    let stream = MaskStream {
-        keep: 1.0 - layer.prob,
-        seed,
-    };
-    if runs_on_host(&device) {
-        return Tensor::from_dispatch(<burn::backend::Dispatch as HostDropoutOps>::host_dropout(
-            input.into_dispatch(),
-            stream,
-        ));
-    }
-    // A seed given for a CubeCL device: the same mask, uploaded.
-    let mask = stream.values(input.shape().num_elements());
+    let keep = 1.0 - layer.prob;
+    let mask = host_mask(input.shape().num_elements(), keep, seed);
     let mask = Tensor::<1>::from_data(
         TensorData::new(mask, [input.shape().num_elements()]),
         (&device, input.dtype()),
@@ -102,70 +84,34 @@ pub fn dropout_with<const D: usize>(
     input * mask
 }
 
-/// Mask values per rayon task of [`MaskStream::values`] and the op: large enough to amortise a task,
-/// small enough that the fusion's ~0.5 M-element masks split over two cores. A multiple of 64,
-/// so the op's bit words never straddle two tasks.
+/// Mask values per rayon task of [`host_mask`]: large enough to amortise a task, small enough
+/// that the fusion's ~0.5 M-element masks split over two cores.
 const MASK_VALUES_PER_TASK: usize = 1 << 15;
 
-/// A dropout mask's source: keep probability and the seed of its SplitMix64 stream. Value `2i`
-/// of the mask comes from the low and value `2i + 1` from the high 32 bits of draw `i`; a value
-/// is kept (`1/keep`) when its 32 bits are below `keep·2³²`, else dropped (`0`).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct MaskStream {
-    /// Probability that a value is kept.
-    pub keep: f64,
-    /// The stream's seed.
-    pub seed: u64,
-}
-
-impl MaskStream {
-    /// A kept value: `1/keep` in `f32`.
-    pub fn scale(&self) -> f32 {
-        (1.0 / self.keep) as f32
-    }
-
-    /// The first `n` values of the mask, in `{0, 1/keep}`, drawn on rayon's threads (one stream
-    /// copy per task): the mask a single thread drawing in order makes, as a float tensor's
-    /// values (the product with it is what the op computes).
-    pub fn values(&self, n: usize) -> Vec<f32> {
-        let scale = self.scale();
-        let mut mask = vec![0.0f32; n];
-        mask.par_chunks_mut(MASK_VALUES_PER_TASK)
-            .enumerate()
-            .for_each(|(task, chunk)| {
-                let mut draws = self.at(task * MASK_VALUES_PER_TASK);
-                for pair in chunk.chunks_mut(2) {
-                    for (value, kept) in pair.iter_mut().zip(draws.next_pair()) {
-                        *value = if kept { scale } else { 0.0 };
-                    }
+/// `n` mask values in `{0, 1/keep}`, each `1/keep` with probability `keep` (to 2⁻³²).
+///
+/// Value `2i` is the low and value `2i + 1` the high half of the stream's draw `i`. Tasks start
+/// their own copy of the stream at their first draw ([`Rng::skipped`]), so the mask is the same
+/// whatever the thread count: the one a single thread drawing in order makes.
+fn host_mask(n: usize, keep: f64, seed: u64) -> Vec<f32> {
+    let threshold = (keep * 4_294_967_296.0).round().min(u32::MAX as f64) as u32;
+    let scale = (1.0 / keep) as f32;
+    let stream = Rng::new(seed);
+    let draw = |bits: u32| if bits < threshold { scale } else { 0.0 };
+    let mut mask = vec![0.0f32; n];
+    mask.par_chunks_mut(MASK_VALUES_PER_TASK)
+        .enumerate()
+        .for_each(|(task, chunk)| {
+            let mut rng = stream.skipped((task * MASK_VALUES_PER_TASK / 2) as u64);
+            for pair in chunk.chunks_mut(2) {
+                let bits = rng.next_u64();
+                pair[0] = draw(bits as u32);
+                if let Some(high) = pair.get_mut(1) {
+                    *high = draw((bits >> 32) as u32);
                 }
-            });
-        mask
-    }
-
-    /// The stream from mask value `value` (even) on: tasks start their own copy at their first
-    /// value ([`Rng::skipped`]), so a mask is the same whatever the thread count.
-    fn at(&self, value: usize) -> MaskDraws {
-        debug_assert!(value % 2 == 0, "streams start at a draw's low half");
-        MaskDraws {
-            rng: Rng::new(self.seed).skipped((value / 2) as u64),
-            threshold: (self.keep * 4_294_967_296.0).round().min(u32::MAX as f64) as u32,
-        }
-    }
-}
-
-/// A [`MaskStream`] being drawn.
-struct MaskDraws {
-    rng: Rng,
-    threshold: u32,
-}
-
-impl MaskDraws {
-    /// Whether the next two values are kept.
-    fn next_pair(&mut self) -> [bool; 2] {
-        let bits = self.rng.next_u64();
-        [bits as u32, (bits >> 32) as u32].map(|half| half < self.threshold)
-    }
+            }
+        });
+    mask
 }
 
 #[cfg(test)]
@@ -214,7 +160,7 @@ mod tests {
     /// The parallel draw is the single stream drawn in order, low half then high half of each
     /// draw, at lengths around the task boundaries (odd lengths end on a low half).
     #[test]
-    fn mask_values_are_the_sequential_stream() {
+    fn host_mask_is_the_sequential_stream() {
         let keep = 0.9;
         let threshold = (keep * 4_294_967_296.0f64).round() as u32;
         let scale = (1.0 / keep) as f32;
@@ -236,19 +182,14 @@ mod tests {
                 .take(n)
                 .map(|b| if b < threshold { scale } else { 0.0 })
                 .collect();
-            assert_eq!(
-                MaskStream { keep, seed: 5 }.values(n),
-                sequential,
-                "n = {n}"
-            );
+            assert_eq!(host_mask(n, keep, 5), sequential, "n = {n}");
         }
     }
 
     #[test]
-    fn mask_values_at_the_ends_of_keep() {
-        let stream = |keep| MaskStream { keep, seed: 3 };
-        assert!(stream(1.0).values(1001).iter().all(|&v| v == 1.0));
-        assert_eq!(stream(0.5).values(1001).len(), 1001);
+    fn host_mask_matches_keep_probability_exactly_at_the_ends() {
+        assert!(host_mask(1001, 1.0, 3).iter().all(|&v| v == 1.0));
+        assert_eq!(host_mask(1001, 0.5, 3).len(), 1001);
     }
 
     lifegom_render::cpu_backend_tests!(dropout_statistics_and_seeding => statistics_and_seeding);

@@ -9,16 +9,10 @@
 //! concatenates the results, so every backward `select_assign` stays below the bug. On the CPU
 //! backends, and below the threshold, it is exactly `Tensor::select`: their numerics do not
 //! change by a bit (a split gather's gradient is summed per chunk, a float reordering).
-//!
-//! On the CPU backends a gather along the first dimension is one custom op ([`op`]) whose
-//! backward runs on rayon's threads; values and gradients are `select`'s to the bit.
-
-pub mod op;
 
 use burn::tensor::{Int, Tensor};
 
 use crate::device::runs_on_host;
-use op::HostGatherOps;
 
 /// Indices per `select` (and so per backward `select_assign`) once a gather is split.
 pub const SELECT_CHUNK: usize = 32_768;
@@ -26,23 +20,16 @@ pub const SELECT_CHUNK: usize = 32_768;
 /// Index counts from which [`select_rows`] splits (the first count Burn 0.22.1 mis-sums).
 pub const SELECT_SPLIT_FROM: usize = 65_536;
 
-/// `tensor.select(dim, indices)`: the gather op on the CPU backends along dimension 0, split
-/// into chunks of [`SELECT_CHUNK`] indices on CubeCL devices when there are
-/// [`SELECT_SPLIT_FROM`] or more (module docs). Same values and gradients.
+/// `tensor.select(dim, indices)`, split into chunks of [`SELECT_CHUNK`] indices on CubeCL
+/// devices when there are [`SELECT_SPLIT_FROM`] or more (module docs). Same values and
+/// gradients.
 pub fn select_rows<const D: usize>(
     tensor: Tensor<D>,
     dim: usize,
     indices: Tensor<1, Int>,
 ) -> Tensor<D> {
     let n = indices.dims()[0];
-    let host = runs_on_host(&tensor.device());
-    if host && dim == 0 {
-        return Tensor::from_dispatch(<burn::backend::Dispatch as HostGatherOps>::gather_rows(
-            tensor.into_dispatch(),
-            indices.into_dispatch(),
-        ));
-    }
-    if n < SELECT_SPLIT_FROM || host {
+    if n < SELECT_SPLIT_FROM || runs_on_host(&tensor.device()) {
         return tensor.select(dim, indices);
     }
     split_select(tensor, dim, indices)
