@@ -70,7 +70,9 @@ impl Concurrency {
         match self {
             Self::Branches => HostConcurrency::Branches,
             Self::Sequential => HostConcurrency::Sequential,
-            Self::Alternate if (i % 2 == 0) == ((i / 2) % 2 == 0) => HostConcurrency::Branches,
+            Self::Alternate if i.is_multiple_of(2) == (i / 2).is_multiple_of(2) => {
+                HostConcurrency::Branches
+            }
             Self::Alternate => HostConcurrency::Sequential,
         }
     }
