@@ -349,32 +349,13 @@ impl Trainer {
     }
 
     /// [`Trainer::train_step`], also returning the last iteration's target render.
-    ///
-    /// The step runs on one of rayon's threads (design.md §9.1): each parallel op in it then
-    /// splits its work between that thread and the others, where from a thread outside the pool
-    /// every op is handed to the pool while the caller sleeps, two wake-ups per op. That saved
-    /// 2–4 % of a quickstart step (BENCHMARKS.md, session 11). On a CubeCL device the ops only
-    /// queue kernels, and the thread makes no difference.
     pub fn train_step_with_render(
         &mut self,
         inputs: &ModelInputs,
         mesh: &GomMesh,
         laplacian: &UniformLaplacian,
     ) -> Result<StepOutput, TrainError> {
-        let parent = tracing::Span::current();
-        rayon::scope(|_| self.step_on_this_thread(inputs, mesh, laplacian, &parent))
-    }
-
-    /// [`Trainer::train_step_with_render`] on the calling thread; its span is a child of
-    /// `parent` (the caller's, on another thread).
-    fn step_on_this_thread(
-        &mut self,
-        inputs: &ModelInputs,
-        mesh: &GomMesh,
-        laplacian: &UniformLaplacian,
-        parent: &tracing::Span,
-    ) -> Result<StepOutput, TrainError> {
-        let _span = tracing::info_span!(parent: parent, "train_step", step = self.step).entered();
+        let _span = tracing::info_span!("train_step", step = self.step).entered();
         let start = Instant::now();
         let StepLoss {
             loss,
