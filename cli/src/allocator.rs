@@ -8,6 +8,14 @@
 //! wall time spent in the kernel (BENCHMARKS.md, "Training step profile"). With mmap disabled
 //! and trimming off, freed blocks stay in the heap and are reused as they are.
 //!
+//! One arena for every thread: glibc gives threads other than `main` arenas of their own, mapped
+//! in heaps of at most 64 MiB that are unmapped when they empty, so the large blocks those
+//! threads freed were faulted in again on their next use. Training steps and
+//! reconstructions run on rayon's threads (`lifegom_render::device::on_pool_thread`), and with
+//! per-thread arenas the cpu preset's reconstruction was 10–13 % slower there than on `main`
+//! (BENCHMARKS.md, session 11). All threads allocating from one arena share its lock, which the
+//! step's few hundred large allocations do not contend for.
+//!
 //! The cost is resident memory: the heap keeps what it once held (cpu preset: 16.5 GB peak,
 //! against 14.2 GB before, with the step 3–4× faster). jemalloc and mimalloc with their default
 //! purging were measured too, and were slower than untuned glibc on the quickstart step (they
@@ -25,6 +33,7 @@ pub fn keep_freed_memory() {
             // -1 disables trimming (mallopt(3)); any finite threshold fits in an `int`, at most
             // 2 GiB, and the cpu preset's backward frees and retakes more than that at a time.
             libc::mallopt(libc::M_TRIM_THRESHOLD, -1);
+            libc::mallopt(libc::M_ARENA_MAX, 1);
         }
     }
 }

@@ -27,6 +27,7 @@ use burn::tensor::{Device, Distribution, Tensor};
 use glam::Affine3A;
 
 use lifegom_render::camera::Camera;
+use lifegom_render::device::on_pool_thread;
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::mesh::MeshTopology;
 use lifegom_render::rasterizer::{Gaussians, RasterSettings, rasterize};
@@ -412,14 +413,29 @@ impl Reconstructor {
     }
 
     /// Runs the encoder and `T` feedback steps; `mesh` fixes the subdivision level of the
-    /// Gaussians (its low-res topology must be the subject's).
+    /// Gaussians (its low-res topology must be the subject's). On a CPU device the pass runs on
+    /// one of rayon's threads (`lifegom_render::device::on_pool_thread`).
     pub fn forward(
         &self,
         subject: &CanonicalSubject,
         mesh: &GomMesh,
         sources: &SourceViews,
     ) -> Result<Reconstruction> {
+        on_pool_thread(&subject.canonical_vertices.device(), |parent| {
+            self.forward_here(subject, mesh, sources, parent)
+        })
+    }
+
+    /// [`Reconstructor::forward`] on the calling thread; its span is a child of `parent`.
+    fn forward_here(
+        &self,
+        subject: &CanonicalSubject,
+        mesh: &GomMesh,
+        sources: &SourceViews,
+        parent: &tracing::Span,
+    ) -> Result<Reconstruction> {
         let _span = tracing::info_span!(
+            parent: parent,
             "reconstruct",
             views = sources.cameras.len(),
             steps = self.iterations

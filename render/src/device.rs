@@ -106,6 +106,26 @@ pub fn runs_on_host(device: &Device) -> bool {
     )
 }
 
+/// Runs `f` on one of rayon's threads when `device` computes on the host (the calling thread if
+/// it is one already, or on CubeCL devices), handing it the caller's current span so that its
+/// own span can name it as parent (tracing's current span is per thread).
+///
+/// Nearly every op of a training step or a reconstruction runs on rayon's pool. Called from a
+/// thread outside the pool, each op is handed to the pool's workers while the caller sleeps: two
+/// futex wake-ups per op, hundreds of ops per step. Called from a worker, the op splits its work
+/// between that worker and the others and nothing sleeps. A quickstart training step took 7–9 %
+/// less time so (BENCHMARKS.md, session 11). That needs the binaries' allocator to keep one
+/// arena (`lifegom_cli::allocator`): with glibc's per-thread arenas the workers' large blocks
+/// were unmapped and faulted in again, and the cpu preset ran 10 % slower in the pool.
+pub fn on_pool_thread<R: Send>(device: &Device, f: impl FnOnce(&tracing::Span) -> R + Send) -> R {
+    let parent = tracing::Span::current();
+    if runs_on_host(device) {
+        rayon::scope(|_| f(&parent))
+    } else {
+        f(&parent)
+    }
+}
+
 /// Waits until `t` is computed and its values are on the host; returns the element count.
 ///
 /// For timing code. `Tensor::into_data` alone is not enough on the CubeCL backends: it returns

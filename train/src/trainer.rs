@@ -24,6 +24,7 @@ use lifegom_data::dataset::Dataset;
 use lifegom_model::inputs::ModelInputs;
 use lifegom_model::reconstructor::{Reconstructor, ReconstructorConfig, render_views};
 use lifegom_model::trained::{self, TrainedError};
+use lifegom_render::device::on_pool_thread;
 use lifegom_render::gom::GomMesh;
 use lifegom_render::rng::Rng;
 use serde::{Deserialize, Serialize};
@@ -348,14 +349,30 @@ impl Trainer {
         Ok(self.train_step_with_render(inputs, mesh, laplacian)?.stats)
     }
 
-    /// [`Trainer::train_step`], also returning the last iteration's target render.
+    /// [`Trainer::train_step`], also returning the last iteration's target render. On a CPU
+    /// device the step runs on one of rayon's threads (`lifegom_render::device::on_pool_thread`).
     pub fn train_step_with_render(
         &mut self,
         inputs: &ModelInputs,
         mesh: &GomMesh,
         laplacian: &UniformLaplacian,
     ) -> Result<StepOutput, TrainError> {
-        let _span = tracing::info_span!("train_step", step = self.step).entered();
+        let device = self.device.clone();
+        on_pool_thread(&device, |parent| {
+            self.step_here(inputs, mesh, laplacian, parent)
+        })
+    }
+
+    /// [`Trainer::train_step_with_render`] on the calling thread; its span is a child of
+    /// `parent`.
+    fn step_here(
+        &mut self,
+        inputs: &ModelInputs,
+        mesh: &GomMesh,
+        laplacian: &UniformLaplacian,
+        parent: &tracing::Span,
+    ) -> Result<StepOutput, TrainError> {
+        let _span = tracing::info_span!(parent: parent, "train_step", step = self.step).entered();
         let start = Instant::now();
         let StepLoss {
             loss,
