@@ -208,8 +208,8 @@ pub struct Reconstructor {
 /// float summation order; on CubeCL devices every op is queued from the calling thread.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum HostConcurrency {
-    /// Independent parts of a feedback step run side by side: the fusion's rendered branch
-    /// beside its source branch.
+    /// Independent parts of a feedback step run side by side: the fusion's rendered branch as
+    /// a rayon task beside its source branch.
     #[default]
     Branches,
     /// Everything in program order on the calling thread: for one process per core, and to
@@ -522,12 +522,13 @@ impl Reconstructor {
     /// branch is detached.
     ///
     /// The branches are independent, and much of a fusion call is ops that the CPU backends run
-    /// on one core, so with [`HostConcurrency::Branches`] the rendered branch runs on a second
-    /// thread (design.md §7.4). It runs on an inference copy of the weights: no graph is built
-    /// for a branch whose output is detached anyway. In training its dropout masks stay what a sequential source-then-rendered run
-    /// draws: both branches' mask seeds are drawn from the device's seeded RNG first, in that
-    /// order, and handed to each branch. Where masks are drawn by Burn on the device (CubeCL),
-    /// the branches run in order on the calling thread.
+    /// on one core, so with [`HostConcurrency::Branches`] the rendered branch runs as a rayon
+    /// task beside the source branch (design.md §7.4), on the pool's other thread. It runs on
+    /// an inference copy of the weights: no graph is built for a branch whose output is
+    /// detached anyway. In training its dropout masks stay what a sequential source-then-rendered
+    /// run draws: both branches' mask seeds are drawn from the device's seeded RNG first, in
+    /// that order, and handed to each branch. Where masks are drawn by Burn on the device
+    /// (CubeCL), the branches run in order on the calling thread.
     fn fuse_branches(
         &self,
         src: Tensor<3>,
@@ -537,7 +538,7 @@ impl Reconstructor {
         let device = src.device();
         // The inference copy first: Burn initialises parameters lazily from the same RNG, and a
         // first use here, on this thread, keeps those draws ahead of the mask seeds and out of
-        // the second thread.
+        // the other branch.
         let inference = self.fusion.valid();
         // Source first, then rendered: the order a sequential run draws them in.
         let masks = self.fusion.draw_mask_seeds(&device).map(|src_seeds| {
@@ -568,15 +569,11 @@ impl Reconstructor {
             let _span = tracing::debug_span!("source").entered();
             self.fusion.forward_with(src, embed.clone(), src_masks)
         };
+        // A rayon task, not a thread of its own: the pass runs on a rayon worker
+        // (`on_pool_thread`), and a worker blocked joining a thread whose ops wait for the pool
+        // deadlocks once every worker does so (two reconstructions at once on two cores).
         let (fused_src, fused_ren) = match self.concurrency {
-            HostConcurrency::Branches => std::thread::scope(|scope| {
-                let rendered = scope.spawn(rendered);
-                let fused_src = source();
-                let fused_ren = rendered
-                    .join()
-                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-                (fused_src, fused_ren)
-            }),
+            HostConcurrency::Branches => rayon::join(source, rendered),
             HostConcurrency::Sequential => (source(), rendered()),
         };
         // Back on the caller's device, as a tensor without a graph (detached).
