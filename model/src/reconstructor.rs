@@ -212,8 +212,8 @@ pub enum HostConcurrency {
     /// a rayon task beside its source branch.
     #[default]
     Branches,
-    /// Everything in program order on the calling thread: for one process per core, and to
-    /// measure what [`HostConcurrency::Branches`] gains.
+    /// The branches one after the other, in program order (each op still on rayon's threads):
+    /// for one process per core, and to measure what [`HostConcurrency::Branches`] gains.
     Sequential,
 }
 

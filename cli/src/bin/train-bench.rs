@@ -54,9 +54,9 @@ enum DataLoading {
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum Concurrency {
-    /// Independent parts of a feedback step on their own threads (the default).
+    /// Independent parts of a feedback step side by side (the default).
     Branches,
-    /// Everything on the training thread, in program order.
+    /// The same parts one after the other, in program order.
     Sequential,
     /// Timed steps alternate between the two (module docs).
     Alternate,
