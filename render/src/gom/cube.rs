@@ -8,23 +8,31 @@
 //!   gradients and, for each of its 9 corner-table entries, the weighted corner gradient
 //!   `w·dL/dp_k` as a row of `[F*9, 3]`.
 //!
-//! The rows are summed into the low-res vertex gradient by Burn's own `float_select_assign`
-//! with `Add` (one thread per output column walking the rows in order, in chunks of
-//! [`SCATTER_CHUNK`] rows): no float atomics, which WGSL lacks, and the same sum on every run.
+//! - `vertex_sum_kernel`: one thread per low-res vertex and axis sums that vertex's rows along
+//!   its run of the inverted corner table (`vertex_corner_offsets`, `corner_from_vertex_order`),
+//!   in increasing row order from `+0.0`.
+//!
+//! The vertex sum is a gather, not a scatter: no float atomics (which WGSL lacks), the same
+//! bits on every run, and the same additions in the same order as scattering the rows one by
+//! one. It replaced Burn's `float_select_assign` with `Add`, which runs one thread per output
+//! column walking every row in order: three threads for the `[V, 3]` gradient, over
+//! 9 · 438,720 rows at two subdivisions of the full template, which made the backward take a
+//! second on an H200 (BENCHMARKS.md, "On a GPU").
 
 use burn::backend::TensorMetadata;
-use burn::backend::ops::{FloatTensorOps, IntTensorOps};
 use burn::backend::tensor::{FloatTensor, IntTensor};
-use burn::tensor::{FloatDType, IndexingUpdateOp, Shape, Slice};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::cubecl::server::Handle;
 
 use super::cpu::{
     CORNER_LANES, DEGENERATE_ABS, DEGENERATE_REL, NORMAL_EPS2, OUT_LANES, SO3_THETA2_MIN,
 };
 use super::op::{GomGeometryOps, GomInputs, GomKernels, cast_to};
-use crate::cube::host::{THREADS_1D, arg, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32};
+use crate::cube::host::{
+    ComputeClient, THREADS_1D, arg, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32,
+};
 use crate::steiner::NORMAL_SCALE;
 
 const THETA2_MIN: f32 = SO3_THETA2_MIN as f32;
@@ -522,6 +530,33 @@ fn select_v3(first: bool, x: &V3, second: bool, y: &V3, z: &V3) -> V3 {
     )
 }
 
+/// One thread per low-res vertex and axis: the sum of the vertex's corner-gradient rows
+/// (`rows`, `[E, 3]`), taken along its run `corner_from_vertex_order[offsets[v]..offsets[v+1]]`
+/// in increasing row order from `+0.0`.
+#[cube(launch)]
+#[allow(clippy::needless_range_loop)] // CubeCL kernels loop over index ranges, not iterators
+fn vertex_sum_kernel(
+    rows: &[f32],
+    vertex_corner_offsets: &[i32],
+    corner_from_vertex_order: &[i32],
+    out: &mut [f32],
+    num_vertices: u32,
+) {
+    let unit = ABSOLUTE_POS as u32;
+    if unit < 3 * num_vertices {
+        let v = (unit / 3) as usize;
+        let axis = (unit % 3) as usize;
+        let start = vertex_corner_offsets[v] as usize;
+        let end = vertex_corner_offsets[v + 1] as usize;
+        let mut sum = 0.0f32;
+        for k in start..end {
+            let row = corner_from_vertex_order[k] as usize;
+            sum += rows[3 * row + axis];
+        }
+        out[unit as usize] = sum;
+    }
+}
+
 /// The prepared (f32 / i32, contiguous) inputs and their sizes.
 struct Prepared {
     inputs: GomInputs<CubeBackend>,
@@ -539,6 +574,8 @@ fn prepared(inputs: GomInputs<CubeBackend>) -> Prepared {
         offsets: prepare(inputs.offsets),
         corner_index: inputs.corner_index,
         corner_weight: prepare(inputs.corner_weight),
+        vertex_corner_offsets: prepare_i32(inputs.vertex_corner_offsets),
+        corner_from_vertex_order: prepare_i32(inputs.corner_from_vertex_order),
     };
     let num_faces = TensorMetadata::shape(&inputs.so3).num_elements() / 3;
     let num_vertices = TensorMetadata::shape(&inputs.vertices).num_elements() / 3;
@@ -605,10 +642,11 @@ fn backward(
     let d_so3 = client.empty(4 * (3 * f).max(1));
     let d_scales = client.empty(4 * (3 * f).max(1));
     let d_offsets = client.empty(4 * (3 * f).max(1));
-    let zeros = CubeBackend::float_zeros(Shape::new([v, 3]), &device, FloatDType::F32);
-    let d_vertices = if f > 0 {
+    let d_vertices = client.empty(4 * (3 * v).max(1));
+    let rows_len = CORNER_LANES * f * 3;
+    let rows = client.empty(4 * rows_len.max(1));
+    if f > 0 {
         let grad = prepare(grad);
-        let rows = client.empty(4 * CORNER_LANES * f * 3);
         backward_kernel::launch(
             &client,
             count_1d(f),
@@ -623,53 +661,48 @@ fn backward(
             arg(&d_so3, 3 * f),
             arg(&d_scales, 3 * f),
             arg(&d_offsets, 3 * f),
-            arg(&rows, CORNER_LANES * f * 3),
+            arg(&rows, rows_len),
             f as u32,
             v as u32,
         );
-        let rows = tensor_f32(&client, &device, rows, &[CORNER_LANES * f, 3]);
-        if v > 0 {
-            scatter_rows(zeros, p.inputs.corner_index, rows)
-        } else {
-            zeros
-        }
-    } else {
-        zeros
-    };
+    }
+    // With no faces every run is empty (the offsets are all zero): the sums are +0.0 and the
+    // one-element stand-in for `rows` is never read.
+    vertex_sums(&client, &rows, rows_len, &p, &d_vertices);
     let per_face = |handle| tensor_f32(&client, &device, handle, &[f, 3]);
     [
-        cast_to::<CubeBackend>(d_vertices, dtypes[0]),
+        cast_to::<CubeBackend>(tensor_f32(&client, &device, d_vertices, &[v, 3]), dtypes[0]),
         cast_to::<CubeBackend>(per_face(d_so3), dtypes[1]),
         cast_to::<CubeBackend>(per_face(d_scales), dtypes[2]),
         cast_to::<CubeBackend>(per_face(d_offsets), dtypes[3]),
     ]
 }
 
-/// Rows per `select_assign` call. Burn 0.22.1's CubeCL `select_assign` mis-sums once it is
-/// given 65,536 or more indices (seen on wgpu/lavapipe: 65,535 rows add up exactly, 65,536 do
-/// not), and the table has `9F` rows (88k for the subdivided low-res template), so it is fed in
-/// chunks well below that.
-const SCATTER_CHUNK: usize = 32_768;
-
-/// `acc[index[i]] += rows[i]`, chunk after chunk in row order: a fixed summation order, so
-/// the result is the same on every run.
-fn scatter_rows(
-    mut acc: FloatTensor<CubeBackend>,
-    index: IntTensor<CubeBackend>,
-    rows: FloatTensor<CubeBackend>,
-) -> FloatTensor<CubeBackend> {
-    let n = TensorMetadata::shape(&index).num_elements();
-    for start in (0..n).step_by(SCATTER_CHUNK) {
-        let end = (start + SCATTER_CHUNK).min(n);
-        let index = CubeBackend::int_slice(index.clone(), &[Slice::from(start..end)]);
-        let rows = CubeBackend::float_slice(
-            rows.clone(),
-            &[Slice::from(start..end), Slice::from(0..3usize)],
+/// `out[v] = Σ rows[e]` over vertex `v`'s run of the inverted table (`vertex_sum_kernel`).
+fn vertex_sums(client: &ComputeClient, rows: &Handle, rows_len: usize, p: &Prepared, out: &Handle) {
+    let v = p.num_vertices;
+    if v > 0 {
+        vertex_sum_kernel::launch(
+            client,
+            count_1d(3 * v),
+            CubeDim::new_1d(THREADS_1D),
+            arg(rows, rows_len),
+            tensor_arg(&p.inputs.vertex_corner_offsets),
+            runs_arg(p, client),
+            arg(out, 3 * v),
+            v as u32,
         );
-        // Out-of-range indices carry zero rows; Burn's kernel clamps their writes.
-        acc = CubeBackend::float_select_assign(acc, 0, index, rows, IndexingUpdateOp::Add);
     }
-    acc
+}
+
+/// The inverted table's runs, or (when no entry is in range, so no run is ever read) a
+/// one-element stand-in, since zero-sized bindings are invalid.
+fn runs_arg(p: &Prepared, client: &ComputeClient) -> BufferArg {
+    if TensorMetadata::shape(&p.inputs.corner_from_vertex_order).num_elements() > 0 {
+        tensor_arg(&p.inputs.corner_from_vertex_order)
+    } else {
+        arg(&client.empty(4), 1)
+    }
 }
 
 impl GomGeometryOps for CubeBackend {
@@ -680,6 +713,8 @@ impl GomGeometryOps for CubeBackend {
         offsets: FloatTensor<Self>,
         corner_index: IntTensor<Self>,
         corner_weight: FloatTensor<Self>,
+        vertex_corner_offsets: IntTensor<Self>,
+        corner_from_vertex_order: IntTensor<Self>,
     ) -> FloatTensor<Self> {
         forward(GomInputs {
             vertices,
@@ -688,6 +723,8 @@ impl GomGeometryOps for CubeBackend {
             offsets,
             corner_index,
             corner_weight,
+            vertex_corner_offsets,
+            corner_from_vertex_order,
         })
     }
 }

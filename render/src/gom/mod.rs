@@ -62,6 +62,26 @@ pub struct GomParams {
 }
 
 impl GomParams {
+    /// The parameters of consecutive blocks of faces, as one set: `blocks` itself when there
+    /// is one, no faces when there is none.
+    pub fn cat(mut blocks: Vec<Self>, device: &Device) -> Self {
+        match blocks.len() {
+            0 => Self::init(0, device),
+            1 => blocks.remove(0),
+            _ => {
+                let field =
+                    |get: fn(&Self) -> Tensor<2>| Tensor::cat(blocks.iter().map(get).collect(), 0);
+                Self {
+                    so3: field(|b| b.so3.clone()),
+                    scales: field(|b| b.scales.clone()),
+                    offsets: field(|b| b.offsets.clone()),
+                    colors: field(|b| b.colors.clone()),
+                    opacities: Tensor::cat(blocks.iter().map(|b| b.opacities.clone()).collect(), 0),
+                }
+            }
+        }
+    }
+
     /// The reference initial state: rotation 0, scale 1, offset 0, colour 0, opacity 1.
     pub fn init(num_faces: usize, device: &Device) -> Self {
         Self {
@@ -188,6 +208,8 @@ pub struct GomMesh {
     highres_faces: Tensor<1, Int>,
     corner_index: Tensor<1, Int>,
     corner_weight: Tensor<1>,
+    vertex_corner_offsets: Tensor<1, Int>,
+    corner_from_vertex_order: Tensor<1, Int>,
     geometry: GomGeometry,
 }
 
@@ -199,6 +221,11 @@ impl GomMesh {
         let highres_faces = subdivision.highres.face_index_tensor(device);
         let (index, weight) = corner_table(&subdivision);
         let entries = index.len();
+        let (offsets, order) = corner_table_by_vertex(&index, subdivision.lowres.num_vertices);
+        let int_tensor = |values: Vec<i32>| {
+            let n = values.len();
+            Tensor::<1, Int>::from_data(TensorData::new(values, [n]), (device, DType::I32))
+        };
         Ok(Self {
             subdivision,
             tables,
@@ -210,6 +237,8 @@ impl GomMesh {
                 (device, DType::I32),
             ),
             corner_weight: Tensor::from_data(TensorData::new(weight, [entries]), device),
+            vertex_corner_offsets: int_tensor(offsets),
+            corner_from_vertex_order: int_tensor(order),
             geometry: GomGeometry::default(),
         })
     }
@@ -282,6 +311,8 @@ impl GomMesh {
                 params.offsets.clone().into_dispatch(),
                 self.corner_index.clone().into_dispatch(),
                 self.corner_weight.clone().into_dispatch(),
+                self.vertex_corner_offsets.clone().into_dispatch(),
+                self.corner_from_vertex_order.clone().into_dispatch(),
             ),
         );
         Gaussians {
@@ -378,12 +409,38 @@ fn corner_table(subdivision: &Subdivision) -> (Vec<i32>, Vec<f32>) {
     )
 }
 
+/// The corner table inverted (a stable counting sort by low-res vertex): the `[V↓ + 1]` offsets
+/// of each vertex's run, and the run itself, the table entries that read the vertex in increasing
+/// entry order (entries with an out-of-range index are left out). The GPU backward sums a
+/// vertex's corner gradients along its run, one thread per vertex and axis: the same additions
+/// in the same order as a sequential scatter of the rows, without float atomics (design.md §5.6).
+pub(crate) fn corner_table_by_vertex(index: &[i32], num_vertices: usize) -> (Vec<i32>, Vec<i32>) {
+    let slot = |i: i32| usize::try_from(i).ok().filter(|&v| v < num_vertices);
+    let mut offsets = vec![0i32; num_vertices + 1];
+    for v in index.iter().filter_map(|&i| slot(i)) {
+        offsets[v + 1] += 1;
+    }
+    for v in 0..num_vertices {
+        offsets[v + 1] += offsets[v];
+    }
+    let mut cursor = offsets.clone();
+    let mut order = vec![0i32; offsets[num_vertices] as usize];
+    for (entry, v) in index.iter().enumerate() {
+        if let Some(v) = slot(*v) {
+            order[cursor[v] as usize] = entry as i32;
+            cursor[v] += 1;
+        }
+    }
+    (offsets, order)
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(deprecated)]
     use super::*;
     use burn::tensor::TensorData;
 
+    use crate::template::{BodyTemplate, lowres_template_path};
     use crate::testing::read;
 
     fn check_so3(device: &Device) {
@@ -460,6 +517,31 @@ mod tests {
         ];
         for k in 0..3 {
             assert!((mean[k] - centroid[k]).abs() < 1e-6);
+        }
+    }
+
+    /// The inverted corner table lists, for each vertex, exactly the entries that read it, in
+    /// increasing entry order, and leaves out-of-range indices out.
+    #[test]
+    fn corner_table_by_vertex_is_a_stable_inverse() {
+        let index = [2, 0, 2, -1, 1, 7, 0, 2, 3];
+        let (offsets, order) = corner_table_by_vertex(&index, 4);
+        assert_eq!(offsets, [0, 2, 3, 6, 7]);
+        assert_eq!(order, [1, 6, 4, 0, 2, 7, 8]);
+
+        // On a real table: every in-range entry once, runs ascending, each run's entries
+        // pointing at its vertex.
+        let body = BodyTemplate::load(lowres_template_path()).unwrap();
+        let subdivision = Subdivision::new(&body.topology, 1).unwrap();
+        let v = subdivision.lowres.num_vertices;
+        let (index, _) = corner_table(&subdivision);
+        let (offsets, order) = corner_table_by_vertex(&index, v);
+        assert_eq!(offsets.len(), v + 1);
+        assert_eq!(order.len(), index.len());
+        for vertex in 0..v {
+            let run = &order[offsets[vertex] as usize..offsets[vertex + 1] as usize];
+            assert!(run.windows(2).all(|w| w[0] < w[1]));
+            assert!(run.iter().all(|&e| index[e as usize] == vertex as i32));
         }
     }
 }

@@ -37,11 +37,19 @@ use crate::readback::{self, HostLend};
 /// corner table `corner_index` (`[F*9]`, int) and `corner_weight` (`[F*9]`): face `f`, corner
 /// `k`, slot `m` at `9f + 3k + m`, corner `k = Σ_m weight·vertices[index]`. Output `[F, 9]`:
 /// mean (3) ‖ covariance (6: xx, xy, xz, yy, yz, zz), in `vertices`' float dtype. Gradients
-/// flow to the first four inputs; the table is a constant. Callers check shapes first (see
+/// flow to the first four inputs; the tables are constants. Callers check shapes first (see
 /// [`super::GomMesh::gaussians`]); an out-of-range table index counts as weight 0.
+///
+/// The corner table inverted, for the GPU backward's vertex gradient: `vertex_corner_offsets`
+/// (`[V+1]`, int) delimits each vertex's run in `corner_from_vertex_order` (`[E]`, int), the
+/// table entries that read the vertex in increasing entry order (what
+/// [`super::GomMesh::new`] builds). The CPU backends sum by face block instead and do
+/// not read them.
 #[backend_extension(NdArray, Flex, Cube, Autodiff)]
 pub trait GomGeometryOps: Backend {
     /// Builds one Gaussian per face.
+    // A backend extension takes its tensors one argument each (the generated dispatch needs it).
+    #[allow(clippy::too_many_arguments)]
     fn gom_geometry(
         vertices: FloatTensor<Self>,
         so3: FloatTensor<Self>,
@@ -49,6 +57,8 @@ pub trait GomGeometryOps: Backend {
         offsets: FloatTensor<Self>,
         corner_index: IntTensor<Self>,
         corner_weight: FloatTensor<Self>,
+        vertex_corner_offsets: IntTensor<Self>,
+        corner_from_vertex_order: IntTensor<Self>,
     ) -> FloatTensor<Self>;
 }
 
@@ -67,6 +77,10 @@ pub struct GomInputs<B: Backend> {
     pub corner_index: IntTensor<B>,
     /// `[F*9]`.
     pub corner_weight: FloatTensor<B>,
+    /// `[V+1]`.
+    pub vertex_corner_offsets: IntTensor<B>,
+    /// `[E]`.
+    pub corner_from_vertex_order: IntTensor<B>,
 }
 
 /// What a backend implements so that `Autodiff<B>` can differentiate the op.
@@ -170,6 +184,8 @@ macro_rules! cpu_gom_backend {
                 offsets: FloatTensor<Self>,
                 corner_index: IntTensor<Self>,
                 corner_weight: FloatTensor<Self>,
+                vertex_corner_offsets: IntTensor<Self>,
+                corner_from_vertex_order: IntTensor<Self>,
             ) -> FloatTensor<Self> {
                 cpu_forward::<Self>(GomInputs {
                     vertices,
@@ -178,6 +194,8 @@ macro_rules! cpu_gom_backend {
                     offsets,
                     corner_index,
                     corner_weight,
+                    vertex_corner_offsets,
+                    corner_from_vertex_order,
                 })
             }
         }
@@ -224,6 +242,8 @@ impl<B: GomGeometryOps + GomKernels, C: CheckpointStrategy> GomGeometryOps for A
         offsets: FloatTensor<Self>,
         corner_index: IntTensor<Self>,
         corner_weight: FloatTensor<Self>,
+        vertex_corner_offsets: IntTensor<Self>,
+        corner_from_vertex_order: IntTensor<Self>,
     ) -> FloatTensor<Self> {
         let (vertices, vertices_node) = vertices.into_parts();
         let (so3, so3_node) = so3.into_parts();
@@ -238,6 +258,8 @@ impl<B: GomGeometryOps + GomKernels, C: CheckpointStrategy> GomGeometryOps for A
             offsets,
             corner_index,
             corner_weight,
+            vertex_corner_offsets,
+            corner_from_vertex_order,
         };
         record::<B, C, _, _, 4>(
             GomBackward,
