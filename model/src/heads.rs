@@ -262,17 +262,50 @@ pub fn face_inputs(
     faces: Tensor<1, Int>,
     image_features: Tensor<3>,
 ) -> FaceInputs {
+    let h_hr = highres_features(h, highres_index, highres_weight);
+    face_inputs_from_highres(h_hr, faces, image_features)
+}
+
+/// The per-vertex features carried to the high-res vertices, `[V↓, P] → [Vh, P]`, through the
+/// subdivision's barycentric tables: the part of [`face_inputs`] shared by every block of faces.
+pub fn highres_features(
+    h: Tensor<2>,
+    highres_index: Tensor<1, Int>,
+    highres_weight: Tensor<2>,
+) -> Tensor<2> {
     let [_, p] = h.dims();
     let [vh, k] = highres_weight.dims();
+    (select_rows(h, 0, highres_index).reshape([vh, k, p]) * highres_weight.reshape([vh, k, 1]))
+        .sum_dim(1)
+        .reshape([vh, p])
+}
+
+/// [`face_inputs`] for the faces `faces` (`[F·3]` corners) given the high-res vertex features
+/// of [`highres_features`] and those faces' image features `[F, N, D]`.
+pub fn face_inputs_from_highres(
+    h_hr: Tensor<2>,
+    faces: Tensor<1, Int>,
+    image_features: Tensor<3>,
+) -> FaceInputs {
+    let [_, p] = h_hr.dims();
     let [f, n, d] = image_features.dims();
-    let h_hr = (select_rows(h, 0, highres_index).reshape([vh, k, p])
-        * highres_weight.reshape([vh, k, 1]))
-    .sum_dim(1)
-    .reshape([vh, p]);
     FaceInputs {
         corners: select_rows(h_hr, 0, faces).reshape([f, 3 * p]),
         images: image_features.reshape([f, n * d]),
     }
+}
+
+/// Largest number of floats in one block's `[faces, N·D]` image features: the face stage
+/// (sampling, [`face_inputs`], [`UpdateHeads::faces`]) runs block after block of faces below
+/// it. A GPU buffer has a size limit (wgpu refused the 6 GB `[438,720, 3·1152]` features of the
+/// paper network at two subdivisions); every preset that trains on a CPU fits in one block, so
+/// its ops, and its numerics, are those of the unblocked stage.
+pub const FACE_BLOCK_FLOATS: usize = 1 << 28;
+
+/// Faces per block of the face stage for `faces` faces of `width` image-feature floats each
+/// (see [`FACE_BLOCK_FLOATS`]); `faces` itself when they fit one block.
+pub fn faces_per_block(faces: usize, width: usize) -> usize {
+    (FACE_BLOCK_FLOATS / width.max(1)).clamp(1, faces.max(1))
 }
 
 #[cfg(test)]
@@ -426,6 +459,61 @@ mod tests {
         }
     }
 
+    /// The face stage run block after block of faces (as the reconstructor does past
+    /// [`FACE_BLOCK_FLOATS`]) gives the unblocked stage's parameters.
+    fn blocked_faces_equal_one_block(device: &Device) {
+        let heads = UpdateHeadsConfig::new(16, 2)
+            .with_point_dim(5)
+            .with_hidden(7)
+            .init(device);
+        let topo = MeshTopology::new(vec![[0, 1, 2], [2, 1, 3]], 4).unwrap();
+        let sub = Subdivision::new(&topo, 2).unwrap();
+        let tables = sub.tables(device);
+        let faces = sub.highres.face_index_tensor(device);
+        let f = sub.highres.faces.len();
+        let h = Tensor::<2>::random([4, 5], Distribution::Normal(0.0, 1.0), device);
+        let feats = Tensor::<3>::random([f, 2, 16], Distribution::Normal(0.0, 1.0), device);
+        let h_hr = highres_features(h, tables.index.clone(), tables.weight.clone());
+        let whole = heads.faces(face_inputs_from_highres(
+            h_hr.clone(),
+            faces.clone(),
+            feats.clone(),
+        ));
+        let block = 5;
+        let blocks = (0..f)
+            .step_by(block)
+            .map(|start| {
+                let len = block.min(f - start);
+                heads.faces(face_inputs_from_highres(
+                    h_hr.clone(),
+                    faces.clone().narrow(0, 3 * start, 3 * len),
+                    feats.clone().narrow(0, start, len),
+                ))
+            })
+            .collect();
+        let blocked = GomParams::cat(blocks, device);
+        for (a, b) in [
+            (whole.so3, blocked.so3),
+            (whole.scales, blocked.scales),
+            (whole.offsets, blocked.offsets),
+            (whole.colors, blocked.colors),
+        ] {
+            assert_eq!(a.dims(), [f, 3]);
+            let (a, b) = (read(a), read(b));
+            assert!(
+                a.iter()
+                    .zip(&b)
+                    .all(|(p, q)| (p - q).abs() <= 1e-6 * (1.0 + q.abs())),
+                "blocked {b:?} vs whole {a:?}"
+            );
+        }
+        assert_eq!(read(whole.opacities), read(blocked.opacities));
+        assert_eq!(faces_per_block(f, 32), f);
+        assert_eq!(faces_per_block(10, FACE_BLOCK_FLOATS / 3), 3);
+        assert_eq!(faces_per_block(0, 32), 1);
+    }
+
     lifegom_render::cpu_backend_tests!(heads => check);
+    lifegom_render::cpu_backend_tests!(blocked_faces => blocked_faces_equal_one_block);
     lifegom_render::cpu_backend_tests!(fused_heads => fused_faces_equal_separate_heads);
 }

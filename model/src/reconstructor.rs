@@ -39,7 +39,9 @@ use crate::avatar::Avatar;
 use crate::encoder::{EncodedViews, ImageEncoder, ImageEncoderConfig};
 use crate::error::{ModelError, Result};
 use crate::fusion::{Fusion, FusionConfig, FusionMasks};
-use crate::heads::{UpdateHeads, UpdateHeadsConfig, face_inputs};
+use crate::heads::{
+    UpdateHeads, UpdateHeadsConfig, face_inputs_from_highres, faces_per_block, highres_features,
+};
 use crate::point_transformer::{PointTransformer, PointTransformerConfig};
 use crate::sampling::{hide_invisible, project_points, sample_single};
 use lifegom_render::select::select_rows;
@@ -683,21 +685,35 @@ impl Reconstructor {
                 .reshape([n, f, 2]);
             hide_invisible(centroids, face_vis)
         };
-        let face_feats = {
-            let _span = tracing::debug_span!("sample_maps").entered();
-            feats_src.sample(uv_faces, w, h)? // [F, N, D]
+        drop(span);
+        let h_hr = {
+            let _span = tracing::debug_span!("face_heads").entered();
+            highres_features(h_pt, tables.index.clone(), tables.weight.clone())
         };
-        drop(span);
-        let span = tracing::debug_span!("face_heads").entered();
-        let inputs = face_inputs(
-            h_pt,
-            tables.index.clone(),
-            tables.weight.clone(),
-            faces_flat,
-            face_feats,
-        );
-        let faces = self.heads.faces(inputs);
-        drop(span);
+        // Block after block of faces, so no buffer outgrows a GPU's limit; one block (the whole
+        // stage at once) at every preset that trains on a CPU (`FACE_BLOCK_FLOATS`).
+        let block = faces_per_block(f, n * d);
+        let mut blocks = Vec::with_capacity(f.div_ceil(block));
+        for start in (0..f).step_by(block) {
+            let len = block.min(f - start);
+            let (uv, corners) = if len == f {
+                (uv_faces.clone(), faces_flat.clone())
+            } else {
+                (
+                    uv_faces.clone().narrow(1, start, len),
+                    faces_flat.clone().narrow(0, 3 * start, 3 * len),
+                )
+            };
+            let face_feats = {
+                let _span = tracing::debug_span!("face_sampling").entered();
+                let _span = tracing::debug_span!("sample_maps").entered();
+                feats_src.sample(uv, w, h)? // [len, N, D]
+            };
+            let _span = tracing::debug_span!("face_heads").entered();
+            let inputs = face_inputs_from_highres(h_hr.clone(), corners, face_feats);
+            blocks.push(self.heads.faces(inputs));
+        }
+        let faces = GomParams::cat(blocks, &state.xyz.device());
         Ok(GomState {
             xyz: state.xyz.clone() + vertex.delta_xyz,
             embed: vertex.embed,
