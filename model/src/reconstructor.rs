@@ -686,14 +686,14 @@ impl Reconstructor {
             hide_invisible(centroids, face_vis)
         };
         drop(span);
-        let h_hr = {
-            let _span = tracing::debug_span!("face_heads").entered();
-            highres_features(h_pt, tables.index.clone(), tables.weight.clone())
-        };
         // Block after block of faces, so no buffer outgrows a GPU's limit; one block (the whole
-        // stage at once) at every preset that trains on a CPU (`FACE_BLOCK_FLOATS`).
+        // stage at once) at every preset that trains on a CPU (`FACE_BLOCK_FLOATS`). The
+        // high-res features are made after the first block's sampling, so that one block
+        // records the same ops in the same order as the unblocked stage (the same gradients to
+        // the bit on the CPU backends).
         let block = faces_per_block(f, n * d);
         let mut blocks = Vec::with_capacity(f.div_ceil(block));
+        let mut h_hr: Option<Tensor<2>> = None;
         for start in (0..f).step_by(block) {
             let len = block.min(f - start);
             let (uv, corners) = if len == f {
@@ -710,7 +710,12 @@ impl Reconstructor {
                 feats_src.sample(uv, w, h)? // [len, N, D]
             };
             let _span = tracing::debug_span!("face_heads").entered();
-            let inputs = face_inputs_from_highres(h_hr.clone(), corners, face_feats);
+            let h_hr = h_hr
+                .get_or_insert_with(|| {
+                    highres_features(h_pt.clone(), tables.index.clone(), tables.weight.clone())
+                })
+                .clone();
+            let inputs = face_inputs_from_highres(h_hr, corners, face_feats);
             blocks.push(self.heads.faces(inputs));
         }
         let faces = GomParams::cat(blocks, &state.xyz.device());
