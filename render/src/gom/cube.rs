@@ -24,7 +24,6 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
-use burn_cubecl::cubecl::server::Handle;
 
 use super::cpu::{
     CORNER_LANES, DEGENERATE_ABS, DEGENERATE_REL, NORMAL_EPS2, OUT_LANES, SO3_THETA2_MIN,
@@ -666,9 +665,20 @@ fn backward(
             v as u32,
         );
     }
-    // With no faces every run is empty (the offsets are all zero): the sums are +0.0 and the
-    // one-element stand-in for `rows` is never read.
-    vertex_sums(&client, &rows, rows_len, &p, &d_vertices);
+    if v > 0 {
+        // With no faces every run is empty (the offsets are all zero): the sums are +0.0 and
+        // the one-element stand-in for `rows` is never read.
+        vertex_sum_kernel::launch(
+            &client,
+            count_1d(3 * v),
+            CubeDim::new_1d(THREADS_1D),
+            arg(&rows, rows_len),
+            tensor_arg(&p.inputs.vertex_corner_offsets),
+            runs_arg(&p, &client),
+            arg(&d_vertices, 3 * v),
+            v as u32,
+        );
+    }
     let per_face = |handle| tensor_f32(&client, &device, handle, &[f, 3]);
     [
         cast_to::<CubeBackend>(tensor_f32(&client, &device, d_vertices, &[v, 3]), dtypes[0]),
@@ -676,23 +686,6 @@ fn backward(
         cast_to::<CubeBackend>(per_face(d_scales), dtypes[2]),
         cast_to::<CubeBackend>(per_face(d_offsets), dtypes[3]),
     ]
-}
-
-/// `out[v] = Σ rows[e]` over vertex `v`'s run of the inverted table (`vertex_sum_kernel`).
-fn vertex_sums(client: &ComputeClient, rows: &Handle, rows_len: usize, p: &Prepared, out: &Handle) {
-    let v = p.num_vertices;
-    if v > 0 {
-        vertex_sum_kernel::launch(
-            client,
-            count_1d(3 * v),
-            CubeDim::new_1d(THREADS_1D),
-            arg(rows, rows_len),
-            tensor_arg(&p.inputs.vertex_corner_offsets),
-            runs_arg(p, client),
-            arg(out, 3 * v),
-            v as u32,
-        );
-    }
 }
 
 /// The inverted table's runs, or (when no entry is in range, so no run is ever read) a

@@ -222,6 +222,8 @@ impl GomMesh {
         let (index, weight) = corner_table(&subdivision);
         let entries = index.len();
         let (offsets, order) = corner_table_by_vertex(&index, subdivision.lowres.num_vertices);
+        // `i32`, the width the host and GPU kernels index with: Flex then lends the tables to
+        // the op in place instead of widening a copy per call (`readback::HostLend`).
         let int_tensor = |values: Vec<i32>| {
             let n = values.len();
             Tensor::<1, Int>::from_data(TensorData::new(values, [n]), (device, DType::I32))
@@ -230,12 +232,7 @@ impl GomMesh {
             subdivision,
             tables,
             highres_faces,
-            // `i32`, the width the host and GPU kernels index with: Flex then lends the table to
-            // the op in place instead of widening a copy per call (`readback::HostLend`).
-            corner_index: Tensor::from_data(
-                TensorData::new(index, [entries]),
-                (device, DType::I32),
-            ),
+            corner_index: int_tensor(index),
             corner_weight: Tensor::from_data(TensorData::new(weight, [entries]), device),
             vertex_corner_offsets: int_tensor(offsets),
             corner_from_vertex_order: int_tensor(order),
