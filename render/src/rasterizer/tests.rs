@@ -448,4 +448,30 @@ fn non_finite_inputs_are_rejected(device: &Device) {
         ..scene.clone()
     };
     assert!(rasterize(&out_of_range.gaussians(device), &RasterSettings::new(cam)).is_err());
+    let below_zero = Scene {
+        opacities: vec![0.5, 0.5, -1e-7, 0.5],
+        ..scene.clone()
+    };
+    let msg = rasterize(&below_zero.gaussians(device), &RasterSettings::new(cam))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        msg.contains("index 2") && msg.contains("outside [0, 1]"),
+        "{msg}"
+    );
+    // +inf and -inf in one tensor: the first is named.
+    let mut both_infinities = scene.clone();
+    both_infinities.colors[1] = f32::INFINITY;
+    both_infinities.colors[7] = f32::NEG_INFINITY;
+    let msg = rasterize(
+        &both_infinities.gaussians(device),
+        &RasterSettings::new(cam),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(msg.contains("colors") && msg.contains("index 1"), "{msg}");
+    // No Gaussians at all is valid input: an empty (transparent) image.
+    let empty = Scene::random(&mut rng, 0);
+    let out = rasterize(&empty.gaussians(device), &RasterSettings::new(cam)).unwrap();
+    assert!(read(out.image).iter().all(|&v| v == 0.0));
 }
