@@ -19,7 +19,7 @@ use burn::module::{Module, Param};
 use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::activation::relu;
 use burn::tensor::module::linear;
-use burn::tensor::{Device, Int, Tensor};
+use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor};
 
 use crate::linear_op;
 use lifegom_render::gom::GomParams;
@@ -171,9 +171,16 @@ impl UpdateHeads {
             .map(|b| Tensor::cat(b, 0));
         let w_corners = weight.clone().narrow(0, 0, corner_width);
         let w_images = weight.narrow(0, corner_width, g - corner_width);
-        // The image block is the large product: on the CPU backends it runs as the Linear op.
-        let images = linear_op::affine(images, w_images, bias);
-        let hidden = relu(images + linear(corners, w_corners, None));
+        let first = match images {
+            // The image block is the large product: on the CPU backends it runs as the Linear op.
+            FaceImages::Dense(images) => {
+                linear_op::affine(images, w_images, bias) + linear(corners, w_corners, None)
+            }
+            FaceImages::Visible(visible) => {
+                linear_op::affine(corners, w_corners, bias) + visible.product(w_images, f)
+            }
+        };
+        let hidden = relu(first);
         // The second layers as one block-diagonal product `[F, 4·hidden] · [4·hidden, 12]`,
         // whose output is split by head: slicing `hidden` by head instead costs, in the
         // backward, one zeroed `[F, 4·hidden]` gradient per head and three sums of them, far
@@ -234,15 +241,87 @@ fn block_diagonal(blocks: Vec<Tensor<2>>) -> Tensor<2> {
 pub struct FaceInputs {
     /// The three corners' point features in face-vertex order, `[F, 3P]`.
     pub corners: Tensor<2>,
-    /// The source-image features of each view in view order, `[F, N·D]`, zero for a view in
-    /// which the face is not fully visible.
-    pub images: Tensor<2>,
+    /// The source-image features of each view.
+    pub images: FaceImages,
 }
 
 impl FaceInputs {
     /// `[corners ‖ images]`, `[F, 3P + N·D]`: the input as the official code builds it.
     pub fn concatenated(self) -> Tensor<2> {
-        Tensor::cat(vec![self.corners, self.images], 1)
+        let [f, _] = self.corners.dims();
+        Tensor::cat(vec![self.corners, self.images.dense(f)], 1)
+    }
+}
+
+/// The image block of the face inputs, in one of two layouts with the same meaning.
+#[derive(Debug, Clone)]
+pub enum FaceImages {
+    /// `[F, N·D]`, view after view, zero for a view in which the face is not fully visible:
+    /// the official layout.
+    Dense(Tensor<2>),
+    /// Only the (face, view) pairs in which the face is visible (design.md §7.7).
+    Visible(VisibleFaceImages),
+}
+
+impl FaceImages {
+    /// The [`FaceImages::Dense`] layout, `[F, N·D]`, for `faces` faces.
+    pub fn dense(self, faces: usize) -> Tensor<2> {
+        match self {
+            Self::Dense(images) => images,
+            Self::Visible(visible) => visible.dense(faces),
+        }
+    }
+}
+
+/// The visible (face, view) pairs' image features. A face hidden in a view has a zero image
+/// feature there, and its rows of the first layer's product are zero; at the quickstart's 96²
+/// a view sees 9–14 % of the 9,816 faces whole, so the dense product is mostly zeros.
+///
+/// Row `r` of view `v` is the `r`-th face visible in `v`; views with fewer visible faces than
+/// the most are padded with rows that sample outside every map (zero features, zero gradients)
+/// and belong to no face.
+#[derive(Debug, Clone)]
+pub struct VisibleFaceImages {
+    /// `[R, N, D]`: row `r` of view `v` is the feature of face `faces[v·R + r]` in view `v`.
+    pub features: Tensor<3>,
+    /// `[N·R]`, view-major: the face each row belongs to, or `F` for a padding row.
+    pub faces: Tensor<1, Int>,
+}
+
+impl VisibleFaceImages {
+    /// `Σ_v images_v · W_v` as `[F, O]` for the image block's weight rows `weight` `[N·D, O]`:
+    /// one product per view over its visible rows, added into each row's face. Equal to the
+    /// dense `[F, N·D] · [N·D, O]` up to the order of the sums (the dense one adds zeros).
+    fn product(self, weight: Tensor<2>, faces: usize) -> Tensor<2> {
+        let [r, n, d] = self.features.dims();
+        let [_, o] = weight.dims();
+        let per_view = self
+            .features
+            .swap_dims(0, 1)
+            .matmul(weight.reshape([n, d, o]))
+            .reshape([n * r, o]);
+        Self::scatter(per_view, self.faces, faces)
+    }
+
+    /// `[F, N·D]` with each visible pair's feature in its face's row and view block.
+    fn dense(self, faces: usize) -> Tensor<2> {
+        let [r, n, d] = self.features.dims();
+        let views = (0..n)
+            .map(|v| {
+                let rows = self.features.clone().narrow(1, v, 1).reshape([r, d]);
+                Self::scatter(rows, self.faces.clone().narrow(0, v * r, r), faces)
+            })
+            .collect();
+        Tensor::cat(views, 1)
+    }
+
+    /// Rows `values` `[K, C]` added into a zero `[F, C]` at `faces` (`F` drops the row).
+    fn scatter(values: Tensor<2>, faces_of_rows: Tensor<1, Int>, faces: usize) -> Tensor<2> {
+        let [_, c] = values.dims();
+        let device = values.device();
+        Tensor::zeros([faces + 1, c], &device)
+            .select_assign(0, faces_of_rows, values, IndexingUpdateOp::Add)
+            .narrow(0, 0, faces)
     }
 }
 
@@ -287,12 +366,19 @@ pub fn face_inputs_from_highres(
     faces: Tensor<1, Int>,
     image_features: Tensor<3>,
 ) -> FaceInputs {
-    let [_, p] = h_hr.dims();
     let [f, n, d] = image_features.dims();
     FaceInputs {
-        corners: select_rows(h_hr, 0, faces).reshape([f, 3 * p]),
-        images: image_features.reshape([f, n * d]),
+        corners: face_corners(h_hr, faces),
+        images: FaceImages::Dense(image_features.reshape([f, n * d])),
     }
+}
+
+/// The corner block of the face inputs, `[F, 3P]`: the high-res vertex features `h_hr`
+/// (`[Vh, P]`, [`highres_features`]) of each face's three corners `faces` (`[F·3]`).
+pub fn face_corners(h_hr: Tensor<2>, faces: Tensor<1, Int>) -> Tensor<2> {
+    let [_, p] = h_hr.dims();
+    let [corners] = faces.dims();
+    select_rows(h_hr, 0, faces).reshape([corners / 3, 3 * p])
 }
 
 /// Largest number of floats in one block's `[faces, N·D]` image features: the face stage
@@ -312,7 +398,7 @@ pub fn faces_per_block(faces: usize, width: usize) -> usize {
 mod tests {
     #![allow(deprecated)]
     use super::*;
-    use burn::tensor::Distribution;
+    use burn::tensor::{Distribution, TensorData};
     use lifegom_render::mesh::MeshTopology;
     use lifegom_render::subdivision::Subdivision;
 
@@ -351,7 +437,10 @@ mod tests {
             [f, cfg.face_input_dim()]
         );
         // The image block is the features, view after view.
-        assert_eq!(read(inputs.images.clone()), read(feats.reshape([f, 16])));
+        assert_eq!(
+            read(inputs.images.clone().dense(f)),
+            read(feats.reshape([f, 16]))
+        );
         let row0 = &read(inputs.corners.clone())[..12];
         // Corner 0 of child face 0 is low-res vertex 0 itself: its feature is copied exactly.
         let h4v = read(h4);
@@ -384,7 +473,7 @@ mod tests {
         let w = Tensor::<2>::random([11, 3], Distribution::Normal(0.0, 1.0), &ad);
         let fused = heads.faces(FaceInputs {
             corners: corners.clone(),
-            images: images.clone(),
+            images: FaceImages::Dense(images.clone()),
         });
         let separate = [
             heads.so3.forward(x.clone()),
@@ -513,7 +602,112 @@ mod tests {
         assert_eq!(faces_per_block(0, 32), 1);
     }
 
+    /// The visible rows' layout gives the dense layout's face parameters and gradients (the
+    /// corners, every parameter, and each visible pair's image feature), up to float summation
+    /// order; the dense layout rebuilt from it is the dense input exactly.
+    fn visible_rows_equal_dense_images(device: &Device) {
+        let ad = device.clone().autodiff();
+        let (f, n, d, p) = (13usize, 3usize, 6usize, 4usize);
+        let heads = UpdateHeadsConfig::new(d, n)
+            .with_point_dim(p)
+            .with_hidden(5)
+            .init(&ad);
+        // Face k is visible in view v for a fixed irregular pattern: view 0 sees 6 faces, view 1
+        // sees 2, view 2 none (every row of view 2 is padding).
+        let visible = |face: usize, view: usize| match view {
+            0 => face % 2 == 0,
+            1 => face == 3 || face == 11,
+            _ => false,
+        };
+        let mut rng = lifegom_render::rng::Rng::new(5);
+        let full: Vec<f32> = (0..f * n * d).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let dense_host: Vec<f32> = (0..f * n * d)
+            .map(|i| {
+                let (face, view) = (i / (n * d), (i / d) % n);
+                if visible(face, view) { full[i] } else { 0.0 }
+            })
+            .collect();
+        let rows: Vec<Vec<usize>> = (0..n)
+            .map(|view| (0..f).filter(|&face| visible(face, view)).collect())
+            .collect();
+        let r = rows.iter().map(Vec::len).max().unwrap();
+        let mut features = vec![0.0f32; r * n * d];
+        let mut owners = vec![f as i64; n * r];
+        for (view, faces) in rows.iter().enumerate() {
+            for (k, &face) in faces.iter().enumerate() {
+                let src = (face * n + view) * d;
+                features[(k * n + view) * d..][..d].copy_from_slice(&full[src..src + d]);
+                owners[view * r + k] = face as i64;
+            }
+        }
+        let dense = Tensor::<2>::from_data(TensorData::new(dense_host.clone(), [f, n * d]), &ad)
+            .require_grad();
+        let rows_t =
+            Tensor::<3>::from_data(TensorData::new(features, [r, n, d]), &ad).require_grad();
+        let owners = Tensor::<1, Int>::from_data(TensorData::new(owners, [n * r]), &ad);
+        let corners =
+            Tensor::<2>::random([f, 3 * p], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+        let visible_images = VisibleFaceImages {
+            features: rows_t.clone(),
+            faces: owners,
+        };
+        assert_eq!(read(visible_images.clone().dense(f)), dense_host);
+
+        let w = Tensor::<2>::random([f, 3], Distribution::Normal(0.0, 1.0), &ad);
+        let run = |images: FaceImages| {
+            let out = heads.faces(FaceInputs {
+                corners: corners.clone(),
+                images,
+            });
+            let loss = [out.so3, out.scales, out.offsets, out.colors]
+                .into_iter()
+                .enumerate()
+                .map(|(k, o)| (o * w.clone().mul_scalar(k as f32 + 1.0)).sum())
+                .reduce(|a, b| a + b)
+                .expect("four heads");
+            (read(loss.clone()), loss.backward())
+        };
+        let (loss_dense, g_dense) = run(FaceImages::Dense(dense.clone()));
+        let (loss_rows, g_rows) = run(FaceImages::Visible(visible_images));
+        let close = |a: &[f32], b: &[f32], what: &str| {
+            assert_eq!(a.len(), b.len(), "{what}");
+            for (i, (x, y)) in a.iter().zip(b).enumerate() {
+                assert!(
+                    (x - y).abs() <= 1e-5 * (1.0 + y.abs()),
+                    "{what}[{i}]: visible rows {x} vs dense {y}"
+                );
+            }
+        };
+        close(&loss_rows, &loss_dense, "loss");
+        close(
+            &read(corners.grad(&g_rows).unwrap()),
+            &read(corners.grad(&g_dense).unwrap()),
+            "corner gradient",
+        );
+        for m in [&heads.so3, &heads.scale, &heads.offset, &heads.rgb] {
+            for l in [&m.l0, &m.l2] {
+                close(
+                    &read(l.weight.val().grad(&g_rows).unwrap()),
+                    &read(l.weight.val().grad(&g_dense).unwrap()),
+                    "weight gradient",
+                );
+            }
+        }
+        let grad_dense = read(dense.grad(&g_dense).unwrap());
+        let grad_rows = read(rows_t.grad(&g_rows).unwrap());
+        for (view, faces) in rows.iter().enumerate() {
+            for k in 0..r {
+                let got = &grad_rows[(k * n + view) * d..][..d];
+                match faces.get(k) {
+                    Some(&face) => close(got, &grad_dense[(face * n + view) * d..][..d], "image"),
+                    None => assert!(got.iter().all(|&g| g == 0.0), "padding row gradient"),
+                }
+            }
+        }
+    }
+
     lifegom_render::cpu_backend_tests!(heads => check);
+    lifegom_render::cpu_backend_tests!(visible_rows => visible_rows_equal_dense_images);
     lifegom_render::cpu_backend_tests!(blocked_faces => blocked_faces_equal_one_block);
     lifegom_render::cpu_backend_tests!(fused_heads => fused_faces_equal_separate_heads);
 }

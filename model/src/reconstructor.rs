@@ -23,14 +23,15 @@
 
 use burn::config::Config;
 use burn::module::{Module, Param};
-use burn::tensor::{Device, Distribution, Tensor};
+use burn::tensor::{Device, Distribution, Int, Tensor, TensorData};
 use glam::Affine3A;
 
 use lifegom_render::camera::Camera;
-use lifegom_render::device::on_pool_thread;
+use lifegom_render::device::{on_pool_thread, runs_on_host};
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::mesh::MeshTopology;
 use lifegom_render::rasterizer::{Gaussians, RasterSettings, rasterize};
+use lifegom_render::readback;
 use lifegom_render::skeleton::Skeleton;
 use lifegom_render::skinning::skin_vertices;
 use lifegom_render::visibility::rasterize_on_device;
@@ -40,7 +41,8 @@ use crate::encoder::{EncodedViews, ImageEncoder, ImageEncoderConfig};
 use crate::error::{ModelError, Result};
 use crate::fusion::{Fusion, FusionConfig, FusionMasks};
 use crate::heads::{
-    UpdateHeads, UpdateHeadsConfig, face_inputs_from_highres, faces_per_block, highres_features,
+    FaceImages, FaceInputs, UpdateHeads, UpdateHeadsConfig, VisibleFaceImages, face_corners,
+    faces_per_block, highres_features,
 };
 use crate::point_transformer::{PointTransformer, PointTransformerConfig};
 use crate::sampling::{hide_invisible, project_points, sample_single};
@@ -683,7 +685,7 @@ impl Reconstructor {
                 .reshape([n, f, 3, 2])
                 .mean_dim(2)
                 .reshape([n, f, 2]);
-            hide_invisible(centroids, face_vis)
+            hide_invisible(centroids, face_vis.clone())
         };
         drop(span);
         // Block after block of faces, so no buffer outgrows a GPU's limit; one block (the whole
@@ -704,10 +706,24 @@ impl Reconstructor {
                     faces_flat.clone().narrow(0, 3 * start, 3 * len),
                 )
             };
+            // On the CPU backends the whole stage is one block, and only the visible (face,
+            // view) pairs are sampled and multiplied (`FaceImages::Visible`); the dense layout
+            // stays for blocks and CubeCL devices, and as the reference in tests.
+            let visible_only = len == f && runs_on_host(&state.xyz.device());
             let face_feats = {
                 let _span = tracing::debug_span!("face_sampling").entered();
                 let _span = tracing::debug_span!("sample_maps").entered();
-                feats_src.sample(uv, w, h)? // [len, N, D]
+                if visible_only {
+                    FaceImages::Visible(sample_visible_faces(
+                        feats_src,
+                        uv,
+                        face_vis.clone(),
+                        w,
+                        h,
+                    )?)
+                } else {
+                    FaceImages::Dense(feats_src.sample(uv, w, h)?.reshape([len, n * d]))
+                }
             };
             let _span = tracing::debug_span!("face_heads").entered();
             let h_hr = h_hr
@@ -715,7 +731,10 @@ impl Reconstructor {
                     highres_features(h_pt.clone(), tables.index.clone(), tables.weight.clone())
                 })
                 .clone();
-            let inputs = face_inputs_from_highres(h_hr, corners, face_feats);
+            let inputs = FaceInputs {
+                corners: face_corners(h_hr, corners),
+                images: face_feats,
+            };
             blocks.push(self.heads.faces(inputs));
         }
         let faces = GomParams::cat(blocks, &state.xyz.device());
@@ -725,6 +744,48 @@ impl Reconstructor {
             faces,
         })
     }
+}
+
+/// The image features of the visible (face, view) pairs only ([`VisibleFaceImages`]).
+///
+/// `uv` `[N, F, 2]` are the faces' projected centroids with hidden pairs already outside every
+/// map ([`hide_invisible`]); `visible` `[F, N]` is 1 where a face is visible whole. The
+/// visibility is read to the host to list each view's faces (it is the no-gradient triangle-ID
+/// raster's result); a padding row takes the coordinate of a face hidden in its view, so it
+/// samples zero with a zero gradient.
+fn sample_visible_faces(
+    maps: &EncodedViews,
+    uv: Tensor<3>,
+    visible: Tensor<2>,
+    width: u32,
+    height: u32,
+) -> Result<VisibleFaceImages> {
+    let [n, f, _] = uv.dims();
+    let device = uv.device();
+    let host: Vec<f32> = readback::read("face visibility", visible)?;
+    let is_visible = |face: usize, view: usize| host[face * n + view] >= 0.5;
+    let rows: Vec<Vec<usize>> = (0..n)
+        .map(|view| (0..f).filter(|&face| is_visible(face, view)).collect())
+        .collect();
+    let r = rows.iter().map(Vec::len).max().unwrap_or(0).max(1);
+    let mut gather = Vec::with_capacity(n * r);
+    let mut owners = Vec::with_capacity(n * r);
+    for (view, faces) in rows.iter().enumerate() {
+        // Fewer than R ≤ F visible faces means some face is hidden in this view.
+        let pad = (0..f).find(|&face| !is_visible(face, view)).unwrap_or(0);
+        for k in 0..r {
+            let (face, owner) = faces.get(k).map_or((pad, f), |&face| (face, face));
+            gather.push((view * f + face) as i64);
+            owners.push(owner as i64);
+        }
+    }
+    let index =
+        |values: Vec<i64>| Tensor::<1, Int>::from_data(TensorData::new(values, [n * r]), &device);
+    let uv_rows = select_rows(uv.reshape([n * f, 2]), 0, index(gather)).reshape([n, r, 2]);
+    Ok(VisibleFaceImages {
+        features: maps.sample(uv_rows, width, height)?,
+        faces: index(owners),
+    })
 }
 
 #[cfg(test)]
