@@ -403,9 +403,32 @@ mod tests {
     use super::*;
     use burn::tensor::{Distribution, TensorData};
     use lifegom_render::mesh::MeshTopology;
-    use lifegom_render::subdivision::Subdivision;
+    use lifegom_render::subdivision::{Subdivision, SubdivisionTables};
 
     use lifegom_render::testing::read;
+
+    /// Two triangles sharing an edge (4 low-res vertices), subdivided `levels` times: the
+    /// subdivision's tables, the high-res faces `[F·3]`, and `F`.
+    fn two_triangles(levels: u32, device: &Device) -> (SubdivisionTables, Tensor<1, Int>, usize) {
+        let topo = MeshTopology::new(vec![[0, 1, 2], [2, 1, 3]], 4).unwrap();
+        let sub = Subdivision::new(&topo, levels).unwrap();
+        (
+            sub.tables(device),
+            sub.highres.face_index_tensor(device),
+            sub.highres.faces.len(),
+        )
+    }
+
+    /// `got` equals `reference` within 1e-5 relative (float summation order).
+    fn assert_close(got: &[f32], reference: &[f32], what: &str) {
+        assert_eq!(got.len(), reference.len(), "{what}");
+        for (i, (x, y)) in got.iter().zip(reference).enumerate() {
+            assert!(
+                (x - y).abs() <= 1e-5 * (1.0 + y.abs()),
+                "{what}[{i}]: {x} vs reference {y}"
+            );
+        }
+    }
 
     fn check(device: &Device) {
         let cfg = UpdateHeadsConfig::new(8, 2)
@@ -419,12 +442,7 @@ mod tests {
         assert_eq!(v.embed.dims(), [5, 8]);
         assert!(read(v.delta_xyz).iter().all(|x| x.abs() < 1e-3));
 
-        // Two triangles sharing an edge, subdivided once.
-        let topo = MeshTopology::new(vec![[0, 1, 2], [2, 1, 3]], 4).unwrap();
-        let sub = Subdivision::new(&topo, 1).unwrap();
-        let tables = sub.tables(device);
-        let faces = sub.highres.face_index_tensor(device);
-        let f = sub.highres.faces.len();
+        let (tables, faces, f) = two_triangles(1, device);
         let h4 = Tensor::<2>::random([4, 4], Distribution::Normal(0.0, 1.0), device);
         let feats = Tensor::<3>::random([f, 2, 8], Distribution::Normal(0.0, 1.0), device);
         let inputs = face_inputs(
@@ -485,15 +503,6 @@ mod tests {
             heads.rgb.forward(x.clone()),
         ];
         let fused_out = [fused.so3, fused.scales, fused.offsets, fused.colors];
-        let close = |a: &[f32], b: &[f32], what: &str| {
-            assert_eq!(a.len(), b.len(), "{what}");
-            for (i, (p, q)) in a.iter().zip(b).enumerate() {
-                assert!(
-                    (p - q).abs() <= 1e-5 * (1.0 + q.abs()),
-                    "{what}[{i}]: fused {p} vs separate {q}"
-                );
-            }
-        };
         let loss = |outs: &[Tensor<2>]| {
             outs.iter()
                 .enumerate()
@@ -502,7 +511,7 @@ mod tests {
                 .expect("four heads")
         };
         for (k, (a, b)) in fused_out.iter().zip(&separate).enumerate() {
-            close(
+            assert_close(
                 &read(a.clone()),
                 &read(b.clone()),
                 &format!("head {k} output"),
@@ -520,7 +529,7 @@ mod tests {
                 1,
             )
         };
-        close(
+        assert_close(
             &read(block_grads(&grads_fused)),
             &read(block_grads(&grads_sep)),
             "input gradient",
@@ -534,7 +543,7 @@ mod tests {
             for (layer, l) in [("l0", &m.l0), ("l2", &m.l2)] {
                 let wf = l.weight.val().grad(&grads_fused).expect("weight gradient");
                 let ws = l.weight.val().grad(&grads_sep).expect("weight gradient");
-                close(
+                assert_close(
                     &read(wf),
                     &read(ws),
                     &format!("{name}.{layer}.weight gradient"),
@@ -542,7 +551,7 @@ mod tests {
                 let bias = l.bias.as_ref().expect("heads have biases").val();
                 let bf = bias.grad(&grads_fused).expect("bias gradient");
                 let bs = bias.grad(&grads_sep).expect("bias gradient");
-                close(
+                assert_close(
                     &read(bf),
                     &read(bs),
                     &format!("{name}.{layer}.bias gradient"),
@@ -558,11 +567,7 @@ mod tests {
             .with_point_dim(5)
             .with_hidden(7)
             .init(device);
-        let topo = MeshTopology::new(vec![[0, 1, 2], [2, 1, 3]], 4).unwrap();
-        let sub = Subdivision::new(&topo, 2).unwrap();
-        let tables = sub.tables(device);
-        let faces = sub.highres.face_index_tensor(device);
-        let f = sub.highres.faces.len();
+        let (tables, faces, f) = two_triangles(2, device);
         let h = Tensor::<2>::random([4, 5], Distribution::Normal(0.0, 1.0), device);
         let feats = Tensor::<3>::random([f, 2, 16], Distribution::Normal(0.0, 1.0), device);
         let h_hr = highres_features(h, tables.index.clone(), tables.weight.clone());
@@ -672,24 +677,15 @@ mod tests {
         };
         let (loss_dense, g_dense) = run(FaceImages::Dense(dense.clone()));
         let (loss_rows, g_rows) = run(FaceImages::Visible(visible_images));
-        let close = |a: &[f32], b: &[f32], what: &str| {
-            assert_eq!(a.len(), b.len(), "{what}");
-            for (i, (x, y)) in a.iter().zip(b).enumerate() {
-                assert!(
-                    (x - y).abs() <= 1e-5 * (1.0 + y.abs()),
-                    "{what}[{i}]: visible rows {x} vs dense {y}"
-                );
-            }
-        };
-        close(&loss_rows, &loss_dense, "loss");
-        close(
+        assert_close(&loss_rows, &loss_dense, "loss");
+        assert_close(
             &read(corners.grad(&g_rows).unwrap()),
             &read(corners.grad(&g_dense).unwrap()),
             "corner gradient",
         );
         for m in [&heads.so3, &heads.scale, &heads.offset, &heads.rgb] {
             for l in [&m.l0, &m.l2] {
-                close(
+                assert_close(
                     &read(l.weight.val().grad(&g_rows).unwrap()),
                     &read(l.weight.val().grad(&g_dense).unwrap()),
                     "weight gradient",
@@ -702,7 +698,9 @@ mod tests {
             for k in 0..r {
                 let got = &grad_rows[(k * n + view) * d..][..d];
                 match faces.get(k) {
-                    Some(&face) => close(got, &grad_dense[(face * n + view) * d..][..d], "image"),
+                    Some(&face) => {
+                        assert_close(got, &grad_dense[(face * n + view) * d..][..d], "image");
+                    }
                     None => assert!(got.iter().all(|&g| g == 0.0), "padding row gradient"),
                 }
             }
