@@ -1,56 +1,41 @@
-//! `select` that stays correct on CubeCL backends at any index count.
+//! Gathers by index whose backward is parallel and correct on CubeCL devices (design.md §5.7).
 //!
-//! The backward of `Tensor::select` is a `select_assign` with `Add`, and Burn 0.22.1's CubeCL
-//! `select_assign` mis-sums once it is given 65,536 or more indices (65,535 add up exactly; a
-//! test in `tests/tests/backend_parity.rs` gathers 70,000 rows on wgpu and finds errors of 5
-//! where the values are about 1). The model gathers rows by index in many places (face corners,
-//! feature samples, neighbours); at the official template's size some of them pass that count
-//! in training. [`select_rows`] splits such a gather into chunks of [`SELECT_CHUNK`] indices and
-//! concatenates the results, so every backward `select_assign` stays below the bug. On the CPU
-//! backends, and below the threshold, it is exactly `Tensor::select`: their numerics do not
-//! change by a bit (a split gather's gradient is summed per chunk, a float reordering).
+//! The backward of `Tensor::select` is a `select_assign` with `Add`. Burn 0.22.1's CubeCL kernel
+//! for it runs one thread per element *across* the gathered axis, each walking every index in
+//! order: gathering 117,792 rows of 144 features is 144 threads of 117,792 serial steps, which
+//! made the backward of a GPU training step take most of its time. It also mis-sums from 65,536
+//! indices (a test in `tests/tests/backend_parity.rs` gathers 70,000 rows on wgpu). The model
+//! gathers rows by index in many places (face corners, feature samples, neighbours), so every
+//! differentiable gather goes through [`select_rows`]:
+//!
+//! - on the CPU backends it is exactly `Tensor::select`, whose backward is correct and fast
+//!   there: their numerics do not change by a bit;
+//! - on CubeCL devices it is the [`op::RowGatherOps`] extension: the same forward kernel, and a
+//!   scatter-add backward with one thread per gradient element and float atomic adds
+//!   (`cube` module).
+
+pub(crate) mod cube;
+pub mod op;
 
 use burn::tensor::{Int, Tensor};
 
 use crate::device::runs_on_host;
 
-/// Indices per `select` (and so per backward `select_assign`) once a gather is split.
-pub const SELECT_CHUNK: usize = 32_768;
-
-/// Index counts from which [`select_rows`] splits (the first count Burn 0.22.1 mis-sums).
-pub const SELECT_SPLIT_FROM: usize = 65_536;
-
-/// `tensor.select(dim, indices)`, split into chunks of [`SELECT_CHUNK`] indices on CubeCL
-/// devices when there are [`SELECT_SPLIT_FROM`] or more (module docs). Same values and
-/// gradients.
+/// `tensor.select(dim, indices)`: the same values and gradients, with a parallel backward on
+/// CubeCL devices (module docs).
 pub fn select_rows<const D: usize>(
     tensor: Tensor<D>,
     dim: usize,
     indices: Tensor<1, Int>,
 ) -> Tensor<D> {
-    let n = indices.dims()[0];
-    if n < SELECT_SPLIT_FROM || runs_on_host(&tensor.device()) {
+    if runs_on_host(&tensor.device()) {
         return tensor.select(dim, indices);
     }
-    split_select(tensor, dim, indices)
-}
-
-fn split_select<const D: usize>(
-    tensor: Tensor<D>,
-    dim: usize,
-    indices: Tensor<1, Int>,
-) -> Tensor<D> {
-    let n = indices.dims()[0];
-    let parts: Vec<Tensor<D>> = (0..n)
-        .step_by(SELECT_CHUNK)
-        .map(|start| {
-            let len = SELECT_CHUNK.min(n - start);
-            tensor
-                .clone()
-                .select(dim, indices.clone().narrow(0, start, len))
-        })
-        .collect();
-    Tensor::cat(parts, dim)
+    Tensor::from_dispatch(<burn::backend::Dispatch as op::RowGatherOps>::gather_rows(
+        tensor.into_dispatch(),
+        dim,
+        indices.into_dispatch(),
+    ))
 }
 
 #[cfg(test)]
@@ -58,29 +43,66 @@ mod tests {
     use super::*;
     use burn::tensor::{Device, TensorData};
 
-    use crate::testing::read;
+    use crate::testing::{Rng, read, wgpu_test_device};
 
-    /// Split and unsplit gathers give the same values and the same gradient; on a CPU device
-    /// `select_rows` is plain `select`.
+    /// Values and the source's gradient of `select_rows` against `Tensor::select` computed on
+    /// Flex, for a gather along `dim` of a `[3, 5, 4]` source (every axis position: outer,
+    /// middle, last), with repeated indices and rows never gathered.
+    fn check_gather_matches_select(device: &Device) {
+        let shape = [3usize, 5, 4];
+        let mut rng = Rng::new(7);
+        let values: Vec<f32> = (0..60).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        for dim in 0..3 {
+            let rows = shape[dim] as i64;
+            let index: Vec<i64> = [0, rows - 1, 1, 1, rows - 1, 0, 1].to_vec();
+            let n = index.len();
+            let mut out_shape = shape;
+            out_shape[dim] = n;
+            let weight: Vec<f32> = (0..out_shape.iter().product::<usize>())
+                .map(|_| rng.range_f32(-1.0, 1.0))
+                .collect();
+            let run = |device: &Device, fused: bool| {
+                let ad = device.clone().autodiff();
+                let x = Tensor::<3>::from_data(TensorData::new(values.clone(), shape), &ad)
+                    .require_grad();
+                let idx = Tensor::<1, Int>::from_data(TensorData::new(index.clone(), [n]), &ad);
+                let w = Tensor::<3>::from_data(TensorData::new(weight.clone(), out_shape), &ad);
+                let y = if fused {
+                    select_rows(x.clone(), dim, idx)
+                } else {
+                    x.clone().select(dim, idx)
+                };
+                let grads = (y.clone() * w).sum().backward();
+                (read(y), read(x.grad(&grads).expect("source gradient")))
+            };
+            let (want_y, want_g) = run(&Device::flex(), false);
+            let (got_y, got_g) = run(device, true);
+            assert_eq!(got_y, want_y, "values, dim {dim}, on {device:?}");
+            for (k, (a, b)) in got_g.iter().zip(&want_g).enumerate() {
+                assert!(
+                    (a - b).abs() <= 1e-6,
+                    "gradient element {k}, dim {dim}, on {device:?}: {a} vs {b}"
+                );
+            }
+        }
+    }
+
+    crate::cpu_backend_tests!(gather_matches_select => check_gather_matches_select);
+
+    /// The CubeCL path (the op and its scatter-add backward), on wgpu; with the float atomics
+    /// emulated too.
     #[test]
-    fn split_gathers_equal_select() {
-        let device = Device::flex().autodiff();
-        let (rows, n) = (300usize, SELECT_SPLIT_FROM + 1234);
-        let index: Vec<i64> = (0..n as i64).map(|i| (i * 7919) % rows as i64).collect();
-        let x = Tensor::<2>::from_data(
-            TensorData::new((0..rows * 2).map(|i| i as f32 * 0.01).collect(), [rows, 2]),
-            &device,
-        )
-        .require_grad();
-        let idx = Tensor::<1, Int>::from_data(TensorData::new(index, [n]), &device);
-        let w = Tensor::<2>::ones([n, 2], &device);
-        // The split path itself (select_rows takes it on CubeCL devices only).
-        let a = split_select(x.clone(), 0, idx.clone());
-        let b = x.clone().select(0, idx);
-        assert_eq!(read(a.clone()), read(b.clone()));
-        let ga = read(x.grad(&(a * w.clone()).sum().backward()).unwrap());
-        let gb = read(x.grad(&(b * w).sum().backward()).unwrap());
-        assert_eq!(ga, gb);
-        assert!(runs_on_host(&device));
+    fn gather_matches_select_wgpu() {
+        let Some(device) = wgpu_test_device() else {
+            return;
+        };
+        assert!(!runs_on_host(&device));
+        check_gather_matches_select(&device);
+        crate::rasterizer::force_emulated_float_atomics(true);
+        let result = std::panic::catch_unwind(|| check_gather_matches_select(&device));
+        crate::rasterizer::force_emulated_float_atomics(false);
+        if let Err(panic) = result {
+            std::panic::resume_unwind(panic);
+        }
     }
 }

@@ -151,8 +151,9 @@ fn wgpu_emulated_float_atomics_match_the_cpu_op() {
 /// The model's gathers on wgpu at index counts the official template reaches: Burn 0.22.1's
 /// own `select` backward (a CubeCL `select_assign` with `Add`) mis-sums from 65,536 indices
 /// (with plain `select` this test finds errors of 5.35 where values are about 1), so the model
-/// gathers through `select_rows` (design.md §5.7), which splits such gathers on CubeCL. 70,000 random indices, weighted rows, the
-/// gradient of the source rows against the sum computed on the host.
+/// gathers through `select_rows` (design.md §5.7), whose CubeCL backward is its own scatter-add.
+/// 70,000 random indices, weighted rows, the gradient of the source rows against the sum
+/// computed on the host.
 #[test]
 fn wgpu_select_rows_backward_with_many_indices() {
     use burn::tensor::{Int, TensorData};

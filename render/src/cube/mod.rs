@@ -1,10 +1,14 @@
-//! What the crate's two CubeCL ops share: the rasterizer's [`crate::rasterizer`] GPU path
-//! (`rasterizer::cube`) and the triangle-ID rasterizer's (`visibility::cube`).
+//! What the crate's CubeCL ops share: the rasterizer's [`crate::rasterizer`] GPU path
+//! (`rasterizer::cube`), the triangle-ID rasterizer's (`visibility::cube`), the GoM geometry's
+//! (`gom::cube`) and the row gather's (`select::cube`).
 //!
+//! - [`atomic`]: float atomic adds in kernels, native or emulated with exchanges, and which one
+//!   a device gets.
 //! - [`host`]: host-side plumbing — tensor preparation, buffer allocation, kernel arguments,
 //!   1D launch shapes, small read-backs. Nothing here is specific to one op.
 //! - [`view`]: the camera record every projecting kernel takes ([`view::ViewArgs`]), passed as
 //!   launch scalars with named fields instead of a flat `&[f32]` with magic offsets.
 
+pub(crate) mod atomic;
 pub(crate) mod host;
 pub(crate) mod view;

@@ -240,7 +240,7 @@ pub fn rasterize(gaussians: &Gaussians, settings: &RasterSettings) -> Result<Ren
 /// native ones (process-wide; both paths compute the same sums). For tests and benchmarks.
 #[doc(hidden)]
 pub fn force_emulated_float_atomics(force: bool) {
-    cube::FORCE_EMULATED.store(force, std::sync::atomic::Ordering::Relaxed);
+    crate::cube::atomic::FORCE_EMULATED.store(force, std::sync::atomic::Ordering::Relaxed);
 }
 
 /// Whether the GPU backward on `device` would use native float atomic adds (`false` on CPU

@@ -56,12 +56,9 @@ mod rasterize_backward;
 mod sort;
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
-use burn_cubecl::cubecl::features::AtomicUsage;
-use burn_cubecl::cubecl::ir::{ElemType, FloatKind};
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::cubecl::server::Handle;
 use burn_cubecl::tensor::CubeTensor;
@@ -72,6 +69,7 @@ use self::rasterize_backward::BWD_BATCH;
 use self::sort::{bits_for, exclusive_scan, radix_sort_pairs};
 use super::cpu::{AlphaCutoff, RasterConfig, TILE};
 use super::op::{GaussianRasterOps, RasterKernels, SavedRaster};
+use crate::cube::atomic::use_native_float_atomics;
 use crate::cube::host::{
     ComputeClient, THREADS_1D, arg, count_1d, empty_u32, prepare, read_u32, tensor_arg, tensor_f32,
     u32_bytes, zeros_f32,
@@ -264,20 +262,6 @@ fn forward(
     (image, saved)
 }
 
-/// Set by [`super::force_emulated_float_atomics`]: use the exchange emulation even where
-/// native float atomics exist, so tests cover both paths on one machine.
-pub(crate) static FORCE_EMULATED: AtomicBool = AtomicBool::new(false);
-
-/// Whether the backward adds `f32` atomically in hardware: the runtime supports it (WGSL has no
-/// float atomics; some Vulkan devices do) and the emulation is not forced.
-fn use_native_float_atomics(client: &ComputeClient) -> bool {
-    !FORCE_EMULATED.load(Ordering::Relaxed)
-        && client
-            .properties()
-            .atomic_type_usage(Type::atomic(ElemType::Float(FloatKind::F32)))
-            .contains(AtomicUsage::Add)
-}
-
 fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTensor; 4] {
     let _span = tracing::trace_span!("cube_rasterize_backward").entered();
     let (client, device) = (&saved.client, &saved.device);
@@ -300,7 +284,7 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
         let grad_len = n * GRAD_LANES;
         let grad2d = zeros_f32(client, device, grad_len);
         let native = use_native_float_atomics(client);
-        // One kernel, two slot types: see `rasterize_backward::AtomicAddF32`.
+        // One kernel, two slot types: see `crate::cube::atomic::AtomicAddF32`.
         macro_rules! launch_backward {
             ($slot:ty) => {
                 rasterize_backward::rasterize_backward_kernel::launch::<$slot>(

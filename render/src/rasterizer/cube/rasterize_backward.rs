@@ -4,7 +4,7 @@
 //!
 //! One [`BWD_BATCH`]-thread cube per tile, one thread per splat, and one atomic add per gradient
 //! component per batch, into `grad2d`: native float atomics where the runtime has them, an
-//! atomic-exchange emulation otherwise ([`AtomicAddF32`]). Nothing is recomputed: the kernel
+//! atomic-exchange emulation otherwise ([`crate::cube::atomic`]). Nothing is recomputed: the kernel
 //! starts from the forward's final transmittance and last contributor per pixel.
 
 // `(a + b - 1) / b` stays spelled out because `#[cube]` traces the arithmetic operators, not
@@ -13,6 +13,8 @@
 
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
+
+use crate::cube::atomic::AtomicAddF32;
 
 use super::common::{
     ALPHA_CHANNEL, COLOR_CHANNELS, DEPTH_CHANNEL, FEATURE_LANES, GRAD_COLOR, GRAD_CONIC_A,
@@ -28,45 +30,6 @@ const TILE_LEN: usize = TILE_PIXELS as usize;
 const TILE_FEATURES_LEN: usize = FEATURE_LANES * TILE_LEN;
 /// Lane of the depth channel in a per-pixel `FEATURE_LANES` group.
 const DEPTH_LANE: usize = DEPTH_CHANNEL as usize;
-
-/// `*slot += value` for an `f32` held in an atomic slot of type `Self`: `f32` slots use the
-/// native float atomic add; `u32` slots hold the bit pattern and emulate it with atomic
-/// exchanges, for runtimes without float atomics (WGSL has none).
-#[cube]
-pub(crate) trait AtomicAddF32: CubePrimitive {
-    /// Adds `value` to `slot`.
-    fn atomic_add_f32(slot: &Atomic<Self>, value: f32);
-}
-
-#[cube]
-impl AtomicAddF32 for f32 {
-    fn atomic_add_f32(slot: &Atomic<Self>, value: f32) {
-        slot.fetch_add(value);
-    }
-}
-
-/// The emulation takes the slot's value (leaving `+0.0`), adds its own and puts the sum back.
-/// The put returns whatever another thread deposited in the meantime; that amount goes round
-/// again until a put lands on an empty slot. No addend is ever dropped. The textbook
-/// compare-and-swap loop is not safe here: WGSL only has a *weak* compare-exchange, which may
-/// fail spuriously, and CubeCL returns only its old value, not the `exchanged` flag, so a
-/// spurious failure would look like success and lose the addend (Metal, through naga, really
-/// is weak).
-#[cube]
-impl AtomicAddF32 for u32 {
-    fn atomic_add_f32(slot: &Atomic<Self>, value: f32) {
-        let mut pending = value;
-        loop {
-            let taken = slot.exchange(0u32);
-            let sum = f32::reinterpret(taken) + pending;
-            let back = slot.exchange(u32::reinterpret(sum));
-            if back == 0u32 {
-                break;
-            }
-            pending = f32::reinterpret(back);
-        }
-    }
-}
 
 /// The Gaussian's feature in channel `ch`: `[r, g, b, 1, depth]`.
 #[cube]
