@@ -389,6 +389,13 @@ impl GomMesh {
 
 /// The per-high-res-face corner table (`[F·9]` indices and weights): each corner's barycentric
 /// slots in the low-res mesh, i.e. the subdivision table composed with the high-res faces.
+///
+/// A corner that is a low-res vertex or an edge midpoint leaves slots empty; the subdivision
+/// table writes those as `(0, 0.0)`, and here they get index `-1` (out of range, which the op
+/// reads as weight 0). Kept as vertex 0 they would all land in vertex 0's run of the inverted
+/// table: about a third of all entries, summed by the GPU backward on three threads
+/// (8 ms a call on an H100 for the training mesh, most of the GoM backward at two
+/// subdivisions; BENCHMARKS.md, "On a GPU").
 fn corner_table(subdivision: &Subdivision) -> (Vec<i32>, Vec<f32>) {
     let slots = || {
         subdivision
@@ -400,7 +407,10 @@ fn corner_table(subdivision: &Subdivision) -> (Vec<i32>, Vec<f32>) {
     };
     (
         slots()
-            .map(|(i, _)| i32::try_from(i).unwrap_or(-1))
+            .map(|(i, w)| match i32::try_from(i) {
+                Ok(i) if w != 0.0 => i,
+                _ => -1,
+            })
             .collect(),
         slots().map(|(_, w)| w).collect(),
     )
@@ -531,15 +541,27 @@ mod tests {
         let body = BodyTemplate::load(lowres_template_path()).unwrap();
         let subdivision = Subdivision::new(&body.topology, 1).unwrap();
         let v = subdivision.lowres.num_vertices;
-        let (index, _) = corner_table(&subdivision);
+        let (index, weight) = corner_table(&subdivision);
         let (offsets, order) = corner_table_by_vertex(&index, v);
         assert_eq!(offsets.len(), v + 1);
-        assert_eq!(order.len(), index.len());
+        // Empty slots are out of range, every used slot in range with a nonzero weight.
+        assert!(
+            index
+                .iter()
+                .zip(&weight)
+                .all(|(&i, &w)| (i < 0) == (w == 0.0))
+        );
+        assert_eq!(order.len(), index.iter().filter(|&&i| i >= 0).count());
+        let mut longest = 0;
         for vertex in 0..v {
             let run = &order[offsets[vertex] as usize..offsets[vertex + 1] as usize];
             assert!(run.windows(2).all(|w| w[0] < w[1]));
             assert!(run.iter().all(|&e| index[e as usize] == vertex as i32));
+            longest = longest.max(run.len());
         }
+        // A vertex's run holds the slots of the faces around it: no vertex collects the padding.
+        let mean = order.len() / v;
+        assert!(longest < 4 * mean, "longest run {longest}, mean {mean}");
     }
 }
 
