@@ -39,7 +39,7 @@ use lifegom_render::visibility::rasterize_on_device;
 use crate::avatar::Avatar;
 use crate::encoder::{EncodedViews, ImageEncoder, ImageEncoderConfig};
 use crate::error::{ModelError, Result};
-use crate::fusion::{Fusion, FusionConfig, FusionMasks};
+use crate::fusion::{Fusion, FusionConfig, FusionMasks, RepeatedTokens};
 use crate::heads::{
     FaceImages, FaceInputs, UpdateHeads, UpdateHeadsConfig, VisibleFaceImages, face_corners,
     faces_per_block, highres_features,
@@ -533,11 +533,16 @@ impl Reconstructor {
     /// run draws: both branches' mask seeds are drawn from the device's seeded RNG first, in
     /// that order, and handed to each branch. Where masks are drawn by Burn on the device
     /// (CubeCL), the branches run in order on the calling thread.
+    ///
+    /// `src_repeats`, where given, lists the source tokens that are the visibility embedding
+    /// (a vertex hidden in a view), whose first-layer projections are then computed once
+    /// ([`Fusion::forward_repeated`]).
     fn fuse_branches(
         &self,
         src: Tensor<3>,
         ren: Tensor<3>,
         embed: &Tensor<2>,
+        src_repeats: Option<&RepeatedTokens>,
     ) -> (Tensor<2>, Tensor<2>) {
         let device = src.device();
         // The inference copy first: Burn initialises parameters lazily from the same RNG, and a
@@ -571,7 +576,13 @@ impl Reconstructor {
         };
         let source = || {
             let _span = tracing::debug_span!("source").entered();
-            self.fusion.forward_with(src, embed.clone(), src_masks)
+            match src_repeats {
+                Some(repeats) => {
+                    self.fusion
+                        .forward_repeated(src, embed.clone(), src_masks, repeats)
+                }
+                None => self.fusion.forward_with(src, embed.clone(), src_masks),
+            }
         };
         // A rayon task, not a thread of its own: the pass runs on a rayon worker
         // (`on_pool_thread`), and a worker blocked joining a thread whose ops wait for the pool
@@ -652,6 +663,7 @@ impl Reconstructor {
         // Source branch, blended with e_vis where the vertex is hidden.
         let span = tracing::debug_span!("sampling").entered();
         let f_src = feats_src.sample(proj.uv.clone(), w, h)?;
+        let vis_tokens = vis.clone();
         let src = f_src * vis.clone() + e_vis.clone() * (vis.ones_like() - vis);
         // Rendered branch, blended by the previous render's soft alpha.
         let f_ren = feats_ren.sample(proj.uv.clone(), w, h)?;
@@ -660,7 +672,18 @@ impl Reconstructor {
         drop(span);
 
         let span = tracing::debug_span!("fusion").entered();
-        let (fused_src, fused_ren) = self.fuse_branches(src, ren, &state.embed);
+        // On the CPU backends, the source tokens of hidden (vertex, view) pairs are all e_vis:
+        // 80–90 % of them at the small presets (BENCHMARKS.md, session 13). The visibility is
+        // the no-gradient raster's result; reading it here costs no sync on those backends.
+        let src_repeats = if runs_on_host(&state.xyz.device()) {
+            let host: Vec<f32> = readback::read("vertex visibility", vis_tokens)?;
+            let hidden: Vec<bool> = host.iter().map(|&x| x < 0.5).collect();
+            RepeatedTokens::from_mask(&hidden, &state.xyz.device())
+        } else {
+            None
+        };
+        let (fused_src, fused_ren) =
+            self.fuse_branches(src, ren, &state.embed, src_repeats.as_ref());
         drop(span);
         let h_pt = {
             let _span = tracing::debug_span!("point_transformer").entered();

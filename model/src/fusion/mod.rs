@@ -26,7 +26,8 @@ use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::{relu, softmax};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use lifegom_render::select::select_rows;
 
 use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with};
 use crate::linear_op;
@@ -136,6 +137,47 @@ impl AttentionLayer {
         let q = linear_op::forward(&self.w_q, query.clone());
         let k = linear_op::forward(&self.w_k, context.clone());
         let v = linear_op::forward(&self.w_v, context);
+        self.attend_and_feed(query, [q, k, v], kernel, masks)
+    }
+
+    /// Self-attention over `tokens` `[B, L, D]` (query = context), where the rows of
+    /// `repeats` that repeat one value have their `W_q`, `W_k`, `W_v` projections computed
+    /// once. The same values as [`Self::forward_with`]`(tokens, tokens, …)`, and the same
+    /// gradients up to the order of their sums.
+    pub fn self_attention_repeated(
+        &self,
+        tokens: Tensor<3>,
+        repeats: &RepeatedTokens,
+        kernel: FusionKernel,
+        masks: [MaskSeed; 2],
+    ) -> Tensor<3> {
+        let [b, l, d] = tokens.dims();
+        let rows = select_rows(
+            tokens.clone().reshape([b * l, d]),
+            0,
+            repeats.computed.clone(),
+        );
+        let project = |layer: &Linear| {
+            select_rows(
+                linear_op::forward(layer, rows.clone()),
+                0,
+                repeats.token_from_computed.clone(),
+            )
+            .reshape([b, l, d])
+        };
+        let qkv = [project(&self.w_q), project(&self.w_k), project(&self.w_v)];
+        self.attend_and_feed(tokens, qkv, kernel, masks)
+    }
+
+    /// The layer after its `q`, `k`, `v` projections: attention, `W_o`, the residual LayerNorms
+    /// and the feed-forward block.
+    fn attend_and_feed(
+        &self,
+        query: Tensor<3>,
+        [q, k, v]: [Tensor<3>; 3],
+        kernel: FusionKernel,
+        masks: [MaskSeed; 2],
+    ) -> Tensor<3> {
         let attn = linear_op::forward(&self.w_o, self.attend(q, k, v, kernel));
         let x = self.add_norm(
             &self.norm1,
@@ -251,15 +293,45 @@ impl Fusion {
         embed: Tensor<2>,
         masks: FusionMasks,
     ) -> Tensor<2> {
+        self.fuse(features, embed, masks, None)
+    }
+
+    /// [`Self::forward_with`] where the view tokens listed in `repeats` are known to repeat one
+    /// value (a vertex hidden in a view has the visibility embedding as its token there): their
+    /// first-layer `q`, `k`, `v` projections are computed once (design.md §7.4).
+    pub fn forward_repeated(
+        &self,
+        features: Tensor<3>,
+        embed: Tensor<2>,
+        masks: FusionMasks,
+        repeats: &RepeatedTokens,
+    ) -> Tensor<2> {
+        self.fuse(features, embed, masks, Some(repeats))
+    }
+
+    fn fuse(
+        &self,
+        features: Tensor<3>,
+        embed: Tensor<2>,
+        masks: FusionMasks,
+        repeats: Option<&RepeatedTokens>,
+    ) -> Tensor<2> {
         let [v, _, d] = features.dims();
         let kernel = FusionKernel::for_device(&features.device());
         let seeds = match masks {
             FusionMasks::Device => [MaskSeed::Device; 4],
             FusionMasks::Given(seeds) => seeds,
         };
-        let across_views =
-            self.views
-                .forward_with(features.clone(), features, kernel, [seeds[0], seeds[1]]);
+        let layer_masks = [seeds[0], seeds[1]];
+        let across_views = match repeats {
+            Some(repeats) => {
+                self.views
+                    .self_attention_repeated(features, repeats, kernel, layer_masks)
+            }
+            None => self
+                .views
+                .forward_with(features.clone(), features, kernel, layer_masks),
+        };
         self.query
             .forward_with(
                 embed.reshape([v, 1, d]),
@@ -301,11 +373,58 @@ pub enum FusionMasks {
     Given([MaskSeed; 4]),
 }
 
+/// Which of a `[V, N]` grid of view tokens repeat one value, so that the fusion's first layer
+/// projects each distinct row once ([`Fusion::forward_repeated`]).
+///
+/// `computed` `[U]` lists the flat token indices (`vertex·N + view`) whose rows are projected:
+/// every token that is its own, then one representative of the repeated ones.
+/// `token_from_computed` `[V·N]` gives, for each token, the position in `computed` of the row
+/// it takes.
+#[derive(Debug, Clone)]
+pub struct RepeatedTokens {
+    computed: Tensor<1, Int>,
+    token_from_computed: Tensor<1, Int>,
+}
+
+impl RepeatedTokens {
+    /// From a host mask over the flat tokens: `repeated[t]` is true where token `t` holds the
+    /// shared value. `None` when fewer than two tokens share it (nothing to save).
+    pub fn from_mask(repeated: &[bool], device: &Device) -> Option<Self> {
+        if repeated.iter().filter(|&&r| r).count() < 2 {
+            return None;
+        }
+        let mut computed: Vec<i64> = Vec::with_capacity(repeated.len());
+        let mut token_from_computed = vec![0i64; repeated.len()];
+        for (token, _) in repeated.iter().enumerate().filter(|(_, r)| !**r) {
+            token_from_computed[token] = computed.len() as i64;
+            computed.push(token as i64);
+        }
+        let shared = computed.len() as i64;
+        computed.push(repeated.iter().position(|&r| r).unwrap_or(0) as i64);
+        for (token, _) in repeated.iter().enumerate().filter(|(_, r)| **r) {
+            token_from_computed[token] = shared;
+        }
+        let index = |values: Vec<i64>| {
+            let n = values.len();
+            Tensor::<1, Int>::from_data(TensorData::new(values, [n]), device)
+        };
+        Some(Self {
+            computed: index(computed),
+            token_from_computed: index(token_from_computed),
+        })
+    }
+
+    /// The number of rows projected, `U`.
+    pub fn computed_rows(&self) -> usize {
+        self.computed.dims()[0]
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(deprecated)]
     use super::*;
-    use burn::tensor::{Distribution, TensorData};
+    use burn::tensor::Distribution;
 
     use lifegom_render::testing::read;
 
@@ -478,6 +597,111 @@ mod tests {
     }
 
     lifegom_render::cpu_backend_tests!(given_masks => given_masks_on_inference_weights);
+
+    /// Projecting repeated tokens once (`forward_repeated`) against the plain call, in training
+    /// (dropout on, the same masks): output, and the gradients of the per-view features, of the
+    /// shared value, of the vertex embeddings and of the first layer's projections. The tokens
+    /// are blended as the reconstructor blends them (`f·vis + e·(1 − vis)`), with vertices
+    /// hidden in some views, in every view, and in none.
+    fn repeated_tokens_equal_dense(device: &Device) {
+        let ad = device.clone().autodiff();
+        let (v, n, d) = (40usize, 3usize, 12usize);
+        let fusion = FusionConfig::new(d)
+            .with_n_heads(2)
+            .with_dropout(0.3)
+            .init(&ad);
+        let f = Tensor::<3>::random([v, n, d], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+        let e = Tensor::<1>::random([d], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+        let embed = Tensor::<2>::random([v, d], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+        // Vertex i: hidden in every view when i % 4 == 0, visible everywhere when i % 4 == 1,
+        // else hidden in the views below i % 3.
+        let visible: Vec<bool> = (0..v * n)
+            .map(|t| {
+                let (i, view) = (t / n, t % n);
+                match i % 4 {
+                    0 => false,
+                    1 => true,
+                    _ => view >= i % 3,
+                }
+            })
+            .collect();
+        let vis = Tensor::<3>::from_data(
+            TensorData::new(
+                visible.iter().map(|&x| f32::from(u8::from(x))).collect(),
+                [v, n, 1],
+            ),
+            &ad,
+        );
+        let hidden: Vec<bool> = visible.iter().map(|x| !x).collect();
+        let repeats = RepeatedTokens::from_mask(&hidden, &ad).expect("repeated tokens");
+        assert_eq!(
+            repeats.computed_rows(),
+            visible.iter().filter(|&&x| x).count() + 1
+        );
+        let masks = FusionMasks::Given(fusion.draw_mask_seeds(&ad).expect("a host device"));
+        let w = Tensor::<2>::random([v, d], Distribution::Normal(0.0, 1.0), &ad);
+        let run = |repeated: bool| {
+            // Built per run: a backward consumes the graph it walks.
+            let tokens = f.clone() * vis.clone()
+                + e.clone().reshape([1, 1, d]) * (vis.ones_like() - vis.clone());
+            let out = if repeated {
+                fusion.forward_repeated(tokens.clone(), embed.clone(), masks, &repeats)
+            } else {
+                fusion.forward_with(tokens.clone(), embed.clone(), masks)
+            };
+            let g = (out.clone() * w.clone()).sum().backward();
+            let mut all = vec![
+                read(out),
+                read(f.grad(&g).expect("feature gradient")),
+                read(e.grad(&g).expect("shared-value gradient")),
+                read(embed.grad(&g).expect("embedding gradient")),
+            ];
+            for lin in [&fusion.views.w_q, &fusion.views.w_k, &fusion.views.w_v] {
+                all.push(read(lin.weight.val().grad(&g).expect("weight gradient")));
+                let bias = lin.bias.as_ref().expect("biases").val();
+                all.push(read(bias.grad(&g).expect("bias gradient")));
+            }
+            all
+        };
+        let (got, want) = (run(true), run(false));
+        let names = [
+            "output", "d f", "d e", "d embed", "d W_q", "d b_q", "d W_k", "d b_k",
+        ];
+        let max_abs = |t: &[f32]| t.iter().fold(0f32, |m, x| m.max(x.abs()));
+        for (k, (a, b)) in got.iter().zip(&want).enumerate() {
+            if k == 7 {
+                // The key bias's gradient is zero in exact arithmetic (a softmax does not see a
+                // shift shared by all keys): both sides hold rounding noise, held to the scale
+                // of the key weights' gradient.
+                let noise = 1e-5 * max_abs(&want[6]);
+                assert!(
+                    max_abs(a) <= noise && max_abs(b) <= noise,
+                    "d b_k: {a:?} vs {b:?}"
+                );
+                continue;
+            }
+            let scale = max_abs(b).max(1e-3);
+            for (i, (x, y)) in a.iter().zip(b).enumerate() {
+                assert!(
+                    (x - y).abs() <= 2e-6 * scale,
+                    "{}[{i}]: repeated {x} vs plain {y}",
+                    names.get(k).unwrap_or(&"d W_v / d b_v")
+                );
+            }
+        }
+    }
+
+    lifegom_render::cpu_backend_tests!(repeated_tokens => repeated_tokens_equal_dense);
+
+    #[test]
+    fn repeated_tokens_index_tables() {
+        let device = Device::flex();
+        assert!(RepeatedTokens::from_mask(&[false, true, false], &device).is_none());
+        let r = RepeatedTokens::from_mask(&[true, false, true, true, false], &device).unwrap();
+        let ints = |t: Tensor<1, Int>| t.into_data().convert::<i64>().to_vec::<i64>().unwrap();
+        assert_eq!(ints(r.computed.clone()), [1, 4, 0]);
+        assert_eq!(ints(r.token_from_computed.clone()), [2, 0, 2, 2, 1]);
+    }
 
     #[test]
     fn fusion_ndarray() {
