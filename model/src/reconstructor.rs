@@ -658,12 +658,22 @@ impl Reconstructor {
                 Tensor::cat(face_vis, 1),
             )
         };
+        // On the CPU backends, the source tokens of hidden (vertex, view) pairs are all e_vis:
+        // 80–90 % of them at the small presets (BENCHMARKS.md, session 13), projected once in
+        // the fusion. The visibility is the no-gradient raster's result; reading it costs no
+        // sync on those backends.
+        let src_repeats = if runs_on_host(&state.xyz.device()) {
+            let host: Vec<f32> = readback::read("vertex visibility", vis.clone())?;
+            let hidden: Vec<bool> = host.iter().map(|&x| x < 0.5).collect();
+            RepeatedTokens::from_mask(&hidden, &state.xyz.device())
+        } else {
+            None
+        };
         let e_vis = self.visibility_embed.val().reshape([1, 1, d]);
 
         // Source branch, blended with e_vis where the vertex is hidden.
         let span = tracing::debug_span!("sampling").entered();
         let f_src = feats_src.sample(proj.uv.clone(), w, h)?;
-        let vis_tokens = vis.clone();
         let src = f_src * vis.clone() + e_vis.clone() * (vis.ones_like() - vis);
         // Rendered branch, blended by the previous render's soft alpha.
         let f_ren = feats_ren.sample(proj.uv.clone(), w, h)?;
@@ -672,16 +682,6 @@ impl Reconstructor {
         drop(span);
 
         let span = tracing::debug_span!("fusion").entered();
-        // On the CPU backends, the source tokens of hidden (vertex, view) pairs are all e_vis:
-        // 80–90 % of them at the small presets (BENCHMARKS.md, session 13). The visibility is
-        // the no-gradient raster's result; reading it here costs no sync on those backends.
-        let src_repeats = if runs_on_host(&state.xyz.device()) {
-            let host: Vec<f32> = readback::read("vertex visibility", vis_tokens)?;
-            let hidden: Vec<bool> = host.iter().map(|&x| x < 0.5).collect();
-            RepeatedTokens::from_mask(&hidden, &state.xyz.device())
-        } else {
-            None
-        };
         let (fused_src, fused_ren) =
             self.fuse_branches(src, ren, &state.embed, src_repeats.as_ref());
         drop(span);

@@ -3,7 +3,7 @@
 //!
 //! The kernels index flat, contiguous buffers, so the helpers here do three things:
 //! - bring Burn tensors into that layout ([`prepare`], [`prepare_i32`]) and wrap kernel outputs
-//!   back into tensors ([`tensor_of`], [`tensor_f32`]);
+//!   back into tensors ([`tensor_of`], [`tensor_f32`], [`cast_to`] the caller's dtype);
 //! - allocate buffers and turn them into kernel arguments ([`empty_u32`], [`zeros_f32`],
 //!   [`arg`], [`tensor_arg`], [`u32_bytes`] for uploads);
 //! - shape 1D launches ([`THREADS_1D`], [`count_1d`]) and read single values back
@@ -47,6 +47,16 @@ pub(crate) fn prepare(t: FloatTensor<CubeBackend>) -> CubeTensor {
         CubeBackend::float_cast(t, FloatDType::F32)
     };
     into_contiguous(t)
+}
+
+/// `t` in `dtype` (a no-op when it already is): the kernels compute in `f32`, and an op answers
+/// in its inputs' float type.
+pub(crate) fn cast_to(t: CubeTensor, dtype: DType) -> CubeTensor {
+    if t.dtype() == dtype {
+        t
+    } else {
+        CubeBackend::float_cast(t, dtype.into())
+    }
 }
 
 /// i32 and contiguous, the layout every int kernel argument is indexed in.

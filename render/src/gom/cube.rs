@@ -28,9 +28,9 @@ use burn_cubecl::cubecl::prelude::*;
 use super::cpu::{
     CORNER_LANES, DEGENERATE_ABS, DEGENERATE_REL, NORMAL_EPS2, OUT_LANES, SO3_THETA2_MIN,
 };
-use super::op::{GomGeometryOps, GomInputs, GomKernels, cast_to};
+use super::op::{GomGeometryOps, GomInputs, GomKernels};
 use crate::cube::host::{
-    ComputeClient, THREADS_1D, arg, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32,
+    ComputeClient, THREADS_1D, arg, cast_to, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32,
 };
 use crate::steiner::NORMAL_SCALE;
 
@@ -610,7 +610,7 @@ fn forward(inputs: GomInputs<CubeBackend>) -> FloatTensor<CubeBackend> {
             v as u32,
         );
     }
-    cast_to::<CubeBackend>(tensor_f32(&client, &device, out, &[f, OUT_LANES]), dtype)
+    cast_to(tensor_f32(&client, &device, out, &[f, OUT_LANES]), dtype)
 }
 
 /// The vertex buffer, or (with no vertices, when no table index is in range and the kernels
@@ -681,10 +681,10 @@ fn backward(
     }
     let per_face = |handle| tensor_f32(&client, &device, handle, &[f, 3]);
     [
-        cast_to::<CubeBackend>(tensor_f32(&client, &device, d_vertices, &[v, 3]), dtypes[0]),
-        cast_to::<CubeBackend>(per_face(d_so3), dtypes[1]),
-        cast_to::<CubeBackend>(per_face(d_scales), dtypes[2]),
-        cast_to::<CubeBackend>(per_face(d_offsets), dtypes[3]),
+        cast_to(tensor_f32(&client, &device, d_vertices, &[v, 3]), dtypes[0]),
+        cast_to(per_face(d_so3), dtypes[1]),
+        cast_to(per_face(d_scales), dtypes[2]),
+        cast_to(per_face(d_offsets), dtypes[3]),
     ]
 }
 

@@ -94,16 +94,6 @@ pub trait GomKernels: Backend {
     fn gom_backward(inputs: GomInputs<Self>, grad: FloatTensor<Self>) -> [FloatTensor<Self>; 4];
 }
 
-/// `t` in `dtype` (a no-op when it already is): the GPU kernels compute in `f32`, the op answers
-/// in its inputs' float type.
-pub(crate) fn cast_to<B: Backend>(t: FloatTensor<B>, dtype: DType) -> FloatTensor<B> {
-    if t.dtype() == dtype {
-        t
-    } else {
-        B::float_cast(t, dtype.into())
-    }
-}
-
 /// The inputs as host slices: lent in place where the backend allows it ([`HostLend`]).
 struct HostInputs<'a> {
     vertices: Cow<'a, [f32]>,

@@ -21,8 +21,9 @@ use burn_cubecl::cubecl::prelude::*;
 
 use super::op::{RowGatherKernels, RowGatherOps};
 use crate::cube::atomic::{AtomicAddF32, use_native_float_atomics};
-use crate::cube::host::{arg, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32, zeros_f32};
-use crate::gom::op::cast_to;
+use crate::cube::host::{
+    arg, cast_to, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32, zeros_f32,
+};
 
 /// One thread per element of `grad` (`[outer, count, inner]`): adds it to `out`
 /// (`[outer, rows, inner]`) at its row's index. Indices outside `0..rows` add nothing.
@@ -104,6 +105,6 @@ impl RowGatherKernels for CubeBackend {
                 launch!(u32);
             }
         }
-        cast_to::<Self>(tensor_f32(&client, &device, out, &source_shape), dtype)
+        cast_to(tensor_f32(&client, &device, out, &source_shape), dtype)
     }
 }
