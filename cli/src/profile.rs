@@ -9,6 +9,11 @@
 //! The CPU backends (ndarray, Flex) execute each op when it is called, so a span's time is the
 //! work done inside it. On wgpu a span only measures the time to enqueue.
 //!
+//! Beside the wall time, each path gets the CPU time the whole process used while the span was
+//! entered (`CLOCK_PROCESS_CPUTIME_ID`, all threads). Their ratio says how busy the cores were in
+//! that stage: about 1 for a stage that runs on one thread, up to the thread count for one that
+//! keeps them all working. That is where an idle core shows which stage leaves it idle.
+//!
 //! ```
 //! use lifegom_cli::profile::StageTimer;
 //! use tracing_subscriber::layer::SubscriberExt;
@@ -33,23 +38,58 @@ use tracing_subscriber::Layer;
 use tracing_subscriber::layer::Context;
 use tracing_subscriber::registry::LookupSpan;
 
-/// Accumulated wall time per span path. Clones share one table.
+/// Accumulated wall and process CPU time per span path. Clones share one table.
 #[derive(Debug, Clone, Default)]
 pub struct StageTimer {
-    totals: Arc<Mutex<BTreeMap<String, Duration>>>,
+    totals: Arc<Mutex<BTreeMap<String, StageTime>>>,
+}
+
+/// One span path's totals.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StageTime {
+    /// Wall time inside the span.
+    pub wall: Duration,
+    /// CPU time of the whole process (every thread) while inside the span; zero where the
+    /// platform has no process CPU clock.
+    pub cpu: Duration,
+}
+
+impl StageTime {
+    /// Process CPU seconds per wall second inside the span (`None` for an empty span).
+    pub fn cpu_per_wall(&self) -> Option<f64> {
+        (self.wall > Duration::ZERO).then(|| self.cpu.as_secs_f64() / self.wall.as_secs_f64())
+    }
 }
 
 /// What the layer keeps in each span's extensions.
 struct SpanClock {
     path: String,
-    entered: Option<Instant>,
+    /// Wall clock and process CPU clock when the span was entered.
+    entered: Option<(Instant, Duration)>,
 }
 
 impl StageTimer {
     /// The totals since the last call, emptying the table.
-    pub fn take(&self) -> BTreeMap<String, Duration> {
+    pub fn take(&self) -> BTreeMap<String, StageTime> {
         std::mem::take(&mut *self.totals.lock().unwrap_or_else(PoisonError::into_inner))
     }
+}
+
+/// CPU time used so far by every thread of this process, at nanosecond resolution (unlike
+/// [`process_cpu_times`], which counts clock ticks); zero off Unix.
+pub fn process_cpu_clock() -> Duration {
+    #[cfg(unix)]
+    {
+        let mut ts = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: `ts` is a valid, writable timespec for the duration of the call.
+        if unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) } == 0 {
+            return Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32);
+        }
+    }
+    Duration::ZERO
 }
 
 impl<S> Layer<S> for StageTimer
@@ -83,7 +123,7 @@ where
         if let Some(span) = ctx.span(id)
             && let Some(clock) = span.extensions_mut().get_mut::<SpanClock>()
         {
-            clock.entered = Some(Instant::now());
+            clock.entered = Some((Instant::now(), process_cpu_clock()));
         }
     }
 
@@ -93,9 +133,13 @@ where
         let Some(clock) = ext.get_mut::<SpanClock>() else {
             return;
         };
-        if let Some(start) = clock.entered.take() {
+        if let Some((wall, cpu)) = clock.entered.take() {
+            let wall = wall.elapsed();
+            let cpu = process_cpu_clock().saturating_sub(cpu);
             let mut totals = self.totals.lock().unwrap_or_else(PoisonError::into_inner);
-            *totals.entry(clock.path.clone()).or_default() += start.elapsed();
+            let total = totals.entry(clock.path.clone()).or_default();
+            total.wall += wall;
+            total.cpu += cpu;
         }
     }
 }
@@ -188,9 +232,12 @@ mod tests {
             let _t = tracing::trace_span!("kernel").entered();
         });
         let totals = timer.take();
-        let render = totals["step/render"];
+        let render = totals["step/render"].wall;
         assert!(render >= Duration::from_millis(6), "{totals:?}");
-        assert!(totals["step"] >= render, "a parent includes its children");
+        assert!(
+            totals["step"].wall >= render,
+            "a parent includes its children"
+        );
         assert!(!totals.keys().any(|k| k.contains("kernel")), "{totals:?}");
         assert!(timer.take().is_empty(), "take empties the table");
     }

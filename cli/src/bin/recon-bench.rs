@@ -8,7 +8,9 @@
 //!
 //! Random-initialised weights (timing does not depend on their values), source views rendered
 //! from the template, inference mode (no autodiff). Prints one JSON line: total and per-stage
-//! milliseconds of the median run, the parameter count, and the setup. The paper's anchor is
+//! milliseconds of the median run, the median wall time of every `tracing` span path inside the
+//! reconstruction (`spans_ms`, as `train-bench` keys them: summed over the T feedback steps, a
+//! parent including its children), the parameter count, and the setup. The paper's anchor is
 //! 907.92 ms for T = 3, 3 views, 1024², 2 subdivisions on one A100.
 
 use std::path::PathBuf;
@@ -19,12 +21,14 @@ use burn::module::Module;
 use burn::tensor::{Distribution, Tensor};
 use clap::{Parser, ValueEnum};
 use glam::Vec3;
+use lifegom_cli::profile::{StageTimer, median};
 use lifegom_model::reconstructor::{CanonicalSubject, ReconstructorConfig, SourceViews};
 use lifegom_render::camera::{Camera, Intrinsics};
 use lifegom_render::device::DeviceChoice;
 use lifegom_render::gom::GomMesh;
 use lifegom_render::skeleton::BodyPose;
 use lifegom_render::template::{BodyTemplate, full_template_path, lowres_template_path};
+use tracing_subscriber::layer::SubscriberExt;
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum Preset {
@@ -70,8 +74,10 @@ struct Args {
 
 fn main() -> anyhow::Result<()> {
     lifegom_cli::allocator::keep_freed_memory();
-    lifegom_cli::init_tracing();
     let args = Args::parse();
+    let timer = StageTimer::default();
+    tracing::subscriber::set_global_default(tracing_subscriber::registry().with(timer.clone()))
+        .context("installing the stage timer")?;
     let device = args.device.device();
     let path = args.template.clone().unwrap_or_else(|| match args.config {
         Preset::Tiny => lowres_template_path(),
@@ -127,7 +133,9 @@ fn main() -> anyhow::Result<()> {
     let mesh = GomMesh::new(&body.topology, args.subdiv, &device)?;
 
     let mut runs = Vec::new();
+    let mut spans: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
     for run in 0..=args.runs.max(1) {
+        timer.take();
         let start = Instant::now();
         let rec = model.forward(&subject, &mesh, &sources)?;
         // Reading the final colours back makes the time include all queued work.
@@ -135,6 +143,12 @@ fn main() -> anyhow::Result<()> {
         let total = start.elapsed().as_secs_f64() * 1e3;
         if run > 0 {
             runs.push((total, rec.timings));
+            for (path, t) in timer.take() {
+                spans
+                    .entry(path)
+                    .or_default()
+                    .push(t.wall.as_secs_f64() * 1e3);
+            }
         }
     }
     runs.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -169,6 +183,13 @@ fn main() -> anyhow::Result<()> {
         "total_ms": (total * 100.0).round() / 100.0,
         "ms_per_step": (steps.iter().sum::<f64>() / steps.len().max(1) as f64 * 100.0).round() / 100.0,
         "stages_ms": stage_ms,
+        "spans_ms": spans
+            .iter()
+            .map(|(path, ms)| {
+                let ms = median(ms).map(|m| (m * 100.0).round() / 100.0);
+                (path.clone(), serde_json::json!(ms))
+            })
+            .collect::<serde_json::Map<_, _>>(),
         "threads": rayon::current_num_threads(),
     });
     if !args.json {

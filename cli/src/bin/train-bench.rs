@@ -13,7 +13,9 @@
 //! peak resident memory, and the median milliseconds of every stage, keyed by span path
 //! (`profile` module docs), e.g. `train_step/reconstruct/feedback_step/render_views` (summed
 //! over the T feedback steps; the source and rendered fusion branches run on two threads, so
-//! their sum can exceed their parent). Each step's wall time also goes to stderr as it ends.
+//! their sum can exceed their parent). `stages_cpu_per_wall` gives, per stage, the process's
+//! CPU seconds per wall second inside it over all timed steps: a stage near 1.0 on a 2-core
+//! machine leaves one core idle. Each step's wall time also goes to stderr as it ends.
 //!
 //! If the config trains on its split (`[train] subjects = "split"`) and the split is missing, it
 //! is generated first, with at most `--subjects` training subjects (the timing does not depend on
@@ -177,6 +179,8 @@ fn main() -> anyhow::Result<()> {
     // Per mode: step, forward and backward seconds of its timed steps.
     let mut by_mode: std::collections::BTreeMap<String, [Vec<f64>; 3]> = Default::default();
     let mut stages: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
+    // Per stage, summed over the timed steps: wall and process CPU seconds.
+    let mut stage_cpu: std::collections::BTreeMap<String, [f64; 2]> = Default::default();
     let mut cpu_seconds = 0.0;
     let mut system_seconds = 0.0;
     let mut wall_seconds = 0.0;
@@ -227,7 +231,7 @@ fn main() -> anyhow::Result<()> {
         let stage = |name: &str| {
             totals
                 .get(&format!("step/train_step/{name}"))
-                .map_or(f64::NAN, |d| d.as_secs_f64())
+                .map_or(f64::NAN, |t| t.wall.as_secs_f64())
         };
         let mode_times = by_mode
             .entry(format!("{mode:?}").to_lowercase())
@@ -235,8 +239,11 @@ fn main() -> anyhow::Result<()> {
         mode_times[0].push(wall);
         mode_times[1].push(stage("reconstruct"));
         mode_times[2].push(stage("backward"));
-        for (path, d) in totals {
-            stages.entry(path).or_default().push(d.as_secs_f64());
+        for (path, t) in totals {
+            let sums = stage_cpu.entry(path.clone()).or_default();
+            sums[0] += t.wall.as_secs_f64();
+            sums[1] += t.cpu.as_secs_f64();
+            stages.entry(path).or_default().push(t.wall.as_secs_f64());
         }
     }
 
@@ -244,6 +251,16 @@ fn main() -> anyhow::Result<()> {
     let stage_ms: serde_json::Map<String, serde_json::Value> = stages
         .iter()
         .filter_map(|(path, v)| Some((path.clone(), ms(median(v)?))))
+        .collect();
+    let stage_cpu_per_wall: serde_json::Map<String, serde_json::Value> = stage_cpu
+        .iter()
+        .filter(|(_, [wall, _])| *wall > 0.0)
+        .map(|(path, [wall, cpu])| {
+            (
+                path.clone(),
+                serde_json::json!((cpu / wall * 100.0).round() / 100.0),
+            )
+        })
         .collect();
     let by_concurrency: serde_json::Map<String, serde_json::Value> = by_mode
         .iter()
@@ -283,6 +300,7 @@ fn main() -> anyhow::Result<()> {
         "concurrency": format!("{:?}", args.concurrency).to_lowercase(),
         "by_concurrency": by_concurrency,
         "stages_ms": stage_ms,
+        "stages_cpu_per_wall": stage_cpu_per_wall,
     });
     println!("{line}");
     Ok(())
