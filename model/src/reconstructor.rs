@@ -665,7 +665,7 @@ impl Reconstructor {
         let src_repeats = if runs_on_host(&state.xyz.device()) {
             let host: Vec<f32> = readback::read("vertex visibility", vis.clone())?;
             let hidden: Vec<bool> = host.iter().map(|&x| x < 0.5).collect();
-            RepeatedTokens::from_mask(&hidden, &state.xyz.device())
+            RepeatedTokens::from_mask(&hidden, n, &state.xyz.device())
         } else {
             None
         };

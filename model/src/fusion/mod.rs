@@ -179,6 +179,32 @@ impl AttentionLayer {
         masks: [MaskSeed; 2],
     ) -> Tensor<3> {
         let attn = linear_op::forward(&self.w_o, self.attend(q, k, v, kernel));
+        self.feed(query, attn, kernel, masks)
+    }
+
+    /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`: the attention's output after
+    /// `W_o`, before the residual (what [`Self::feed`] takes).
+    fn attention_output(
+        &self,
+        query: Tensor<3>,
+        context: Tensor<3>,
+        kernel: FusionKernel,
+    ) -> Tensor<3> {
+        let q = linear_op::forward(&self.w_q, query);
+        let k = linear_op::forward(&self.w_k, context.clone());
+        let v = linear_op::forward(&self.w_v, context);
+        linear_op::forward(&self.w_o, self.attend(q, k, v, kernel))
+    }
+
+    /// The layer after its attention: `x = LN₁(query + Dropout(attn))`, then
+    /// `LN₂(x + Dropout(FFN(x)))`.
+    fn feed(
+        &self,
+        query: Tensor<3>,
+        attn: Tensor<3>,
+        kernel: FusionKernel,
+        masks: [MaskSeed; 2],
+    ) -> Tensor<3> {
         let x = self.add_norm(
             &self.norm1,
             query,
@@ -322,6 +348,11 @@ impl Fusion {
             FusionMasks::Device => [MaskSeed::Device; 4],
             FusionMasks::Given(seeds) => seeds,
         };
+        if let Some(whole) = repeats.and_then(|r| r.whole.as_ref())
+            && self.masks_are_identity(&seeds)
+        {
+            return self.fuse_whole_vertices(features, embed, masks, whole, kernel);
+        }
         let layer_masks = [seeds[0], seeds[1]];
         let across_views = match repeats {
             Some(repeats) => {
@@ -340,6 +371,69 @@ impl Fusion {
                 [seeds[2], seeds[3]],
             )
             .reshape([v, d])
+    }
+
+    /// Whether none of the four masks drops anything (inference, or dropout 0): then a vertex
+    /// whose tokens all repeat one value has an output that depends on nothing else of it but
+    /// its embedding ([`Self::fuse_whole_vertices`]).
+    fn masks_are_identity(&self, seeds: &[MaskSeed; 4]) -> bool {
+        let layers = [&self.views, &self.views, &self.query, &self.query];
+        seeds.iter().zip(layers).all(|(seed, layer)| match seed {
+            MaskSeed::Off => true,
+            MaskSeed::Given(_) => layer.dropout.prob == 0.0,
+            MaskSeed::Device => false,
+        })
+    }
+
+    /// [`Self::fuse`] without dropout, where the vertices listed in `whole` have every token
+    /// equal to the repeated value (hidden in every view).
+    ///
+    /// For such a vertex the self-attention across views sees N equal tokens, so its N outputs
+    /// are one vector, the same for every such vertex. The cross-attention then has N equal keys:
+    /// its softmax is uniform whatever the query, and its output after `W_o` is one constant `c`
+    /// too. What is left per vertex is `x = LN₁(embed + c)` and the feed-forward block, 2·D² of
+    /// the layer pair's 28·D² multiply-adds per vertex. The other vertices take the full path
+    /// (their repeated tokens still projected once). Same values as the plain call up to the
+    /// order of float sums: the constant comes from one vertex's rows instead of every one's.
+    fn fuse_whole_vertices(
+        &self,
+        features: Tensor<3>,
+        embed: Tensor<2>,
+        masks: FusionMasks,
+        whole: &WholeVertices,
+        kernel: FusionKernel,
+    ) -> Tensor<2> {
+        let [_, _, d] = features.dims();
+        let h = whole.repeated_count;
+        let off = [MaskSeed::Off; 2];
+        // One wholly repeated vertex stands for all: its views, then the constant attention.
+        let first = whole.repeated.clone().slice(0..1);
+        let tokens = select_rows(features.clone(), 0, first.clone());
+        let across = self.views.forward_with(tokens.clone(), tokens, kernel, off);
+        let query = select_rows(embed.clone(), 0, first).reshape([1, 1, d]);
+        let constant = self.query.attention_output(query, across, kernel);
+        let repeated_embed =
+            select_rows(embed.clone(), 0, whole.repeated.clone()).reshape([h, 1, d]);
+        let repeated_out = self
+            .query
+            .feed(repeated_embed, constant.repeat_dim(0, h), kernel, off)
+            .reshape([h, d]);
+        let Some(kept) = &whole.kept else {
+            return repeated_out;
+        };
+        let kept_count = kept.vertices.dims()[0];
+        let kept_out = self.fuse(
+            select_rows(features, 0, kept.vertices.clone()),
+            select_rows(embed, 0, kept.vertices.clone()),
+            masks,
+            kept.tokens.as_ref(),
+        );
+        debug_assert_eq!(kept_out.dims(), [kept_count, d]);
+        select_rows(
+            Tensor::cat(vec![kept_out, repeated_out], 0),
+            0,
+            whole.vertex_from_stacked.clone(),
+        )
     }
 
     /// The four dropout masks one training call of [`Self::forward`] on `device` would apply,
@@ -379,20 +473,95 @@ pub enum FusionMasks {
 /// `computed` `[U]` lists the flat token indices (`vertex·N + view`) whose rows are projected:
 /// every token that is its own, then one representative of the repeated ones.
 /// `token_from_computed` `[V·N]` gives, for each token, the position in `computed` of the row
-/// it takes.
+/// it takes. `whole` lists the vertices all of whose tokens repeat the value, which a call
+/// without dropout computes once for all ([`Fusion`]'s `fuse_whole_vertices`).
 #[derive(Debug, Clone)]
 pub struct RepeatedTokens {
     computed: Tensor<1, Int>,
     token_from_computed: Tensor<1, Int>,
+    whole: Option<Box<WholeVertices>>,
+}
+
+/// The vertices of a [`RepeatedTokens`] grid whose every token is the repeated value.
+#[derive(Debug, Clone)]
+struct WholeVertices {
+    /// `[H]` their indices, ascending.
+    repeated: Tensor<1, Int>,
+    repeated_count: usize,
+    /// The other vertices; `None` when every vertex is wholly repeated.
+    kept: Option<KeptVertices>,
+    /// `[V]`: for each vertex, its row in `cat(kept, repeated)`.
+    vertex_from_stacked: Tensor<1, Int>,
+}
+
+/// The vertices with a token of their own, and the repeated tokens among theirs.
+#[derive(Debug, Clone)]
+struct KeptVertices {
+    /// `[S]` their indices, ascending.
+    vertices: Tensor<1, Int>,
+    /// Their `[S, N]` grid's repeated tokens (without wholly repeated vertices, by construction).
+    tokens: Option<RepeatedTokens>,
 }
 
 impl RepeatedTokens {
-    /// From a host mask over the flat tokens: `repeated[t]` is true where token `t` holds the
-    /// shared value. `None` when fewer than two tokens share it (nothing to save).
-    pub fn from_mask(repeated: &[bool], device: &Device) -> Option<Self> {
+    /// From a host mask over the flat tokens of `views` tokens per vertex: `repeated[t]` is
+    /// true where token `t` holds the shared value. `None` when fewer than two tokens share it
+    /// (nothing to save).
+    ///
+    /// # Panics
+    ///
+    /// If `views` is 0 or does not divide the mask's length.
+    pub fn from_mask(repeated: &[bool], views: usize, device: &Device) -> Option<Self> {
+        assert!(
+            views > 0 && repeated.len().is_multiple_of(views),
+            "{} tokens are not whole vertices of {views} views",
+            repeated.len()
+        );
         if repeated.iter().filter(|&&r| r).count() < 2 {
             return None;
         }
+        let (computed, token_from_computed) = Self::token_tables(repeated);
+        let whole_vertex = |vertex: &[bool]| vertex.iter().all(|&r| r);
+        let (mut kept, mut whole): (Vec<usize>, Vec<usize>) = (Vec::new(), Vec::new());
+        for (i, vertex) in repeated.chunks_exact(views).enumerate() {
+            if whole_vertex(vertex) {
+                whole.push(i);
+            } else {
+                kept.push(i);
+            }
+        }
+        // A single wholly repeated vertex saves nothing over the full path.
+        let whole = (whole.len() >= 2).then(|| {
+            let mut vertex_from_stacked = vec![0i64; kept.len() + whole.len()];
+            for (row, &vertex) in kept.iter().chain(&whole).enumerate() {
+                vertex_from_stacked[vertex] = row as i64;
+            }
+            let kept = (!kept.is_empty()).then(|| {
+                let kept_mask: Vec<bool> = kept
+                    .iter()
+                    .flat_map(|&i| repeated[i * views..(i + 1) * views].iter().copied())
+                    .collect();
+                KeptVertices {
+                    vertices: index_tensor(kept.iter().map(|&i| i as i64).collect(), device),
+                    tokens: Self::from_mask(&kept_mask, views, device),
+                }
+            });
+            Box::new(WholeVertices {
+                repeated_count: whole.len(),
+                repeated: index_tensor(whole.iter().map(|&i| i as i64).collect(), device),
+                kept,
+                vertex_from_stacked: index_tensor(vertex_from_stacked, device),
+            })
+        });
+        Some(Self {
+            computed: index_tensor(computed, device),
+            token_from_computed: index_tensor(token_from_computed, device),
+            whole,
+        })
+    }
+
+    /// `computed` and `token_from_computed` (type docs) of a flat mask.
+    fn token_tables(repeated: &[bool]) -> (Vec<i64>, Vec<i64>) {
         let mut computed: Vec<i64> = Vec::with_capacity(repeated.len());
         let mut token_from_computed = vec![0i64; repeated.len()];
         for (token, _) in repeated.iter().enumerate().filter(|(_, r)| !**r) {
@@ -404,20 +573,24 @@ impl RepeatedTokens {
         for (token, _) in repeated.iter().enumerate().filter(|(_, r)| **r) {
             token_from_computed[token] = shared;
         }
-        let index = |values: Vec<i64>| {
-            let n = values.len();
-            Tensor::<1, Int>::from_data(TensorData::new(values, [n]), device)
-        };
-        Some(Self {
-            computed: index(computed),
-            token_from_computed: index(token_from_computed),
-        })
+        (computed, token_from_computed)
     }
 
     /// The number of rows projected, `U`.
     pub fn computed_rows(&self) -> usize {
         self.computed.dims()[0]
     }
+
+    /// The number of vertices whose every token is the repeated value, where a call without
+    /// dropout computes them once for all (0 when fewer than two).
+    pub fn whole_vertices(&self) -> usize {
+        self.whole.as_ref().map_or(0, |w| w.repeated_count)
+    }
+}
+
+fn index_tensor(values: Vec<i64>, device: &Device) -> Tensor<1, Int> {
+    let n = values.len();
+    Tensor::<1, Int>::from_data(TensorData::new(values, [n]), device)
 }
 
 #[cfg(test)]
@@ -633,7 +806,7 @@ mod tests {
             &ad,
         );
         let hidden: Vec<bool> = visible.iter().map(|x| !x).collect();
-        let repeats = RepeatedTokens::from_mask(&hidden, &ad).expect("repeated tokens");
+        let repeats = RepeatedTokens::from_mask(&hidden, n, &ad).expect("repeated tokens");
         assert_eq!(
             repeats.computed_rows(),
             visible.iter().filter(|&&x| x).count() + 1
@@ -693,14 +866,123 @@ mod tests {
 
     lifegom_render::cpu_backend_tests!(repeated_tokens => repeated_tokens_equal_dense);
 
+    /// Without dropout, vertices hidden in every view computed once for all
+    /// (`fuse_whole_vertices`) against the plain call: inference on the plain device, and a
+    /// dropout-0 training call on autodiff, where the gradients of the features, the shared
+    /// value, the embeddings and every weight must agree too. Some vertices are hidden in every
+    /// view, some in a few, some in none; then every vertex is hidden.
+    fn whole_vertices_equal_dense(device: &Device) {
+        let (v, n, d) = (30usize, 3usize, 12usize);
+        // Vertex i: hidden in every view when i % 3 == 0, in the first view when i % 3 == 1.
+        let partly: Vec<bool> = (0..v * n)
+            .map(|t| match (t / n) % 3 {
+                0 => true,
+                1 => t % n == 0,
+                _ => false,
+            })
+            .collect();
+        let everywhere = vec![true; v * n];
+        for (hidden, whole) in [(&partly, v / 3), (&everywhere, v)] {
+            for ad in [device.clone(), device.clone().autodiff()] {
+                let fusion = FusionConfig::new(d)
+                    .with_n_heads(2)
+                    .with_dropout(if ad.is_autodiff() { 0.0 } else { 0.3 })
+                    .init(&ad);
+                let masks = fusion.draw_mask_seeds(&ad).expect("a host device");
+                assert_eq!(masks, [MaskSeed::Off; 4], "no mask: inference or dropout 0");
+                let repeats = RepeatedTokens::from_mask(hidden, n, &ad).expect("repeats");
+                assert_eq!(repeats.whole_vertices(), whole);
+                let tracked = |t: Tensor<3>| {
+                    if ad.is_autodiff() {
+                        t.require_grad()
+                    } else {
+                        t
+                    }
+                };
+                let normal = Distribution::Normal(0.0, 1.0);
+                let f = tracked(Tensor::<3>::random([v, n, d], normal, &ad));
+                let e = tracked(Tensor::<3>::random([1, 1, d], normal, &ad));
+                let embed = tracked(Tensor::<3>::random([v, 1, d], normal, &ad));
+                let vis = Tensor::<3>::from_data(
+                    TensorData::new(
+                        hidden.iter().map(|&x| f32::from(u8::from(!x))).collect(),
+                        [v, n, 1],
+                    ),
+                    &ad,
+                );
+                let w = Tensor::<2>::random([v, d], Distribution::Normal(0.0, 1.0), &ad);
+                let run = |repeated: bool| {
+                    let tokens =
+                        f.clone() * vis.clone() + e.clone() * (vis.ones_like() - vis.clone());
+                    let masks = FusionMasks::Given(masks);
+                    let query = embed.clone().reshape([v, d]);
+                    let out = if repeated {
+                        fusion.forward_repeated(tokens, query, masks, &repeats)
+                    } else {
+                        fusion.forward_with(tokens, query, masks)
+                    };
+                    let mut all = vec![read(out.clone())];
+                    if ad.is_autodiff() {
+                        let g = (out * w.clone()).sum().backward();
+                        all.push(read(e.grad(&g).expect("shared-value gradient")));
+                        all.push(read(embed.grad(&g).expect("embedding gradient")));
+                        if whole < v {
+                            all.push(read(f.grad(&g).expect("feature gradient")));
+                        }
+                        for layer in [&fusion.views, &fusion.query] {
+                            // With every vertex wholly hidden, each attention's keys are equal
+                            // and its W_q gradient is zero in exact arithmetic (a softmax over
+                            // equal scores does not move with the query): rounding noise on
+                            // both sides, not compared.
+                            let w_q = (whole < v).then_some(&layer.w_q);
+                            for lin in w_q
+                                .into_iter()
+                                .chain([&layer.w_o, &layer.w_v, &layer.fc1, &layer.fc2])
+                            {
+                                all.push(read(lin.weight.val().grad(&g).expect("weight")));
+                            }
+                            all.push(read(layer.norm1.gamma.val().grad(&g).expect("gamma")));
+                        }
+                    }
+                    all
+                };
+                let (got, want) = (run(true), run(false));
+                assert_eq!(got.len(), want.len());
+                for (k, (a, b)) in got.iter().zip(&want).enumerate() {
+                    let scale = b.iter().fold(1e-3f32, |m, x| m.max(x.abs()));
+                    for (i, (x, y)) in a.iter().zip(b).enumerate() {
+                        assert!(
+                            (x - y).abs() <= 1e-5 * scale,
+                            "part {k}[{i}] ({whole} of {v} wholly hidden, autodiff {}): \
+                             shortcut {x} vs plain {y}",
+                            ad.is_autodiff()
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    lifegom_render::cpu_backend_tests!(whole_vertices => whole_vertices_equal_dense);
+
     #[test]
     fn repeated_tokens_index_tables() {
         let device = Device::flex();
-        assert!(RepeatedTokens::from_mask(&[false, true, false], &device).is_none());
-        let r = RepeatedTokens::from_mask(&[true, false, true, true, false], &device).unwrap();
+        assert!(RepeatedTokens::from_mask(&[false, true, false], 1, &device).is_none());
+        let r = RepeatedTokens::from_mask(&[true, false, true, true, false], 1, &device).unwrap();
         let ints = |t: Tensor<1, Int>| t.into_data().convert::<i64>().to_vec::<i64>().unwrap();
         assert_eq!(ints(r.computed.clone()), [1, 4, 0]);
         assert_eq!(ints(r.token_from_computed.clone()), [2, 0, 2, 2, 1]);
+        // One view per vertex: vertices 0, 2 and 3 are wholly repeated, 1 and 4 kept.
+        let whole = r.whole.as_ref().expect("three wholly repeated vertices");
+        assert_eq!(ints(whole.repeated.clone()), [0, 2, 3]);
+        let kept = whole.kept.as_ref().expect("kept vertices");
+        assert_eq!(ints(kept.vertices.clone()), [1, 4]);
+        assert!(kept.tokens.is_none(), "the kept vertices repeat nothing");
+        assert_eq!(ints(whole.vertex_from_stacked.clone()), [2, 0, 3, 4, 1]);
+        // Two views: vertex 0 is wholly repeated, vertex 1 half; one whole vertex saves nothing.
+        let r = RepeatedTokens::from_mask(&[true, true, true, false], 2, &device).unwrap();
+        assert_eq!(r.whole_vertices(), 0);
     }
 
     #[test]
