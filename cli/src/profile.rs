@@ -9,10 +9,11 @@
 //! The CPU backends (ndarray, Flex) execute each op when it is called, so a span's time is the
 //! work done inside it. On wgpu a span only measures the time to enqueue.
 //!
-//! Beside the wall time, each path gets the CPU time the whole process used while the span was
-//! entered (`CLOCK_PROCESS_CPUTIME_ID`, all threads). Their ratio says how busy the cores were in
-//! that stage: about 1 for a stage that runs on one thread, up to the thread count for one that
-//! keeps them all working. That is where an idle core shows which stage leaves it idle.
+//! A timer made with [`StageTimer::with_process_cpu`] also gives each path the CPU time the whole
+//! process used while the span was entered (`CLOCK_PROCESS_CPUTIME_ID`, all threads). Their ratio
+//! says how busy the cores were in that stage: about 1 for a stage that runs on one thread, up to
+//! the thread count for one that keeps them all working, so an idle core shows which stage leaves
+//! it idle. Reading that clock is not free (its docs), so the plain timer leaves it out.
 //!
 //! ```
 //! use lifegom_cli::profile::StageTimer;
@@ -38,10 +39,12 @@ use tracing_subscriber::Layer;
 use tracing_subscriber::layer::Context;
 use tracing_subscriber::registry::LookupSpan;
 
-/// Accumulated wall and process CPU time per span path. Clones share one table.
+/// Accumulated wall (and, when asked for, process CPU) time per span path. Clones share one
+/// table.
 #[derive(Debug, Clone, Default)]
 pub struct StageTimer {
     totals: Arc<Mutex<BTreeMap<String, StageTime>>>,
+    process_cpu: bool,
 }
 
 /// One span path's totals.
@@ -49,8 +52,8 @@ pub struct StageTimer {
 pub struct StageTime {
     /// Wall time inside the span.
     pub wall: Duration,
-    /// CPU time of the whole process (every thread) while inside the span; zero where the
-    /// platform has no process CPU clock.
+    /// CPU time of the whole process (every thread) while inside the span; zero unless the
+    /// timer reads it ([`StageTimer::with_process_cpu`]) and the platform has the clock.
     pub cpu: Duration,
 }
 
@@ -69,6 +72,19 @@ struct SpanClock {
 }
 
 impl StageTimer {
+    /// A timer that also reads the process CPU clock at every span's entry and exit.
+    ///
+    /// That clock sums every thread's run time, and for a thread running on another core the
+    /// kernel first brings that thread's count up to date there: on the 2-core VM a training
+    /// step timed this way took about 10 % longer (BENCHMARKS.md, session 15). Use it to see
+    /// which stages leave a core idle, and the plain timer for step times.
+    pub fn with_process_cpu() -> Self {
+        Self {
+            process_cpu: true,
+            ..Self::default()
+        }
+    }
+
     /// The totals since the last call, emptying the table.
     pub fn take(&self) -> BTreeMap<String, StageTime> {
         std::mem::take(&mut *self.totals.lock().unwrap_or_else(PoisonError::into_inner))
@@ -123,7 +139,12 @@ where
         if let Some(span) = ctx.span(id)
             && let Some(clock) = span.extensions_mut().get_mut::<SpanClock>()
         {
-            clock.entered = Some((Instant::now(), process_cpu_clock()));
+            let cpu = if self.process_cpu {
+                process_cpu_clock()
+            } else {
+                Duration::ZERO
+            };
+            clock.entered = Some((Instant::now(), cpu));
         }
     }
 
@@ -135,7 +156,11 @@ where
         };
         if let Some((wall, cpu)) = clock.entered.take() {
             let wall = wall.elapsed();
-            let cpu = process_cpu_clock().saturating_sub(cpu);
+            let cpu = if self.process_cpu {
+                process_cpu_clock().saturating_sub(cpu)
+            } else {
+                Duration::ZERO
+            };
             let mut totals = self.totals.lock().unwrap_or_else(PoisonError::into_inner);
             let total = totals.entry(clock.path.clone()).or_default();
             total.wall += wall;

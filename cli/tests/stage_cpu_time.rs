@@ -21,7 +21,7 @@ fn span_cpu_time_counts_every_thread() {
     if !cfg!(target_os = "linux") {
         return;
     }
-    let timer = StageTimer::default();
+    let timer = StageTimer::with_process_cpu();
     let subscriber = tracing_subscriber::registry().with(timer.clone());
     tracing::subscriber::with_default(subscriber, || {
         {

@@ -357,7 +357,10 @@ impl PointTransformer {
         assert_eq!(three, 3, "positions must be [V, 3]");
         assert!(v > 0, "Point Transformer over zero points");
         assert_eq!(features.dims()[0], v, "one feature row per point");
-        let levels = self.hierarchy(positions.clone())?;
+        let levels = {
+            let _span = tracing::debug_span!("hierarchy").entered();
+            self.hierarchy(positions.clone())?
+        };
 
         // Encoder. The first transition-down (stride 1) consumes cat(p, x).
         let mut x = self.enc[0].down.forward_input(positions, features);
@@ -381,7 +384,10 @@ impl PointTransformer {
             y = block.forward(y, levels[last].rel.clone(), levels[last].nbr.clone());
         }
         for l in (0..last).rev() {
-            let interp = Interpolation::new(&levels[l], &levels[l + 1]);
+            let interp = {
+                let _span = tracing::debug_span!("interpolation").entered();
+                Interpolation::new(&levels[l], &levels[l + 1])
+            };
             y = self.dec[l].up.forward(skips.pop().unwrap(), y, &interp);
             for block in &self.dec[l].blocks {
                 y = block.forward(y, levels[l].rel.clone(), levels[l].nbr.clone());

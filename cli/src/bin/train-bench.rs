@@ -13,9 +13,11 @@
 //! peak resident memory, and the median milliseconds of every stage, keyed by span path
 //! (`profile` module docs), e.g. `train_step/reconstruct/feedback_step/render_views` (summed
 //! over the T feedback steps; the source and rendered fusion branches run on two threads, so
-//! their sum can exceed their parent). `stages_cpu_per_wall` gives, per stage, the process's
-//! CPU seconds per wall second inside it over all timed steps: a stage near 1.0 on a 2-core
-//! machine leaves one core idle. Each step's wall time also goes to stderr as it ends.
+//! their sum can exceed their parent). With `--stage-cpu` the line also has
+//! `stages_cpu_per_wall`: per stage, the process's CPU seconds per wall second inside it over all
+//! timed steps (a stage near 1.0 on a 2-core machine leaves one core idle); reading the process
+//! CPU clock at every span slows the step, so compare step times only between runs without it.
+//! Each step's wall time also goes to stderr as it ends.
 //!
 //! If the config trains on its split (`[train] subjects = "split"`) and the split is missing, it
 //! is generated first, with at most `--subjects` training subjects (the timing does not depend on
@@ -105,6 +107,9 @@ struct Args {
     /// How the model spreads a step over threads on the host (module docs).
     #[arg(long, value_enum, default_value = "branches")]
     concurrency: Concurrency,
+    /// Also time each stage's process CPU (`stages_cpu_per_wall`); slows the step (module docs).
+    #[arg(long)]
+    stage_cpu: bool,
     /// Training subjects to generate when the split is missing.
     #[arg(long, default_value_t = 3)]
     subjects: usize,
@@ -169,7 +174,11 @@ fn main() -> anyhow::Result<()> {
     let laplacian = UniformLaplacian::new(&rig.topology.faces, rig.num_vertices())?;
     let (w, h) = (cfg.file.data.img_size[0], cfg.file.data.img_size[1]);
 
-    let timer = StageTimer::default();
+    let timer = if args.stage_cpu {
+        StageTimer::with_process_cpu()
+    } else {
+        StageTimer::default()
+    };
     tracing::subscriber::set_global_default(tracing_subscriber::registry().with(timer.clone()))
         .context("installing the stage timer")?;
 
@@ -277,7 +286,7 @@ fn main() -> anyhow::Result<()> {
             )
         })
         .collect();
-    let line = serde_json::json!({
+    let mut line = serde_json::json!({
         "bench": "train-step",
         "config": stem,
         "preset": cfg.model.preset,
@@ -300,8 +309,10 @@ fn main() -> anyhow::Result<()> {
         "concurrency": format!("{:?}", args.concurrency).to_lowercase(),
         "by_concurrency": by_concurrency,
         "stages_ms": stage_ms,
-        "stages_cpu_per_wall": stage_cpu_per_wall,
     });
+    if args.stage_cpu {
+        line["stages_cpu_per_wall"] = serde_json::Value::Object(stage_cpu_per_wall);
+    }
     println!("{line}");
     Ok(())
 }
