@@ -134,10 +134,8 @@ impl AttentionLayer {
         kernel: FusionKernel,
         masks: [MaskSeed; 2],
     ) -> Tensor<3> {
-        let q = linear_op::forward(&self.w_q, query.clone());
-        let k = linear_op::forward(&self.w_k, context.clone());
-        let v = linear_op::forward(&self.w_v, context);
-        self.attend_and_feed(query, [q, k, v], kernel, masks)
+        let attn = self.attention_output(query.clone(), context, kernel);
+        self.feed(query, attn, kernel, masks)
     }
 
     /// Self-attention over `tokens` `[B, L, D]` (query = context), where the rows of
@@ -165,21 +163,9 @@ impl AttentionLayer {
             )
             .reshape([b, l, d])
         };
-        let qkv = [project(&self.w_q), project(&self.w_k), project(&self.w_v)];
-        self.attend_and_feed(tokens, qkv, kernel, masks)
-    }
-
-    /// The layer after its `q`, `k`, `v` projections: attention, `W_o`, the residual LayerNorms
-    /// and the feed-forward block.
-    fn attend_and_feed(
-        &self,
-        query: Tensor<3>,
-        [q, k, v]: [Tensor<3>; 3],
-        kernel: FusionKernel,
-        masks: [MaskSeed; 2],
-    ) -> Tensor<3> {
+        let (q, k, v) = (project(&self.w_q), project(&self.w_k), project(&self.w_v));
         let attn = linear_op::forward(&self.w_o, self.attend(q, k, v, kernel));
-        self.feed(query, attn, kernel, masks)
+        self.feed(tokens, attn, kernel, masks)
     }
 
     /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`: the attention's output after
