@@ -59,6 +59,17 @@ pub fn draw_seed(device: &burn::tensor::Device) -> u64 {
         })
 }
 
+/// Whether [`dropout_with`]`(layer, _, seed)` is the identity whatever the device: no mask
+/// (`Off`), or a given seed with no positive `prob`. What a `Device` seed does depends on the
+/// device and the training flag, so it does not count.
+pub fn drops_nothing(layer: &Dropout, seed: MaskSeed) -> bool {
+    match seed {
+        MaskSeed::Off => true,
+        MaskSeed::Given(_) => layer.prob <= 0.0 || layer.prob.is_nan(),
+        MaskSeed::Device => false,
+    }
+}
+
 /// [`dropout`] with the mask's seed chosen by the caller.
 pub fn dropout_with<const D: usize>(
     layer: &Dropout,
@@ -67,12 +78,13 @@ pub fn dropout_with<const D: usize>(
 ) -> Tensor<D> {
     let device = input.device();
     let seed = match seed {
-        MaskSeed::Given(seed) if layer.prob > 0.0 => seed,
-        MaskSeed::Given(_) | MaskSeed::Off => return input,
+        _ if drops_nothing(layer, seed) => return input,
+        MaskSeed::Given(seed) => seed,
         MaskSeed::Device if draws_host_mask(layer, &device) => draw_seed(&device),
         // Burn's own layer applies the same rule: the identity off training, autodiff or
-        // `prob > 0`, and on CubeCL devices its mask drawn on the device.
-        MaskSeed::Device => return layer.forward(input),
+        // `prob > 0`, and on CubeCL devices its mask drawn on the device. (`Off` drops
+        // nothing and returned above.)
+        MaskSeed::Device | MaskSeed::Off => return layer.forward(input),
     };
     let keep = 1.0 - layer.prob;
     let mask = host_mask(input.shape().num_elements(), keep, seed);

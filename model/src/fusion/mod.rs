@@ -29,7 +29,7 @@ use burn::tensor::activation::{relu, softmax};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::select::select_rows;
 
-use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with};
+use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with, drops_nothing};
 use crate::linear_op;
 use lifegom_render::device::runs_on_host;
 use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
@@ -364,11 +364,10 @@ impl Fusion {
     /// its embedding ([`Self::fuse_whole_vertices`]).
     fn masks_are_identity(&self, seeds: &[MaskSeed; 4]) -> bool {
         let layers = [&self.views, &self.views, &self.query, &self.query];
-        seeds.iter().zip(layers).all(|(seed, layer)| match seed {
-            MaskSeed::Off => true,
-            MaskSeed::Given(_) => layer.dropout.prob == 0.0,
-            MaskSeed::Device => false,
-        })
+        seeds
+            .iter()
+            .zip(layers)
+            .all(|(&seed, layer)| drops_nothing(&layer.dropout, seed))
     }
 
     /// [`Self::fuse`] without dropout, where the vertices listed in `whole` have every token
@@ -390,7 +389,7 @@ impl Fusion {
         kernel: FusionKernel,
     ) -> Tensor<2> {
         let [_, _, d] = features.dims();
-        let h = whole.repeated_count;
+        let h = whole.repeated.dims()[0];
         let off = [MaskSeed::Off; 2];
         // One wholly repeated vertex stands for all: its views, then the constant attention.
         let first = whole.repeated.clone().slice(0..1);
@@ -473,7 +472,6 @@ pub struct RepeatedTokens {
 struct WholeVertices {
     /// `[H]` their indices, ascending.
     repeated: Tensor<1, Int>,
-    repeated_count: usize,
     /// The other vertices; `None` when every vertex is wholly repeated.
     kept: Option<KeptVertices>,
     /// `[V]`: for each vertex, its row in `cat(kept, repeated)`.
@@ -533,7 +531,6 @@ impl RepeatedTokens {
                 }
             });
             Box::new(WholeVertices {
-                repeated_count: whole.len(),
                 repeated: index_tensor(whole.iter().map(|&i| i as i64).collect(), device),
                 kept,
                 vertex_from_stacked: index_tensor(vertex_from_stacked, device),
@@ -570,7 +567,7 @@ impl RepeatedTokens {
     /// The number of vertices whose every token is the repeated value, where a call without
     /// dropout computes them once for all (0 when fewer than two).
     pub fn whole_vertices(&self) -> usize {
-        self.whole.as_ref().map_or(0, |w| w.repeated_count)
+        self.whole.as_ref().map_or(0, |w| w.repeated.dims()[0])
     }
 }
 
