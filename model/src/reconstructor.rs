@@ -576,13 +576,8 @@ impl Reconstructor {
         };
         let source = || {
             let _span = tracing::debug_span!("source").entered();
-            match src_repeats {
-                Some(repeats) => {
-                    self.fusion
-                        .forward_repeated(src, embed.clone(), src_masks, repeats)
-                }
-                None => self.fusion.forward_with(src, embed.clone(), src_masks),
-            }
+            self.fusion
+                .forward_repeated(src, embed.clone(), src_masks, src_repeats)
         };
         // A rayon task, not a thread of its own: the pass runs on a rayon worker
         // (`on_pool_thread`), and a worker blocked joining a thread whose ops wait for the pool

@@ -305,23 +305,13 @@ impl Fusion {
         embed: Tensor<2>,
         masks: FusionMasks,
     ) -> Tensor<2> {
-        self.fuse(features, embed, masks, None)
+        self.forward_repeated(features, embed, masks, None)
     }
 
-    /// [`Self::forward_with`] where the view tokens listed in `repeats` are known to repeat one
-    /// value (a vertex hidden in a view has the visibility embedding as its token there): their
-    /// first-layer `q`, `k`, `v` projections are computed once (design.md §7.4).
+    /// [`Self::forward_with`] where the view tokens listed in `repeats`, if any, are known to
+    /// repeat one value (a vertex hidden in a view has the visibility embedding as its token
+    /// there): their first-layer `q`, `k`, `v` projections are computed once (design.md §7.4).
     pub fn forward_repeated(
-        &self,
-        features: Tensor<3>,
-        embed: Tensor<2>,
-        masks: FusionMasks,
-        repeats: &RepeatedTokens,
-    ) -> Tensor<2> {
-        self.fuse(features, embed, masks, Some(repeats))
-    }
-
-    fn fuse(
         &self,
         features: Tensor<3>,
         embed: Tensor<2>,
@@ -370,7 +360,7 @@ impl Fusion {
             .all(|(&seed, layer)| drops_nothing(&layer.dropout, seed))
     }
 
-    /// [`Self::fuse`] without dropout, where the vertices listed in `whole` have every token
+    /// [`Self::forward_repeated`] without dropout, where the vertices listed in `whole` have every token
     /// equal to the repeated value (hidden in every view).
     ///
     /// For such a vertex the self-attention across views sees N equal tokens, so its N outputs
@@ -407,7 +397,7 @@ impl Fusion {
             return repeated_out;
         };
         let kept_count = kept.vertices.dims()[0];
-        let kept_out = self.fuse(
+        let kept_out = self.forward_repeated(
             select_rows(features, 0, kept.vertices.clone()),
             select_rows(embed, 0, kept.vertices.clone()),
             masks,
@@ -801,7 +791,7 @@ mod tests {
             let tokens = f.clone() * vis.clone()
                 + e.clone().reshape([1, 1, d]) * (vis.ones_like() - vis.clone());
             let out = if repeated {
-                fusion.forward_repeated(tokens.clone(), embed.clone(), masks, &repeats)
+                fusion.forward_repeated(tokens.clone(), embed.clone(), masks, Some(&repeats))
             } else {
                 fusion.forward_with(tokens.clone(), embed.clone(), masks)
             };
@@ -900,7 +890,7 @@ mod tests {
                     let masks = FusionMasks::Given(masks);
                     let query = embed.clone().reshape([v, d]);
                     let out = if repeated {
-                        fusion.forward_repeated(tokens, query, masks, &repeats)
+                        fusion.forward_repeated(tokens, query, masks, Some(&repeats))
                     } else {
                         fusion.forward_with(tokens, query, masks)
                     };
