@@ -15,7 +15,8 @@
 //! | `render-bench`, `recon-bench`, `train-bench` | benchmarks, one JSON line each (BENCHMARKS.md) |
 //!
 //! The library part holds what the binaries share: start-up ([`allocator::keep_freed_memory`],
-//! [`init_tracing`], [`stop_on_ctrl_c`]), the training loop behind the train command ([`train_run`]) and the
+//! [`init_tracing`], [`stop_on_ctrl_c`]), the kernel-launch counter of the GPU benchmarks
+//! ([`launches`]), the training loop behind the train command ([`train_run`]) and the
 //! evaluation behind the eval command ([`eval_run`]).
 //!
 //! ```no_run
@@ -33,6 +34,7 @@ use anyhow::Context;
 
 pub mod allocator;
 pub mod eval_run;
+pub mod launches;
 pub mod profile;
 pub mod reconstruct_run;
 pub mod train_run;

@@ -12,6 +12,11 @@
 //! reconstruction (`spans_ms`, as `train-bench` keys them: summed over the T feedback steps, a
 //! parent including its children), the parameter count, and the setup. The paper's anchor is
 //! 907.92 ms for T = 3, 3 views, 1024², 2 subdivisions on one A100.
+//!
+//! On a CubeCL device (wgpu, CUDA) the line also has `kernel_launches` per reconstruction and
+//! `top_kernels` ([`lifegom_cli::launches`]); `--kernel-times` times every launch on the device
+//! too, which runs the kernels one at a time (the run's `total_ms` is then not the
+//! reconstruction's time).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -21,10 +26,11 @@ use burn::module::Module;
 use burn::tensor::{Distribution, Tensor};
 use clap::{Parser, ValueEnum};
 use glam::Vec3;
+use lifegom_cli::launches::{KernelTiming, LaunchCounter, LaunchTally};
 use lifegom_cli::profile::{StageTimer, median};
 use lifegom_model::reconstructor::{CanonicalSubject, ReconstructorConfig, SourceViews};
 use lifegom_render::camera::{Camera, Intrinsics};
-use lifegom_render::device::DeviceChoice;
+use lifegom_render::device::{DeviceChoice, runs_on_host};
 use lifegom_render::gom::GomMesh;
 use lifegom_render::skeleton::BodyPose;
 use lifegom_render::template::{BodyTemplate, full_template_path, lowres_template_path};
@@ -70,6 +76,12 @@ struct Args {
     /// Only the JSON line.
     #[arg(long)]
     json: bool,
+    /// On a CubeCL device, time every kernel launch too (module docs).
+    #[arg(long)]
+    kernel_times: bool,
+    /// How many kernels `top_kernels` lists.
+    #[arg(long, default_value_t = 15)]
+    top_kernels: usize,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -132,6 +144,14 @@ fn main() -> anyhow::Result<()> {
     };
     let mesh = GomMesh::new(&body.topology, args.subdiv, &device)?;
 
+    let launches = (!runs_on_host(&device)).then(|| {
+        LaunchCounter::install(if args.kernel_times {
+            KernelTiming::Resolved
+        } else {
+            KernelTiming::Off
+        })
+    });
+    let mut run_launches = Vec::new();
     let mut runs = Vec::new();
     let mut spans: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
     for run in 0..=args.runs.max(1) {
@@ -141,7 +161,9 @@ fn main() -> anyhow::Result<()> {
         // Reading the final colours back makes the time include all queued work.
         lifegom_render::device::wait_for_values(rec.last().faces.colors.clone());
         let total = start.elapsed().as_secs_f64() * 1e3;
+        let tally = launches.as_ref().map(LaunchCounter::take);
         if run > 0 {
+            run_launches.extend(tally);
             runs.push((total, rec.timings));
             for (path, t) in timer.take() {
                 spans
@@ -167,7 +189,7 @@ fn main() -> anyhow::Result<()> {
         .filter(|(n, _)| n.starts_with("step_"))
         .map(|(_, d)| d.as_secs_f64() * 1e3)
         .collect();
-    let line = serde_json::json!({
+    let mut line = serde_json::json!({
         "bench": "recon",
         "config": format!("{:?}", args.config).to_lowercase(),
         "backend": args.device.name(),
@@ -192,6 +214,13 @@ fn main() -> anyhow::Result<()> {
             .collect::<serde_json::Map<_, _>>(),
         "threads": rayon::current_num_threads(),
     });
+    for (key, value) in LaunchTally::json_fields(&run_launches, args.top_kernels) {
+        line[key] = value;
+    }
+    if launches.is_some() {
+        line["kernel_timing"] =
+            serde_json::json!(if args.kernel_times { "resolved" } else { "off" });
+    }
     if !args.json {
         eprintln!(
             "reconstruction: {total:.1} ms total ({} params, random weights)",

@@ -19,6 +19,12 @@
 //! CPU clock at every span slows the step, so compare step times only between runs without it.
 //! Each step's wall time also goes to stderr as it ends.
 //!
+//! On a CubeCL device (wgpu, CUDA) the line also has `kernel_launches`, the median kernel
+//! launches per step, and `top_kernels`, the kernels launched most per step
+//! ([`lifegom_cli::launches`]). With `--kernel-times` every launch is also timed on the device
+//! and `top_kernels` is ordered by device time; the kernels then run one at a time, so the step
+//! times of such a run are not the step's time.
+//!
 //! If the config trains on its split (`[train] subjects = "split"`) and the split is missing, it
 //! is generated first, with at most `--subjects` training subjects (the timing does not depend on
 //! how many there are), under `bench-data/<config>`. With `subjects = "procedural"` each step
@@ -36,11 +42,12 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Parser;
+use lifegom_cli::launches::{KernelTiming, LaunchCounter, LaunchTally};
 use lifegom_cli::profile::{StageTimer, median, peak_resident_mib, process_cpu_times};
 use lifegom_data::synth;
 use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::{HostConcurrency, MeshPurpose};
-use lifegom_render::device::DeviceChoice;
+use lifegom_render::device::{DeviceChoice, runs_on_host};
 use lifegom_train::config::{ExperimentConfig, TrainingSubjects};
 use lifegom_train::losses::UniformLaplacian;
 use lifegom_train::prefetch::Prefetcher;
@@ -113,6 +120,12 @@ struct Args {
     /// Training subjects to generate when the split is missing.
     #[arg(long, default_value_t = 3)]
     subjects: usize,
+    /// On a CubeCL device, time every kernel launch too (module docs).
+    #[arg(long)]
+    kernel_times: bool,
+    /// How many kernels `top_kernels` lists.
+    #[arg(long, default_value_t = 15)]
+    top_kernels: usize,
 }
 
 fn ms(seconds: f64) -> serde_json::Value {
@@ -182,6 +195,14 @@ fn main() -> anyhow::Result<()> {
     tracing::subscriber::set_global_default(tracing_subscriber::registry().with(timer.clone()))
         .context("installing the stage timer")?;
 
+    let launches = (!runs_on_host(&device)).then(|| {
+        LaunchCounter::install(if args.kernel_times {
+            KernelTiming::Resolved
+        } else {
+            KernelTiming::Off
+        })
+    });
+    let mut step_launches = Vec::new();
     let mut step_seconds = Vec::new();
     // Alternating, the sample of the pair's first step, for its second.
     let mut repeat = None;
@@ -221,6 +242,7 @@ fn main() -> anyhow::Result<()> {
         }
         let wall = start.elapsed().as_secs_f64();
         let totals = timer.take();
+        let step_tally = launches.as_ref().map(LaunchCounter::take);
         // A slow preset may be stopped before the JSON line: each step's time is on stderr.
         eprintln!(
             "{} step {}: {:.0} ms",
@@ -232,6 +254,7 @@ fn main() -> anyhow::Result<()> {
             continue;
         }
         step_seconds.push(wall);
+        step_launches.extend(step_tally);
         wall_seconds += wall;
         if let (Some(a), Some(b)) = (cpu_before, process_cpu_times()) {
             cpu_seconds += (b.user + b.system) - (a.user + a.system);
@@ -312,6 +335,13 @@ fn main() -> anyhow::Result<()> {
     });
     if args.stage_cpu {
         line["stages_cpu_per_wall"] = serde_json::Value::Object(stage_cpu_per_wall);
+    }
+    for (key, value) in LaunchTally::json_fields(&step_launches, args.top_kernels) {
+        line[key] = value;
+    }
+    if launches.is_some() {
+        line["kernel_timing"] =
+            serde_json::json!(if args.kernel_times { "resolved" } else { "off" });
     }
     println!("{line}");
     Ok(())

@@ -1,0 +1,313 @@
+//! Kernel launches on the CubeCL devices (wgpu, CUDA), counted at the launch site.
+//!
+//! At the quickstart's size a GPU training step is bound by how many kernels it launches, not by
+//! what they compute (BENCHMARKS.md, "On a GPU"): the launch count is the figure to drive down,
+//! and it needs no GPU to read, since lavapipe launches exactly the kernels a card does.
+//!
+//! CubeCL calls an installed [`LaunchObserver`] on the issuing thread for every kernel, before it
+//! reaches the server. [`LaunchCounter`] tallies those calls per kernel name; with
+//! [`KernelTiming::Resolved`] it also asks CubeCL to time each launch on the device and sums the
+//! durations. Resolved timing reads every measurement back before the next launch, so kernels
+//! run one at a time: the per-kernel times say where device time goes, and a step timed with
+//! them on is not the step's time (the benchmarks report both, and say which is which).
+//!
+//! ```no_run
+//! use lifegom_cli::launches::{KernelTiming, LaunchCounter};
+//! let counter = LaunchCounter::install(KernelTiming::Off);
+//! // ... one step on a wgpu device ...
+//! let step = counter.take();
+//! println!("{} launches", step.total_launches());
+//! ```
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::Duration;
+
+use burn_cubecl::cubecl::config::{TypeNameFormatLevel, type_name_format};
+use burn_cubecl::cubecl::logging::{
+    LaunchObservation, LaunchObserver, TimingMethod, TimingRequest,
+};
+
+/// Whether each launch is also timed on the device.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum KernelTiming {
+    /// Count only: launches run as they would unobserved.
+    #[default]
+    Off,
+    /// Time every launch, reading the measurement back before the next one (module docs).
+    Resolved,
+}
+
+/// One kernel's launches and device time over a stretch of work.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct KernelTally {
+    /// Launches issued.
+    pub launches: u64,
+    /// Summed device time of the timed launches (zero unless timing was asked for).
+    pub device_time: Duration,
+    /// Launches whose time came from the host clock around a blocking submit rather than a
+    /// device timestamp (wgpu falls back to it once its timestamp queries run out).
+    pub host_timed: u64,
+}
+
+/// Launch tallies over a stretch of work.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LaunchTally {
+    /// Per kernel, keyed by the kernel's short name (generics dropped, as CubeCL's own
+    /// profiling log names them).
+    pub kernels: BTreeMap<String, KernelTally>,
+    /// Launches per innermost `tracing` span open on the thread that issued them.
+    pub by_span: BTreeMap<String, u64>,
+}
+
+impl LaunchTally {
+    /// Every launch in the tally.
+    pub fn total_launches(&self) -> u64 {
+        self.kernels.values().map(|k| k.launches).sum()
+    }
+
+    /// Summed device time of every timed launch.
+    pub fn total_device_time(&self) -> Duration {
+        self.kernels.values().map(|k| k.device_time).sum()
+    }
+
+    /// Adds `other`'s tallies to this one's.
+    pub fn add(&mut self, other: &LaunchTally) {
+        for (name, k) in &other.kernels {
+            let mine = self.kernels.entry(name.clone()).or_default();
+            mine.launches += k.launches;
+            mine.device_time += k.device_time;
+            mine.host_timed += k.host_timed;
+        }
+        for (span, n) in &other.by_span {
+            *self.by_span.entry(span.clone()).or_default() += n;
+        }
+    }
+
+    /// The benchmark JSON fields for `per_step` tallies (one per timed step):
+    /// `kernel_launches` (median per step), and `top_kernels`, the `top` kernels by launches
+    /// per step (with device milliseconds per step when they were timed).
+    pub fn json_fields(
+        per_step: &[LaunchTally],
+        top: usize,
+    ) -> serde_json::Map<String, serde_json::Value> {
+        let mut fields = serde_json::Map::new();
+        if per_step.is_empty() {
+            return fields;
+        }
+        let totals: Vec<f64> = per_step.iter().map(|t| t.total_launches() as f64).collect();
+        let median = crate::profile::median(&totals).unwrap_or(f64::NAN);
+        fields.insert("kernel_launches".into(), serde_json::json!(median.round()));
+        let mut sum = LaunchTally::default();
+        for t in per_step {
+            sum.add(t);
+        }
+        let steps = per_step.len() as f64;
+        let timed = sum.total_device_time() > Duration::ZERO;
+        let mut kernels: Vec<(&String, &KernelTally)> = sum.kernels.iter().collect();
+        let key = |k: &KernelTally| {
+            if timed {
+                k.device_time.as_secs_f64()
+            } else {
+                k.launches as f64
+            }
+        };
+        kernels.sort_by(|a, b| key(b.1).total_cmp(&key(a.1)).then(a.0.cmp(b.0)));
+        let round2 = |x: f64| (x * 100.0).round() / 100.0;
+        let top_kernels: Vec<serde_json::Value> = kernels
+            .iter()
+            .take(top)
+            .map(|(name, k)| {
+                let mut entry = serde_json::json!({
+                    "kernel": name,
+                    "launches_per_step": round2(k.launches as f64 / steps),
+                });
+                if timed {
+                    entry["device_ms_per_step"] =
+                        serde_json::json!(round2(k.device_time.as_secs_f64() * 1e3 / steps));
+                }
+                entry
+            })
+            .collect();
+        fields.insert("top_kernels".into(), serde_json::Value::Array(top_kernels));
+        let by_span: serde_json::Map<String, serde_json::Value> = sum
+            .by_span
+            .iter()
+            .map(|(span, n)| (span.clone(), serde_json::json!(round2(*n as f64 / steps))))
+            .collect();
+        fields.insert(
+            "launches_per_step_by_span".into(),
+            serde_json::Value::Object(by_span),
+        );
+        if timed {
+            fields.insert(
+                "kernel_device_ms_per_step".into(),
+                serde_json::json!(round2(sum.total_device_time().as_secs_f64() * 1e3 / steps)),
+            );
+            let host_timed: u64 = sum.kernels.values().map(|k| k.host_timed).sum();
+            fields.insert("host_timed_launches".into(), serde_json::json!(host_timed));
+        }
+        fields
+    }
+}
+
+/// The observer CubeCL calls; its tally is shared with the [`LaunchCounter`] that installed it.
+struct Observer {
+    timing: KernelTiming,
+    tally: Mutex<BTreeMap<&'static str, KernelTally>>,
+    /// Launches per innermost `tracing` span open on the issuing thread: which stage of the
+    /// model issues them (the stage names of `train-bench`'s `stages_ms`).
+    by_span: Mutex<BTreeMap<&'static str, u64>>,
+}
+
+impl Observer {
+    fn with_kernel(&self, kernel: &'static str, f: impl FnOnce(&mut KernelTally)) {
+        // A panic elsewhere while the lock was held leaves counts that are still counts.
+        let mut tally = self.tally.lock().unwrap_or_else(PoisonError::into_inner);
+        f(tally.entry(kernel).or_default());
+    }
+}
+
+impl LaunchObserver for Observer {
+    fn launched(&self, kernel: &'static str) {
+        self.with_kernel(kernel, |k| k.launches += 1);
+        let span = tracing::Span::current()
+            .metadata()
+            .map_or("(no span)", |m| m.name());
+        *self
+            .by_span
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .entry(span)
+            .or_default() += 1;
+    }
+
+    fn timing(&self) -> TimingRequest {
+        match self.timing {
+            KernelTiming::Off => TimingRequest::None,
+            KernelTiming::Resolved => TimingRequest::Resolved,
+        }
+    }
+
+    fn timed(&self, kernel: &'static str, duration: Duration, method: TimingMethod) {
+        self.with_kernel(kernel, |k| {
+            k.device_time += duration;
+            if method == TimingMethod::System {
+                k.host_timed += 1;
+            }
+        });
+    }
+}
+
+/// Counts every kernel launch of the process from [`install`](Self::install) until it drops.
+///
+/// One at a time per process: CubeCL has a single observer slot, and a second counter replaces
+/// the first for its lifetime.
+pub struct LaunchCounter {
+    observer: Arc<Observer>,
+    _observation: LaunchObservation,
+}
+
+impl LaunchCounter {
+    /// Starts counting.
+    pub fn install(timing: KernelTiming) -> Self {
+        let observer = Arc::new(Observer {
+            timing,
+            tally: Mutex::new(BTreeMap::new()),
+            by_span: Mutex::new(BTreeMap::new()),
+        });
+        let _observation = LaunchObservation::new(observer.clone());
+        Self {
+            observer,
+            _observation,
+        }
+    }
+
+    /// The launches since the last call (or since installing), by short kernel name.
+    ///
+    /// Launches are counted when issued, so call this after the work's results were read back
+    /// (the benchmarks' steps end in a read-back) to attribute them to the right stretch.
+    pub fn take(&self) -> LaunchTally {
+        let raw = std::mem::take(
+            &mut *self
+                .observer
+                .tally
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner),
+        );
+        let by_span = std::mem::take(
+            &mut *self
+                .observer
+                .by_span
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner),
+        );
+        let mut tally = LaunchTally {
+            by_span: by_span
+                .into_iter()
+                .map(|(s, n)| (s.to_owned(), n))
+                .collect(),
+            ..LaunchTally::default()
+        };
+        for (kernel, k) in raw {
+            let name = type_name_format(kernel, TypeNameFormatLevel::Short);
+            let mine = tally.kernels.entry(name).or_default();
+            mine.launches += k.launches;
+            mine.device_time += k.device_time;
+            mine.host_timed += k.host_timed;
+        }
+        tally
+    }
+}
+
+impl std::fmt::Debug for LaunchCounter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LaunchCounter")
+            .field("timing", &self.observer.timing)
+            .finish_non_exhaustive()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The JSON fields: the median of the per-step totals and the top kernels, ordered by
+    /// launches, then by name.
+    #[test]
+    fn json_fields_median_and_top() {
+        let step = |pairs: &[(&str, u64)]| LaunchTally {
+            kernels: pairs
+                .iter()
+                .map(|(n, c)| {
+                    (
+                        n.to_string(),
+                        KernelTally {
+                            launches: *c,
+                            ..KernelTally::default()
+                        },
+                    )
+                })
+                .collect(),
+            by_span: [("fusion".to_owned(), pairs.iter().map(|(_, c)| c).sum())].into(),
+        };
+        let steps = [
+            step(&[("add", 10), ("mul", 5)]),
+            step(&[("add", 12), ("mul", 5), ("matmul", 1)]),
+            step(&[("add", 20), ("mul", 5)]),
+        ];
+        let fields = LaunchTally::json_fields(&steps, 2);
+        assert_eq!(fields["kernel_launches"], serde_json::json!(18.0));
+        let top = fields["top_kernels"].as_array().expect("an array");
+        assert_eq!(top.len(), 2);
+        assert_eq!(top[0]["kernel"], "add");
+        assert_eq!(top[0]["launches_per_step"], serde_json::json!(14.0));
+        assert_eq!(top[1]["kernel"], "mul");
+        assert_eq!(
+            fields["launches_per_step_by_span"]["fusion"],
+            serde_json::json!(19.33)
+        );
+        assert!(!fields.contains_key("kernel_device_ms_per_step"));
+        assert!(LaunchTally::json_fields(&[], 3).is_empty());
+    }
+}
