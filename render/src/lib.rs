@@ -53,7 +53,7 @@ macro_rules! in_precision {
 
 pub mod atomic_file;
 pub mod camera;
-pub(crate) mod cube;
+pub mod cube;
 pub mod device;
 pub mod error;
 pub mod gom;

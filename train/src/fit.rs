@@ -22,7 +22,9 @@ use burn::config::Config;
 use burn::module::{Module, Param, ParamGroup};
 use burn::optim::lr_scheduler::LrSchedulerConfig;
 use burn::optim::lr_scheduler::module_lr_scheduler::ModuleLrSchedulerConfig;
-use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::optim::{GradientsParams, ModuleOptimizer};
+
+use crate::adam::FusedAdamConfig;
 use burn::tensor::Tensor;
 use lifegom_model::avatar::Avatar;
 use lifegom_model::inputs::ModelInputs;
@@ -119,7 +121,7 @@ pub fn fit(
         offsets: ad(&start.faces.offsets),
         colors: ad(&start.faces.colors),
     };
-    let mut optim = ModuleOptimizer::from(AdamConfig::new().build());
+    let mut optim = ModuleOptimizer::from(FusedAdamConfig::default().init());
     let group = |m: Param<Tensor<2>>, lr: f64| (ParamGroup::ids_from_module(m), lr);
     let mut scheduler = [
         group(params.xyz.clone(), cfg.lr_xyz),

@@ -36,7 +36,10 @@
 //! - [`fit`]: per-scene optimisation of one avatar on its source views (the baseline learned
 //!   feedback competes with, and test-time refinement).
 //! - [`prefetch`]: the next step's sample read on another thread while this one computes.
+//! - [`adam`]: Adam with a one-kernel step per parameter on CubeCL devices (Burn's `Adam` on
+//!   the CPU backends), the trainer's optimizer.
 
+pub mod adam;
 pub mod config;
 pub mod fit;
 pub mod losses;

@@ -18,7 +18,9 @@ use std::time::Instant;
 use burn::module::ParamGroup;
 use burn::optim::lr_scheduler::LrSchedulerConfig;
 use burn::optim::lr_scheduler::module_lr_scheduler::{ModuleLearningRate, ModuleLrSchedulerConfig};
-use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::optim::{GradientsParams, ModuleOptimizer};
+
+use crate::adam::FusedAdamConfig;
 use burn::tensor::{Bytes, Device, Tensor};
 use lifegom_data::dataset::Dataset;
 use lifegom_model::inputs::ModelInputs;
@@ -215,7 +217,7 @@ impl Trainer {
         Self::assemble(
             model,
             config,
-            ModuleOptimizer::from(AdamConfig::new().build()),
+            ModuleOptimizer::from(FusedAdamConfig::default().init()),
             0,
             train,
             device,
@@ -277,7 +279,7 @@ impl Trainer {
                 meta.schedule_version
             )));
         }
-        let optim = ModuleOptimizer::from(AdamConfig::new().build())
+        let optim = ModuleOptimizer::from(FusedAdamConfig::default().init())
             .from_bytes(Bytes::from_bytes_vec(payload[8 + n..].to_vec()))
             .map_err(|e| bad(format!("optimizer state: {e}")))?;
         let train = TrainSection {

@@ -1,5 +1,6 @@
-//! Host-side helpers for launching CubeCL kernels on Burn's CubeCL backend, shared by the
-//! rasterizer (`rasterizer::cube`) and the triangle-ID rasterizer (`visibility::cube`).
+//! Host-side helpers for launching CubeCL kernels on Burn's CubeCL backend, shared by every
+//! CubeCL op of the workspace (the rasterizers, the GoM geometry, the row gather, the fused Adam
+//! step).
 //!
 //! The kernels index flat, contiguous buffers, so the helpers here do three things:
 //! - bring Burn tensors into that layout ([`prepare`], [`prepare_i32`]) and wrap kernel outputs
@@ -23,24 +24,24 @@ use burn_cubecl::tensor::CubeTensor;
 use burn_cubecl::{CubeBackend, CubeDevice};
 
 /// Client type used by the host functions.
-pub(crate) type ComputeClient = burn_cubecl::cubecl::client::Client;
+pub type ComputeClient = burn_cubecl::cubecl::client::Client;
 
 /// Threads per cube of the 1D kernels (one thread per Gaussian, face, pixel, chunk, ...).
-pub(crate) const THREADS_1D: u32 = 256;
+pub const THREADS_1D: u32 = 256;
 
 /// Largest number of cubes along one dispatch dimension.
 const MAX_CUBES_PER_DIM: u32 = 65_535;
 
 /// A 1D launch of `units` threads, split over a 2D grid of cubes where one row would exceed the
 /// 65535-cube dispatch limit. Kernels index with `ABSOLUTE_POS` and guard `< units`.
-pub(crate) fn count_1d(units: usize) -> CubeCount {
+pub fn count_1d(units: usize) -> CubeCount {
     let cubes = units.div_ceil(THREADS_1D as usize).max(1) as u32;
     let x = cubes.min(MAX_CUBES_PER_DIM);
     CubeCount::Static(x, cubes.div_ceil(x), 1)
 }
 
 /// f32 and contiguous, the layout every float kernel argument is indexed in.
-pub(crate) fn prepare(t: FloatTensor<CubeBackend>) -> CubeTensor {
+pub fn prepare(t: FloatTensor<CubeBackend>) -> CubeTensor {
     let t = if t.dtype() == DType::F32 {
         t
     } else {
@@ -51,7 +52,7 @@ pub(crate) fn prepare(t: FloatTensor<CubeBackend>) -> CubeTensor {
 
 /// `t` in `dtype` (a no-op when it already is): the kernels compute in `f32`, and an op answers
 /// in its inputs' float type.
-pub(crate) fn cast_to(t: CubeTensor, dtype: DType) -> CubeTensor {
+pub fn cast_to(t: CubeTensor, dtype: DType) -> CubeTensor {
     if t.dtype() == dtype {
         t
     } else {
@@ -60,7 +61,7 @@ pub(crate) fn cast_to(t: CubeTensor, dtype: DType) -> CubeTensor {
 }
 
 /// i32 and contiguous, the layout every int kernel argument is indexed in.
-pub(crate) fn prepare_i32(t: IntTensor<CubeBackend>) -> CubeTensor {
+pub fn prepare_i32(t: IntTensor<CubeBackend>) -> CubeTensor {
     let t = if t.dtype() == DType::I32 {
         t
     } else {
@@ -70,12 +71,12 @@ pub(crate) fn prepare_i32(t: IntTensor<CubeBackend>) -> CubeTensor {
 }
 
 /// Little-endian bytes of `values`, for `client.create_from_slice`.
-pub(crate) fn u32_bytes(values: &[u32]) -> Vec<u8> {
+pub fn u32_bytes(values: &[u32]) -> Vec<u8> {
     values.iter().flat_map(|v| v.to_le_bytes()).collect()
 }
 
 /// A contiguous tensor of `dtype` over a kernel's output buffer.
-pub(crate) fn tensor_of(
+pub fn tensor_of(
     client: &ComputeClient,
     device: &CubeDevice,
     handle: Handle,
@@ -92,7 +93,7 @@ pub(crate) fn tensor_of(
 }
 
 /// An f32 tensor over a kernel's output buffer.
-pub(crate) fn tensor_f32(
+pub fn tensor_f32(
     client: &ComputeClient,
     device: &CubeDevice,
     handle: Handle,
@@ -102,17 +103,17 @@ pub(crate) fn tensor_f32(
 }
 
 /// The kernel argument for a whole (prepared, contiguous) tensor.
-pub(crate) fn tensor_arg(t: &CubeTensor) -> BufferArg {
+pub fn tensor_arg(t: &CubeTensor) -> BufferArg {
     t.clone().into_buffer_arg()
 }
 
 /// A buffer of `len` u32 (or any other 4-byte element; at least one element).
-pub(crate) fn empty_u32(client: &ComputeClient, len: usize) -> Handle {
+pub fn empty_u32(client: &ComputeClient, len: usize) -> Handle {
     client.empty(4 * len.max(1))
 }
 
 /// A zero-filled f32 buffer of `len` elements (at least one).
-pub(crate) fn zeros_f32(client: &ComputeClient, device: &CubeDevice, len: usize) -> Handle {
+pub fn zeros_f32(client: &ComputeClient, device: &CubeDevice, len: usize) -> Handle {
     burn_cubecl::ops::numeric::zeros_client(
         client.clone(),
         device.clone(),
@@ -123,7 +124,7 @@ pub(crate) fn zeros_f32(client: &ComputeClient, device: &CubeDevice, len: usize)
 }
 
 /// The kernel argument for the first `len` elements of `handle`.
-pub(crate) fn arg(handle: &Handle, len: usize) -> BufferArg {
+pub fn arg(handle: &Handle, len: usize) -> BufferArg {
     // SAFETY: every handle passed here was allocated with at least `max(len, 1)` 4-byte elements.
     unsafe { BufferArg::from_raw_parts(handle.clone(), len.max(1)) }
 }
@@ -131,7 +132,7 @@ pub(crate) fn arg(handle: &Handle, len: usize) -> BufferArg {
 /// Reads the first `u32` of `handle` back to the host: a device sync. `what` names the value
 /// for the panic message; the callers are backend-extension ops, which cannot return errors,
 /// and a failed read here means the device itself is gone.
-pub(crate) fn read_u32(client: &ComputeClient, handle: Handle, what: &str) -> u32 {
+pub fn read_u32(client: &ComputeClient, handle: Handle, what: &str) -> u32 {
     let bytes = client
         .read_one(handle)
         .unwrap_or_else(|e| panic!("reading {what} back from the device: {e:?}"));

@@ -1,6 +1,7 @@
-//! What the crate's CubeCL ops share: the rasterizer's [`crate::rasterizer`] GPU path
+//! What the CubeCL ops share: the rasterizer's [`crate::rasterizer`] GPU path
 //! (`rasterizer::cube`), the triangle-ID rasterizer's (`visibility::cube`), the GoM geometry's
-//! (`gom::cube`) and the row gather's (`select::cube`).
+//! (`gom::cube`), the row gather's (`select::cube`), and the other crates' kernels (the fused
+//! Adam step of `lifegom-train`), which use [`host`] as their one home for launch plumbing.
 //!
 //! - [`atomic`]: float atomic adds in kernels, native or emulated with exchanges, and which one
 //!   a device gets.
@@ -10,5 +11,5 @@
 //!   launch scalars with named fields instead of a flat `&[f32]` with magic offsets.
 
 pub(crate) mod atomic;
-pub(crate) mod host;
+pub mod host;
 pub(crate) mod view;

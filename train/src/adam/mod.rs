@@ -1,0 +1,204 @@
+//! Adam in one kernel per parameter on CubeCL devices (design.md §9.4).
+//!
+//! Burn's `Adam` updates a parameter with about a dozen tensor ops (two moment updates, the
+//! square, the bias corrections, the square root, the division, the step), each one kernel on a
+//! GPU: about 3,900 of the 20,900 kernels a quickstart training step launched on wgpu
+//! (BENCHMARKS.md, "Kernel launches"). [`FusedAdam`] computes the same update in one kernel per
+//! parameter there ([`op::AdamStepOps`], `cube` module): read the parameter, its gradient and
+//! both moments, write all three back.
+//!
+//! - Its state is Burn's [`AdamState`]: checkpoints written with Burn's `Adam` load, and the
+//!   other way round.
+//! - On the CPU backends it *is* Burn's `Adam` (it calls it), so training there is unchanged to
+//!   the bit.
+//! - It does what `AdamConfig::new()` does: no weight decay, no AMSGrad, no gradient clipping
+//!   (the trainer uses none of them).
+
+pub(crate) mod cube;
+pub mod op;
+
+use burn::optim::{Adam, AdamConfig, AdamState, AdaptiveMomentumState, LearningRate, Optimizer};
+use burn::tensor::{Device, Tensor};
+use lifegom_render::device::runs_on_host;
+
+use op::{AdamScalars, MomentInputs};
+
+/// Adam's hyper-parameters (Burn's defaults).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FusedAdamConfig {
+    /// Decay of the first moment.
+    pub beta_1: f32,
+    /// Decay of the second moment.
+    pub beta_2: f32,
+    /// Added to the second moment's square root.
+    pub epsilon: f32,
+}
+
+impl Default for FusedAdamConfig {
+    /// Burn's `AdamConfig::new()`: β₁ = 0.9, β₂ = 0.999, ε = 1e-5.
+    fn default() -> Self {
+        Self {
+            beta_1: 0.9,
+            beta_2: 0.999,
+            epsilon: 1e-5,
+        }
+    }
+}
+
+impl FusedAdamConfig {
+    /// The optimizer.
+    pub fn init(self) -> FusedAdam {
+        FusedAdam {
+            config: self,
+            host: AdamConfig::new()
+                .with_beta_1(self.beta_1)
+                .with_beta_2(self.beta_2)
+                .with_epsilon(self.epsilon)
+                .build(),
+        }
+    }
+}
+
+/// Adam with a one-kernel step on CubeCL devices and Burn's `Adam` on the CPU backends (module
+/// docs).
+#[derive(Clone)]
+pub struct FusedAdam {
+    config: FusedAdamConfig,
+    /// Burn's Adam with the same hyper-parameters: the CPU path.
+    host: Adam,
+}
+
+impl std::fmt::Debug for FusedAdam {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FusedAdam")
+            .field("config", &self.config)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Optimizer for FusedAdam {
+    type State<const D: usize> = AdamState<D>;
+
+    fn step<const D: usize>(
+        &self,
+        lr: LearningRate,
+        tensor: Tensor<D>,
+        grad: Tensor<D>,
+        state: Option<Self::State<D>>,
+    ) -> (Tensor<D>, Option<Self::State<D>>) {
+        if runs_on_host(&tensor.device()) {
+            return self.host.step(lr, tensor, grad, state);
+        }
+        let (time, moments) = match state {
+            Some(AdamState { momentum }) => (
+                momentum.time + 1,
+                Some((momentum.moment_1, momentum.moment_2)),
+            ),
+            None => (1, None),
+        };
+        let scalars = AdamScalars::new(&self.config, time, lr);
+        let shape = tensor.shape();
+        let flat = |t: Tensor<D>| t.reshape([shape.num_elements()]).into_dispatch();
+        let grad = flat(grad);
+        let (inputs, moment_1, moment_2) = match moments {
+            Some((m, v)) => (MomentInputs::Given, flat(m), flat(v)),
+            None => (MomentInputs::Zero, grad.clone(), grad.clone()),
+        };
+        let (param, moment_1, moment_2) = <burn::backend::Dispatch as op::AdamStepOps>::adam_step(
+            flat(tensor),
+            grad,
+            moment_1,
+            moment_2,
+            inputs,
+            scalars,
+        );
+        let back = |t| Tensor::<1>::from_dispatch(t).reshape(shape.clone());
+        let momentum = AdaptiveMomentumState::new(time, back(moment_1), back(moment_2));
+        (back(param), Some(AdamState::new(momentum)))
+    }
+
+    fn to_device<const D: usize>(state: Self::State<D>, device: &Device) -> Self::State<D> {
+        <Adam as Optimizer>::to_device(state, device)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::TensorData;
+    use lifegom_render::device::DeviceChoice;
+    use lifegom_render::testing::{Rng, read, wgpu_test_device};
+
+    fn tensor(values: &[f32], shape: [usize; 2], device: &Device) -> Tensor<2> {
+        Tensor::from_data(TensorData::new(values.to_vec(), shape), device)
+    }
+
+    /// Four steps of [`FusedAdam`] and of Burn's `Adam` from the same parameter, with a fresh
+    /// gradient each step (one of them zero where the moments must decay alone): parameters and
+    /// both moments agree after every step, within `tolerance` relative to each value's scale.
+    fn check_against_burn_adam(device: &Device, tolerance: f32) {
+        let shape = [7, 5];
+        let n = 35;
+        let mut rng = Rng::new(3);
+        let mut draw =
+            |scale: f32| -> Vec<f32> { (0..n).map(|_| scale * rng.range_f32(-1.0, 1.0)).collect() };
+        let start = draw(1.0);
+        let grads: Vec<Vec<f32>> = vec![draw(1.0), draw(1e-3), vec![0.0; n], draw(10.0)];
+        let fused = FusedAdamConfig::default().init();
+        let burn_adam = AdamConfig::new().build();
+        let (mut p_fused, mut p_burn) =
+            (tensor(&start, shape, device), tensor(&start, shape, device));
+        let (mut s_fused, mut s_burn) = (None, None);
+        for (step, g) in grads.iter().enumerate() {
+            let lr = [1e-3, 5e-4, 1e-3, 2e-2][step];
+            (p_fused, s_fused) = fused.step(lr, p_fused, tensor(g, shape, device), s_fused);
+            (p_burn, s_burn) = burn_adam.step(lr, p_burn, tensor(g, shape, device), s_burn);
+            let (a, b): (&AdamState<2>, &AdamState<2>) = (
+                s_fused.as_ref().expect("a state"),
+                s_burn.as_ref().expect("a state"),
+            );
+            assert_eq!(a.momentum.time, b.momentum.time);
+            for (what, x, y) in [
+                ("parameter", p_fused.clone(), p_burn.clone()),
+                (
+                    "first moment",
+                    a.momentum.moment_1.clone(),
+                    b.momentum.moment_1.clone(),
+                ),
+                (
+                    "second moment",
+                    a.momentum.moment_2.clone(),
+                    b.momentum.moment_2.clone(),
+                ),
+            ] {
+                let (x, y) = (read(x), read(y));
+                let scale = y.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-30);
+                for (i, (u, v)) in x.iter().zip(&y).enumerate() {
+                    assert!(
+                        (u - v).abs() <= tolerance * scale,
+                        "step {}: {what}[{i}] = {u}, Burn's Adam {v}",
+                        step + 1
+                    );
+                }
+            }
+        }
+    }
+
+    /// On the CPU backends the fused optimizer is Burn's: equal to the bit.
+    #[test]
+    fn equals_burn_adam_on_cpu() {
+        for choice in DeviceChoice::CPU {
+            check_against_burn_adam(&choice.device(), 0.0);
+        }
+    }
+
+    /// On wgpu (lavapipe in CI) the one-kernel step agrees with Burn's op-by-op Adam to float
+    /// rounding (the kernel may contract a multiply and an add).
+    #[test]
+    fn matches_burn_adam_wgpu() {
+        let Some(device) = wgpu_test_device() else {
+            return;
+        };
+        check_against_burn_adam(&device, 1e-6);
+    }
+}
