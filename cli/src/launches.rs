@@ -1,4 +1,4 @@
-//! Kernel launches on the CubeCL devices (wgpu, CUDA), counted at the launch site.
+//! Kernel launches on the CubeCL devices (wgpu), counted at the launch site.
 //!
 //! At the quickstart's size a GPU training step is bound by how many kernels it launches, not by
 //! what they compute (BENCHMARKS.md, "On a GPU"): the launch count is the figure to drive down,
@@ -36,6 +36,25 @@ pub enum KernelTiming {
     Off,
     /// Time every launch, reading the measurement back before the next one (module docs).
     Resolved,
+}
+
+impl KernelTiming {
+    /// The benchmarks' `--kernel-times` flag.
+    pub fn from_flag(kernel_times: bool) -> Self {
+        if kernel_times {
+            Self::Resolved
+        } else {
+            Self::Off
+        }
+    }
+
+    /// The benchmark JSON's `kernel_timing` value.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Off => "off",
+            Self::Resolved => "resolved",
+        }
+    }
 }
 
 /// One kernel's launches and device time over a stretch of work.
@@ -209,6 +228,27 @@ pub struct LaunchCounter {
 }
 
 impl LaunchCounter {
+    /// Starts counting when `device` is a CubeCL device (wgpu); `None` on the CPU backends,
+    /// which launch no kernels.
+    pub fn on_cube_device(device: &burn::tensor::Device, timing: KernelTiming) -> Option<Self> {
+        (!lifegom_render::device::runs_on_host(device)).then(|| Self::install(timing))
+    }
+
+    /// The benchmark JSON fields of `per_step` tallies ([`LaunchTally::json_fields`]) and the
+    /// counter's `kernel_timing`.
+    pub fn json_fields(
+        &self,
+        per_step: &[LaunchTally],
+        top: usize,
+    ) -> serde_json::Map<String, serde_json::Value> {
+        let mut fields = LaunchTally::json_fields(per_step, top);
+        fields.insert(
+            "kernel_timing".into(),
+            serde_json::json!(self.observer.timing.name()),
+        );
+        fields
+    }
+
     /// Starts counting.
     pub fn install(timing: KernelTiming) -> Self {
         let observer = Arc::new(Observer {

@@ -13,7 +13,7 @@
 //! parent including its children), the parameter count, and the setup. The paper's anchor is
 //! 907.92 ms for T = 3, 3 views, 1024², 2 subdivisions on one A100.
 //!
-//! On a CubeCL device (wgpu, CUDA) the line also has `kernel_launches` per reconstruction and
+//! On a CubeCL device (wgpu) the line also has `kernel_launches` per reconstruction and
 //! `top_kernels` ([`lifegom_cli::launches`]); `--kernel-times` times every launch on the device
 //! too, which runs the kernels one at a time (the run's `total_ms` is then not the
 //! reconstruction's time).
@@ -26,11 +26,11 @@ use burn::module::Module;
 use burn::tensor::{Distribution, Tensor};
 use clap::{Parser, ValueEnum};
 use glam::Vec3;
-use lifegom_cli::launches::{KernelTiming, LaunchCounter, LaunchTally};
+use lifegom_cli::launches::{KernelTiming, LaunchCounter};
 use lifegom_cli::profile::{StageTimer, median};
 use lifegom_model::reconstructor::{CanonicalSubject, ReconstructorConfig, SourceViews};
 use lifegom_render::camera::{Camera, Intrinsics};
-use lifegom_render::device::{DeviceChoice, runs_on_host};
+use lifegom_render::device::DeviceChoice;
 use lifegom_render::gom::GomMesh;
 use lifegom_render::skeleton::BodyPose;
 use lifegom_render::template::{BodyTemplate, full_template_path, lowres_template_path};
@@ -144,13 +144,8 @@ fn main() -> anyhow::Result<()> {
     };
     let mesh = GomMesh::new(&body.topology, args.subdiv, &device)?;
 
-    let launches = (!runs_on_host(&device)).then(|| {
-        LaunchCounter::install(if args.kernel_times {
-            KernelTiming::Resolved
-        } else {
-            KernelTiming::Off
-        })
-    });
+    let launches =
+        LaunchCounter::on_cube_device(&device, KernelTiming::from_flag(args.kernel_times));
     let mut run_launches = Vec::new();
     let mut runs = Vec::new();
     let mut spans: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
@@ -214,12 +209,10 @@ fn main() -> anyhow::Result<()> {
             .collect::<serde_json::Map<_, _>>(),
         "threads": rayon::current_num_threads(),
     });
-    for (key, value) in LaunchTally::json_fields(&run_launches, args.top_kernels) {
-        line[key] = value;
-    }
-    if launches.is_some() {
-        line["kernel_timing"] =
-            serde_json::json!(if args.kernel_times { "resolved" } else { "off" });
+    if let Some(counter) = &launches {
+        for (key, value) in counter.json_fields(&run_launches, args.top_kernels) {
+            line[key] = value;
+        }
     }
     if !args.json {
         eprintln!(

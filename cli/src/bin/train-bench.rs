@@ -19,7 +19,7 @@
 //! CPU clock at every span slows the step, so compare step times only between runs without it.
 //! Each step's wall time also goes to stderr as it ends.
 //!
-//! On a CubeCL device (wgpu, CUDA) the line also has `kernel_launches`, the median kernel
+//! On a CubeCL device (wgpu) the line also has `kernel_launches`, the median kernel
 //! launches per step, and `top_kernels`, the kernels launched most per step
 //! ([`lifegom_cli::launches`]). With `--kernel-times` every launch is also timed on the device
 //! and `top_kernels` is ordered by device time; the kernels then run one at a time, so the step
@@ -42,12 +42,12 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Parser;
-use lifegom_cli::launches::{KernelTiming, LaunchCounter, LaunchTally};
+use lifegom_cli::launches::{KernelTiming, LaunchCounter};
 use lifegom_cli::profile::{StageTimer, median, peak_resident_mib, process_cpu_times};
 use lifegom_data::synth;
 use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::{HostConcurrency, MeshPurpose};
-use lifegom_render::device::{DeviceChoice, runs_on_host};
+use lifegom_render::device::DeviceChoice;
 use lifegom_train::config::{ExperimentConfig, TrainingSubjects};
 use lifegom_train::losses::UniformLaplacian;
 use lifegom_train::prefetch::Prefetcher;
@@ -195,13 +195,8 @@ fn main() -> anyhow::Result<()> {
     tracing::subscriber::set_global_default(tracing_subscriber::registry().with(timer.clone()))
         .context("installing the stage timer")?;
 
-    let launches = (!runs_on_host(&device)).then(|| {
-        LaunchCounter::install(if args.kernel_times {
-            KernelTiming::Resolved
-        } else {
-            KernelTiming::Off
-        })
-    });
+    let launches =
+        LaunchCounter::on_cube_device(&device, KernelTiming::from_flag(args.kernel_times));
     let mut step_launches = Vec::new();
     let mut step_seconds = Vec::new();
     // Alternating, the sample of the pair's first step, for its second.
@@ -336,12 +331,10 @@ fn main() -> anyhow::Result<()> {
     if args.stage_cpu {
         line["stages_cpu_per_wall"] = serde_json::Value::Object(stage_cpu_per_wall);
     }
-    for (key, value) in LaunchTally::json_fields(&step_launches, args.top_kernels) {
-        line[key] = value;
-    }
-    if launches.is_some() {
-        line["kernel_timing"] =
-            serde_json::json!(if args.kernel_times { "resolved" } else { "off" });
+    if let Some(counter) = &launches {
+        for (key, value) in counter.json_fields(&step_launches, args.top_kernels) {
+            line[key] = value;
+        }
     }
     println!("{line}");
     Ok(())
