@@ -2,14 +2,17 @@
 # GPU figures on a lent machine with an NVIDIA card (BENCHMARKS.md, "On a GPU"), in ONE call.
 #
 # Run from the repository root, with release binaries built on the development machine copied
-# into $BIN (the lent machine has no Rust toolchain) and the Vulkan loader's Debian packages in
-# .gl/ (the lent machine's image has the NVIDIA driver and its Vulkan ICD, but no loader):
+# into $BIN (the lent machine has no Rust toolchain) and the Vulkan loader's and glvnd's Debian
+# packages in .gl/ (the lent machine's image has the NVIDIA driver and its Vulkan ICD, but no
+# loader; with libvulkan1 alone the ICD finds no adapter):
+#
+#   (cd .gl && apt-get download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
 #
 #   cargo build --release --workspace --locked   # on the dev machine
 #   BIN=gpu-bin BIN_BEFORE=gpu-bin-before OUT=/tmp/gpu-out bash tools/gpu-figures.sh
 #
 # Every figure is one JSON line from a benchmark binary (recon-bench, train-bench, render-bench),
-# appended to $OUT/figures.jsonl with the step's name. On wgpu and CUDA the lines carry
+# appended to $OUT/figures.jsonl with the step's name. On wgpu the lines carry
 # `kernel_launches` and `top_kernels` (lifegom_cli::launches). The set, about 8 minutes:
 #   1. the quickstart training step and the paper-setting reconstruction on wgpu, alternated
 #      with the same commands from $BIN_BEFORE's binaries when it is set (a before/after pair
