@@ -41,8 +41,9 @@ fn adam_step_kernel(
         let mut m = g * one_minus_beta_1;
         let mut v = (g * g) * one_minus_beta_2;
         if first == 0 {
-            m = moment_1[i] * beta_1 + m;
-            v = moment_2[i] * beta_2 + v;
+            // Float addition commutes: the same sums as Burn's `m·β₁ + g·(1 − β₁)`.
+            m += moment_1[i] * beta_1;
+            v += moment_2[i] * beta_2;
         }
         moment_1_out[i] = m;
         moment_2_out[i] = v;
