@@ -3,9 +3,9 @@
 //! Burn's `Adam` updates a parameter with about a dozen tensor ops (two moment updates, the
 //! square, the bias corrections, the square root, the division, the step), each one kernel on a
 //! GPU: about 3,900 of the 20,900 kernels a quickstart training step launched on wgpu
-//! (BENCHMARKS.md, "Kernel launches"). [`FusedAdam`] computes the same update in one kernel per
-//! parameter there ([`op::AdamStepOps`], `cube` module): read the parameter, its gradient and
-//! both moments, write all three back.
+//! (BENCHMARKS.md, "Kernel launches per training step"). [`FusedAdam`] computes the same update
+//! in one kernel per parameter there ([`op::AdamStepOps`], `cube` module): read the parameter,
+//! its gradient and both moments, write all three back.
 //!
 //! - Its state is Burn's [`AdamState`]: checkpoints written with Burn's `Adam` load, and the
 //!   other way round.
