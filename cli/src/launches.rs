@@ -70,6 +70,15 @@ pub struct KernelTally {
     pub host_timed: u64,
 }
 
+impl KernelTally {
+    /// Adds `other`'s launches and times to this one's.
+    fn merge(&mut self, other: &KernelTally) {
+        self.launches += other.launches;
+        self.device_time += other.device_time;
+        self.host_timed += other.host_timed;
+    }
+}
+
 /// Launch tallies over a stretch of work.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct LaunchTally {
@@ -94,10 +103,7 @@ impl LaunchTally {
     /// Adds `other`'s tallies to this one's.
     pub fn add(&mut self, other: &LaunchTally) {
         for (name, k) in &other.kernels {
-            let mine = self.kernels.entry(name.clone()).or_default();
-            mine.launches += k.launches;
-            mine.device_time += k.device_time;
-            mine.host_timed += k.host_timed;
+            self.kernels.entry(name.clone()).or_default().merge(k);
         }
         for (span, n) in &other.by_span {
             *self.by_span.entry(span.clone()).or_default() += n;
@@ -292,10 +298,7 @@ impl LaunchCounter {
         };
         for (kernel, k) in raw {
             let name = type_name_format(kernel, TypeNameFormatLevel::Short);
-            let mine = tally.kernels.entry(name).or_default();
-            mine.launches += k.launches;
-            mine.device_time += k.device_time;
-            mine.host_timed += k.host_timed;
+            tally.kernels.entry(name).or_default().merge(&k);
         }
         tally
     }
