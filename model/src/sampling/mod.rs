@@ -22,23 +22,23 @@
 //! its bilinear weight if it lies inside the map and zero otherwise (zero padding), so a sample
 //! fades linearly to zero over the half pixel outside the border.
 //!
-//! The implementation is one row-`select` per level on a channel-last copy of the map
-//! (`[N·H·W, C]`, the four corners of all points fetched at once) followed by a weighted sum.
-//! Everything is a differentiable Burn op: gradients reach the map values (through the
-//! select's scatter-add backward) and the coordinates (through the fractional parts, whose
-//! derivative is exactly the bilinear slope). It runs unchanged on every backend and under
-//! `.autodiff()`. Burn's own `grid_sample_2d` is not used because its autodiff path is a
-//! generic decomposition with four `[N, C, P]` gathers per call, and the explicit version
-//! lets several levels share the coordinate work ([`PreparedMaps`]).
+//! [`PreparedMaps::sample`] computes this for a whole pyramid as one custom op ([`op`]): slice
+//! code with a hand-written backward on the CPU backends ([`bilinear`]) and CubeCL kernels on
+//! GPU devices (`cube`). Gradients reach the map values, the coordinates (through the bilinear
+//! slopes) and the last level's tail. Its specification, and the reference it is tested
+//! against, is plain Burn tensor ops ([`Level::sample_reference`]): one row-`select` per level
+//! on a channel-last copy of the map (`[N·H·W, C]`, the four corners of all points fetched at
+//! once) and a weighted sum. Burn's own `grid_sample_2d` is not used because its autodiff path
+//! is a generic decomposition with four `[N, C, P]` gathers per call.
 //!
 //! Non-finite coordinates (NaN, ±Inf) sample zero with zero gradient.
 
 use burn::tensor::{Bool, Int, Tensor, TensorData, s};
 use lifegom_render::camera::Camera;
-use lifegom_render::device::runs_on_host;
 use lifegom_render::select::select_rows;
 
 pub mod bilinear;
+mod cube;
 pub mod op;
 
 use bilinear::LevelShape;
@@ -195,21 +195,11 @@ enum Storage {
 /// How [`PreparedMaps::sample`] is computed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SampleKernel {
-    /// The fused custom op of [`op`] (CPU backends).
-    HostOp,
-    /// Burn tensor ops per level (CubeCL devices; the reference in tests).
+    /// The fused custom op of [`op`]: slice code on the CPU backends, CubeCL kernels on GPU
+    /// devices. What the model uses.
+    FusedOp,
+    /// Burn tensor ops per level: the specification the op is tested against.
     TensorOps,
-}
-
-impl SampleKernel {
-    /// The fast choice for `device`.
-    pub fn for_device(device: &burn::tensor::Device) -> Self {
-        if runs_on_host(device) {
-            Self::HostOp
-        } else {
-            Self::TensorOps
-        }
-    }
 }
 
 /// One level of [`PreparedMaps`].
@@ -226,14 +216,12 @@ pub struct Level {
 impl PreparedMaps {
     /// Takes the maps `[N, C_l, H_l, W_l]` (one batch size `N` for all levels).
     pub fn new(maps: &[Tensor<4>]) -> Result<Self, SamplingError> {
-        let kernel = SampleKernel::for_device(&Self::first(maps)?.device());
-        Self::with_kernel(maps, None, kernel)
+        Self::with_kernel(maps, None, SampleKernel::FusedOp)
     }
 
     /// [`Self::new`] with the last level mapped by `tail` `[C_last, C_out]` after sampling.
     pub fn with_tail(maps: &[Tensor<4>], tail: Tensor<2>) -> Result<Self, SamplingError> {
-        let kernel = SampleKernel::for_device(&Self::first(maps)?.device());
-        Self::with_kernel(maps, Some(tail), kernel)
+        Self::with_kernel(maps, Some(tail), SampleKernel::FusedOp)
     }
 
     fn first(maps: &[Tensor<4>]) -> Result<&Tensor<4>, SamplingError> {
@@ -279,7 +267,7 @@ impl PreparedMaps {
         }
         let channel_last = |map: &Tensor<4>| map.clone().permute([0, 2, 3, 1]);
         let storage = match kernel {
-            SampleKernel::HostOp => Storage::Flat(Box::new(Tensor::cat(
+            SampleKernel::FusedOp => Storage::Flat(Box::new(Tensor::cat(
                 maps.iter().map(|m| channel_last(m).reshape([-1])).collect(),
                 0,
             ))),
@@ -445,7 +433,7 @@ impl Level {
     }
 
     /// Map-pixel coordinates `[N, V]` → `[N, V, C]` as ordinary tensor ops: the specification
-    /// the fused op is tested against, and the implementation on CubeCL devices.
+    /// the fused op is tested against.
     #[doc(hidden)]
     pub fn sample_reference(&self, x: Tensor<2>, y: Tensor<2>) -> Tensor<3> {
         let [n, p] = x.dims();
@@ -926,8 +914,8 @@ mod tests {
     /// The fused op equals the tensor-op composition it replaces (per level
     /// [`Level::sample_reference`], then the tail's product and the concatenation), values and
     /// gradients (every level's maps, the coordinates and the tail), in f32, at points inside,
-    /// on the border and outside the maps, and at NaN. On CubeCL devices `sample` runs the
-    /// composition itself.
+    /// on the border and outside the maps, and at NaN and Inf: the CPU slice code and, on wgpu,
+    /// the CubeCL kernels (whose rows' gradient adds atomically, native or emulated).
     fn fused_matches_reference(device: &Device) {
         let ad = device.clone().autodiff();
         let mut rng = Rng::new(13);
@@ -983,7 +971,7 @@ mod tests {
             );
             parts.into_iter().map(read).collect::<Vec<_>>()
         };
-        let (fused, reference) = (run(SampleKernel::HostOp), run(SampleKernel::TensorOps));
+        let (fused, reference) = (run(SampleKernel::FusedOp), run(SampleKernel::TensorOps));
         let names = [
             "values",
             "uv gradient",
@@ -1015,6 +1003,20 @@ mod tests {
         );
     }
     lifegom_render::cpu_backend_tests!(fused_op_matches_reference => fused_matches_reference);
+
+    #[test]
+    fn fused_op_matches_reference_wgpu() {
+        let Some(device) = lifegom_render::testing::wgpu_test_device() else {
+            return;
+        };
+        fused_matches_reference(&device);
+        lifegom_render::rasterizer::force_emulated_float_atomics(true);
+        let result = std::panic::catch_unwind(|| fused_matches_reference(&device));
+        lifegom_render::rasterizer::force_emulated_float_atomics(false);
+        if let Err(panic) = result {
+            std::panic::resume_unwind(panic);
+        }
+    }
 
     /// Sampling at [`hide_invisible`] coordinates equals sampling and then multiplying by the
     /// visibility: values, map gradients and coordinate gradients, on several levels, with

@@ -1,21 +1,18 @@
-//! Bilinear sampling of a whole feature pyramid as one custom Burn op on the CPU backends
-//! (design.md §7.2).
+//! Bilinear sampling of a whole feature pyramid as one custom Burn op (design.md §7.2).
 //!
 //! [`BilinearSampleOps`] is a Burn backend extension like the renderer's: `#[backend_extension]`
 //! generates its `Dispatch` implementation, so [`super::PreparedMaps::sample`] calls it on plain
-//! tensors. It is implemented for NdArray and Flex (both run [`super::bilinear`]) and for
+//! tensors. It is implemented for NdArray and Flex (both run the slice code of
+//! [`super::bilinear`]), for Burn's CubeCL backend (the kernels of `super::cube`) and for
 //! `Autodiff<B, C>` over them. One call samples every level at the same image positions and
 //! writes all of them into one output, the last level through its per-texel linear tail (the
 //! encoder's rgb embedding). It replaces, per level and call, the map coordinates (a scale, a
 //! shift and a clamp per axis), about fifteen ops of index arithmetic, gather and weighted sum,
 //! and then a concatenation of the levels and the tail's product: on a CPU their intermediates
 //! and autodiff nodes cost more than the sampling, and the concatenation's backward handed each
-//! level a strided slice of the gradient to copy (BENCHMARKS.md, sessions 5 and 9).
-//!
-//! There is no CubeCL implementation: on a GPU the same tensor-op composition
-//! ([`super::Level::sample_reference`] per level, then the tail and the concatenation) already
-//! runs as parallel kernels, and `sample` routes CubeCL devices there
-//! (`lifegom_render::device::runs_on_host`).
+//! level a strided slice of the gradient to copy (BENCHMARKS.md, sessions 5 and 9); on a GPU
+//! each of those ops, forward and backward, was a kernel launch of its own (about 2,800 of a
+//! quickstart step's launches went to sampling's forward alone).
 //!
 //! The autodiff node keeps the op's inputs (handles, no copies); the backward recomputes each
 //! point's footprint, which costs about what storing it would.
@@ -58,7 +55,7 @@ pub struct PyramidLayout {
 /// `uv` `[N, P, 2]` image-pixel coordinates, `tail` `[C_last, C_out]`. Output
 /// `[P, N, Σ_{l<L−1} C_l + C_out]` in `rows`' float dtype; see [`Pyramid`] for the exact map.
 /// Gradients flow to all three inputs. Callers check shapes (see [`super::PreparedMaps`]).
-#[backend_extension(NdArray, Flex, Autodiff)]
+#[backend_extension(NdArray, Flex, Cube, Autodiff)]
 pub trait BilinearSampleOps: Backend {
     /// Samples every level of every view at its points.
     fn bilinear_sample(

@@ -4,7 +4,8 @@
 //! WGSL has no float atomics and some Vulkan devices lack them too, so each such kernel is
 //! generic over its slot type ([`AtomicAddF32`]): `f32` slots add natively, `u32` slots hold
 //! the bits and emulate the add with atomic exchanges. [`use_native_float_atomics`] picks one
-//! per device; [`FORCE_EMULATED`] makes tests cover the emulation on devices that have both.
+//! per device; `rasterizer::force_emulated_float_atomics` makes tests cover the
+//! emulation on devices that have both.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -18,8 +19,10 @@ use super::host::ComputeClient;
 /// `*slot += value` for an `f32` held in an atomic slot of type `Self`: `f32` slots use the
 /// native float atomic add; `u32` slots hold the bit pattern and emulate it with atomic
 /// exchanges, for runtimes without float atomics (WGSL has none).
+// The `#[cube]` expansion adds an undocumented `__expand_` twin of the method.
+#[allow(missing_docs)]
 #[cube]
-pub(crate) trait AtomicAddF32: CubePrimitive {
+pub trait AtomicAddF32: CubePrimitive {
     /// Adds `value` to `slot`.
     fn atomic_add_f32(slot: &Atomic<Self>, value: f32);
 }
@@ -60,7 +63,7 @@ pub(crate) static FORCE_EMULATED: AtomicBool = AtomicBool::new(false);
 
 /// Whether kernels add `f32` atomically in hardware: the runtime supports it (WGSL has no float
 /// atomics; some Vulkan devices do) and the emulation is not forced.
-pub(crate) fn use_native_float_atomics(client: &ComputeClient) -> bool {
+pub fn use_native_float_atomics(client: &ComputeClient) -> bool {
     !FORCE_EMULATED.load(Ordering::Relaxed)
         && client
             .properties()

@@ -3,13 +3,13 @@
 //! (`gom::cube`), the row gather's (`select::cube`), and the other crates' kernels (the fused
 //! Adam step of `lifegom-train`), which use [`host`] as their one home for launch plumbing.
 //!
-//! - `atomic` (crate-private): float atomic adds in kernels, native or emulated with
-//!   exchanges, and which one a device gets.
+//! - [`atomic`]: float atomic adds in kernels, native or emulated with exchanges, and which
+//!   one a device gets (public for the other crates' scatter kernels, as [`host`] is).
 //! - [`host`]: host-side plumbing — tensor preparation, buffer allocation, kernel arguments,
 //!   1D launch shapes, small read-backs. Nothing here is specific to one op.
 //! - `view` (crate-private): the camera record every projecting kernel takes (`ViewArgs`),
 //!   passed as launch scalars with named fields instead of a flat `&[f32]` with magic offsets.
 
-pub(crate) mod atomic;
+pub mod atomic;
 pub mod host;
 pub(crate) mod view;
