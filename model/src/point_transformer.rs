@@ -63,6 +63,12 @@
 //! this module, which would make γ/β trainable (the statistics would still be the running
 //! ones).
 //!
+//! The map, and each `Linear` it follows folded with it (`linear_bn`), is computed once per
+//! [`NormFolds`] and reused: the reconstructor keeps one for a whole reconstruction, whose T
+//! feedback passes run this network T times with the same weights. On a GPU each fold is five
+//! to eight kernel launches, about half of a pass's launches at the tiny preset before it was
+//! kept (BENCHMARKS.md, "Kernel launches per training step").
+//!
 //! # Parameter names (for the checkpoint importer)
 //!
 //! | PyTorch (`reconstructor.gom_encoder.…`) | Burn path |
@@ -85,6 +91,9 @@ use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::{relu, softmax};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::readback::{self, ReadbackError};
+use std::cell::RefCell;
+use std::collections::HashMap;
+use std::marker::PhantomData;
 
 use crate::knn::{Neighbours, farthest_point_sampling, knn};
 use crate::linear_op;
@@ -237,6 +246,69 @@ pub fn frozen_bn(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
         .freeze()
 }
 
+/// The frozen BatchNorms of a network as per-channel `(scale, shift)`, and the `Linear` layers
+/// they follow folded with them, each computed on first use and then reused (module docs).
+///
+/// Entries are keyed by the layers' addresses; the borrow `'a` of every layer passed in keeps
+/// them in place and unchanged while the folds live, so a key cannot come to name another
+/// layer. Folding is exact reuse: the same ops on the same values as folding on every use.
+#[derive(Debug, Default)]
+pub struct NormFolds<'a> {
+    /// By `BatchNorm` address: `(scale, shift)`, each `[C]`.
+    affine: RefCell<HashMap<usize, (Tensor<1>, Tensor<1>)>>,
+    /// By `Linear` address: the folded `(weight [in, out], bias [out])` of `linear_bn`.
+    linear: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
+    layers: PhantomData<&'a ()>,
+}
+
+impl<'a> NormFolds<'a> {
+    /// No folds yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The eval-mode BN as `x·scale + shift` per channel: `scale = γ/√(σ²+ε)`,
+    /// `shift = β − μ·scale`, each `[C]`.
+    fn affine(&self, bn: &'a BatchNorm, device: &Device) -> (Tensor<1>, Tensor<1>) {
+        let key = std::ptr::from_ref(bn) as usize;
+        if let Some(found) = self.affine.borrow().get(&key) {
+            return found.clone();
+        }
+        let mean = bn.running_mean.value().to_device(device);
+        let var = bn.running_var.value().to_device(device);
+        let scale = bn.gamma.val() / (var + bn.epsilon).sqrt();
+        let shift = bn.beta.val() - mean * scale.clone();
+        self.affine
+            .borrow_mut()
+            .insert(key, (scale.clone(), shift.clone()));
+        (scale, shift)
+    }
+
+    /// `BN(Linear(·))` as one affine layer: `(W·diag(scale), b·scale + shift)` (`b = 0` for a
+    /// layer without bias).
+    fn linear(
+        &self,
+        linear: &'a Linear,
+        bn: &'a BatchNorm,
+        device: &Device,
+    ) -> (Tensor<2>, Tensor<1>) {
+        let key = std::ptr::from_ref(linear) as usize;
+        if let Some(found) = self.linear.borrow().get(&key) {
+            return found.clone();
+        }
+        let (scale, shift) = self.affine(bn, device);
+        let weight = linear.weight.val() * scale.clone().unsqueeze_dim(0);
+        let bias = match &linear.bias {
+            Some(b) => b.val() * scale + shift,
+            None => shift,
+        };
+        self.linear
+            .borrow_mut()
+            .insert(key, (weight.clone(), bias.clone()));
+        (weight, bias)
+    }
+}
+
 /// Applies a frozen BatchNorm1d over the last axis of `x` (all leading axes are rows): the
 /// per-channel affine map `x·γ/√(σ²+ε) + (β − μ·γ/√(σ²+ε))` with the running statistics.
 ///
@@ -245,22 +317,16 @@ pub fn frozen_bn(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
 /// which matters on the `[n, k, c]` attention tensors; it also needs no reshape to put channels
 /// on axis 1. It uses the running statistics whatever the layer's training flag says (the flag
 /// is off anyway, see [`frozen_bn`]).
-fn bn_last<const D: usize>(bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
+fn bn_last<'a, const D: usize>(
+    folds: &NormFolds<'a>,
+    bn: &'a BatchNorm,
+    x: Tensor<D>,
+) -> Tensor<D> {
     let c = x.dims()[D - 1];
-    let (scale, shift) = bn_affine(bn, &x.device());
+    let (scale, shift) = folds.affine(bn, &x.device());
     let mut shape = [1; D];
     shape[D - 1] = c;
     x * scale.reshape(shape) + shift.reshape(shape)
-}
-
-/// The eval-mode BN as `x·scale + shift` per channel: `scale = γ/√(σ²+ε)`,
-/// `shift = β − μ·scale`, each `[C]`.
-fn bn_affine(bn: &BatchNorm, device: &Device) -> (Tensor<1>, Tensor<1>) {
-    let mean = bn.running_mean.value().to_device(device);
-    let var = bn.running_var.value().to_device(device);
-    let scale = bn.gamma.val() / (var + bn.epsilon).sqrt();
-    let shift = bn.beta.val() - mean * scale.clone();
-    (scale, shift)
 }
 
 /// `BN(Linear(x))` as one affine layer: the frozen BN's per-channel `scale`/`shift` folded into
@@ -269,14 +335,13 @@ fn bn_affine(bn: &BatchNorm, device: &Device) -> (Tensor<1>, Tensor<1>) {
 /// the BN's multiply and add (and their backward), and runs a bias-free layer through the
 /// Linear op too ([`linear_op`]). Equal to `bn_last(bn, linear.forward(x))` up to float
 /// summation order (tested below).
-fn linear_bn<const D: usize>(linear: &Linear, bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
-    let device = x.device();
-    let (scale, shift) = bn_affine(bn, &device);
-    let weight = linear.weight.val() * scale.clone().unsqueeze_dim(0);
-    let bias = match &linear.bias {
-        Some(b) => b.val() * scale + shift,
-        None => shift,
-    };
+fn linear_bn<'a, const D: usize>(
+    folds: &NormFolds<'a>,
+    linear: &'a Linear,
+    bn: &'a BatchNorm,
+    x: Tensor<D>,
+) -> Tensor<D> {
+    let (weight, bias) = folds.linear(linear, bn, &x.device());
     linear_op::affine(x, weight, Some(bias))
 }
 
@@ -353,6 +418,21 @@ impl PointTransformer {
         positions: Tensor<2>,
         features: Tensor<2>,
     ) -> Result<Tensor<2>, ReadbackError> {
+        self.forward_folded(&NormFolds::new(), positions, features)
+    }
+
+    /// [`Self::forward`] with the BN folds of `folds`, made on first use and kept there for the
+    /// next pass (module docs).
+    ///
+    /// # Panics
+    ///
+    /// As [`Self::forward`].
+    pub fn forward_folded<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        positions: Tensor<2>,
+        features: Tensor<2>,
+    ) -> Result<Tensor<2>, ReadbackError> {
         let [v, three] = positions.dims();
         assert_eq!(three, 3, "positions must be [V, 3]");
         assert!(v > 0, "Point Transformer over zero points");
@@ -363,34 +443,40 @@ impl PointTransformer {
         };
 
         // Encoder. The first transition-down (stride 1) consumes cat(p, x).
-        let mut x = self.enc[0].down.forward_input(positions, features);
+        let mut x = self.enc[0].down.forward_input(folds, positions, features);
         let mut skips = Vec::with_capacity(self.enc.len());
         for (l, stage) in self.enc.iter().enumerate() {
             x = match (l, &levels[l].down) {
                 (0, _) => x,
-                (_, None) => stage.down.forward_pointwise(x),
-                (_, Some((idx, rel))) => stage.down.forward_grouped(x, idx.clone(), rel.clone()),
+                (_, None) => stage.down.forward_pointwise(folds, x),
+                (_, Some((idx, rel))) => {
+                    stage
+                        .down
+                        .forward_grouped(folds, x, idx.clone(), rel.clone())
+                }
             };
             for block in &stage.blocks {
-                x = block.forward(x, levels[l].rel.clone(), levels[l].nbr.clone());
+                x = block.forward(folds, x, levels[l].rel.clone(), levels[l].nbr.clone());
             }
             skips.push(x.clone());
         }
 
         // Decoder, coarsest first.
         let last = self.dec.len() - 1;
-        let mut y = self.dec[last].up.forward_head(skips.pop().unwrap());
+        let mut y = self.dec[last].up.forward_head(folds, skips.pop().unwrap());
         for block in &self.dec[last].blocks {
-            y = block.forward(y, levels[last].rel.clone(), levels[last].nbr.clone());
+            y = block.forward(folds, y, levels[last].rel.clone(), levels[last].nbr.clone());
         }
         for l in (0..last).rev() {
             let interp = {
                 let _span = tracing::debug_span!("interpolation").entered();
                 Interpolation::new(&levels[l], &levels[l + 1])
             };
-            y = self.dec[l].up.forward(skips.pop().unwrap(), y, &interp);
+            y = self.dec[l]
+                .up
+                .forward(folds, skips.pop().unwrap(), y, &interp);
             for block in &self.dec[l].blocks {
-                y = block.forward(y, levels[l].rel.clone(), levels[l].nbr.clone());
+                y = block.forward(folds, y, levels[l].rel.clone(), levels[l].nbr.clone());
             }
         }
         Ok(y)
@@ -447,29 +533,27 @@ pub struct TransitionDown {
 
 impl TransitionDown {
     /// Stride 1: `ReLU(BN(Linear(x)))`, `[n, in] → [n, out]`.
-    pub fn forward_pointwise(&self, x: Tensor<2>) -> Tensor<2> {
-        relu(linear_bn(&self.linear, &self.bn, x))
+    pub fn forward_pointwise<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
+        relu(linear_bn(folds, &self.linear, &self.bn, x))
     }
 
     /// Stride 1 on `cat(p, x)` without forming it: `p·W[0..3] + x·W[3..]`. For the paper's
     /// 2307-wide input the concatenation would copy the whole `[V, 2307]` feature matrix (and
     /// its gradient) for three extra columns.
-    pub fn forward_input(&self, positions: Tensor<2>, features: Tensor<2>) -> Tensor<2> {
-        let w = self.linear.weight.val();
-        let [d_in, d_out] = w.dims();
+    pub fn forward_input<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        positions: Tensor<2>,
+        features: Tensor<2>,
+    ) -> Tensor<2> {
+        let [d_in, d_out] = self.linear.weight.dims();
         assert_eq!(
             features.dims()[1] + 3,
             d_in,
             "features must be [V, in_dim − 3]"
         );
         // The BN folded into the layer as in `linear_bn`; the feature block carries the bias.
-        let device = features.device();
-        let (scale, shift) = bn_affine(&self.bn, &device);
-        let w = w * scale.clone().unsqueeze_dim(0);
-        let bias = match &self.linear.bias {
-            Some(b) => b.val() * scale + shift,
-            None => shift,
-        };
+        let (w, bias) = folds.linear(&self.linear, &self.bn, &features.device());
         let w_features = w.clone().slice([3..d_in, 0..d_out]);
         let from_features = linear_op::affine(features, w_features, Some(bias));
         relu(positions.matmul(w.slice([0..3, 0..d_out])) + from_features)
@@ -477,11 +561,18 @@ impl TransitionDown {
 
     /// Stride > 1: `x` `[n, in]` of the previous level, `idx` `[m·k]` neighbour indices into
     /// it and `rel` `[m, k, 3]` their positions relative to the sampled points → `[m, out]`.
-    pub fn forward_grouped(&self, x: Tensor<2>, idx: Tensor<1, Int>, rel: Tensor<3>) -> Tensor<2> {
+    pub fn forward_grouped<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        x: Tensor<2>,
+        idx: Tensor<1, Int>,
+        rel: Tensor<3>,
+    ) -> Tensor<2> {
         let [m, k, _] = rel.dims();
         let c_in = x.dims()[1];
         let grouped = select_rows(x, 0, idx).reshape([m, k, c_in]);
         let h = relu(linear_bn(
+            folds,
             &self.linear,
             &self.bn,
             Tensor::cat(vec![rel, grouped], 2),
@@ -522,11 +613,18 @@ impl PointTransformerBlock {
     }
 
     /// `x` `[n, c]` with the level's self-kNN (`rel` `[n, k, 3]`, `nbr` `[n·k]`) → `[n, c]`.
-    pub fn forward(&self, x: Tensor<2>, rel: Tensor<3>, nbr: Tensor<1, Int>) -> Tensor<2> {
+    pub fn forward<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        x: Tensor<2>,
+        rel: Tensor<3>,
+        nbr: Tensor<1, Int>,
+    ) -> Tensor<2> {
         let identity = x.clone();
-        let h = relu(linear_bn(&self.linear1, &self.bn1, x));
-        let h = relu(bn_last(&self.bn2, self.transformer2.forward(h, rel, nbr)));
-        let h = linear_bn(&self.linear3, &self.bn3, h);
+        let h = relu(linear_bn(folds, &self.linear1, &self.bn1, x));
+        let h = self.transformer2.forward(folds, h, rel, nbr);
+        let h = relu(bn_last(folds, &self.bn2, h));
+        let h = linear_bn(folds, &self.linear3, &self.bn3, h);
         relu(h + identity)
     }
 }
@@ -604,7 +702,13 @@ impl PointTransformerLayer {
 
     /// `x` `[n, c]`, relative neighbour positions `rel` `[n, k, 3]` (`p_j − p_i`) and the
     /// flattened neighbour indices `nbr` `[n·k]` → `[n, c]`.
-    pub fn forward(&self, x: Tensor<2>, rel: Tensor<3>, nbr: Tensor<1, Int>) -> Tensor<2> {
+    pub fn forward<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        x: Tensor<2>,
+        rel: Tensor<3>,
+        nbr: Tensor<1, Int>,
+    ) -> Tensor<2> {
         let [n, c] = x.dims();
         let [_, k, _] = rel.dims();
         let s = self.share_planes;
@@ -619,11 +723,11 @@ impl PointTransformerLayer {
         let vf = select_rows(linear_op::forward(&self.linear_v, x), 0, nbr).reshape([n, k, c]);
 
         let mp = &self.linear_p;
-        let delta = linear_op::forward(&mp.fc3, relu(linear_bn(&mp.fc0, &mp.bn1, rel))); // [n, k, c]
+        let delta = linear_op::forward(&mp.fc3, relu(linear_bn(folds, &mp.fc0, &mp.bn1, rel))); // [n, k, c]
 
         let mw = &self.linear_w;
         let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
-        let w = linear_bn(&mw.fc2, &mw.bn3, relu(bn_last(&mw.bn0, w)));
+        let w = linear_bn(folds, &mw.fc2, &mw.bn3, relu(bn_last(folds, &mw.bn0, w)));
         let w = linear_op::forward(&mw.fc5, relu(w)); // [n, k, c/s]
         let w = softmax(w, 1);
 
@@ -687,10 +791,11 @@ pub struct TransitionUp {
 
 impl TransitionUp {
     /// Head (coarsest level, global context): `[n, c] → [n, c]`.
-    pub fn forward_head(&self, x: Tensor<2>) -> Tensor<2> {
+    pub fn forward_head<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
         let [n, c] = x.dims();
         let global = relu(linear_op::forward(&self.linear2, x.clone().mean_dim(0))).expand([n, c]);
         relu(linear_bn(
+            folds,
             &self.linear1,
             &self.bn1,
             Tensor::cat(vec![x, global], 1),
@@ -699,10 +804,16 @@ impl TransitionUp {
 
     /// `skip` `[n_fine, c]` (encoder features of this level) plus the interpolated decoder
     /// features of the coarser level `coarse` `[n_coarse, c_coarse]` → `[n_fine, c]`.
-    fn forward(&self, skip: Tensor<2>, coarse: Tensor<2>, interp: &Interpolation) -> Tensor<2> {
-        let fine = relu(linear_bn(&self.linear1, &self.bn1, skip));
+    fn forward<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        skip: Tensor<2>,
+        coarse: Tensor<2>,
+        interp: &Interpolation,
+    ) -> Tensor<2> {
+        let fine = relu(linear_bn(folds, &self.linear1, &self.bn1, skip));
         let up = match &self.bn2 {
-            Some(bn) => linear_bn(&self.linear2, bn, coarse),
+            Some(bn) => linear_bn(folds, &self.linear2, bn, coarse),
             None => linear_op::forward(&self.linear2, coarse),
         };
         fine + interp.apply(relu(up))
@@ -750,6 +861,7 @@ mod tests {
         let (nbr, rel) = group_positions(&nb, &p, &p);
         assert_eq!(rel.dims(), [n, k, 3]);
         let out = layer.forward(
+            &NormFolds::new(),
             random_tensor(&mut rng, [n, c], device),
             rel.clone(),
             nbr.clone(),
@@ -759,7 +871,12 @@ mod tests {
         let block = PointTransformerBlock::new(c, 8, k, 1e-5, device);
         assert_eq!(
             block
-                .forward(random_tensor(&mut rng, [n, c], device), rel, nbr)
+                .forward(
+                    &NormFolds::new(),
+                    random_tensor(&mut rng, [n, c], device),
+                    rel,
+                    nbr
+                )
                 .dims(),
             [n, c]
         );
@@ -773,8 +890,8 @@ mod tests {
             random_tensor(&mut rng, [30, 3], device),
             random_tensor(&mut rng, [30, 10], device),
         );
-        let a = read(down.forward_input(p.clone(), x.clone()));
-        let b = read(down.forward_pointwise(Tensor::cat(vec![p, x], 1)));
+        let a = read(down.forward_input(&NormFolds::new(), p.clone(), x.clone()));
+        let b = read(down.forward_pointwise(&NormFolds::new(), Tensor::cat(vec![p, x], 1)));
         assert!(a.iter().zip(&b).all(|(a, b)| (a - b).abs() < 1e-5));
     }
 
@@ -815,9 +932,9 @@ mod tests {
             );
             let run = |folded: bool| {
                 let y = if folded {
-                    linear_bn(&layer, &bn, x.clone())
+                    linear_bn(&NormFolds::new(), &layer, &bn, x.clone())
                 } else {
-                    bn_last(&bn, layer.forward(x.clone()))
+                    bn_last(&NormFolds::new(), &bn, layer.forward(x.clone()))
                 };
                 let grads = (y.clone() * w.clone()).sum().backward();
                 let mut parts = vec![
@@ -861,7 +978,7 @@ mod tests {
             .collect();
         let nb = knn(&host, &host, k);
         let (nbr, rel) = group_positions(&nb, &p, &p);
-        let out = read(layer.forward(x.clone(), rel, nbr));
+        let out = read(layer.forward(&NormFolds::new(), x.clone(), rel, nbr));
 
         // Reference computation on the host, f64.
         let lin = |l: &Linear, v: &[f64]| -> Vec<f64> {
@@ -934,9 +1051,17 @@ mod tests {
         let a = read(a);
         assert!(a.iter().all(|v| v.is_finite()));
         assert!(a.iter().any(|&v| v > 0.0), "not all dead");
-        // Same input twice → same output (deterministic FPS/kNN, no batch statistics).
-        let b = read(net.forward(p, x).unwrap());
+        // Same input twice → same output (deterministic FPS/kNN, no batch statistics), also
+        // when a pass reuses an earlier pass's BN folds, to which it then adds nothing.
+        let folds = NormFolds::new();
+        let b = read(net.forward_folded(&folds, p.clone(), x.clone()).unwrap());
         assert_eq!(a, b);
+        let kept = (folds.affine.borrow().len(), folds.linear.borrow().len());
+        assert!(kept.0 > 0 && kept.1 > 0, "no folds kept");
+        let c = read(net.forward_folded(&folds, p, x).unwrap());
+        assert_eq!(a, c);
+        let after = (folds.affine.borrow().len(), folds.linear.borrow().len());
+        assert_eq!(after, kept, "the second pass folded again");
     }
 
     lifegom_render::cpu_backend_tests!(point_transformer_full_net_lowres => check_full_net);
@@ -1192,15 +1317,24 @@ mod tests {
                 xl = match &levels[l].down {
                     None => stage
                         .down
-                        .forward_pointwise(Tensor::cat(vec![p.clone(), xl], 1)),
-                    Some((idx, rel)) => stage.down.forward_grouped(xl, idx.clone(), rel.clone()),
+                        .forward_pointwise(&NormFolds::new(), Tensor::cat(vec![p.clone(), xl], 1)),
+                    Some((idx, rel)) => {
+                        stage
+                            .down
+                            .forward_grouped(&NormFolds::new(), xl, idx.clone(), rel.clone())
+                    }
                 };
                 let xl2 = xl.clone().add_scalar(0.0);
                 let _ = read(xl2.clone().narrow(0, 0, 1));
                 let t_down = t0.elapsed();
                 let t0 = Instant::now();
                 let y = match stage.blocks.first() {
-                    Some(b) => b.forward(xl2, levels[l].rel.clone(), levels[l].nbr.clone()),
+                    Some(b) => b.forward(
+                        &NormFolds::new(),
+                        xl2,
+                        levels[l].rel.clone(),
+                        levels[l].nbr.clone(),
+                    ),
                     None => xl2,
                 };
                 let _ = read(y.narrow(0, 0, 1));

@@ -44,7 +44,7 @@ use crate::heads::{
     FaceImages, FaceInputs, UpdateHeads, UpdateHeadsConfig, VisibleFaceImages, face_corners,
     faces_per_block, highres_features,
 };
-use crate::point_transformer::{PointTransformer, PointTransformerConfig};
+use crate::point_transformer::{NormFolds, PointTransformer, PointTransformerConfig};
 use crate::sampling::{hide_invisible, project_points, sample_single};
 use lifegom_render::select::select_rows;
 
@@ -489,6 +489,8 @@ impl Reconstructor {
             renders: Vec::new(),
             timings: Vec::new(),
         };
+        // The Point Transformer's frozen BN folds, made in the first pass and kept for the others.
+        let folds = NormFolds::new();
         for step in 0..self.iterations {
             let _span = tracing::debug_span!("feedback_step", step).entered();
             // The rendered branch carries no gradient into the encoder (design.md §7.3, §12).
@@ -504,6 +506,7 @@ impl Reconstructor {
                 &feats_ren,
                 renders.alpha.clone().detach(),
                 &state,
+                &folds,
             )?;
             renders = render_views(
                 mesh,
@@ -597,8 +600,8 @@ impl Reconstructor {
 
     /// One feedback step (module docs).
     #[allow(clippy::too_many_arguments)]
-    fn update(
-        &self,
+    fn update<'a>(
+        &'a self,
         subject: &CanonicalSubject,
         mesh: &GomMesh,
         sources: &SourceViews,
@@ -606,6 +609,7 @@ impl Reconstructor {
         feats_ren: &EncodedViews,
         alpha_prev: Tensor<4>,
         state: &GomState,
+        folds: &NormFolds<'a>,
     ) -> Result<GomState> {
         let (w, h) = (sources.cameras[0].width, sources.cameras[0].height);
         let n = sources.cameras.len();
@@ -682,7 +686,8 @@ impl Reconstructor {
         drop(span);
         let h_pt = {
             let _span = tracing::debug_span!("point_transformer").entered();
-            self.point_transformer.forward(
+            self.point_transformer.forward_folded(
+                folds,
                 state.xyz.clone(),
                 Tensor::cat(vec![fused_src, fused_ren], 1),
             )?

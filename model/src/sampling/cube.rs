@@ -33,11 +33,13 @@ use burn_cubecl::cubecl::server::Handle;
 use burn_cubecl::tensor::CubeTensor;
 use lifegom_render::cube::atomic::{AtomicAddF32, use_native_float_atomics};
 use lifegom_render::cube::host::{
-    ComputeClient, THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
-    u32_bytes, zeros_f32,
+    ComputeClient, THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32, u32_bytes,
+    zeros_f32,
 };
 
-use super::op::{BilinearKernels, BilinearSampleOps, PyramidLayout, SampleGrads, SampleInputs, Wanted};
+use super::op::{
+    BilinearKernels, BilinearSampleOps, PyramidLayout, SampleGrads, SampleInputs, Wanted,
+};
 
 /// u32 fields per level in the level table: rows_from, height, width, channels, out_from.
 const LEVEL_FIELDS: usize = 5;
@@ -92,9 +94,7 @@ fn map_coordinate(u: f32, scale: f32, size: usize) -> f32 {
     let x = u * scale - 0.5f32;
     let hi = f32::cast_from(size) + 1.0f32;
     let mut out = x;
-    if u.is_nan() {
-        out = -2.0f32;
-    } else if x < -2.0f32 {
+    if u.is_nan() || x < -2.0f32 {
         out = -2.0f32;
     } else if x > hi {
         out = hi;
