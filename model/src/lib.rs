@@ -70,4 +70,5 @@ pub mod reconstructor;
 pub mod rig_export;
 pub mod sampling;
 pub mod trained;
+pub mod vector_attention;
 pub mod weights_file;

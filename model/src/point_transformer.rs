@@ -88,7 +88,7 @@
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
-use burn::tensor::activation::{relu, softmax};
+use burn::tensor::activation::relu;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::readback::{self, ReadbackError};
 use std::cell::RefCell;
@@ -97,6 +97,7 @@ use std::marker::PhantomData;
 
 use crate::knn::{Neighbours, farthest_point_sampling, knn};
 use crate::linear_op;
+use crate::vector_attention;
 use lifegom_render::select::select_rows;
 
 /// Weight-sharing groups must divide every width; this is the paper's value.
@@ -729,12 +730,9 @@ impl PointTransformerLayer {
         let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
         let w = linear_bn(folds, &mw.fc2, &mw.bn3, relu(bn_last(folds, &mw.bn0, w)));
         let w = linear_op::forward(&mw.fc5, relu(w)); // [n, k, c/s]
-        let w = softmax(w, 1);
 
         let values = (vf + delta).reshape([n, k, s, c / s]);
-        (values * w.unsqueeze_dim::<4>(2))
-            .sum_dim(1)
-            .reshape([n, c])
+        vector_attention::aggregate(values, w)
     }
 }
 
