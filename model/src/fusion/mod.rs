@@ -19,6 +19,7 @@
 //! [`kernels`]); on CubeCL devices, and as their test reference, they are the tensor-op
 //! compositions written here.
 
+mod cube;
 pub mod kernels;
 pub mod op;
 
@@ -37,9 +38,13 @@ use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
 /// How the attention core and the residual LayerNorms are computed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum FusionKernel {
-    /// The custom ops of [`op`] (CPU backends).
+    /// Both as the custom ops of [`op`] (CPU backends: slice code).
     HostOps,
-    /// Burn tensor-op compositions (CubeCL devices; the reference in tests).
+    /// The residual LayerNorm as the custom op (its CubeCL kernels), the attention core as
+    /// tensor ops (CubeCL devices, where the composition's batched products already run as
+    /// parallel kernels).
+    DeviceOps,
+    /// Both as Burn tensor-op compositions (the reference in tests).
     TensorOps,
 }
 
@@ -49,7 +54,7 @@ impl FusionKernel {
         if runs_on_host(device) {
             Self::HostOps
         } else {
-            Self::TensorOps
+            Self::DeviceOps
         }
     }
 }
@@ -218,7 +223,7 @@ impl AttentionLayer {
                     AttentionHeads(self.n_heads),
                 ),
             ),
-            FusionKernel::TensorOps => {
+            FusionKernel::DeviceOps | FusionKernel::TensorOps => {
                 let [b, lq, d] = q.dims();
                 let [_, lk, _] = k.dims();
                 let h = self.n_heads;
@@ -243,7 +248,7 @@ impl AttentionLayer {
         kernel: FusionKernel,
     ) -> Tensor<3> {
         match (kernel, &norm.beta) {
-            (FusionKernel::HostOps, Some(beta)) => Tensor::from_dispatch(
+            (FusionKernel::HostOps | FusionKernel::DeviceOps, Some(beta)) => Tensor::from_dispatch(
                 <burn::backend::Dispatch as AddLayerNormOps>::add_layer_norm(
                     x.into_dispatch(),
                     residual.into_dispatch(),
@@ -657,7 +662,7 @@ mod tests {
                 let grads = (out.clone() * w.clone()).sum().backward();
                 (out, grads)
             };
-            let (out_ops, g_ops) = run(FusionKernel::HostOps);
+            let (out_ops, g_ops) = run(FusionKernel::for_device(device));
             let (out_ref, g_ref) = run(FusionKernel::TensorOps);
             let close = |a: Tensor<3>, b: Tensor<3>, what: &str| {
                 let (a, b) = (read(a), read(b));
@@ -708,6 +713,16 @@ mod tests {
     }
 
     lifegom_render::cpu_backend_tests!(host_ops => host_ops_equal_tensor_ops);
+
+    /// On wgpu the residual LayerNorm runs as the op's CubeCL kernels, the attention core as
+    /// tensor ops ([`FusionKernel::DeviceOps`]).
+    #[test]
+    fn device_ops_equal_tensor_ops_wgpu() {
+        if let Some(device) = lifegom_render::testing::wgpu_test_device() {
+            assert_eq!(FusionKernel::for_device(&device), FusionKernel::DeviceOps);
+            host_ops_equal_tensor_ops(&device);
+        }
+    }
 
     /// A training call with given mask seeds computes the same on an inference copy of the
     /// weights as on the tracked ones (what `Reconstructor::fuse_branches` runs on a second

@@ -10,10 +10,10 @@
 //! intermediate; on a CPU those cost more than the arithmetic (BENCHMARKS.md, "Training step
 //! profile").
 //!
-//! CubeCL devices keep the composition ([`super::AttentionLayer`] routes by
-//! `lifegom_render::device::runs_on_host`), which is also the reference the ops are tested
-//! against. The autodiff nodes keep the inputs (handles, no copies) and recompute what the
-//! backward needs.
+//! On CubeCL devices the residual LayerNorm is this op too, as CubeCL kernels (`super::cube`),
+//! while the attention core keeps the tensor-op composition ([`super::FusionKernel`] says which
+//! runs where); the compositions are the reference the ops are tested against. The autodiff
+//! nodes keep the inputs (handles, no copies) and recompute what the backward needs.
 
 // NdArray is deprecated in Burn 0.22 in favour of Flex; ndarray is the CI backend the project
 // requires (design.md §1.4).
@@ -58,7 +58,7 @@ pub struct AttentionHeads(pub usize);
 ///
 /// Inputs: `x` and `residual` of one shape `[.., D]`, `gamma` and `beta` `[D]`; output the
 /// shape of `x`. Gradients flow to all four.
-#[backend_extension(NdArray, Flex, Autodiff)]
+#[backend_extension(NdArray, Flex, Cube, Autodiff)]
 pub trait AddLayerNormOps: Backend {
     /// Normalises the residual sum.
     fn add_layer_norm(
@@ -86,16 +86,16 @@ pub struct AttentionInputs<B: Backend> {
 /// The LayerNorm op's inputs on one backend.
 #[derive(Debug, Clone)]
 pub struct LayerNormInputs<B: Backend> {
-    x: FloatTensor<B>,
-    residual: FloatTensor<B>,
-    gamma: FloatTensor<B>,
-    beta: FloatTensor<B>,
-    epsilon: f64,
+    pub(super) x: FloatTensor<B>,
+    pub(super) residual: FloatTensor<B>,
+    pub(super) gamma: FloatTensor<B>,
+    pub(super) beta: FloatTensor<B>,
+    pub(super) epsilon: f64,
 }
 
-/// What a backend implements so that `Autodiff<B>` can differentiate the ops.
+/// What a backend implements so that `Autodiff<B>` can differentiate the attention op.
 #[doc(hidden)]
-pub trait FusionKernels: Backend {
+pub trait AttentionKernels: Backend {
     /// The attention forward.
     fn attention_forward(inputs: AttentionInputs<Self>) -> FloatTensor<Self>;
     /// `[∂query, ∂key, ∂value]`.
@@ -103,6 +103,11 @@ pub trait FusionKernels: Backend {
         inputs: AttentionInputs<Self>,
         grad: FloatTensor<Self>,
     ) -> [FloatTensor<Self>; 3];
+}
+
+/// What a backend implements so that `Autodiff<B>` can differentiate the LayerNorm op.
+#[doc(hidden)]
+pub trait LayerNormKernels: Backend {
     /// The LayerNorm forward.
     fn layer_norm_forward(inputs: LayerNormInputs<Self>) -> FloatTensor<Self>;
     /// `[∂(x + residual), ∂γ, ∂β]`.
@@ -257,7 +262,7 @@ macro_rules! cpu_fusion_backend {
             }
         }
 
-        impl FusionKernels for $backend {
+        impl AttentionKernels for $backend {
             fn attention_forward(inputs: AttentionInputs<Self>) -> FloatTensor<Self> {
                 cpu_attention_forward::<Self>(inputs)
             }
@@ -268,7 +273,9 @@ macro_rules! cpu_fusion_backend {
             ) -> [FloatTensor<Self>; 3] {
                 cpu_attention_backward::<Self>(inputs, grad)
             }
+        }
 
+        impl LayerNormKernels for $backend {
             fn layer_norm_forward(inputs: LayerNormInputs<Self>) -> FloatTensor<Self> {
                 cpu_layer_norm_forward::<Self>(inputs)
             }
@@ -289,7 +296,7 @@ cpu_fusion_backend!(Flex);
 #[derive(Debug)]
 struct AttentionBackward;
 
-impl<B: FusionKernels> Backward<B, 3> for AttentionBackward {
+impl<B: AttentionKernels> Backward<B, 3> for AttentionBackward {
     type State = AttentionInputs<B>;
 
     fn backward(
@@ -302,7 +309,7 @@ impl<B: FusionKernels> Backward<B, 3> for AttentionBackward {
     }
 }
 
-impl<B: FusionAttentionOps + FusionKernels, C: CheckpointStrategy> FusionAttentionOps
+impl<B: FusionAttentionOps + AttentionKernels, C: CheckpointStrategy> FusionAttentionOps
     for Autodiff<B, C>
 {
     fn fusion_attention(
@@ -332,7 +339,7 @@ impl<B: FusionAttentionOps + FusionKernels, C: CheckpointStrategy> FusionAttenti
 #[derive(Debug)]
 struct LayerNormBackward;
 
-impl<B: FusionKernels> Backward<B, 4> for LayerNormBackward {
+impl<B: LayerNormKernels> Backward<B, 4> for LayerNormBackward {
     type State = LayerNormInputs<B>;
 
     fn backward(
@@ -362,7 +369,9 @@ impl<B: FusionKernels> Backward<B, 4> for LayerNormBackward {
     }
 }
 
-impl<B: AddLayerNormOps + FusionKernels, C: CheckpointStrategy> AddLayerNormOps for Autodiff<B, C> {
+impl<B: AddLayerNormOps + LayerNormKernels, C: CheckpointStrategy> AddLayerNormOps
+    for Autodiff<B, C>
+{
     fn add_layer_norm(
         x: FloatTensor<Self>,
         residual: FloatTensor<Self>,
