@@ -65,6 +65,7 @@ pub mod inputs;
 pub mod knn;
 mod lanes;
 pub mod linear_op;
+pub mod norm_folds;
 pub mod point_transformer;
 pub mod reconstructor;
 pub mod rig_export;

@@ -64,7 +64,7 @@
 //! ones).
 //!
 //! The map, and each `Linear` it follows folded with it (`linear_bn`), is computed once per
-//! [`NormFolds`] and reused: the reconstructor keeps one for a whole reconstruction, whose T
+//! [`NormFolds`] (`crate::norm_folds`) and reused: the reconstructor keeps one for a whole reconstruction, whose T
 //! feedback passes run this network T times with the same weights. On a GPU each fold is five
 //! to eight kernel launches, about half of a pass's launches at the tiny preset before it was
 //! kept (BENCHMARKS.md, "Kernel launches per training step").
@@ -91,12 +91,10 @@ use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::relu;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::readback::{self, ReadbackError};
-use std::cell::RefCell;
-use std::collections::HashMap;
-use std::marker::PhantomData;
 
 use crate::knn::{Neighbours, farthest_point_sampling, knn};
 use crate::linear_op;
+pub use crate::norm_folds::NormFolds;
 use crate::vector_attention;
 use lifegom_render::select::select_rows;
 
@@ -245,69 +243,6 @@ pub fn frozen_bn(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
         .with_epsilon(epsilon)
         .init(device)
         .freeze()
-}
-
-/// The frozen BatchNorms of a network as per-channel `(scale, shift)`, and the `Linear` layers
-/// they follow folded with them, each computed on first use and then reused (module docs).
-///
-/// Entries are keyed by the layers' addresses; the borrow `'a` of every layer passed in keeps
-/// them in place and unchanged while the folds live, so a key cannot come to name another
-/// layer. Folding is exact reuse: the same ops on the same values as folding on every use.
-#[derive(Debug, Default)]
-pub struct NormFolds<'a> {
-    /// By `BatchNorm` address: `(scale, shift)`, each `[C]`.
-    affine: RefCell<HashMap<usize, (Tensor<1>, Tensor<1>)>>,
-    /// By `Linear` address: the folded `(weight [in, out], bias [out])` of `linear_bn`.
-    linear: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
-    layers: PhantomData<&'a ()>,
-}
-
-impl<'a> NormFolds<'a> {
-    /// No folds yet.
-    pub fn new() -> Self {
-        Self::default()
-    }
-
-    /// The eval-mode BN as `x·scale + shift` per channel: `scale = γ/√(σ²+ε)`,
-    /// `shift = β − μ·scale`, each `[C]`.
-    fn affine(&self, bn: &'a BatchNorm, device: &Device) -> (Tensor<1>, Tensor<1>) {
-        let key = std::ptr::from_ref(bn) as usize;
-        if let Some(found) = self.affine.borrow().get(&key) {
-            return found.clone();
-        }
-        let mean = bn.running_mean.value().to_device(device);
-        let var = bn.running_var.value().to_device(device);
-        let scale = bn.gamma.val() / (var + bn.epsilon).sqrt();
-        let shift = bn.beta.val() - mean * scale.clone();
-        self.affine
-            .borrow_mut()
-            .insert(key, (scale.clone(), shift.clone()));
-        (scale, shift)
-    }
-
-    /// `BN(Linear(·))` as one affine layer: `(W·diag(scale), b·scale + shift)` (`b = 0` for a
-    /// layer without bias).
-    fn linear(
-        &self,
-        linear: &'a Linear,
-        bn: &'a BatchNorm,
-        device: &Device,
-    ) -> (Tensor<2>, Tensor<1>) {
-        let key = std::ptr::from_ref(linear) as usize;
-        if let Some(found) = self.linear.borrow().get(&key) {
-            return found.clone();
-        }
-        let (scale, shift) = self.affine(bn, device);
-        let weight = linear.weight.val() * scale.clone().unsqueeze_dim(0);
-        let bias = match &linear.bias {
-            Some(b) => b.val() * scale + shift,
-            None => shift,
-        };
-        self.linear
-            .borrow_mut()
-            .insert(key, (weight.clone(), bias.clone()));
-        (weight, bias)
-    }
 }
 
 /// Applies a frozen BatchNorm1d over the last axis of `x` (all leading axes are rows): the
@@ -1054,11 +989,11 @@ mod tests {
         let folds = NormFolds::new();
         let b = read(net.forward_folded(&folds, p.clone(), x.clone()).unwrap());
         assert_eq!(a, b);
-        let kept = (folds.affine.borrow().len(), folds.linear.borrow().len());
+        let kept = folds.kept();
         assert!(kept.0 > 0 && kept.1 > 0, "no folds kept");
         let c = read(net.forward_folded(&folds, p, x).unwrap());
         assert_eq!(a, c);
-        let after = (folds.affine.borrow().len(), folds.linear.borrow().len());
+        let after = folds.kept();
         assert_eq!(after, kept, "the second pass folded again");
     }
 

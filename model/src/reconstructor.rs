@@ -44,7 +44,8 @@ use crate::heads::{
     FaceImages, FaceInputs, UpdateHeads, UpdateHeadsConfig, VisibleFaceImages, face_corners,
     faces_per_block, highres_features,
 };
-use crate::point_transformer::{NormFolds, PointTransformer, PointTransformerConfig};
+use crate::norm_folds::NormFolds;
+use crate::point_transformer::{PointTransformer, PointTransformerConfig};
 use crate::sampling::{hide_invisible, project_points, sample_single};
 use lifegom_render::select::select_rows;
 
@@ -464,9 +465,12 @@ impl Reconstructor {
             timings.push((name, clock.elapsed()));
             clock = std::time::Instant::now();
         };
+        // The BN folds of the encoder and the Point Transformer, made in their first pass and
+        // kept for the others.
+        let folds = NormFolds::new();
         let feats_src = {
             let _span = tracing::debug_span!("encode_sources").entered();
-            self.encoder.encode(sources.images.clone())?
+            self.encoder.encode_folded(&folds, sources.images.clone())?
         };
         lap("encode_sources".into(), &mut timings);
         let mut state = GomState {
@@ -489,14 +493,14 @@ impl Reconstructor {
             renders: Vec::new(),
             timings: Vec::new(),
         };
-        // The Point Transformer's frozen BN folds, made in the first pass and kept for the others.
-        let folds = NormFolds::new();
         for step in 0..self.iterations {
             let _span = tracing::debug_span!("feedback_step", step).entered();
             // The rendered branch carries no gradient into the encoder (design.md §7.3, §12).
             let feats_ren = {
                 let _span = tracing::debug_span!("encode_renders").entered();
-                self.encoder.encode(renders.rgb.clone().detach())?.detach()
+                self.encoder
+                    .encode_folded(&folds, renders.rgb.clone().detach())?
+                    .detach()
             };
             state = self.update(
                 subject,

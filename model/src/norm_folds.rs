@@ -1,0 +1,88 @@
+//! Frozen BatchNorm statistics folded into per-channel `(scale, shift)`, kept for a whole
+//! reconstruction (design.md §7.5, §7.1).
+//!
+//! Every BatchNorm of the network runs on its running statistics (the image encoder's γ/β still
+//! learn, the Point Transformer's are frozen too), so within one reconstruction each BN is the
+//! same per-channel affine map `x·scale + shift` with `scale = γ/√(σ²+ε)`,
+//! `shift = β − μ·scale`, and each `Linear` a BN follows can be folded with it. A reconstruction
+//! runs the encoder on the sources and on every feedback step's renders, and the Point
+//! Transformer once per step, with the same weights: [`NormFolds`] makes each fold on first use
+//! and hands it out after. On a GPU each fold is five to eight kernel launches (BENCHMARKS.md,
+//! "Kernel launches per training step"). In training a kept fold is one autodiff node used
+//! several times, so its parameters' gradient is summed before the fold's product rather than
+//! after: the same gradient up to float order.
+
+use std::cell::RefCell;
+use std::collections::HashMap;
+use std::marker::PhantomData;
+
+use burn::nn::{BatchNorm, Linear};
+use burn::tensor::{Device, Tensor};
+
+/// BatchNorms on running statistics as per-channel `(scale, shift)`, and the `Linear` layers
+/// they follow folded with them, each computed on first use and then reused (module docs).
+///
+/// Entries are keyed by the layers' addresses; the borrow `'a` of every layer passed in keeps
+/// them in place and unchanged while the folds live, so a key cannot come to name another
+/// layer. Folding is exact reuse: the same ops on the same values as folding on every use.
+#[derive(Debug, Default)]
+pub struct NormFolds<'a> {
+    /// By `BatchNorm` address: `(scale, shift)`, each `[C]`.
+    affine: RefCell<HashMap<usize, (Tensor<1>, Tensor<1>)>>,
+    /// By `Linear` address: the folded `(weight [in, out], bias [out])` of `linear_bn`.
+    linear: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
+    layers: PhantomData<&'a ()>,
+}
+
+impl<'a> NormFolds<'a> {
+    /// No folds yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// How many BN and `Linear` folds are kept.
+    pub fn kept(&self) -> (usize, usize) {
+        (self.affine.borrow().len(), self.linear.borrow().len())
+    }
+
+    /// The eval-mode BN as `x·scale + shift` per channel: `scale = γ/√(σ²+ε)`,
+    /// `shift = β − μ·scale`, each `[C]`.
+    pub(crate) fn affine(&self, bn: &'a BatchNorm, device: &Device) -> (Tensor<1>, Tensor<1>) {
+        let key = std::ptr::from_ref(bn) as usize;
+        if let Some(found) = self.affine.borrow().get(&key) {
+            return found.clone();
+        }
+        let mean = bn.running_mean.value().to_device(device);
+        let var = bn.running_var.value().to_device(device);
+        let scale = bn.gamma.val() / (var + bn.epsilon).sqrt();
+        let shift = bn.beta.val() - mean * scale.clone();
+        self.affine
+            .borrow_mut()
+            .insert(key, (scale.clone(), shift.clone()));
+        (scale, shift)
+    }
+
+    /// `BN(Linear(·))` as one affine layer: `(W·diag(scale), b·scale + shift)` (`b = 0` for a
+    /// layer without bias).
+    pub(crate) fn linear(
+        &self,
+        linear: &'a Linear,
+        bn: &'a BatchNorm,
+        device: &Device,
+    ) -> (Tensor<2>, Tensor<1>) {
+        let key = std::ptr::from_ref(linear) as usize;
+        if let Some(found) = self.linear.borrow().get(&key) {
+            return found.clone();
+        }
+        let (scale, shift) = self.affine(bn, device);
+        let weight = linear.weight.val() * scale.clone().unsqueeze_dim(0);
+        let bias = match &linear.bias {
+            Some(b) => b.val() * scale + shift,
+            None => shift,
+        };
+        self.linear
+            .borrow_mut()
+            .insert(key, (weight.clone(), bias.clone()));
+        (weight, bias)
+    }
+}
