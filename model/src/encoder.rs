@@ -51,13 +51,13 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+use crate::activation::relu;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, Initializer, PaddingConfig2d};
 use burn::store::{ApplyResult, KeyRemapper, ModuleSnapshot, PytorchStore, SafetensorsStore};
-use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor, TensorData, s};
 
 use crate::norm_folds::NormFolds;

@@ -14,10 +14,10 @@
 //! The last layers of the xyz, so3, scale and offset heads start at U(±1e-5) with zero bias, so
 //! the first steps barely move the template; the rgb head keeps the default initialisation.
 
+use crate::activation::relu;
 use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::nn::{Initializer, Linear, LinearConfig};
-use burn::tensor::activation::relu;
 use burn::tensor::module::linear;
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor};
 

@@ -54,6 +54,7 @@
 //! Flex and wgpu (CubeCL kernels for the rasterizer and visibility), with `.autodiff()` for training. Without trained
 //! weights every network is randomly initialised; binaries say so when they print results.
 
+pub mod activation;
 pub mod avatar;
 pub mod checkpoint;
 pub mod dropout;

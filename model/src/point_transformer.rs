@@ -85,10 +85,10 @@
 //! import. (The official code's ScanNet-pretrained initialisation skips `enc1.0.linear.weight`,
 //! whose input width differs; design.md §11.2.)
 
+use crate::activation::relu;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
-use burn::tensor::activation::relu;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::readback::{self, ReadbackError};
 

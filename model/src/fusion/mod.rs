@@ -23,10 +23,11 @@ mod cube;
 pub mod kernels;
 pub mod op;
 
+use crate::activation::relu;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
-use burn::tensor::activation::{relu, softmax};
+use burn::tensor::activation::softmax;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::select::select_rows;
 

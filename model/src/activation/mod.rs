@@ -1,0 +1,73 @@
+//! ReLU with one kernel each way on GPU devices.
+//!
+//! Burn 0.22.1's CubeCL backend has no ReLU kernel: its default `relu` is a comparison and a
+//! masked fill (two launches), and so is `relu_backward`. The model applies ReLU about a hundred
+//! times a training step (encoder, Point Transformer, fusion feed-forward, heads), so on a GPU
+//! that was about 1,100 of a quickstart step's launches (BENCHMARKS.md, "Kernel launches per
+//! training step"). [`relu`] is:
+//! - on the CPU backends exactly Burn's `relu` (numerics unchanged);
+//! - on CubeCL devices the [`op::ReluOps`] extension: one elementwise kernel forward and one
+//!   backward (`cube`), with Burn's semantics to the bit (`x ≤ 0 → 0`, NaN passes; the backward
+//!   zeroes the gradient where the output is `≤ 0`).
+
+mod cube;
+pub mod op;
+
+use burn::tensor::Tensor;
+use lifegom_render::device::runs_on_host;
+
+/// `max(x, 0)` elementwise, Burn's `relu` (module docs).
+pub fn relu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    if runs_on_host(&x.device()) {
+        return burn::tensor::activation::relu(x);
+    }
+    Tensor::from_dispatch(<burn::backend::Dispatch as op::ReluOps>::fused_relu(
+        x.into_dispatch(),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::{Device, TensorData};
+    use lifegom_render::testing::read;
+
+    /// [`relu`] equals Burn's `relu` computed on Flex, values and gradient, on positive,
+    /// negative and zero inputs and a non-contiguous view.
+    fn check_matches_burn(device: &Device) {
+        let values: Vec<f32> = (0..60)
+            .map(|i| (i as f32 - 29.5) * 0.37)
+            .chain([0.0, -0.0])
+            .collect();
+        let n = values.len();
+        let weight: Vec<f32> = (0..n).map(|i| (i % 7) as f32 - 3.0).collect();
+        let run = |device: &Device, ours: bool| {
+            let ad = device.clone().autodiff();
+            let x = Tensor::<2>::from_data(TensorData::new(values.clone(), [2, n / 2]), &ad)
+                .require_grad();
+            // A transposed view: the op must not assume contiguous input.
+            let xt = x.clone().transpose();
+            let y = if ours {
+                relu(xt)
+            } else {
+                burn::tensor::activation::relu(xt)
+            };
+            let w = Tensor::<2>::from_data(TensorData::new(weight.clone(), [n / 2, 2]), &ad);
+            let grads = (y.clone() * w).sum().backward();
+            (read(y), read(x.grad(&grads).expect("input gradient")))
+        };
+        let (want_y, want_g) = run(&Device::flex(), false);
+        let (got_y, got_g) = run(device, true);
+        assert_eq!(got_y, want_y, "values on {device:?}");
+        assert_eq!(got_g, want_g, "gradient on {device:?}");
+    }
+
+    lifegom_render::cpu_backend_tests!(relu_matches_burn => check_matches_burn);
+
+    #[test]
+    fn relu_matches_burn_wgpu() {
+        if let Some(device) = lifegom_render::testing::wgpu_test_device() {
+            check_matches_burn(&device);
+        }
+    }
+}
