@@ -46,6 +46,7 @@ const LEVEL_FIELDS: usize = 5;
 
 /// One level's geometry, read from the level table.
 #[derive(CubeType, Clone, Copy)]
+#[expand(derive(Clone))]
 struct LevelGeom {
     /// First element of the level in the flat maps.
     rows_from: usize,
@@ -100,6 +101,67 @@ fn map_coordinate(u: f32, scale: f32, size: usize) -> f32 {
         out = hi;
     }
     out
+}
+
+/// A point's map coordinates on one level.
+#[derive(CubeType, Clone, Copy)]
+#[expand(derive(Clone))]
+struct MapPoint {
+    x: f32,
+    y: f32,
+}
+
+/// Point `k` of `uv` (`[N·P, 2]` image pixels) on level `geom`.
+#[cube]
+fn map_point(uv: &[f32], k: usize, geom: &LevelGeom) -> MapPoint {
+    MapPoint {
+        x: map_coordinate(uv[2 * k], geom.scale_x, geom.width),
+        y: map_coordinate(uv[2 * k + 1], geom.scale_y, geom.height),
+    }
+}
+
+/// What a thread of a per-channel kernel works on: element `unit` of a `[P, N, stride]` layout
+/// whose channels run over the levels in order (`stride` is the output width or the level
+/// channels `Σ_l C_l`; both start each level at its `out_from`).
+#[derive(CubeType, Clone, Copy)]
+struct ChannelSite {
+    view: usize,
+    point: usize,
+    level: usize,
+    /// The channel within its level.
+    channel: usize,
+    geom: LevelGeom,
+    at: MapPoint,
+}
+
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn channel_site(
+    uv: &[f32],
+    table: &[u32],
+    scales: &[f32],
+    unit: usize,
+    stride: usize,
+    views: usize,
+    points: usize,
+    levels: usize,
+) -> ChannelSite {
+    let channel = unit % stride;
+    let pv = unit / stride;
+    let view = pv % views;
+    let point = pv / views;
+    let level = level_of(table, levels, channel);
+    let geom = level_geom(table, scales, level);
+    let at = map_point(uv, view * points + point, &geom);
+    let within = channel - geom.out_from;
+    ChannelSite {
+        view,
+        point,
+        level,
+        channel: within,
+        geom,
+        at,
+    }
 }
 
 /// One corner of a bilinear footprint.
@@ -209,24 +271,17 @@ fn forward_kernel(
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
-        let channel = unit % width;
-        let pv = unit / width;
-        let view = pv % views;
-        let point = pv / views;
-        let k = view * points + point;
-        let level = level_of(table, levels, channel);
-        let geom = level_geom(table, scales, level);
-        let x = map_coordinate(uv[2 * k], geom.scale_x, geom.width);
-        let y = map_coordinate(uv[2 * k + 1], geom.scale_y, geom.height);
-        if level == levels - 1 {
-            let j = channel - geom.out_from;
+        let site = channel_site(uv, table, scales, unit, width, views, points, levels);
+        let (geom, at) = (site.geom, site.at);
+        if site.level == levels - 1 {
             let mut value = 0.0f32;
             for c in 0..geom.channels {
-                value += corner_sum(rows, &geom, view, x, y, c) * tail[c * tail_out + j];
+                value += corner_sum(rows, &geom, site.view, at.x, at.y, c)
+                    * tail[c * tail_out + site.channel];
             }
             out[unit] = value;
         } else {
-            out[unit] = corner_sum(rows, &geom, view, x, y, channel - geom.out_from);
+            out[unit] = corner_sum(rows, &geom, site.view, at.x, at.y, site.channel);
         }
     }
 }
@@ -258,14 +313,13 @@ fn uv_backward_kernel(
         let mut gv = 0.0f32;
         for level in 0..levels {
             let geom = level_geom(table, scales, level);
-            let x = map_coordinate(uv[2 * k], geom.scale_x, geom.width);
-            let y = map_coordinate(uv[2 * k + 1], geom.scale_y, geom.height);
+            let at = map_point(uv, k, &geom);
             let g_from = g_row + geom.out_from;
             let is_tail = level == levels - 1;
             let mut gx = 0.0f32;
             let mut gy = 0.0f32;
             for corner_index in 0..4u32 {
-                let cr = corner(&geom, view, x, y, corner_index);
+                let cr = corner(&geom, view, at.x, at.y, corner_index);
                 if cr.inside {
                     let base = geom.rows_from + cr.row * geom.channels;
                     let mut dot = 0.0f32;
@@ -310,25 +364,17 @@ fn rows_backward_kernel<A: AtomicAddF32>(
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
-        let channel = unit % in_width;
-        let pv = unit / in_width;
-        let view = pv % views;
-        let point = pv / views;
-        let k = view * points + point;
-        let level = level_of(table, levels, channel);
-        let geom = level_geom(table, scales, level);
-        let c = channel - geom.out_from;
-        let g_from = (point * views + view) * width + geom.out_from;
-        let g = if level == levels - 1 {
+        let site = channel_site(uv, table, scales, unit, in_width, views, points, levels);
+        let (geom, c) = (site.geom, site.channel);
+        let g_from = (site.point * views + site.view) * width + geom.out_from;
+        let g = if site.level == levels - 1 {
             tail_back(grad, g_from, tail, c, tail_out)
         } else {
             grad[g_from + c]
         };
         if g != 0.0f32 {
-            let x = map_coordinate(uv[2 * k], geom.scale_x, geom.width);
-            let y = map_coordinate(uv[2 * k + 1], geom.scale_y, geom.height);
             for corner_index in 0..4u32 {
-                let cr = corner(&geom, view, x, y, corner_index);
+                let cr = corner(&geom, site.view, site.at.x, site.at.y, corner_index);
                 if cr.inside && cr.weight != 0.0f32 {
                     A::atomic_add_f32(
                         &out[geom.rows_from + cr.row * geom.channels + c],
@@ -365,10 +411,9 @@ fn tail_factors_kernel(
         let point = pv / views;
         let k = view * points + point;
         let geom = level_geom(table, scales, levels - 1);
-        let x = map_coordinate(uv[2 * k], geom.scale_x, geom.width);
-        let y = map_coordinate(uv[2 * k + 1], geom.scale_y, geom.height);
+        let at = map_point(uv, k, &geom);
         for c in 0..geom.channels {
-            samples[pv * geom.channels + c] = corner_sum(rows, &geom, view, x, y, c);
+            samples[pv * geom.channels + c] = corner_sum(rows, &geom, view, at.x, at.y, c);
         }
         let g_from = pv * width + geom.out_from;
         for j in 0..tail_out {

@@ -40,6 +40,26 @@ fn softmax_scale(logits: &[f32], i: usize, j: usize, k: usize, cs: usize) -> Sof
     SoftmaxScale { max, sum }
 }
 
+/// `softmax_κ(w[i, ·, j])[κ]` given the neighbours' `scale`.
+#[cube]
+fn probability(
+    logits: &[f32],
+    scale: &SoftmaxScale,
+    i: usize,
+    kk: usize,
+    j: usize,
+    k: usize,
+    cs: usize,
+) -> f32 {
+    f32::exp(logits[(i * k + kk) * cs + j] - scale.max) / scale.sum
+}
+
+/// `v[i, κ, s, j]` at its flat index.
+#[cube]
+fn value_index(i: usize, kk: usize, si: usize, j: usize, k: usize, s: usize, cs: usize) -> usize {
+    ((i * k + kk) * s + si) * cs + j
+}
+
 /// One thread per `(i, j)`: writes `out[i, s, j]` for every `s`.
 #[cube(launch)]
 fn forward_kernel(
@@ -59,12 +79,32 @@ fn forward_kernel(
         for si in 0..s {
             let mut acc = 0.0f32;
             for kk in 0..k {
-                let p = f32::exp(logits[(i * k + kk) * cs + j] - scale.max) / scale.sum;
-                acc += p * values[((i * k + kk) * s + si) * cs + j];
+                let p = probability(logits, &scale, i, kk, j, k, cs);
+                acc += p * values[value_index(i, kk, si, j, k, s, cs)];
             }
             out[(i * s + si) * cs + j] = acc;
         }
     }
+}
+
+/// `a_κ = Σ_s g[i, s, j]·v[i, κ, s, j]`.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn weighted_value(
+    values: &[f32],
+    grad: &[f32],
+    i: usize,
+    kk: usize,
+    j: usize,
+    k: usize,
+    s: usize,
+    cs: usize,
+) -> f32 {
+    let mut a = 0.0f32;
+    for si in 0..s {
+        a += grad[(i * s + si) * cs + j] * values[value_index(i, kk, si, j, k, s, cs)];
+    }
+    a
 }
 
 /// One thread per `(i, j)`: writes `∂v[i, ·, ·, j]` and `∂w[i, ·, j]`.
@@ -89,21 +129,16 @@ fn backward_kernel(
         // Σ_λ p_λ·a_λ, the softmax backward's shared term.
         let mut dot = 0.0f32;
         for kk in 0..k {
-            let p = f32::exp(logits[(i * k + kk) * cs + j] - scale.max) / scale.sum;
-            let mut a = 0.0f32;
+            let p = probability(logits, &scale, i, kk, j, k, cs);
             for si in 0..s {
-                let g = grad[(i * s + si) * cs + j];
-                a += g * values[((i * k + kk) * s + si) * cs + j];
-                values_grad[((i * k + kk) * s + si) * cs + j] = p * g;
+                let v = value_index(i, kk, si, j, k, s, cs);
+                values_grad[v] = p * grad[(i * s + si) * cs + j];
             }
-            dot += p * a;
+            dot += p * weighted_value(values, grad, i, kk, j, k, s, cs);
         }
         for kk in 0..k {
-            let p = f32::exp(logits[(i * k + kk) * cs + j] - scale.max) / scale.sum;
-            let mut a = 0.0f32;
-            for si in 0..s {
-                a += grad[(i * s + si) * cs + j] * values[((i * k + kk) * s + si) * cs + j];
-            }
+            let p = probability(logits, &scale, i, kk, j, k, cs);
+            let a = weighted_value(values, grad, i, kk, j, k, s, cs);
             logits_grad[(i * k + kk) * cs + j] = p * (a - dot);
         }
     }
