@@ -15,7 +15,7 @@
 //! | `render-bench`, `recon-bench`, `train-bench` | benchmarks, one JSON line each (BENCHMARKS.md) |
 //!
 //! The library part holds what the binaries share: start-up ([`allocator::keep_freed_memory`],
-//! [`init_tracing`], [`stop_on_ctrl_c`]), the kernel-launch counter of the GPU benchmarks
+//! [`init_tracing`], [`make_default_device`], [`stop_on_ctrl_c`]), the kernel-launch counter of the GPU benchmarks
 //! ([`launches`]), the training loop behind the train command ([`train_run`]) and the
 //! evaluation behind the eval command ([`eval_run`]).
 //!
@@ -38,6 +38,25 @@ pub mod launches;
 pub mod profile;
 pub mod reconstruct_run;
 pub mod train_run;
+
+/// Makes `choice` Burn's default device for this process, through Burn's `BURN_DEVICE` variable
+/// (left alone when the user set it).
+///
+/// The workspace never allocates on `Device::default()`, but Burn does in a few places: burn-optim's
+/// `ModuleOptimizer::load_record` puts a resumed optimizer state there before the first step
+/// moves it to the parameters' device. With wgpu compiled in, the default is the wgpu device, so a
+/// CPU run that resumed started the GPU stack for nothing (and on a headless machine with Mesa's
+/// drivers printed `error: XDG_RUNTIME_DIR is invalid or not set in the environment.` four times).
+///
+/// # Safety
+///
+/// It sets an environment variable: call it at the top of `main`, before any thread exists.
+pub unsafe fn make_default_device(choice: lifegom_render::device::DeviceChoice) {
+    if std::env::var_os("BURN_DEVICE").is_none() {
+        // SAFETY: the caller guarantees that no other thread exists to read the environment.
+        unsafe { std::env::set_var("BURN_DEVICE", choice.name()) };
+    }
+}
 
 /// Logs `tracing` spans and events to stderr, filtered by `RUST_LOG` (nothing by default).
 pub fn init_tracing() {

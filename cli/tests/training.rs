@@ -152,6 +152,43 @@ fn resume_equals_an_uninterrupted_run() {
     assert!(straight.join("checkpoints/latest.lgck").exists());
 }
 
+/// A CPU run that resumes starts no GPU stack. burn-optim reads a resumed optimizer state onto
+/// Burn's default device, which is the wgpu device when wgpu is compiled in; the binaries make
+/// their `--device` the default (`lifegom_cli::make_default_device`). Before that, on a machine
+/// with Mesa's Vulkan drivers and no `XDG_RUNTIME_DIR` (CI's), the resumed run printed
+/// `error: XDG_RUNTIME_DIR is invalid or not set in the environment.` four times.
+#[test]
+fn a_cpu_run_that_resumes_prints_no_gpu_errors() {
+    let _serial = serial();
+    let out = out_dir("cpu-resume");
+    let run = |steps: &str, resume: bool| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_lifegom-train"));
+        cmd.arg("--config")
+            .arg(config_path())
+            .args(["--device", "ndarray", "--steps", steps, "--data"])
+            .arg(data_root())
+            .arg("--out")
+            .arg(&out)
+            .env_remove("XDG_RUNTIME_DIR")
+            .env_remove("BURN_DEVICE");
+        if resume {
+            cmd.arg("--resume");
+        }
+        let output = cmd.output().expect("running lifegom-train");
+        let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+        assert!(output.status.success(), "lifegom-train failed:\n{stderr}");
+        stderr
+    };
+    run("1", false);
+    let stderr = run("2", true);
+    assert!(
+        !stderr
+            .lines()
+            .any(|l| l.starts_with("error:") || l.contains("XDG_RUNTIME_DIR")),
+        "a resumed CPU run printed errors:\n{stderr}"
+    );
+}
+
 #[test]
 fn a_stop_request_saves_a_checkpoint_and_bad_checkpoints_are_errors() {
     let _serial = serial();

@@ -81,7 +81,8 @@ pub fn wgpu_available() -> bool {
         });
         match probe {
             Ok((true, name)) => {
-                eprintln!("wgpu adapter available: {name}");
+                let runtime = cube_runtime_name(&DeviceChoice::Wgpu.device()).unwrap_or("?");
+                eprintln!("wgpu adapter available: {name} (runtime {runtime})");
                 true
             }
             Ok((false, name)) => {
@@ -94,6 +95,17 @@ pub fn wgpu_available() -> bool {
             }
         }
     })
+}
+
+/// The CubeCL runtime behind `device`, as CubeCL names it: `wgpu<spirv>` when wgpu runs on
+/// Vulkan and kernels compile to SPIR-V (cooperative-matrix matmuls available), `wgpu<wgsl>`
+/// otherwise; `None` on the host backends. Benchmarks record it beside their figures, because
+/// the same card runs different kernels under the two compilers.
+pub fn cube_runtime_name(device: &Device) -> Option<&'static str> {
+    match device.as_dispatch().clone().inner() {
+        burn::backend::DispatchDevice::Cube(cube) => Some(cube.client().name()),
+        _ => None,
+    }
 }
 
 /// Whether `device` (or the device an autodiff device wraps) computes on the host: ndarray or

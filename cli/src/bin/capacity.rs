@@ -64,6 +64,8 @@ fn main() -> anyhow::Result<()> {
     lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
+    // SAFETY: the first thing `main` does after parsing; no thread has started yet.
+    unsafe { lifegom_cli::make_default_device(args.device) };
     let cfg = ExperimentConfig::load(&args.config)?;
     let Some(mut synth_cfg) = cfg.file.synthetic.clone() else {
         bail!("{}: needs a [synthetic] section", args.config.display());

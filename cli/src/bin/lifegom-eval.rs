@@ -93,6 +93,8 @@ fn main() -> anyhow::Result<()> {
     lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
+    // SAFETY: the first thing `main` does after parsing; no thread has started yet.
+    unsafe { lifegom_cli::make_default_device(args.device) };
     let mut cfg = lifegom_data::config::ConfigFile::load(&args.config)?;
     if let Some(root) = &args.data {
         cfg = cfg.with_root(root);

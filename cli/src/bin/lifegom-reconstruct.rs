@@ -80,6 +80,8 @@ fn main() -> anyhow::Result<()> {
     lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
+    // SAFETY: the first thing `main` does after parsing; no thread has started yet.
+    unsafe { lifegom_cli::make_default_device(args.device) };
     let cfg = ConfigFile::load(&args.config)?;
     let background = match cfg.data.test_background {
         Background::Fixed(c) => c.map(|v| f32::from(v) / 255.0),

@@ -55,6 +55,8 @@ fn main() -> anyhow::Result<()> {
     lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
+    // SAFETY: the first thing `main` does after parsing; no thread has started yet.
+    unsafe { lifegom_cli::make_default_device(args.device) };
     if let Some(dest) = &args.export {
         let source = latest_checkpoint(&args.out);
         let bytes = export_model(&source, dest, args.subdivide_test, &args.device.device())?;

@@ -77,6 +77,8 @@ fn main() -> anyhow::Result<()> {
     lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
+    // SAFETY: the first thing `main` does after parsing; no thread has started yet.
+    unsafe { lifegom_cli::make_default_device(args.device) };
     let started = Instant::now();
     let stage = |n: usize, what: String| {
         eprintln!("[{n}/4 {:>5.1} s] {what}", started.elapsed().as_secs_f64());

@@ -87,6 +87,8 @@ struct Args {
 fn main() -> anyhow::Result<()> {
     lifegom_cli::allocator::keep_freed_memory();
     let args = Args::parse();
+    // SAFETY: the first thing `main` does after parsing; no thread has started yet.
+    unsafe { lifegom_cli::make_default_device(args.device) };
     let timer = StageTimer::default();
     tracing::subscriber::set_global_default(tracing_subscriber::registry().with(timer.clone()))
         .context("installing the stage timer")?;
@@ -148,6 +150,7 @@ fn main() -> anyhow::Result<()> {
         LaunchCounter::on_cube_device(&device, KernelTiming::from_flag(args.kernel_times));
     let mut run_launches = Vec::new();
     let mut runs = Vec::new();
+    let mut warmup_ms = f64::NAN;
     let mut spans: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
     for run in 0..=args.runs.max(1) {
         timer.take();
@@ -157,6 +160,11 @@ fn main() -> anyhow::Result<()> {
         lifegom_render::device::wait_for_values(rec.last().faces.colors.clone());
         let total = start.elapsed().as_secs_f64() * 1e3;
         let tally = launches.as_ref().map(LaunchCounter::take);
+        if run == 0 {
+            // The warm-up compiles every kernel (and, with autotune, would tune them): what a
+            // process pays once, kept apart from the median.
+            warmup_ms = total;
+        }
         if run > 0 {
             run_launches.extend(tally);
             runs.push((total, rec.timings));
@@ -198,6 +206,7 @@ fn main() -> anyhow::Result<()> {
         "iterations": args.iterations,
         "subdiv": args.subdiv,
         "total_ms": (total * 100.0).round() / 100.0,
+        "warmup_ms": (warmup_ms * 100.0).round() / 100.0,
         "ms_per_step": (steps.iter().sum::<f64>() / steps.len().max(1) as f64 * 100.0).round() / 100.0,
         "stages_ms": stage_ms,
         "spans_ms": spans
@@ -207,6 +216,7 @@ fn main() -> anyhow::Result<()> {
                 (path.clone(), serde_json::json!(ms))
             })
             .collect::<serde_json::Map<_, _>>(),
+        "runtime": lifegom_render::device::cube_runtime_name(&device),
         "threads": rayon::current_num_threads(),
     });
     if let Some(counter) = &launches {

@@ -71,6 +71,8 @@ fn main() -> anyhow::Result<()> {
     lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
+    // SAFETY: the first thing `main` does after parsing; no thread has started yet.
+    unsafe { lifegom_cli::make_default_device(args.device) };
     let template_path = args.template.clone().unwrap_or_else(full_template_path);
     let body = BodyTemplate::load(&template_path)
         .with_context(|| format!("loading {}", template_path.display()))?;
@@ -177,6 +179,7 @@ fn main() -> anyhow::Result<()> {
         "subdiv": args.subdiv,
         "gaussians": n,
         "size": size,
+        "runtime": lifegom_render::device::cube_runtime_name(&device),
         "threads": rayon::current_num_threads(),
         "runs": args.runs,
         "forward_ms": round(forward_ms),

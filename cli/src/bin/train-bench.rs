@@ -135,6 +135,8 @@ fn ms(seconds: f64) -> serde_json::Value {
 fn main() -> anyhow::Result<()> {
     lifegom_cli::allocator::keep_freed_memory();
     let args = Args::parse();
+    // SAFETY: the first thing `main` does after parsing; no thread has started yet.
+    unsafe { lifegom_cli::make_default_device(args.device) };
     let mut cfg = ExperimentConfig::load(&args.config)?;
     let stem = args
         .config
@@ -209,6 +211,8 @@ fn main() -> anyhow::Result<()> {
     let mut cpu_seconds = 0.0;
     let mut system_seconds = 0.0;
     let mut wall_seconds = 0.0;
+    // The warm-up steps compile every kernel: what a process pays once, kept apart from the median.
+    let mut warmup_seconds = Vec::new();
     let mut prefetch = (args.data == DataLoading::Prefetch)
         .then(|| Prefetcher::new(source.clone(), trainer.seed(), trainer.step));
     for i in 0..args.warmup + args.steps.max(1) {
@@ -246,6 +250,7 @@ fn main() -> anyhow::Result<()> {
             wall * 1e3
         );
         if i < args.warmup {
+            warmup_seconds.push(wall);
             continue;
         }
         step_seconds.push(wall);
@@ -319,10 +324,12 @@ fn main() -> anyhow::Result<()> {
         "steps": step_seconds.len(),
         "median_step_ms": ms(median(&step_seconds).unwrap_or(f64::NAN)),
         "min_step_ms": ms(step_seconds.iter().copied().fold(f64::INFINITY, f64::min)),
+        "warmup_ms": warmup_seconds.iter().map(|&s| ms(s)).collect::<Vec<_>>(),
         "cpu_per_wall": (cpu_seconds / wall_seconds * 100.0).round() / 100.0,
         // Kernel time per wall second: page faults on fresh memory show up here.
         "system_per_wall": (system_seconds / wall_seconds * 100.0).round() / 100.0,
         "peak_rss_mib": peak_resident_mib().map(f64::round),
+        "runtime": lifegom_render::device::cube_runtime_name(&device),
         "threads": rayon::current_num_threads(),
         "concurrency": format!("{:?}", args.concurrency).to_lowercase(),
         "by_concurrency": by_concurrency,

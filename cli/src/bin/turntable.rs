@@ -51,6 +51,8 @@ fn main() -> anyhow::Result<()> {
     lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
+    // SAFETY: the first thing `main` does after parsing; no thread has started yet.
+    unsafe { lifegom_cli::make_default_device(args.device) };
     let path = args.template.clone().unwrap_or_else(full_template_path);
     let body = BodyTemplate::load(&path).with_context(|| format!("loading {}", path.display()))?;
     let device = args.device.device();
