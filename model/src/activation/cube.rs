@@ -13,7 +13,7 @@ use super::op::{ReluKernels, ReluOps};
 
 /// `x ≤ 0 → 0`, else `x` (NaN passes), as Burn's comparison and masked fill.
 #[cube(launch)]
-fn forward_kernel(x: &[f32], out: &mut [f32], units: usize) {
+fn relu_forward_kernel(x: &[f32], out: &mut [f32], units: usize) {
     let i = ABSOLUTE_POS;
     if i < units {
         let v = x[i];
@@ -23,7 +23,7 @@ fn forward_kernel(x: &[f32], out: &mut [f32], units: usize) {
 
 /// `output ≤ 0 → 0`, else the gradient.
 #[cube(launch)]
-fn backward_kernel(output: &[f32], grad: &[f32], out: &mut [f32], units: usize) {
+fn relu_backward_kernel(output: &[f32], grad: &[f32], out: &mut [f32], units: usize) {
     let i = ABSOLUTE_POS;
     if i < units {
         out[i] = select(output[i] <= 0.0f32, 0.0f32, grad[i]);
@@ -39,7 +39,7 @@ impl ReluOps for CubeBackend {
         let x = prepare(x);
         let out = client.empty(4 * n.max(1));
         if n > 0 {
-            forward_kernel::launch(
+            relu_forward_kernel::launch(
                 &client,
                 count_1d(n),
                 CubeDim::new_1d(THREADS_1D),
@@ -65,7 +65,7 @@ impl ReluKernels for CubeBackend {
         let grad = prepare(grad);
         let out = client.empty(4 * n.max(1));
         if n > 0 {
-            backward_kernel::launch(
+            relu_backward_kernel::launch(
                 &client,
                 count_1d(n),
                 CubeDim::new_1d(THREADS_1D),

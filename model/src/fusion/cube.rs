@@ -1,12 +1,22 @@
 //! The residual LayerNorm `LN(x + r)·γ + β` on Burn's CubeCL backend (design.md §7.4): the same
-//! formulas as the CPU slice code (`super::kernels`) in `f32`, in three kernels.
+//! formulas as the CPU slice code (`super::kernels`) in `f32`, in four kernels.
 //!
-//! - `forward_kernel`: one thread per row computes the row's mean and `1/√(var + ε)` of
-//!   `z = x + r` and writes the normalised, scaled and shifted row.
-//! - `rows_backward_kernel`: one thread per row recomputes its statistics, writes them for the
-//!   next kernel and writes `∂z = rstd·(a − mean(a) − x̂·mean(a·x̂))` with `a = g·γ`.
-//! - `columns_backward_kernel`: one thread per channel sums `g·x̂` and `g` over the rows in
-//!   order: `∂γ` and `∂β`, with no atomics.
+//! - `residual_layer_norm_kernel`: one cube per row. Its threads stride over the channels
+//!   (neighbouring threads read neighbouring channels) and reduce the row's sums in shared memory:
+//!   the mean and `1/√(var + ε)` of `z = x + r`, then every thread writes its channels of the
+//!   normalised, scaled and shifted row.
+//! - `layer_norm_rows_backward_kernel`: one cube per row recomputes its statistics the same way,
+//!   writes them for the next kernels and writes `∂z = rstd·(a − mean(a) − x̂·mean(a·x̂))` with
+//!   `a = g·γ`.
+//! - `layer_norm_column_chunks_kernel`: one thread per channel and chunk of rows sums `g·x̂` and `g`
+//!   over its rows; `layer_norm_columns_total_kernel` adds the chunks' sums in order: `∂γ` and `∂β`,
+//!   with no atomics.
+//!
+//! An earlier version ran one thread per row (forward) and one per channel (the column sums):
+//! a thread per row reads its row alone, so a warp's loads touch as many cache lines as it has
+//! threads, and a thread per channel leaves a GPU nearly idle at a thousand channels. At the paper
+//! preset those kernels took 49 ms of a reconstruction and 205 ms of a training step on an H200
+//! (BENCHMARKS.md, "On a GPU", session 19).
 //!
 //! Burn's `LayerNorm` composition is about ten launches forward and fifteen backward per call.
 
@@ -16,10 +26,44 @@ use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 use lifegom_render::cube::host::{
-    THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
+    THREADS_1D, arg, cast_to, count_1d, count_cubes, prepare, tensor_arg, tensor_f32,
 };
 
 use super::op::{AddLayerNormOps, LayerNormEpsilon, LayerNormInputs, LayerNormKernels};
+
+/// Threads of a row kernel's cube (a power of two: the shared-memory sum halves it).
+const ROW_THREADS: u32 = 64;
+
+/// Rows one thread of the column kernel sums before the chunks' sums are added.
+const ROWS_PER_CHUNK: usize = 64;
+
+/// The row a row kernel's cube works on (launched with [`count_cubes`]`(rows)`).
+#[cube]
+fn row_of_cube() -> usize {
+    (CUBE_POS_Y * CUBE_COUNT_X + CUBE_POS_X) as usize
+}
+
+/// The sum of `value` over the cube's threads, returned to every thread. A fixed tree, so the
+/// result does not depend on scheduling. `shared` holds one slot per thread; the closing barrier
+/// lets the next call reuse it.
+#[cube]
+fn cube_sum(shared: &mut Shared<[f32]>, value: f32) -> f32 {
+    let unit = UNIT_POS as usize;
+    shared[unit] = value;
+    sync_cube();
+    let mut active = CUBE_DIM as usize;
+    while active > 1 {
+        active /= 2;
+        if unit < active {
+            let other = shared[unit + active];
+            shared[unit] += other;
+        }
+        sync_cube();
+    }
+    let total = shared[0];
+    sync_cube();
+    total
+}
 
 /// A row's mean and reciprocal standard deviation.
 #[derive(CubeType, Clone, Copy)]
@@ -28,30 +72,43 @@ struct RowStats {
     rstd: f32,
 }
 
+/// The statistics of row `row` of `z = x + r`, computed by the whole cube.
 #[cube]
-fn row_stats(x: &[f32], r: &[f32], row: usize, d: usize, epsilon: f32) -> RowStats {
+fn row_stats(
+    x: &[f32],
+    r: &[f32],
+    shared: &mut Shared<[f32]>,
+    row: usize,
+    d: usize,
+    epsilon: f32,
+) -> RowStats {
     let base = row * d;
+    let step = CUBE_DIM as usize;
     let mut sum = 0.0f32;
-    for c in 0..d {
+    let mut c = UNIT_POS as usize;
+    while c < d {
         sum += x[base + c] + r[base + c];
+        c += step;
     }
-    let mean = sum / f32::cast_from(d);
+    let mean = cube_sum(shared, sum) / f32::cast_from(d);
     let mut deviation = 0.0f32;
-    for c in 0..d {
+    c = UNIT_POS as usize;
+    while c < d {
         let centred = x[base + c] + r[base + c] - mean;
         deviation += centred * centred;
+        c += step;
     }
-    let var = deviation / f32::cast_from(d);
+    let var = cube_sum(shared, deviation) / f32::cast_from(d);
     RowStats {
         mean,
         rstd: 1.0f32 / f32::sqrt(var + epsilon),
     }
 }
 
-/// One thread per row.
+/// One cube of [`ROW_THREADS`] per row.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn forward_kernel(
+fn residual_layer_norm_kernel(
     x: &[f32],
     r: &[f32],
     gamma: &[f32],
@@ -61,21 +118,26 @@ fn forward_kernel(
     d: usize,
     epsilon: f32,
 ) {
-    let row = ABSOLUTE_POS;
+    let mut shared = Shared::<[f32]>::new_slice(ROW_THREADS as usize);
+    let row = row_of_cube();
+    // The same for every thread of the cube, so the barriers inside are reached by all.
     if row < rows {
-        let stats = row_stats(x, r, row, d, epsilon);
+        let stats = row_stats(x, r, &mut shared, row, d, epsilon);
         let base = row * d;
-        for c in 0..d {
+        let mut c = UNIT_POS as usize;
+        while c < d {
             let z = x[base + c] + r[base + c];
             out[base + c] = (z - stats.mean) * stats.rstd * gamma[c] + beta[c];
+            c += CUBE_DIM as usize;
         }
     }
 }
 
-/// One thread per row: `∂z` and the row's statistics (`stats[2·row]`, `stats[2·row + 1]`).
+/// One cube of [`ROW_THREADS`] per row: `∂z` and the row's statistics (`stats[2·row]`,
+/// `stats[2·row + 1]`).
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn rows_backward_kernel(
+fn layer_norm_rows_backward_kernel(
     x: &[f32],
     r: &[f32],
     gamma: &[f32],
@@ -86,53 +148,90 @@ fn rows_backward_kernel(
     d: usize,
     epsilon: f32,
 ) {
-    let row = ABSOLUTE_POS;
+    let mut shared = Shared::<[f32]>::new_slice(ROW_THREADS as usize);
+    let row = row_of_cube();
     if row < rows {
-        let stats = row_stats(x, r, row, d, epsilon);
-        stats_out[2 * row] = stats.mean;
-        stats_out[2 * row + 1] = stats.rstd;
+        let stats = row_stats(x, r, &mut shared, row, d, epsilon);
+        if UNIT_POS == 0 {
+            stats_out[2 * row] = stats.mean;
+            stats_out[2 * row + 1] = stats.rstd;
+        }
         let base = row * d;
+        let step = CUBE_DIM as usize;
         let mut sum_a = 0.0f32;
         let mut sum_ax = 0.0f32;
-        for c in 0..d {
+        let mut c = UNIT_POS as usize;
+        while c < d {
             let xhat = (x[base + c] + r[base + c] - stats.mean) * stats.rstd;
             let a = grad[base + c] * gamma[c];
             sum_a += a;
             sum_ax += a * xhat;
+            c += step;
         }
         let n = f32::cast_from(d);
-        let mean_a = sum_a / n;
-        let mean_ax = sum_ax / n;
-        for c in 0..d {
+        let mean_a = cube_sum(&mut shared, sum_a) / n;
+        let mean_ax = cube_sum(&mut shared, sum_ax) / n;
+        c = UNIT_POS as usize;
+        while c < d {
             let xhat = (x[base + c] + r[base + c] - stats.mean) * stats.rstd;
             let a = grad[base + c] * gamma[c];
             dz[base + c] = stats.rstd * (a - mean_a - xhat * mean_ax);
+            c += step;
         }
     }
 }
 
-/// One thread per channel: `∂γ[c] = Σ_rows g·x̂`, `∂β[c] = Σ_rows g`.
+/// One thread per `(chunk, channel)`: the chunk's `Σ g·x̂` and `Σ g` of the channel, at
+/// `[chunk·d + c]` of `partial_gx` and `partial_g`.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn columns_backward_kernel(
+fn layer_norm_column_chunks_kernel(
     x: &[f32],
     r: &[f32],
     grad: &[f32],
     stats: &[f32],
+    partial_gx: &mut [f32],
+    partial_g: &mut [f32],
+    units: usize,
+    rows: usize,
+    d: usize,
+) {
+    let unit = ABSOLUTE_POS;
+    if unit < units {
+        let c = unit % d;
+        let chunk = unit / d;
+        let first = chunk * ROWS_PER_CHUNK;
+        let last = min(first + ROWS_PER_CHUNK, rows);
+        let mut sum_gx = 0.0f32;
+        let mut sum_g = 0.0f32;
+        for row in first..last {
+            let i = row * d + c;
+            let xhat = (x[i] + r[i] - stats[2 * row]) * stats[2 * row + 1];
+            sum_gx += grad[i] * xhat;
+            sum_g += grad[i];
+        }
+        partial_gx[unit] = sum_gx;
+        partial_g[unit] = sum_g;
+    }
+}
+
+/// One thread per channel: `∂γ[c]` and `∂β[c]`, the chunks' sums added in chunk order.
+#[cube(launch)]
+fn layer_norm_columns_total_kernel(
+    partial_gx: &[f32],
+    partial_g: &[f32],
     dgamma: &mut [f32],
     dbeta: &mut [f32],
-    rows: usize,
+    chunks: usize,
     d: usize,
 ) {
     let c = ABSOLUTE_POS;
     if c < d {
         let mut sum_gx = 0.0f32;
         let mut sum_g = 0.0f32;
-        for row in 0..rows {
-            let i = row * d + c;
-            let xhat = (x[i] + r[i] - stats[2 * row]) * stats[2 * row + 1];
-            sum_gx += grad[i] * xhat;
-            sum_g += grad[i];
+        for chunk in 0..chunks {
+            sum_gx += partial_gx[chunk * d + c];
+            sum_g += partial_g[chunk * d + c];
         }
         dgamma[c] = sum_gx;
         dbeta[c] = sum_g;
@@ -153,10 +252,10 @@ fn cube_forward(inputs: LayerNormInputs<CubeBackend>) -> FloatTensor<CubeBackend
     let beta = prepare(inputs.beta);
     let out = client.empty(4 * len.max(1));
     if rows > 0 && d > 0 {
-        forward_kernel::launch(
+        residual_layer_norm_kernel::launch(
             &client,
-            count_1d(rows),
-            CubeDim::new_1d(THREADS_1D),
+            count_cubes(rows),
+            CubeDim::new_1d(ROW_THREADS),
             tensor_arg(&x),
             tensor_arg(&r),
             tensor_arg(&gamma),
@@ -191,10 +290,10 @@ fn cube_backward(
     let dgamma = client.empty(4 * d.max(1));
     let dbeta = client.empty(4 * d.max(1));
     if rows > 0 && d > 0 {
-        rows_backward_kernel::launch(
+        layer_norm_rows_backward_kernel::launch(
             &client,
-            count_1d(rows),
-            CubeDim::new_1d(THREADS_1D),
+            count_cubes(rows),
+            CubeDim::new_1d(ROW_THREADS),
             tensor_arg(&x),
             tensor_arg(&r),
             tensor_arg(&gamma),
@@ -207,18 +306,34 @@ fn cube_backward(
         );
     }
     if d > 0 {
-        // With no rows the sums are zero: the kernel's loops run zero times.
-        columns_backward_kernel::launch(
+        // With no rows there is one empty chunk, and the sums are zero.
+        let chunks = rows.div_ceil(ROWS_PER_CHUNK).max(1);
+        let units = chunks * d;
+        let partial_gx = client.empty(4 * units);
+        let partial_g = client.empty(4 * units);
+        layer_norm_column_chunks_kernel::launch(
             &client,
-            count_1d(d),
+            count_1d(units),
             CubeDim::new_1d(THREADS_1D),
             tensor_arg(&x),
             tensor_arg(&r),
             tensor_arg(&grad),
             arg(&stats, 2 * rows),
+            arg(&partial_gx, units),
+            arg(&partial_g, units),
+            units,
+            rows,
+            d,
+        );
+        layer_norm_columns_total_kernel::launch(
+            &client,
+            count_1d(d),
+            CubeDim::new_1d(THREADS_1D),
+            arg(&partial_gx, units),
+            arg(&partial_g, units),
             arg(&dgamma, d),
             arg(&dbeta, d),
-            rows,
+            chunks,
             d,
         );
     }

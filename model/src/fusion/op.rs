@@ -398,3 +398,110 @@ impl<B: AddLayerNormOps + LayerNormKernels, C: CheckpointStrategy> AddLayerNormO
         )
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::{Tensor, TensorData};
+    use lifegom_render::rng::Rng;
+    use lifegom_render::testing::read;
+
+    /// The op against its `f64` definition (`kernels::add_layer_norm_*`), output and all four
+    /// gradients, on any device: on CubeCL devices this runs the row and column kernels of
+    /// `super::cube`, elsewhere the host kernels. The shapes cover a row shorter and longer than
+    /// a row kernel's cube (64 threads), fewer and more rows than a column chunk (64), and more
+    /// rows than one dispatch row of cubes holds (65,535).
+    fn add_layer_norm_matches_f64_definition(device: &burn::tensor::Device) {
+        let ad = device.clone().autodiff();
+        let mut rng = Rng::new(11);
+        let eps = 1e-5;
+        for (rows, d) in [(1, 1), (5, 200), (150, 24), (130, 1152), (70_000, 3)] {
+            // Values the f32 tensors hold exactly, so the f64 reference sees the same inputs.
+            let mut draw = |n: usize| -> Vec<f64> {
+                (0..n)
+                    .map(|_| f64::from((rng.uniform() * 2.0 - 1.0) as f32))
+                    .collect()
+            };
+            let (mut x, r, w) = (draw(rows * d), draw(rows * d), draw(rows * d));
+            // Odd channels shifted by 5, so that every row of two or more channels has a variance
+            // of at least 1/4: a row of nearly equal values is ill-conditioned in f32 (its output
+            // divides rounding errors by its spread) whatever the kernel.
+            for (i, v) in x.iter_mut().enumerate() {
+                if i % d % 2 == 1 {
+                    *v = f64::from((*v + 5.0) as f32);
+                }
+            }
+            let (gamma, beta) = (draw(d), draw(d));
+            let f32s = |v: &[f64]| v.iter().map(|&a| a as f32).collect::<Vec<f32>>();
+            let matrix = |v: &[f64]| {
+                Tensor::<2>::from_data(TensorData::new(f32s(v), [rows, d]), &ad).require_grad()
+            };
+            let vector = |v: &[f64]| {
+                Tensor::<1>::from_data(TensorData::new(f32s(v), [d]), &ad).require_grad()
+            };
+            let (xt, rt, gt, bt) = (matrix(&x), matrix(&r), vector(&gamma), vector(&beta));
+            let y = Tensor::<2>::from_dispatch(
+                <burn::backend::Dispatch as AddLayerNormOps>::add_layer_norm(
+                    xt.clone().into_dispatch(),
+                    rt.clone().into_dispatch(),
+                    gt.clone().into_dispatch(),
+                    bt.clone().into_dispatch(),
+                    LayerNormEpsilon(eps),
+                ),
+            );
+            let grads = (y.clone() * matrix(&w).detach()).sum().backward();
+
+            let want_y = kernels::add_layer_norm_forward(&x, &r, &gamma, &beta, eps);
+            let (want_dz, want_dgamma, want_dbeta) =
+                kernels::add_layer_norm_backward(&x, &r, &gamma, &w, eps);
+            // Within 1e-5 of the largest value; the column sums (f32 sums over up to 70,000 rows,
+            // in another order than f64's) within 1e-5 of the row count times the largest `∂z`
+            // (at least 1), a bound on their terms' magnitudes summed.
+            let check = |what: &str, got: Vec<f32>, want: &[f64], scale: f64| {
+                for (i, (&g, &e)) in got.iter().zip(want).enumerate() {
+                    assert!(
+                        (f64::from(g) - e).abs() <= 1e-5 * scale,
+                        "{what}[{i}] ({rows} × {d}): {g} vs {e}"
+                    );
+                }
+            };
+            let max_abs = |v: &[f64]| v.iter().fold(1e-3f64, |m, a| m.max(a.abs()));
+            let column_scale = (rows as f64).max(1.0) * max_abs(&want_dz).max(1.0);
+            check("y", read(y), &want_y, max_abs(&want_y));
+            let dz_scale = max_abs(&want_dz);
+            check(
+                "dx",
+                read(xt.grad(&grads).expect("x gradient")),
+                &want_dz,
+                dz_scale,
+            );
+            check(
+                "dr",
+                read(rt.grad(&grads).expect("r gradient")),
+                &want_dz,
+                dz_scale,
+            );
+            check(
+                "dgamma",
+                read(gt.grad(&grads).expect("gamma gradient")),
+                &want_dgamma,
+                column_scale,
+            );
+            check(
+                "dbeta",
+                read(bt.grad(&grads).expect("beta gradient")),
+                &want_dbeta,
+                column_scale,
+            );
+        }
+    }
+
+    lifegom_render::cpu_backend_tests!(add_layer_norm => add_layer_norm_matches_f64_definition);
+
+    #[test]
+    fn add_layer_norm_wgpu() {
+        if let Some(device) = lifegom_render::testing::wgpu_test_device() {
+            add_layer_norm_matches_f64_definition(&device);
+        }
+    }
+}

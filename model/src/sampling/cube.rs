@@ -1,16 +1,16 @@
 //! The pyramid sampling op on Burn's CubeCL backend (design.md §7.2): the same map as the CPU
 //! slice code ([`super::bilinear`]), formula by formula in `f32`, as four kernels.
 //!
-//! - `forward_kernel`: one thread per output element `(point, view, channel)`. It finds the
-//!   channel's level, computes that level's map coordinates and four-corner footprint and writes
-//!   the weighted corner sum (on the last level, the sum of every channel's sample times the
-//!   tail's column).
-//! - `uv_backward_kernel`: one thread per point and view, summing over the levels the slope of
+//! - `sample_forward_kernel`: one thread per output element `(point, view, channel)`. It finds the
+//!   channel's level, computes that level's map coordinates and four-corner footprint (once, as
+//!   every kernel here that loops over channels) and writes the weighted corner sum (on the last
+//!   level, the sum of every channel's sample times the tail's column).
+//! - `sample_uv_backward_kernel`: one thread per point and view, summing over the levels the slope of
 //!   the weights times `⟨g, corner row⟩`, times `W_l / width`.
-//! - `rows_backward_kernel`: one thread per `(point, view, level channel)`, adding `w·g` into the
+//! - `sample_rows_backward_kernel`: one thread per `(point, view, level channel)`, adding `w·g` into the
 //!   four corner rows with float atomic adds (`lifegom_render::cube::atomic`): a corner row is
 //!   shared by every point that falls near it, so this is a scatter.
-//! - `tail_factors_kernel`: one thread per point and view, writing the last level's sample and
+//! - `sample_tail_factors_kernel`: one thread per point and view, writing the last level's sample and
 //!   the tail's output gradient as two contiguous row blocks; the tail's gradient is then one
 //!   product `sampleᵀ·g` (Burn's matmul).
 //!
@@ -228,17 +228,59 @@ fn corner(geom: &LevelGeom, view: usize, x: f32, y: f32, k: u32) -> Corner {
     }
 }
 
-/// The sample of channel `c` of a level at a footprint: `Σ_corners w·rows[corner][c]`.
+/// The four corners of a map point's footprint, computed once per thread where a loop over
+/// channels reads them (the last level's channels, the tail's inputs). Computed per channel
+/// instead, a tail column cost `4·C_last` corner evaluations; the forward kernel then took 81 ms
+/// of device time in a paper-setting reconstruction on an H200 (BENCHMARKS.md, "On a GPU",
+/// session 19).
+#[derive(CubeType, Clone, Copy)]
+struct Footprint {
+    c00: Corner,
+    c10: Corner,
+    c01: Corner,
+    c11: Corner,
+}
+
 #[cube]
-fn corner_sum(rows: &[f32], geom: &LevelGeom, view: usize, x: f32, y: f32, c: usize) -> f32 {
-    let mut acc = 0.0f32;
-    for k in 0..4u32 {
-        let cr = corner(geom, view, x, y, k);
-        if cr.inside {
-            acc += cr.weight * rows[geom.rows_from + cr.row * geom.channels + c];
-        }
+fn footprint(geom: &LevelGeom, view: usize, x: f32, y: f32) -> Footprint {
+    Footprint {
+        c00: corner(geom, view, x, y, 0u32),
+        c10: corner(geom, view, x, y, 1u32),
+        c01: corner(geom, view, x, y, 2u32),
+        c11: corner(geom, view, x, y, 3u32),
     }
-    acc
+}
+
+/// The sample of channel `c` of a level at a footprint: `Σ_corners w·rows[corner][c]`, summed
+/// in corner order as the CPU code does.
+#[cube]
+fn footprint_sum(rows: &[f32], geom: &LevelGeom, fp: &Footprint, c: usize) -> f32 {
+    corner_product(rows, geom, &fp.c00, c, fp.c00.weight)
+        + corner_product(rows, geom, &fp.c10, c, fp.c10.weight)
+        + corner_product(rows, geom, &fp.c01, c, fp.c01.weight)
+        + corner_product(rows, geom, &fp.c11, c, fp.c11.weight)
+}
+
+/// `factor·rows[corner][c]`, or 0 outside the map (where the row is not read).
+#[cube]
+fn corner_product(rows: &[f32], geom: &LevelGeom, cr: &Corner, c: usize, factor: f32) -> f32 {
+    let mut term = 0.0f32;
+    if cr.inside {
+        term = factor * rows[geom.rows_from + cr.row * geom.channels + c];
+    }
+    term
+}
+
+/// A corner's contribution `(∂w/∂x·dot, ∂w/∂y·dot)` to a point's coordinate gradient.
+#[cube]
+fn corner_slope(cr: &Corner, dot: f32) -> MapPoint {
+    let mut x = 0.0f32;
+    let mut y = 0.0f32;
+    if cr.inside {
+        x = cr.d_dx * dot;
+        y = cr.d_dy * dot;
+    }
+    MapPoint { x, y }
 }
 
 /// The last level's sample gradient for its channel `c`: the output gradient `g_out` (at
@@ -255,7 +297,7 @@ fn tail_back(grad: &[f32], g_from: usize, tail: &[f32], c: usize, tail_out: usiz
 /// One thread per output element of `[P, N, width]`.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn forward_kernel(
+fn sample_forward_kernel(
     rows: &[f32],
     uv: &[f32],
     tail: &[f32],
@@ -273,15 +315,15 @@ fn forward_kernel(
     if unit < units {
         let site = channel_site(uv, table, scales, unit, width, views, points, levels);
         let (geom, at) = (site.geom, site.at);
+        let fp = footprint(&geom, site.view, at.x, at.y);
         if site.level == levels - 1 {
             let mut value = 0.0f32;
             for c in 0..geom.channels {
-                value += corner_sum(rows, &geom, site.view, at.x, at.y, c)
-                    * tail[c * tail_out + site.channel];
+                value += footprint_sum(rows, &geom, &fp, c) * tail[c * tail_out + site.channel];
             }
             out[unit] = value;
         } else {
-            out[unit] = corner_sum(rows, &geom, site.view, at.x, at.y, site.channel);
+            out[unit] = footprint_sum(rows, &geom, &fp, site.channel);
         }
     }
 }
@@ -289,7 +331,7 @@ fn forward_kernel(
 /// One thread per point and view, in `uv`'s `[N, P]` order: `∂L/∂(u, v)`.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn uv_backward_kernel(
+fn sample_uv_backward_kernel(
     rows: &[f32],
     uv: &[f32],
     tail: &[f32],
@@ -316,25 +358,30 @@ fn uv_backward_kernel(
             let at = map_point(uv, k, &geom);
             let g_from = g_row + geom.out_from;
             let is_tail = level == levels - 1;
-            let mut gx = 0.0f32;
-            let mut gy = 0.0f32;
-            for corner_index in 0..4u32 {
-                let cr = corner(&geom, view, at.x, at.y, corner_index);
-                if cr.inside {
-                    let base = geom.rows_from + cr.row * geom.channels;
-                    let mut dot = 0.0f32;
-                    for c in 0..geom.channels {
-                        let g = if is_tail {
-                            tail_back(grad, g_from, tail, c, tail_out)
-                        } else {
-                            grad[g_from + c]
-                        };
-                        dot += g * rows[base + c];
-                    }
-                    gx += cr.d_dx * dot;
-                    gy += cr.d_dy * dot;
-                }
+            // One pass over the channels for all four corners: the tail's gradient of a
+            // channel is a loop over the tail's outputs, computed once instead of per corner.
+            let fp = footprint(&geom, view, at.x, at.y);
+            let mut dot00 = 0.0f32;
+            let mut dot10 = 0.0f32;
+            let mut dot01 = 0.0f32;
+            let mut dot11 = 0.0f32;
+            for c in 0..geom.channels {
+                let g = if is_tail {
+                    tail_back(grad, g_from, tail, c, tail_out)
+                } else {
+                    grad[g_from + c]
+                };
+                dot00 += corner_product(rows, &geom, &fp.c00, c, g);
+                dot10 += corner_product(rows, &geom, &fp.c10, c, g);
+                dot01 += corner_product(rows, &geom, &fp.c01, c, g);
+                dot11 += corner_product(rows, &geom, &fp.c11, c, g);
             }
+            let s00 = corner_slope(&fp.c00, dot00);
+            let s10 = corner_slope(&fp.c10, dot10);
+            let s01 = corner_slope(&fp.c01, dot01);
+            let s11 = corner_slope(&fp.c11, dot11);
+            let gx = s00.x + s10.x + s01.x + s11.x;
+            let gy = s00.y + s10.y + s01.y + s11.y;
             gu += gx * geom.scale_x;
             gv += gy * geom.scale_y;
         }
@@ -347,7 +394,7 @@ fn uv_backward_kernel(
 /// point and view): scatters `w·g` into the four corner rows.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn rows_backward_kernel<A: AtomicAddF32>(
+fn sample_rows_backward_kernel<A: AtomicAddF32>(
     uv: &[f32],
     tail: &[f32],
     grad: &[f32],
@@ -390,7 +437,7 @@ fn rows_backward_kernel<A: AtomicAddF32>(
 /// (`samples`, `[P·N, C_last]`) and the tail's output gradient (`g_out`, `[P·N, tail_out]`).
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn tail_factors_kernel(
+fn sample_tail_factors_kernel(
     rows: &[f32],
     uv: &[f32],
     grad: &[f32],
@@ -412,8 +459,9 @@ fn tail_factors_kernel(
         let k = view * points + point;
         let geom = level_geom(table, scales, levels - 1);
         let at = map_point(uv, k, &geom);
+        let fp = footprint(&geom, view, at.x, at.y);
         for c in 0..geom.channels {
-            samples[pv * geom.channels + c] = corner_sum(rows, &geom, view, at.x, at.y, c);
+            samples[pv * geom.channels + c] = footprint_sum(rows, &geom, &fp, c);
         }
         let g_from = pv * width + geom.out_from;
         for j in 0..tail_out {
@@ -514,7 +562,7 @@ fn cube_forward(inputs: SampleInputs<CubeBackend>) -> FloatTensor<CubeBackend> {
     let units = l.points * l.views * l.width;
     let out = l.client.empty(4 * units.max(1));
     if units > 0 {
-        forward_kernel::launch(
+        sample_forward_kernel::launch(
             &l.client,
             count_1d(units),
             CubeDim::new_1d(THREADS_1D),
@@ -554,7 +602,7 @@ fn cube_backward(
     let uv_len = 2 * pv;
     let uv_grad = client.empty(4 * uv_len.max(1));
     if pv > 0 {
-        uv_backward_kernel::launch(
+        sample_uv_backward_kernel::launch(
             client,
             count_1d(pv),
             CubeDim::new_1d(THREADS_1D),
@@ -582,7 +630,7 @@ fn cube_backward(
         if units > 0 && len > 0 {
             macro_rules! launch {
                 ($slot:ty) => {
-                    rows_backward_kernel::launch::<$slot>(
+                    sample_rows_backward_kernel::launch::<$slot>(
                         client,
                         count_1d(units),
                         CubeDim::new_1d(THREADS_1D),
@@ -615,7 +663,7 @@ fn cube_backward(
         let samples = client.empty(4 * (pv * l.c_last).max(1));
         let g_out = client.empty(4 * (pv * l.tail_out).max(1));
         if pv > 0 {
-            tail_factors_kernel::launch(
+            sample_tail_factors_kernel::launch(
                 client,
                 count_1d(pv),
                 CubeDim::new_1d(THREADS_1D),

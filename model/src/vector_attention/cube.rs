@@ -1,10 +1,10 @@
 //! The vector-attention aggregation on Burn's CubeCL backend: one thread per point and weight
 //! channel `(i, j)` in both kernels.
 //!
-//! - `forward_kernel`: the softmax over the `k` neighbours, shifted by their maximum as Burn's
+//! - `aggregate_forward_kernel`: the softmax over the `k` neighbours, shifted by their maximum as Burn's
 //!   `softmax` is (`exp(w − max) / Σ exp(w − max)`), then for each of the `S` value channels
 //!   sharing weight channel `j` the weighted sum of the neighbours' values.
-//! - `backward_kernel`: recomputes the softmax `p`, then writes `∂v[i, κ, s, j] = p_κ·g[i, s, j]`
+//! - `aggregate_backward_kernel`: recomputes the softmax `p`, then writes `∂v[i, κ, s, j] = p_κ·g[i, s, j]`
 //!   and the softmax's backward `∂w[i, κ, j] = p_κ·(a_κ − Σ_λ p_λ·a_λ)` with
 //!   `a_κ = Σ_s g[i, s, j]·v[i, κ, s, j]`. Each thread owns its outputs: no atomics.
 
@@ -62,7 +62,7 @@ fn value_index(i: usize, kk: usize, si: usize, j: usize, k: usize, s: usize, cs:
 
 /// One thread per `(i, j)`: writes `out[i, s, j]` for every `s`.
 #[cube(launch)]
-fn forward_kernel(
+fn aggregate_forward_kernel(
     values: &[f32],
     logits: &[f32],
     out: &mut [f32],
@@ -110,7 +110,7 @@ fn weighted_value(
 /// One thread per `(i, j)`: writes `∂v[i, ·, ·, j]` and `∂w[i, ·, j]`.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn backward_kernel(
+fn aggregate_backward_kernel(
     values: &[f32],
     logits: &[f32],
     grad: &[f32],
@@ -165,7 +165,7 @@ impl VectorAttentionOps for CubeBackend {
         let out = client.empty(4 * len.max(1));
         let units = n * cs;
         if units > 0 && k > 0 {
-            forward_kernel::launch(
+            aggregate_forward_kernel::launch(
                 &client,
                 count_1d(units),
                 CubeDim::new_1d(THREADS_1D),
@@ -200,7 +200,7 @@ impl VectorAttentionKernels for CubeBackend {
         let logits_grad = client.empty(4 * logits_len.max(1));
         let units = n * cs;
         if units > 0 && k > 0 {
-            backward_kernel::launch(
+            aggregate_backward_kernel::launch(
                 &client,
                 count_1d(units),
                 CubeDim::new_1d(THREADS_1D),

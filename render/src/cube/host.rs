@@ -7,7 +7,7 @@
 //!   back into tensors ([`tensor_of`], [`tensor_f32`], [`cast_to`] the caller's dtype);
 //! - allocate buffers and turn them into kernel arguments ([`empty_u32`], [`zeros_f32`],
 //!   [`arg`], [`tensor_arg`], [`u32_bytes`] for uploads);
-//! - shape 1D launches ([`THREADS_1D`], [`count_1d`]) and read single values back
+//! - shape 1D launches ([`THREADS_1D`], [`count_1d`], [`count_cubes`]) and read single values back
 //!   ([`read_u32`]).
 //!
 //! Zero-sized bindings are invalid on some runtimes, so every allocation and argument here is
@@ -35,7 +35,14 @@ const MAX_CUBES_PER_DIM: u32 = 65_535;
 /// A 1D launch of `units` threads, split over a 2D grid of cubes where one row would exceed the
 /// 65535-cube dispatch limit. Kernels index with `ABSOLUTE_POS` and guard `< units`.
 pub fn count_1d(units: usize) -> CubeCount {
-    let cubes = units.div_ceil(THREADS_1D as usize).max(1) as u32;
+    count_cubes(units.div_ceil(THREADS_1D as usize))
+}
+
+/// `cubes` cubes (at least one) over a 2D grid where one row would exceed the 65535-cube
+/// dispatch limit: for kernels that give each cube one item (a row, a tile) and find it as
+/// `CUBE_POS_Y·CUBE_COUNT_X + CUBE_POS_X`, guarding `< cubes`.
+pub fn count_cubes(cubes: usize) -> CubeCount {
+    let cubes = cubes.max(1) as u32;
     let x = cubes.min(MAX_CUBES_PER_DIM);
     CubeCount::Static(x, cubes.div_ceil(x), 1)
 }

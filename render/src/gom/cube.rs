@@ -2,13 +2,13 @@
 //!
 //! Two kernels, one thread per face, mirroring [`super::cpu`] formula by formula in `f32`:
 //!
-//! - `forward_kernel`: interpolate the three corners from the low-res vertices, build the
+//! - `gom_forward_kernel`: interpolate the three corners from the low-res vertices, build the
 //!   Steiner frame and `exp(r̂)`, write mean ‖ covariance (`[F, 9]`);
-//! - `backward_kernel`: recompute the same, then write the face's `so3`, scale and offset
+//! - `gom_backward_kernel`: recompute the same, then write the face's `so3`, scale and offset
 //!   gradients and, for each of its 9 corner-table entries, the weighted corner gradient
 //!   `w·dL/dp_k` as a row of `[F*9, 3]`.
 //!
-//! - `vertex_sum_kernel`: one thread per low-res vertex and axis sums that vertex's rows along
+//! - `gom_vertex_sum_kernel`: one thread per low-res vertex and axis sums that vertex's rows along
 //!   its run of the inverted corner table (`vertex_corner_offsets`, `corner_from_vertex_order`),
 //!   in increasing row order from `+0.0`.
 //!
@@ -348,7 +348,7 @@ fn face_frame(
 /// One thread per face: mean ‖ covariance (`cpu::face_forward`).
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn forward_kernel(
+fn gom_forward_kernel(
     vertices: &[f32],
     so3: &[f32],
     scales: &[f32],
@@ -416,7 +416,7 @@ fn so3_exp_backward(r: &V3, rot: &Rotation, g_r: &M3) -> V3 {
 /// (`cpu::face_backward`; the vertex scatter is left to the host).
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn backward_kernel(
+fn gom_backward_kernel(
     vertices: &[f32],
     so3: &[f32],
     scales: &[f32],
@@ -534,7 +534,7 @@ fn select_v3(first: bool, x: &V3, second: bool, y: &V3, z: &V3) -> V3 {
 /// in increasing row order from `+0.0`.
 #[cube(launch)]
 #[allow(clippy::needless_range_loop)] // CubeCL kernels loop over index ranges, not iterators
-fn vertex_sum_kernel(
+fn gom_vertex_sum_kernel(
     rows: &[f32],
     vertex_corner_offsets: &[i32],
     corner_from_vertex_order: &[i32],
@@ -595,7 +595,7 @@ fn forward(inputs: GomInputs<CubeBackend>) -> FloatTensor<CubeBackend> {
     let device = p.inputs.vertices.device.clone();
     let out = client.empty(4 * (OUT_LANES * f).max(1));
     if f > 0 {
-        forward_kernel::launch(
+        gom_forward_kernel::launch(
             &client,
             count_1d(f),
             CubeDim::new_1d(THREADS_1D),
@@ -646,7 +646,7 @@ fn backward(
     let rows = client.empty(4 * rows_len.max(1));
     if f > 0 {
         let grad = prepare(grad);
-        backward_kernel::launch(
+        gom_backward_kernel::launch(
             &client,
             count_1d(f),
             CubeDim::new_1d(THREADS_1D),
@@ -668,7 +668,7 @@ fn backward(
     if v > 0 {
         // With no faces every run is empty (the offsets are all zero): the sums are +0.0 and
         // the one-element stand-in for `rows` is never read.
-        vertex_sum_kernel::launch(
+        gom_vertex_sum_kernel::launch(
             &client,
             count_1d(3 * v),
             CubeDim::new_1d(THREADS_1D),
