@@ -9,20 +9,22 @@
 #   (cd .gl && apt-get download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
 #
 #   cargo build --release --workspace --locked   # on the dev machine
-#   BIN=gpu-bin BIN_BEFORE=gpu-bin-before OUT=/tmp/gpu-out bash tools/gpu-figures.sh
+#   BIN=gpu-bin BIN_BEFORE="gpu-bin-before gpu-bin-wgsl" OUT=/tmp/gpu-out bash tools/gpu-figures.sh
 #
 # Every figure is one JSON line from a benchmark binary (recon-bench, train-bench, render-bench),
 # appended to $OUT/figures.jsonl with the step's name. On wgpu the lines carry
 # `kernel_launches` and `top_kernels` (lifegom_cli::launches). The set, about 8 minutes:
 #   1. the quickstart training step and the paper-setting reconstruction on wgpu, alternated
-#      with the same commands from $BIN_BEFORE's binaries when it is set (a before/after pair
-#      from one machine: figures move between machines of the same kind);
+#      with the same commands from the binaries of each folder in $BIN_BEFORE (a space-separated
+#      list; a folder may hold only some of the binaries) when it is set: before/after pairs
+#      from one machine, since figures move between machines of the same kind;
 #   2. the paper network's reconstruction at 256² (the size the issue records launches at);
 #   3. per-kernel device times (`--kernel-times`) of the paper-setting reconstruction and of a
 #      training step at the paper preset (configs/paper-bench.toml);
 #   4. the rasterizer's headline (1024², 2 subdivisions) and test binaries named `test-*` in $BIN
 #      (run with LIFEGOM_REQUIRE_WGPU=1: the CubeCL kernels' parity with the CPU reference on the
-#      card).
+#      card);
+#   5. with AUTOTUNE_BIN set, the kernels Burn's autotune picks at the paper setting.
 # Each step has its own time limit, so one that hangs cannot eat the others' time.
 set -uo pipefail
 BIN=${BIN:?BIN: folder of release binaries}
@@ -50,8 +52,10 @@ if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
 fi
 export RUST_LOG=warn
 
-# Binaries travel compressed (a stripped release binary is ≈ 70 MB, the carry limit 64 MiB).
-for dir in "$BIN" $BIN_BEFORE; do
+# Binaries travel compressed (`strip --strip-all`, then `xz -9`: ≈ 12 MB each). A call carries
+# at most 64 MiB, the repository's tracked files included (about 27 MB in session 19), so one
+# full set of binaries and one more binary fit.
+for dir in "$BIN" $BIN_BEFORE ${AUTOTUNE_BIN:-}; do
     for f in "$dir"/*.xz; do
         [ -e "$f" ] || continue
         python3 -c 'import lzma, shutil, sys; shutil.copyfileobj(lzma.open(sys.argv[1]), open(sys.argv[2], "wb"))' "$f" "${f%.xz}"
@@ -89,22 +93,32 @@ PAPER=(--config paper --size 1024 --subdiv 2 --runs 3 --json --template "$TEMPLA
 sleep 5
 nvidia-smi --query-compute-apps=process_name,used_memory --format=csv | tee -a "$OUT/gpu.txt"
 wait
-step train-wgpu-quickstart 90 "$BIN/train-bench" --device wgpu "${QUICK[@]}"
-if [ -n "$BIN_BEFORE" ]; then
-    step before-train-wgpu-quickstart 90 "$BIN_BEFORE/train-bench" --device wgpu "${QUICK[@]}"
-    step train-wgpu-quickstart-2 90 "$BIN/train-bench" --device wgpu "${QUICK[@]}"
-fi
-step recon-wgpu-paper-1024-s2 90 "$BIN/recon-bench" --device wgpu "${PAPER[@]}"
-if [ -n "$BIN_BEFORE" ]; then
-    step before-recon-wgpu-paper-1024-s2 90 "$BIN_BEFORE/recon-bench" --device wgpu "${PAPER[@]}"
-fi
+compare() {
+    # compare NAME LIMIT BINARY ARGS...: the step from $BIN, then from each $BIN_BEFORE folder that
+    # holds BINARY (step NAME prefixed with the folder's name), then from $BIN again, so that a
+    # drift of the card during the call shows.
+    local name=$1 limit=$2 exe=$3
+    shift 3
+    step "$name" "$limit" "$BIN/$exe" "$@"
+    local others=0 dir
+    for dir in $BIN_BEFORE; do
+        [ -x "$dir/$exe" ] || continue
+        step "$(basename "$dir")-$name" "$limit" "$dir/$exe" "$@"
+        others=1
+    done
+    if [ "$others" = 1 ]; then
+        step "$name-2" "$limit" "$BIN/$exe" "$@"
+    fi
+}
+compare train-wgpu-quickstart 90 train-bench --device wgpu "${QUICK[@]}"
+compare recon-wgpu-paper-1024-s2 90 recon-bench --device wgpu "${PAPER[@]}"
 
 GPU_DEVICE=wgpu
 
 step recon-wgpu-paper-256 60 "$BIN/recon-bench" --device wgpu --config paper --size 256 --subdiv 1 --runs 3 --json --template "$TEMPLATE"
 
 # 3. Where the device time goes at the paper's setting, kernel by kernel.
-step profile-recon-paper-1024-s2 90 "$BIN/recon-bench" --device "$GPU_DEVICE" --config paper --size 1024 --subdiv 2 --runs 1 --json --template "$TEMPLATE" --kernel-times --top-kernels 25
+compare profile-recon-paper-1024-s2 90 recon-bench --device "$GPU_DEVICE" --config paper --size 1024 --subdiv 2 --runs 1 --json --template "$TEMPLATE" --kernel-times --top-kernels 25
 step train-paper-bench 150 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1
 step profile-train-paper-bench 120 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 2 --warmup 1 --kernel-times --top-kernels 25
 
@@ -122,4 +136,18 @@ for t in "$BIN"/test-*; do
     echo "   rc $? in $((SECONDS - t0)) s: $(grep -E '^test result' "$LOGS/$name.log" | tail -n 1)"
     tar -czf "$OUT/logs.tar.gz" -C "$LOGS" .
 done
+# 5. Optional: which matmul and convolution kernels Burn's autotune picks at the paper setting,
+#    from binaries built with "autotune" in the workspace's `burn` and `burn-cubecl` features
+#    (folder $AUTOTUNE_BIN): CubeCL's autotune log, read from a cubecl.toml in the working
+#    folder, to choose those kernels without tuning at run time (BENCHMARKS.md, session 19:
+#    tuning costs minutes per process).
+if [ -n "${AUTOTUNE_BIN:-}" ] && [ -x "$AUTOTUNE_BIN/recon-bench" ]; then
+    tune_dir=$(mktemp -d)
+    printf '[autotune]\nlevel = "minimal"\n\n[autotune.logger]\nlevel = "minimal"\nfile = "%s"\n' \
+        "$LOGS/autotune-decisions.log" >"$tune_dir/cubecl.toml"
+    repo=$PWD
+    (cd "$tune_dir" && step autotune-recon-paper-1024-s2 240 "$repo/$AUTOTUNE_BIN/recon-bench" \
+        --device wgpu --config paper --size 1024 --subdiv 2 --runs 1 --json \
+        --template "$repo/$TEMPLATE" --kernel-times --top-kernels 25)
+fi
 echo "== done ($(date +%T))"
