@@ -55,8 +55,9 @@ pub struct EvalOptions {
     pub sweep: bool,
     /// Extra image sides for the sweep (empty = the config's size only).
     pub sweep_sizes: Vec<u32>,
-    /// Subjects used by the sweep (it multiplies the evaluation cost by 15 per size).
-    pub sweep_subjects: usize,
+    /// Subjects the sweep scores (`None`: as many as the evaluation, so that its points and
+    /// the baselines are scored on the same people). Each size costs 15 evaluations.
+    pub sweep_subjects: Option<usize>,
     /// Also score the baselines (template in one colour, projective texturing).
     pub baseline: bool,
     /// Score the per-scene optimisation baseline after each of these step counts (empty: no).
@@ -360,7 +361,8 @@ fn animations(
     Ok(pictures)
 }
 
-/// T ∈ 1..=5 × subdivisions 0..=2 (× sizes) on the first `sweep_subjects` subjects.
+/// T ∈ 1..=5 × subdivisions 0..=2 (× sizes) on the first `sweep_subjects` subjects (all that
+/// the evaluation scores, by default).
 fn run_sweep(
     opts: &EvalOptions,
     model: &Reconstructor,
@@ -387,7 +389,7 @@ fn run_sweep(
                     iterations: Some(t),
                     save_predictions: false,
                     sheets: 0,
-                    max_subjects: Some(opts.sweep_subjects.max(1)),
+                    max_subjects: opts.sweep_subjects.map(|n| n.max(1)).or(opts.max_subjects),
                     refine_steps: 0,
                 };
                 let mut scores: SplitScores = evaluate_split(

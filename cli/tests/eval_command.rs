@@ -32,7 +32,7 @@ fn eval_on_a_tiny_split_writes_every_file() {
         motions: lifegom_render::motion::MotionSource::all_procedural(),
         sweep: true,
         sweep_sizes: vec![],
-        sweep_subjects: 1,
+        sweep_subjects: Some(1),
         baseline: true,
         per_scene: vec![1, 2],
         per_scene_subjects: Some(1),

@@ -96,7 +96,7 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
         motions,
         sweep: false,
         sweep_sizes: vec![],
-        sweep_subjects: 1,
+        sweep_subjects: Some(1),
         baseline: true,
         per_scene: vec![],
         per_scene_subjects: None,

@@ -204,8 +204,26 @@ impl Report {
                 );
             }
         }
-        if !self.sweep.is_empty() {
+        if let Some(first) = self.sweep.first() {
             md.push_str("\n## What accuracy costs in time\n\n");
+            let count = |n: usize, one: &str, many: &str| {
+                format!("{n} {}", if n == 1 { one } else { many })
+            };
+            let people = first.summary.subjects;
+            let same_as_results = match &self.summary {
+                Some(s) if s.subjects == people => " (the people of the results above)".to_owned(),
+                Some(s) => format!(
+                    " (the results above: {})",
+                    count(s.subjects, "person", "people")
+                ),
+                None => String::new(),
+            };
+            let _ = writeln!(
+                md,
+                "Every row is scored on the same {} ({}){same_as_results}.\n",
+                count(people, "person", "people"),
+                count(first.summary.views, "view", "views"),
+            );
             md.push_str("| size | T | subdiv | Gaussians | PSNR ↑ | SSIM ↑ | LPIPS*-vgg ↓ | recon ms | render ms |\n|---|---|---|---|---|---|---|---|---|\n");
             for r in &self.sweep {
                 let s = &r.summary;
@@ -403,6 +421,41 @@ mod tests {
             ..scores
         };
         assert!((Summary::of(&with, None).lpips_alex_x1000.unwrap() - 200.0).abs() < 1e-9);
+    }
+
+    /// The sweep's table says how many people its rows are scored on, and whether they are the
+    /// people of the results table (issue 37: a sweep of one person was once plotted beside
+    /// baselines scored on eight).
+    #[test]
+    fn sweep_table_names_its_people() {
+        let scores = |subjects: &[&str]| SplitScores {
+            views: subjects.iter().map(|s| view(s, 20.0, None)).collect(),
+            images: MetricImages::default(),
+            num_gaussians: 10,
+            iterations: 3,
+            subdivide: 1,
+        };
+        let all = Summary::of(&scores(&["a", "b", "c"]), None);
+        let one = Summary::of(&scores(&["a"]), None);
+        let report = |sweep: &Summary| Report {
+            title: "t".into(),
+            summary: Some(all.clone()),
+            sweep: vec![SweepRow {
+                size: 64,
+                summary: sweep.clone(),
+            }],
+            ..Default::default()
+        };
+        let md = report(&all).markdown();
+        assert!(
+            md.contains("the same 3 people (3 views) (the people of the results above)"),
+            "{md}"
+        );
+        let md = report(&one).markdown();
+        assert!(
+            md.contains("the same 1 person (1 view) (the results above: 3 people)"),
+            "{md}"
+        );
     }
 
     #[test]

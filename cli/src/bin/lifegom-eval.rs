@@ -67,9 +67,10 @@ struct Args {
     /// Extra image sides for the sweep.
     #[arg(long, value_delimiter = ',')]
     sweep_sizes: Vec<u32>,
-    /// Subjects the sweep uses.
-    #[arg(long, default_value_t = 2)]
-    sweep_subjects: usize,
+    /// Subjects the sweep scores (default: as many as are evaluated; each size costs 15
+    /// evaluations).
+    #[arg(long)]
+    sweep_subjects: Option<usize>,
     /// Per-scene optimisation baseline: fit each subject and score it after each of these
     /// gradient-step counts (e.g. `10,30,100,300`), on the accuracy-vs-time plot.
     #[arg(long, value_delimiter = ',')]

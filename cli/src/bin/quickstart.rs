@@ -68,7 +68,8 @@ struct Args {
     /// Subjects the per-scene optimisation fits (default: all, as the model).
     #[arg(long)]
     per_scene_subjects: Option<usize>,
-    /// Also run the accuracy-vs-time sweep (T = 1..5 × subdivisions 0..2, one subject).
+    /// Also run the accuracy-vs-time sweep (T = 1..5 × subdivisions 0..2) on every validation
+    /// person, as the model and the baselines are scored (15 evaluations).
     #[arg(long)]
     sweep: bool,
 }
@@ -188,7 +189,7 @@ fn main() -> anyhow::Result<()> {
         motions: args.motion.clone(),
         sweep: args.sweep,
         sweep_sizes: vec![],
-        sweep_subjects: 1,
+        sweep_subjects: None,
         baseline: true,
         per_scene: args.per_scene.iter().copied().filter(|&k| k > 0).collect(),
         per_scene_subjects: args.per_scene_subjects,
