@@ -450,6 +450,20 @@ pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) ->
             ),
         });
     }
+    // A mask that never reaches one half shows no person: empty, or written 0/1 instead of
+    // 0/255 (which reads as 1/255, nearly transparent). Either would train or reconstruct an
+    // invisible body without a word.
+    let peak = alpha.data.iter().fold(0.0f32, |m, &a| m.max(a));
+    if peak < 0.5 {
+        return Err(DataError::Image {
+            location: Box::new(at(&mask_path, "masks")),
+            reason: format!(
+                "the mask shows no person: its largest value is {} of 255 (masks are 0 for \
+                 background and 255 for the person; a 0/1 mask must be scaled to 0/255)",
+                (peak * 255.0).round()
+            ),
+        });
+    }
     Ok(prepare_view(
         frame,
         rgb,

@@ -332,6 +332,29 @@ fn bad_data_errors_name_subject_frame_and_field() {
         &["frame `frame_000005`", "size mismatch", "64×64", "16×8"],
     );
 
+    // An empty mask, and a mask written 0/1 instead of 0/255.
+    for (name, value) in [("empty", 0u8), ("binary", 1u8)] {
+        let d = scratch_subject(name);
+        image::save_buffer(
+            d.join("masks/frame_000004.png"),
+            &[value; 64 * 64],
+            64,
+            64,
+            image::ExtendedColorType::L8,
+        )
+        .unwrap();
+        assert_error(
+            &d,
+            &[
+                "subject `0000`",
+                "frame `frame_000004`",
+                "masks",
+                "shows no person",
+                &format!("largest value is {value} of 255"),
+            ],
+        );
+    }
+
     // A frame without a camera, and a missing pickle.
     let d = scratch_subject("nocam");
     edit_pickle(&d.join("cameras.pkl"), |v| {
