@@ -28,6 +28,7 @@ use lifegom_eval::animate::{orbit_camera, posed_joint};
 use lifegom_eval::evaluate::{reconstruct_timed, refine, render_timed};
 use lifegom_eval::images::{Image, grid, save_gif};
 use lifegom_eval::metrics::{ImageRef, psnr};
+use lifegom_model::avatar::Avatar;
 use lifegom_model::inputs::{SubjectRig, model_inputs};
 use lifegom_model::trained;
 use lifegom_render::gom::GomMesh;
@@ -225,7 +226,12 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
         rec
     };
     let refine_ms = rec.ms - reconstruct_ms;
-    let avatar = rec.avatar;
+    // The rig's joint names where it is a known one (Anny's bone labels, SMPL's joints): rigs
+    // read from data carry only parents, and other tools retarget motions by bone name.
+    let avatar = Avatar {
+        skeleton: named,
+        ..rec.avatar
+    };
 
     std::fs::create_dir_all(&opts.out)
         .with_context(|| format!("creating {}", opts.out.display()))?;

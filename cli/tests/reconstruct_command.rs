@@ -111,6 +111,17 @@ fn reconstruct_from_the_json_layout_writes_every_output() {
     assert_eq!(report["refine_steps"], 2);
     let avatar = Avatar::load(out.join("avatar.lgom"), &Device::ndarray()).unwrap();
     assert_eq!(avatar.xyz.dims(), [1229, 3]);
+    // The bones carry the Anny rig's names (`pelvis.L`, ...), not `joint_48`: other tools
+    // retarget motions by bone name.
+    let names = lifegom_render::motion::known_joint_names(104).expect("the Anny rig's names");
+    assert_eq!(avatar.skeleton.names, names);
+    let glb = String::from_utf8_lossy(&std::fs::read(out.join("avatar.glb")).unwrap()).into_owned();
+    for name in &names {
+        assert!(
+            glb.contains(&format!("\"{name}\"")),
+            "avatar.glb lacks bone `{name}`"
+        );
+    }
 }
 
 #[test]
