@@ -22,11 +22,13 @@
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
-use burn_cubecl::CubeBackend;
+use burn::tensor::{DType, Shape};
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::tensor::CubeTensor;
+use burn_cubecl::{CubeBackend, CubeDevice};
 use lifegom_render::cube::host::{
-    THREADS_1D, arg, cast_to, count_1d, count_cubes, prepare, tensor_arg, tensor_f32,
+    ComputeClient, THREADS_1D, arg, cast_to, count_1d, count_cubes, prepare, tensor_arg, tensor_f32,
 };
 
 use super::op::{AddLayerNormOps, LayerNormEpsilon, LayerNormInputs, LayerNormKernels};
@@ -238,35 +240,66 @@ fn layer_norm_columns_total_kernel(
     }
 }
 
+/// The inputs both directions share, in the kernels' layout (f32, contiguous), with the
+/// sizes: `rows` rows of `d` channels, `len = rows·d` elements.
+struct Prepared {
+    client: ComputeClient,
+    device: CubeDevice,
+    shape: Shape,
+    /// The dtype of `x` (and of `∂z`), `gamma`'s and `beta`'s.
+    dtypes: [DType; 3],
+    x: CubeTensor,
+    r: CubeTensor,
+    gamma: CubeTensor,
+    beta: CubeTensor,
+    d: usize,
+    rows: usize,
+    len: usize,
+    epsilon: f32,
+}
+
+impl Prepared {
+    fn new(inputs: LayerNormInputs<CubeBackend>) -> Self {
+        let shape = inputs.x.shape();
+        let d = inputs.gamma.shape().num_elements();
+        let len = shape.num_elements();
+        Self {
+            client: inputs.x.client.clone(),
+            device: inputs.x.device.clone(),
+            dtypes: [inputs.x.dtype(), inputs.gamma.dtype(), inputs.beta.dtype()],
+            shape,
+            x: prepare(inputs.x),
+            r: prepare(inputs.residual),
+            gamma: prepare(inputs.gamma),
+            beta: prepare(inputs.beta),
+            d,
+            rows: len / d.max(1),
+            len,
+            epsilon: inputs.epsilon as f32,
+        }
+    }
+}
+
 fn cube_forward(inputs: LayerNormInputs<CubeBackend>) -> FloatTensor<CubeBackend> {
     let _span = tracing::trace_span!("cube_add_layer_norm").entered();
-    let dtype = inputs.x.dtype();
-    let shape = inputs.x.shape();
-    let d = inputs.gamma.shape().num_elements();
-    let len = shape.num_elements();
-    let rows = len / d.max(1);
-    let (client, device) = (inputs.x.client.clone(), inputs.x.device.clone());
-    let x = prepare(inputs.x);
-    let r = prepare(inputs.residual);
-    let gamma = prepare(inputs.gamma);
-    let beta = prepare(inputs.beta);
-    let out = client.empty(4 * len.max(1));
-    if rows > 0 && d > 0 {
+    let p = Prepared::new(inputs);
+    let out = p.client.empty(4 * p.len.max(1));
+    if p.rows > 0 && p.d > 0 {
         residual_layer_norm_kernel::launch(
-            &client,
-            count_cubes(rows),
+            &p.client,
+            count_cubes(p.rows),
             CubeDim::new_1d(ROW_THREADS),
-            tensor_arg(&x),
-            tensor_arg(&r),
-            tensor_arg(&gamma),
-            tensor_arg(&beta),
-            arg(&out, len),
-            rows,
-            d,
-            inputs.epsilon as f32,
+            tensor_arg(&p.x),
+            tensor_arg(&p.r),
+            tensor_arg(&p.gamma),
+            tensor_arg(&p.beta),
+            arg(&out, p.len),
+            p.rows,
+            p.d,
+            p.epsilon,
         );
     }
-    cast_to(tensor_f32(&client, &device, out, &shape), dtype)
+    cast_to(tensor_f32(&p.client, &p.device, out, &p.shape), p.dtypes[0])
 }
 
 fn cube_backward(
@@ -274,16 +307,8 @@ fn cube_backward(
     grad: FloatTensor<CubeBackend>,
 ) -> [FloatTensor<CubeBackend>; 3] {
     let _span = tracing::trace_span!("cube_add_layer_norm_backward").entered();
-    let (z_dtype, gamma_dtype, beta_dtype) =
-        (inputs.x.dtype(), inputs.gamma.dtype(), inputs.beta.dtype());
-    let shape = inputs.x.shape();
-    let d = inputs.gamma.shape().num_elements();
-    let len = shape.num_elements();
-    let rows = len / d.max(1);
-    let (client, device) = (inputs.x.client.clone(), inputs.x.device.clone());
-    let x = prepare(inputs.x);
-    let r = prepare(inputs.residual);
-    let gamma = prepare(inputs.gamma);
+    let p = Prepared::new(inputs);
+    let (client, d, rows, len) = (&p.client, p.d, p.rows, p.len);
     let grad = prepare(grad);
     let dz = client.empty(4 * len.max(1));
     let stats = client.empty(4 * (2 * rows).max(1));
@@ -291,18 +316,18 @@ fn cube_backward(
     let dbeta = client.empty(4 * d.max(1));
     if rows > 0 && d > 0 {
         layer_norm_rows_backward_kernel::launch(
-            &client,
+            client,
             count_cubes(rows),
             CubeDim::new_1d(ROW_THREADS),
-            tensor_arg(&x),
-            tensor_arg(&r),
-            tensor_arg(&gamma),
+            tensor_arg(&p.x),
+            tensor_arg(&p.r),
+            tensor_arg(&p.gamma),
             tensor_arg(&grad),
             arg(&dz, len),
             arg(&stats, 2 * rows),
             rows,
             d,
-            inputs.epsilon as f32,
+            p.epsilon,
         );
     }
     if d > 0 {
@@ -312,11 +337,11 @@ fn cube_backward(
         let partial_gx = client.empty(4 * units);
         let partial_g = client.empty(4 * units);
         layer_norm_column_chunks_kernel::launch(
-            &client,
+            client,
             count_1d(units),
             CubeDim::new_1d(THREADS_1D),
-            tensor_arg(&x),
-            tensor_arg(&r),
+            tensor_arg(&p.x),
+            tensor_arg(&p.r),
             tensor_arg(&grad),
             arg(&stats, 2 * rows),
             arg(&partial_gx, units),
@@ -326,7 +351,7 @@ fn cube_backward(
             d,
         );
         layer_norm_columns_total_kernel::launch(
-            &client,
+            client,
             count_1d(d),
             CubeDim::new_1d(THREADS_1D),
             arg(&partial_gx, units),
@@ -337,10 +362,11 @@ fn cube_backward(
             d,
         );
     }
+    let [z_dtype, gamma_dtype, beta_dtype] = p.dtypes;
     [
-        cast_to(tensor_f32(&client, &device, dz, &shape), z_dtype),
-        cast_to(tensor_f32(&client, &device, dgamma, &[d]), gamma_dtype),
-        cast_to(tensor_f32(&client, &device, dbeta, &[d]), beta_dtype),
+        cast_to(tensor_f32(client, &p.device, dz, &p.shape), z_dtype),
+        cast_to(tensor_f32(client, &p.device, dgamma, &[d]), gamma_dtype),
+        cast_to(tensor_f32(client, &p.device, dbeta, &[d]), beta_dtype),
     ]
 }
 
