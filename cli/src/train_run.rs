@@ -6,6 +6,7 @@
 //! |---|---|
 //! | `config.toml` | the experiment config the run was started with |
 //! | `checkpoints/latest.lgck` | weights + optimiser + step, replaced atomically every `checkpoint_every` steps, at the end, on the time limit and on Ctrl-C |
+//! | `checkpoints/best.lgck` | the weights with the best validation PSNR at the last feedback step since the file appeared (its header's `meta.validation` says step and PSNR), replaced atomically when a validation beats it |
 //! | `metrics.jsonl` | one JSON object per logged step: losses, target PSNR, seconds, elapsed |
 //! | `snapshots/step_NNNNNNN.png` | target ground truth, last-iteration render, error map |
 //! | `loss_curve.png` | the logged losses against the step (written at every checkpoint) |
@@ -122,6 +123,16 @@ fn read_history(path: &Path, up_to: u64) -> Vec<serde_json::Value> {
         .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
         .filter(|v| v["step"].as_u64().is_some_and(|s| s <= up_to))
         .collect()
+}
+
+/// The validation PSNR of a `validation.jsonl` line at its last feedback step (`T`).
+fn final_step_psnr(line: &serde_json::Value) -> Option<f64> {
+    line["psnr"].as_array()?.last()?.as_f64()
+}
+
+/// `<out>/checkpoints/best.lgck`: see the module docs.
+pub fn best_checkpoint(out: &Path) -> PathBuf {
+    out.join("checkpoints").join("best.lgck")
 }
 
 /// Draws `loss_curve.png` from `metrics.jsonl`.
@@ -413,6 +424,14 @@ pub fn train(
     };
     let started = Instant::now();
     let meta = serde_json::json!({ "config": cfg.file.source.display().to_string() });
+    // With a constant learning rate the validation score swings between evaluations (demo v2:
+    // ±0.6 dB), so the run keeps its best weights beside its latest. The score to beat is the
+    // kept file's own, so a resumed run never replaces it with worse weights.
+    let best_path = best_checkpoint(&opts.out);
+    let mut best_psnr = lifegom_model::trained::read_header(&best_path)
+        .ok()
+        .and_then(|h| h.meta["validation"]["psnr"].as_f64())
+        .unwrap_or(f64::NEG_INFINITY);
     let mut history = Vec::new();
     let mut stop_reason = StopReason::Finished;
     let mut prefetch = Prefetcher::new(source.clone(), trainer.seed(), trainer.step);
@@ -499,6 +518,14 @@ pub fn train(
             writeln!(val_log, "{line}")?;
             val_log.flush()?;
             write_validation_curve(&opts.out)?;
+            if let Some(psnr) = final_step_psnr(&line)
+                && psnr > best_psnr
+            {
+                let mut best_meta = meta.clone();
+                best_meta["validation"] = serde_json::json!({ "step": trainer.step, "psnr": psnr });
+                trainer.save(&best_path, best_meta)?;
+                best_psnr = psnr;
+            }
         }
         history.push(stats);
     }

@@ -152,6 +152,55 @@ fn resume_equals_an_uninterrupted_run() {
     assert!(straight.join("checkpoints/latest.lgck").exists());
 }
 
+/// With validation on, the run keeps the weights of its best validation beside its latest:
+/// `checkpoints/best.lgck`, whose header names the step and score, which is the best final-step
+/// PSNR in `validation.jsonl`; a resumed run keeps it unless it does better.
+#[test]
+fn the_best_validated_weights_are_kept() {
+    let _serial = serial();
+    let mut cfg = experiment();
+    cfg.train.validate_every = 1;
+    cfg.train.validate_subjects = 1;
+    let out = out_dir("best");
+    let opts = |steps: u64, resume: bool| RunOptions {
+        out: out.clone(),
+        resume,
+        max_minutes: None,
+        steps: Some(steps),
+        device: Device::ndarray(),
+        progress: false,
+    };
+    let never = || Arc::new(AtomicBool::new(false));
+    let best_of_log = || {
+        std::fs::read_to_string(out.join("validation.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| {
+                let v: serde_json::Value = serde_json::from_str(l).unwrap();
+                let psnr = v["psnr"]
+                    .as_array()
+                    .unwrap()
+                    .last()
+                    .unwrap()
+                    .as_f64()
+                    .unwrap();
+                (psnr, v["step"].as_u64().unwrap())
+            })
+            .fold((f64::NEG_INFINITY, 0), |a, b| if b.0 > a.0 { b } else { a })
+    };
+    let kept = || {
+        let header =
+            lifegom_model::trained::read_header(&lifegom_cli::train_run::best_checkpoint(&out))
+                .expect("checkpoints/best.lgck");
+        let v = &header.meta["validation"];
+        (v["psnr"].as_f64().unwrap(), v["step"].as_u64().unwrap())
+    };
+    train(&cfg, &opts(3, false), never()).unwrap();
+    assert_eq!(kept(), best_of_log());
+    train(&cfg, &opts(5, true), never()).unwrap();
+    assert_eq!(kept(), best_of_log());
+}
+
 /// A CPU run that resumes starts no GPU stack. burn-optim reads a resumed optimizer state onto
 /// Burn's default device, which is the wgpu device when wgpu is compiled in; the binaries make
 /// their `--device` the default (`lifegom_cli::make_default_device`). Before that, on a machine
