@@ -6,7 +6,7 @@
 //! |---|---|
 //! | `config.toml` | the experiment config the run was started with |
 //! | `checkpoints/latest.lgck` | weights + optimiser + step, replaced atomically every `checkpoint_every` steps, at the end, on the time limit and on Ctrl-C |
-//! | `checkpoints/best.lgck` | the weights with the best validation PSNR at the last feedback step since the file appeared (its header's `meta.validation` says step and PSNR), replaced atomically when a validation beats it |
+//! | `checkpoints/best.lgck` | the weights (no optimiser state: for evaluation and export) with the best validation PSNR at the last feedback step since the file appeared (its header's `meta.validation` says step and PSNR), replaced atomically when a validation beats it |
 //! | `metrics.jsonl` | one JSON object per logged step: losses, target PSNR, seconds, elapsed |
 //! | `snapshots/step_NNNNNNN.png` | target ground truth, last-iteration render, error map |
 //! | `loss_curve.png` | the logged losses against the step (written at every checkpoint) |
@@ -523,7 +523,8 @@ pub fn train(
             {
                 let mut best_meta = meta.clone();
                 best_meta["validation"] = serde_json::json!({ "step": trainer.step, "psnr": psnr });
-                trainer.save(&best_path, best_meta)?;
+                // Weights only, as `--export` writes them: runs resume from `latest.lgck`.
+                trained::save(&best_path, &trainer.model, &trainer.config, best_meta, &[])?;
                 best_psnr = psnr;
             }
         }
