@@ -53,6 +53,23 @@ fn out_dir(name: &str) -> PathBuf {
     dir
 }
 
+/// A run of `steps` steps on ndarray into `out`, without progress output.
+fn run_options(out: PathBuf, steps: u64, resume: bool) -> RunOptions {
+    RunOptions {
+        out,
+        resume,
+        max_minutes: None,
+        steps: Some(steps),
+        device: Device::ndarray(),
+        progress: false,
+    }
+}
+
+/// A stop flag that is never raised.
+fn never() -> Arc<AtomicBool> {
+    Arc::new(AtomicBool::new(false))
+}
+
 fn total(stats: &lifegom_train::trainer::StepStats) -> f64 {
     stats.losses.iter().find(|(n, _)| n == "total").unwrap().1
 }
@@ -114,15 +131,7 @@ fn logged_totals(out: &Path) -> Vec<(u64, f64)> {
 fn resume_equals_an_uninterrupted_run() {
     let _serial = serial();
     let cfg = experiment();
-    let opts = |out: PathBuf, steps: u64, resume: bool| RunOptions {
-        out,
-        resume,
-        max_minutes: None,
-        steps: Some(steps),
-        device: Device::ndarray(),
-        progress: false,
-    };
-    let never = || Arc::new(AtomicBool::new(false));
+    let opts = run_options;
 
     let straight = out_dir("straight");
     let full = train(&cfg, &opts(straight.clone(), 4, false), never()).unwrap();
@@ -162,15 +171,7 @@ fn the_best_validated_weights_are_kept() {
     cfg.train.validate_every = 1;
     cfg.train.validate_subjects = 1;
     let out = out_dir("best");
-    let opts = |steps: u64, resume: bool| RunOptions {
-        out: out.clone(),
-        resume,
-        max_minutes: None,
-        steps: Some(steps),
-        device: Device::ndarray(),
-        progress: false,
-    };
-    let never = || Arc::new(AtomicBool::new(false));
+    let opts = |steps: u64, resume: bool| run_options(out.clone(), steps, resume);
     let best_of_log = || {
         std::fs::read_to_string(out.join("validation.jsonl"))
             .unwrap()
