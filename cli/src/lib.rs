@@ -16,8 +16,9 @@
 //!
 //! The library part holds what the binaries share: start-up ([`allocator::keep_freed_memory`],
 //! [`init_tracing`], [`make_default_device`], [`stop_on_ctrl_c`]), the kernel-launch counter of the GPU benchmarks
-//! ([`launches`]), the training loop behind the train command ([`train_run`]) and the
-//! evaluation behind the eval command ([`eval_run`]).
+//! ([`launches`]), the training loop behind the train command ([`train_run`]) with its display
+//! (burn-train's dashboard, [`dashboard`]) and the evaluation behind the eval command
+//! ([`eval_run`]).
 //!
 //! ```no_run
 //! # fn main() -> anyhow::Result<()> {
@@ -33,6 +34,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use anyhow::Context;
 
 pub mod allocator;
+pub mod dashboard;
 pub mod eval_run;
 pub mod launches;
 pub mod profile;
@@ -65,6 +67,19 @@ pub fn init_tracing() {
         .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
         .with_writer(std::io::stderr)
         .try_init();
+}
+
+/// Also raises `stop` on SIGTERM and SIGUSR1 (Unix), the signals by which batch systems and MPI
+/// launchers ask a job to stop: Open MPI's `mpirun` forwards SIGUSR1 to every rank (on SIGINT
+/// it kills them), and Slurm sends SIGTERM before a time limit, or the signal `--signal` names.
+/// The loop then ends after its current step with a checkpoint, as on Ctrl-C.
+pub fn stop_on_job_signals(stop: &Arc<AtomicBool>) -> anyhow::Result<()> {
+    #[cfg(unix)]
+    for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGUSR1] {
+        signal_hook::flag::register(signal, stop.clone())
+            .with_context(|| format!("installing the handler of signal {signal}"))?;
+    }
+    Ok(())
 }
 
 /// A flag that the first Ctrl-C raises, so a long loop can stop cleanly at its next check

@@ -16,6 +16,13 @@
 //!
 //! On `--resume` the loop restarts from `checkpoints/latest.lgck`, drops log lines past the
 //! checkpoint's step (they belong to work that was lost), and continues the same data schedule.
+//!
+//! **Several ranks** (`mpirun -np N lifegom-train …`, [`train_with`]): every rank runs this loop
+//! on its share of each batch (`lifegom_train::data_parallel`); rank 0 alone writes the folder
+//! above, scores the validation split and shows progress. Every rank reads the checkpoint it
+//! resumes from, so `--out` must be visible to all of them (a shared filesystem on a
+//! cluster). Stop requests and time limits are agreed between the ranks, so all stop after the
+//! same step, and the ranks compare a checksum of their weights before every checkpoint.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -36,11 +43,13 @@ use lifegom_model::reconstructor::MeshPurpose;
 use lifegom_model::trained;
 
 use lifegom_train::config::{ExperimentConfig, LpipsFallback};
+use lifegom_train::data_parallel::{BatchLayout, Replicas, SingleProcess, weights_checksum};
 use lifegom_train::losses::UniformLaplacian;
 use lifegom_train::prefetch::Prefetcher;
 use lifegom_train::source::{StepSample, TrainingSource};
-use lifegom_train::trainer::{StepStats, Trainer};
+use lifegom_train::trainer::{BatchSample, StepStats, Trainer};
 
+use crate::dashboard::{Display, DisplayKind};
 use crate::eval_run::{BASELINE_PROJECTIVE, BASELINE_TEMPLATE};
 
 /// Options of a training run (the command line).
@@ -56,7 +65,8 @@ pub struct RunOptions {
     pub steps: Option<u64>,
     /// The (non-autodiff) device to train on.
     pub device: Device,
-    /// Show a progress bar (off in tests).
+    /// Show progress: burn-train's dashboard in a terminal, a progress line elsewhere (off in
+    /// tests; `crate::dashboard`).
     pub progress: bool,
 }
 
@@ -73,6 +83,14 @@ pub fn export_model(
     let mut loaded = trained::load(source, device)?;
     if let Some(s) = subdivide_test {
         loaded.config.subdivide_test = s;
+    }
+    // Best-weights files written before they recorded their step name it only in `validation`.
+    let validated_step = loaded.header.meta["validation"]["step"].as_u64();
+    if let Some(meta) = loaded.header.meta.as_object_mut()
+        && !meta.contains_key("step")
+        && let Some(step) = validated_step
+    {
+        meta.insert("step".into(), step.into());
     }
     if let Some(dir) = dest.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -326,9 +344,23 @@ pub fn train(
     opts: &RunOptions,
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<RunSummary> {
-    let _span = tracing::info_span!("train", out = %opts.out.display()).entered();
-    std::fs::create_dir_all(opts.out.join("snapshots"))
-        .with_context(|| format!("creating {}", opts.out.display()))?;
+    train_with(cfg, opts, stop, &SingleProcess)
+}
+
+/// [`train`] as one rank of a data-parallel job (module docs).
+pub fn train_with(
+    cfg: &ExperimentConfig,
+    opts: &RunOptions,
+    stop: Arc<AtomicBool>,
+    replicas: &dyn Replicas,
+) -> anyhow::Result<RunSummary> {
+    let _span =
+        tracing::info_span!("train", out = %opts.out.display(), rank = replicas.rank()).entered();
+    let root = replicas.rank() == 0;
+    if root {
+        std::fs::create_dir_all(opts.out.join("snapshots"))
+            .with_context(|| format!("creating {}", opts.out.display()))?;
+    }
     if cfg.train.loss_lpips > 0.0 && cfg.train.lpips_fallback == LpipsFallback::Refuse {
         bail!(
             "{}: [train] loss_lpips = {} but the trainer has no LPIPS (the AIST++ setting, docs/design.md §9.2): set it to 0, or train with 1 - SSIM in its place with [train] lpips_fallback = \"ssim\"",
@@ -346,33 +378,61 @@ pub fn train(
     let rig = source.reference_rig();
     let num_vertices = rig.num_vertices();
     let ckpt = latest_checkpoint(&opts.out);
+    // Only rank 0 talks; the others would repeat it N times.
+    let say = |line: &str| {
+        if root {
+            eprintln!("{line}");
+        }
+    };
     let mut trainer = if opts.resume && ckpt.exists() {
         let t = Trainer::resume(&ckpt, &cfg.train, &opts.device)?;
-        eprintln!("resuming from {} at step {}", ckpt.display(), t.step);
+        say(&format!(
+            "resuming from {} at step {}",
+            ckpt.display(),
+            t.step
+        ));
         t
     } else {
         if opts.resume {
-            eprintln!(
+            say(&format!(
                 "--resume: no checkpoint at {}, starting fresh",
                 ckpt.display()
-            );
+            ));
         }
-        if cfg.file.source.exists() {
-            std::fs::copy(&cfg.file.source, opts.out.join("config.toml"))
-                .with_context(|| format!("copying {}", cfg.file.source.display()))?;
+        if root {
+            if cfg.file.source.exists() {
+                std::fs::copy(&cfg.file.source, opts.out.join("config.toml"))
+                    .with_context(|| format!("copying {}", cfg.file.source.display()))?;
+            }
+            let _ = std::fs::remove_file(opts.out.join("metrics.jsonl"));
         }
-        let _ = std::fs::remove_file(opts.out.join("metrics.jsonl"));
         let mut t = Trainer::new(cfg.reconstructor(), num_vertices, &cfg.train, &opts.device)?;
         if let Some(path) = &cfg.model.encoder_weights {
             let report = t.load_encoder_weights(path)?;
-            eprintln!("{report}");
+            say(&report);
         } else {
-            eprintln!(
-                "no ImageNet ResNet-18 weights configured ([model] encoder_weights): the encoder starts from RANDOM initialisation"
+            say(
+                "no ImageNet ResNet-18 weights configured ([model] encoder_weights): the encoder starts from RANDOM initialisation",
             );
         }
         t
     };
+    let layout = BatchLayout {
+        first_sample: trainer.samples,
+        accumulate: cfg.train.accumulate,
+        rank: replicas.rank(),
+        ranks: replicas.size(),
+    };
+    if layout.batch() > 1 {
+        say(&format!(
+            "batch of {} samples a step ([train] accumulate = {} × {} rank(s)); the step takes their mean gradient, so the learning rates are unchanged (encoder {}, reconstructor {})",
+            layout.batch(),
+            layout.accumulate,
+            layout.ranks,
+            cfg.train.lr_encoder,
+            cfg.train.lr_reconstructor
+        ));
+    }
     if trainer.model.vertex_embed.dims()[0] != num_vertices {
         bail!(
             "checkpoint {} has {} vertex embeddings, the data's template {} vertices",
@@ -388,40 +448,37 @@ pub fn train(
     let total_steps = opts.steps.unwrap_or(cfg.train.steps);
     let (w, h) = (cfg.file.data.img_size[0], cfg.file.data.img_size[1]);
 
-    // Keep the logs consistent with the checkpoint: lines past it describe lost work.
-    let val_path = opts.out.join("validation.jsonl");
-    let kept_val = read_history(&val_path, trainer.step);
-    let mut val_log = std::fs::File::create(&val_path)
-        .with_context(|| format!("writing {}", val_path.display()))?;
-    for v in &kept_val {
-        writeln!(val_log, "{v}")?;
-    }
-    let validation = Validation::open(cfg, trainer.config.subdivide_test, &opts.out, &opts.device);
-    let log_path = opts.out.join("metrics.jsonl");
-    let kept = read_history(&log_path, trainer.step);
-    let mut log = std::fs::File::create(&log_path)
-        .with_context(|| format!("writing {}", log_path.display()))?;
-    for v in &kept {
-        writeln!(log, "{v}")?;
-    }
-    let elapsed_before = kept
-        .last()
-        .and_then(|v| v["elapsed"].as_f64())
-        .unwrap_or(0.0);
-
-    let bar = if opts.progress {
-        let bar = indicatif::ProgressBar::new(total_steps);
-        bar.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{elapsed_precise} [{bar:30}] {pos}/{len} {per_sec} ETA {eta} {msg}",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-        );
-        bar.set_position(trainer.step);
-        bar
-    } else {
-        indicatif::ProgressBar::hidden()
+    // Rank 0's files (module docs). Keep the logs consistent with the checkpoint: lines past it
+    // describe lost work.
+    let keep_log = |path: &Path| -> anyhow::Result<(std::fs::File, Vec<serde_json::Value>)> {
+        let kept = read_history(path, trainer.step);
+        let mut file =
+            std::fs::File::create(path).with_context(|| format!("writing {}", path.display()))?;
+        for v in &kept {
+            writeln!(file, "{v}")?;
+        }
+        Ok((file, kept))
     };
+    let (mut val_log, mut log, elapsed_before) = if root {
+        let (val_log, _) = keep_log(&opts.out.join("validation.jsonl"))?;
+        let (log, kept) = keep_log(&opts.out.join("metrics.jsonl"))?;
+        let elapsed = kept
+            .last()
+            .and_then(|v| v["elapsed"].as_f64())
+            .unwrap_or(0.0);
+        (Some(val_log), Some(log), elapsed)
+    } else {
+        (None, None, 0.0)
+    };
+    let validation = root
+        .then(|| Validation::open(cfg, trainer.config.subdivide_test, &opts.out, &opts.device))
+        .flatten();
+
+    let mut display = Display::start(
+        DisplayKind::choose(opts.progress && root),
+        trainer.step,
+        total_steps,
+    );
     let started = Instant::now();
     let meta = serde_json::json!({ "config": cfg.file.source.display().to_string() });
     // With a constant learning rate the validation score swings between evaluations (demo v2:
@@ -432,31 +489,65 @@ pub fn train(
         .ok()
         .and_then(|h| h.meta["validation"]["psnr"].as_f64())
         .unwrap_or(f64::NEG_INFINITY);
+    // A checkpoint is every rank's model only if they all hold the same weights.
+    let save = |trainer: &Trainer| -> anyhow::Result<()> {
+        if replicas.size() > 1 {
+            replicas.agree(trainer.step, weights_checksum(&trainer.model)?)?;
+        }
+        if root {
+            trainer.save(&ckpt, meta.clone())?;
+            write_loss_curve(&opts.out)?;
+        }
+        Ok(())
+    };
+    if replicas.size() > 1 {
+        // Fresh replicas start from the same seed, resumed ones from the same file: check it.
+        replicas.agree(trainer.step, weights_checksum(&trainer.model)?)?;
+    }
     let mut history = Vec::new();
     let mut stop_reason = StopReason::Finished;
-    let mut prefetch = Prefetcher::new(source.clone(), trainer.seed(), trainer.step);
+    let mut prefetch = Prefetcher::new(source.clone(), trainer.seed(), layout);
     while trainer.step < total_steps {
-        if stop.load(Ordering::SeqCst) {
-            stop_reason = StopReason::Interrupted;
-            break;
-        }
-        if opts
+        // Every rank must take the same steps: one rank's stop request stops them all.
+        let interrupted = stop.load(Ordering::SeqCst) || display.stop_requested();
+        let timed_out = opts
             .max_minutes
-            .is_some_and(|m| started.elapsed().as_secs_f64() > m * 60.0)
-        {
-            stop_reason = StopReason::TimeLimit;
+            .is_some_and(|m| started.elapsed().as_secs_f64() > m * 60.0);
+        if replicas.any(interrupted || timed_out) {
+            stop_reason = if replicas.any(interrupted) {
+                StopReason::Interrupted
+            } else {
+                StopReason::TimeLimit
+            };
             break;
         }
         let step = trainer.step;
-        let (sample, inputs) = {
+        let mut samples = Vec::with_capacity(layout.accumulate);
+        {
             let _span = tracing::debug_span!("data").entered();
-            let StepSample { sample, rig } = prefetch.next_sample()?;
-            let inputs = model_inputs(&rig, &sample, w, h, trainer.device())?;
-            (sample, inputs)
+            for _ in 0..layout.accumulate {
+                let StepSample { index, sample, rig } = prefetch.next_sample()?;
+                let inputs = model_inputs(&rig, &sample, w, h, trainer.device())?;
+                samples.push((index, sample, inputs));
+            }
+        }
+        let batch: Vec<BatchSample> = samples
+            .iter()
+            .map(|(index, _, inputs)| BatchSample {
+                index: *index,
+                inputs,
+            })
+            .collect();
+        let names = || {
+            samples
+                .iter()
+                .map(|(_, s, _)| s.frame_name.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
         };
         let out = trainer
-            .train_step_with_render(&inputs, &mesh, &laplacian)
-            .with_context(|| format!("training step {step} ({})", sample.frame_name))?;
+            .train_batch(&batch, &mesh, &laplacian, replicas)
+            .with_context(|| format!("training step {step} ({})", names()))?;
         let stats = out.stats;
         let total = stats
             .losses
@@ -466,14 +557,15 @@ pub fn train(
         if !total.is_finite() {
             bail!(
                 "non-finite loss at step {step} ({}): {:?}; last good checkpoint: {}",
-                sample.frame_name,
+                names(),
                 stats.losses,
                 ckpt.display()
             );
         }
-        bar.set_position(trainer.step);
-        bar.set_message(format!("loss {total:.4} PSNR {:.2} dB", stats.psnr_target));
-        if trainer.step.is_multiple_of(cfg.train.log_every) || trainer.step == 1 {
+        display.step(&stats);
+        if let Some(log) = &mut log
+            && (trainer.step.is_multiple_of(cfg.train.log_every) || trainer.step == 1)
+        {
             let mut line = serde_json::Map::new();
             line.insert("step".into(), trainer.step.into());
             for (n, v) in &stats.losses {
@@ -493,11 +585,22 @@ pub fn train(
                 "elapsed".into(),
                 (elapsed_before + started.elapsed().as_secs_f64()).into(),
             );
-            line.insert("sample".into(), sample.frame_name.clone().into());
+            if stats.batch > 1 {
+                line.insert("batch".into(), stats.batch.into());
+            }
+            if replicas.size() > 1 {
+                line.insert("ranks".into(), replicas.size().into());
+                line.insert("exchange_seconds".into(), stats.exchange_seconds.into());
+            }
+            // This rank's samples (rank 0's share of the batch).
+            line.insert("sample".into(), names().into());
             writeln!(log, "{}", serde_json::Value::Object(line))?;
             log.flush()?;
         }
-        if trainer.step.is_multiple_of(cfg.train.snapshot_every) {
+        if root && trainer.step.is_multiple_of(cfg.train.snapshot_every) {
+            let (_, _, inputs) = samples
+                .last()
+                .ok_or_else(|| anyhow::anyhow!("empty batch"))?;
             let gt = Image::from_chw(inputs.target_rgb.clone())?;
             let pred = Image::from_chw(out.target_render)?;
             let err = error_map(&pred, &gt, 4.0)?;
@@ -508,13 +611,15 @@ pub fn train(
             grid(&[vec![gt, pred, err]], 2, [1.0; 3]).save_png(&path)?;
         }
         if trainer.step.is_multiple_of(cfg.train.checkpoint_every) {
-            trainer.save(&ckpt, meta.clone())?;
-            write_loss_curve(&opts.out)?;
+            save(&trainer)?;
         }
-        if let Some(v) = &validation
+        if let (Some(v), Some(val_log)) = (&validation, &mut val_log)
             && trainer.step.is_multiple_of(cfg.train.validate_every)
         {
             let line = v.run(&trainer, &opts.device)?;
+            if let Some(psnr) = line["psnr"].as_array() {
+                display.validation(&psnr.iter().filter_map(|p| p.as_f64()).collect::<Vec<_>>());
+            }
             writeln!(val_log, "{line}")?;
             val_log.flush()?;
             write_validation_curve(&opts.out)?;
@@ -523,6 +628,7 @@ pub fn train(
             {
                 let mut best_meta = meta.clone();
                 best_meta["validation"] = serde_json::json!({ "step": trainer.step, "psnr": psnr });
+                best_meta["step"] = trainer.step.into();
                 // Weights only, as `--export` writes them: runs resume from `latest.lgck`.
                 trained::save(&best_path, &trainer.model, &trainer.config, best_meta, &[])?;
                 best_psnr = psnr;
@@ -530,9 +636,8 @@ pub fn train(
         }
         history.push(stats);
     }
-    bar.finish_and_clear();
-    trainer.save(&ckpt, meta)?;
-    write_loss_curve(&opts.out)?;
+    display.finish();
+    save(&trainer)?;
     Ok(RunSummary {
         stop: stop_reason,
         step: trainer.step,

@@ -16,7 +16,9 @@ use lifegom_data::synth;
 use lifegom_model::inputs::{SubjectRig, model_inputs};
 use lifegom_model::reconstructor::MeshPurpose;
 use lifegom_train::config::ExperimentConfig;
+use lifegom_train::data_parallel::BatchLayout;
 use lifegom_train::losses::UniformLaplacian;
+use lifegom_train::prefetch::Prefetcher;
 use lifegom_train::trainer::{Trainer, sample_for_step};
 
 fn config_path() -> PathBuf {
@@ -277,14 +279,32 @@ fn prefetched_samples_follow_the_serial_schedule() {
     let cfg = experiment();
     let data = std::sync::Arc::new(Dataset::open(&cfg.file.data, Split::Train).unwrap());
     let source = lifegom_train::source::TrainingSource::from_split(data.clone()).unwrap();
-    let mut prefetch = lifegom_train::prefetch::Prefetcher::new(std::sync::Arc::new(source), 7, 3);
+    let source = std::sync::Arc::new(source);
+    let mut prefetch = Prefetcher::new(source.clone(), 7, BatchLayout::alone(3));
     for step in 3..9 {
-        let a = prefetch.next_sample().unwrap().sample;
+        let a = prefetch.next_sample().unwrap();
         let b = sample_for_step(&data, 7, step).unwrap();
-        assert_eq!(a.frame_name, b.frame_name, "step {step}");
-        assert_eq!(a.bgcolor, b.bgcolor, "step {step}");
-        assert_eq!(a.canonical_vertices, b.canonical_vertices, "step {step}");
+        assert_eq!(a.index, step);
+        assert_eq!(a.sample.frame_name, b.frame_name, "step {step}");
+        assert_eq!(a.sample.bgcolor, b.bgcolor, "step {step}");
+        assert_eq!(
+            a.sample.canonical_vertices, b.canonical_vertices,
+            "step {step}"
+        );
     }
     // Dropping it mid-stream joins the worker instead of hanging.
     drop(prefetch);
+    // Rank 1 of 2 with two samples each: the second pair of every batch of four.
+    let layout = BatchLayout {
+        first_sample: 3,
+        accumulate: 2,
+        rank: 1,
+        ranks: 2,
+    };
+    let mut prefetch = Prefetcher::new(source, 7, layout);
+    for step in [5, 6, 9, 10] {
+        let a = prefetch.next_sample().unwrap();
+        let b = sample_for_step(&data, 7, step).unwrap();
+        assert_eq!((a.index, a.sample.frame_name), (step, b.frame_name));
+    }
 }

@@ -118,8 +118,13 @@ pub enum LpipsFallback {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrainSection {
-    /// Optimiser steps (one sample each: the reference's batch size is 1).
+    /// Optimiser steps.
     pub steps: u64,
+    /// Samples whose gradients each process sums before a step (the reference's batch size is
+    /// 1). The step takes their mean (over all ranks of an MPI job too:
+    /// `crate::data_parallel`), so the learning rates keep their meaning; the batch is
+    /// `accumulate × ranks`.
+    pub accumulate: usize,
     /// Where the samples come from.
     pub subjects: TrainingSubjects,
     /// Adam learning rate of the image encoder.
@@ -157,6 +162,7 @@ impl Default for TrainSection {
     fn default() -> Self {
         Self {
             steps: 200_000,
+            accumulate: 1,
             subjects: TrainingSubjects::Split,
             lr_encoder: 1e-4,
             lr_reconstructor: 5e-5,
@@ -272,6 +278,7 @@ impl ExperimentConfig {
             ("checkpoint_every", train.checkpoint_every),
             ("snapshot_every", train.snapshot_every),
             ("log_every", train.log_every),
+            ("accumulate", train.accumulate as u64),
         ] {
             if n == 0 {
                 return Err(invalid(format!("[train] {name} must be ≥ 1")));
@@ -378,6 +385,7 @@ mod tests {
             ("[train]\nlr_encoder = -1.0\n", "lr_encoder"),
             ("[model]\niterations = 0\n", "iterations"),
             ("[train]\nlog_every = 0\n", "log_every"),
+            ("[train]\naccumulate = 0\n", "accumulate"),
             ("[model]\npreset = \"huge\"\n", "huge"),
             ("[train]\nsubjects = \"forever\"\n", "forever"),
             ("[train]\nlpips_fallback = \"vgg\"\n", "vgg"),

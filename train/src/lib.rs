@@ -35,12 +35,15 @@
 //!   subject per step.
 //! - [`fit`]: per-scene optimisation of one avatar on its source views (the baseline learned
 //!   feedback competes with, and test-time refinement).
+//! - [`data_parallel`]: batches of several samples: gradient accumulation, and replicas in
+//!   several processes (MPI) that average their gradients.
 //! - [`prefetch`]: the next step's sample read on another thread while this one computes.
 //! - [`adam`]: Adam with a one-kernel step per parameter on CubeCL devices (Burn's `Adam` on
 //!   the CPU backends), the trainer's optimizer.
 
 pub mod adam;
 pub mod config;
+pub mod data_parallel;
 pub mod fit;
 pub mod losses;
 pub mod prefetch;

@@ -1,9 +1,11 @@
-//! Reading the next training sample while the current step computes.
+//! Reading the next training sample while the current one computes.
 //!
-//! A step's sample is a pure function of `(seed, step)` ([`crate::source`]), so the sample of
-//! step `s + 1` can be read and decoded (PNG images, masks, cameras) or generated (a procedural
-//! subject) on another thread while step `s` runs: the training thread then only turns host
-//! data into tensors. One sample ahead is enough: preparing one takes a fraction of a step.
+//! Sample `s` of a run's stream is a pure function of `(seed, s)` ([`crate::source`]), so the
+//! next sample this process trains on can be read and decoded (PNG images, masks, cameras) or
+//! generated (a procedural subject) on another thread while the current one runs: the training
+//! thread then only turns host data into tensors. One sample ahead is enough: preparing one
+//! takes a fraction of a step. Which samples are this process's is a
+//! [`BatchLayout`]'s choice (consecutive ones, or its rank's share of each batch).
 //!
 //! Order and content are exactly what [`TrainingSource::sample`] gives, so resuming and
 //! profiling see the same data as the serial loop.
@@ -12,15 +14,18 @@ use std::sync::Arc;
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 
+use crate::data_parallel::BatchLayout;
 use crate::source::{StepSample, TrainingSource};
 use crate::trainer::TrainError;
 
 type Prepared = (u64, Result<StepSample, TrainError>);
 
-/// A background reader of consecutive steps' samples, starting at a given step.
+/// A background reader of the samples a [`BatchLayout`] gives this process, in order.
 #[derive(Debug)]
 pub struct Prefetcher {
-    next_step: u64,
+    /// How many samples were handed out.
+    taken: u64,
+    layout: BatchLayout,
     seed: u64,
     source: Arc<TrainingSource>,
     receiver: Receiver<Prepared>,
@@ -28,9 +33,9 @@ pub struct Prefetcher {
 }
 
 impl Prefetcher {
-    /// Starts preparing the samples of steps `first_step, first_step + 1, …` of `source` under
-    /// `seed`, one ahead of the consumer.
-    pub fn new(source: Arc<TrainingSource>, seed: u64, first_step: u64) -> Self {
+    /// Starts preparing the samples `layout` gives this process, of `source` under `seed`, one
+    /// ahead of the consumer.
+    pub fn new(source: Arc<TrainingSource>, seed: u64, layout: BatchLayout) -> Self {
         // Capacity 1: the worker holds one finished sample in the channel and prepares the
         // next one, so it never runs more than two steps ahead.
         let (sender, receiver) = sync_channel(1);
@@ -38,11 +43,12 @@ impl Prefetcher {
             .name("lifegom-prefetch".into())
             .spawn({
                 let source = source.clone();
-                move || produce(&source, seed, first_step, &sender)
+                move || produce(&source, seed, layout, &sender)
             })
             .ok();
         Self {
-            next_step: first_step,
+            taken: 0,
+            layout,
             seed,
             source,
             receiver,
@@ -50,12 +56,11 @@ impl Prefetcher {
         }
     }
 
-    /// The sample of the next step (in order: each call advances by one step). If the worker
-    /// thread could not be started or has stopped, the sample is prepared on this thread
-    /// instead.
+    /// The next sample (each call advances by one). If the worker thread could not be started
+    /// or has stopped, the sample is prepared on this thread instead.
     pub fn next_sample(&mut self) -> Result<StepSample, TrainError> {
-        let step = self.next_step;
-        self.next_step += 1;
+        let step = self.layout.sample_index(self.taken);
+        self.taken += 1;
         let _span = tracing::debug_span!("data_wait").entered();
         match self.receiver.recv() {
             Ok((s, sample)) if s == step => sample,
@@ -64,8 +69,8 @@ impl Prefetcher {
     }
 }
 
-fn produce(source: &TrainingSource, seed: u64, first_step: u64, sender: &SyncSender<Prepared>) {
-    for step in first_step.. {
+fn produce(source: &TrainingSource, seed: u64, layout: BatchLayout, sender: &SyncSender<Prepared>) {
+    for step in (0..).map(|i| layout.sample_index(i)) {
         let sample = source.sample(seed, step);
         // The consumer dropped the prefetcher: stop.
         if sender.send((step, sample)).is_err() {

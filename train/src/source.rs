@@ -18,9 +18,11 @@ use lifegom_model::inputs::SubjectRig;
 use crate::config::{ExperimentConfig, TrainingSubjects};
 use crate::trainer::{TrainError, sample_for_step};
 
-/// A step's sample with the body rig of its subject.
+/// A sample of the run's stream with the body rig of its subject.
 #[derive(Debug, Clone)]
 pub struct StepSample {
+    /// Its index in the stream.
+    pub index: u64,
     /// The N inputs and the target.
     pub sample: Sample,
     /// The subject's canonical body, skeleton and skinning.
@@ -92,7 +94,8 @@ impl TrainingSource {
         }
     }
 
-    /// The sample of step `step` under `seed`.
+    /// Sample `step` of the stream under `seed` (the step's own sample in a run with one
+    /// sample a step).
     pub fn sample(&self, seed: u64, step: u64) -> Result<StepSample, TrainError> {
         match self {
             Self::Split { dataset, rigs } => {
@@ -108,12 +111,17 @@ impl TrainingSource {
                             sample.subject
                         ))
                     })?;
-                Ok(StepSample { sample, rig })
+                Ok(StepSample {
+                    index: step,
+                    sample,
+                    rig,
+                })
             }
             Self::Procedural { stream, .. } => {
                 let generated = stream.sample(seed, step)?;
                 let rig = SubjectRig::new(&generated.sample.subject, &generated.canonical)?;
                 Ok(StepSample {
+                    index: step,
                     sample: generated.sample,
                     rig: Arc::new(rig),
                 })

@@ -1,24 +1,28 @@
 //! The training loop's step, its data schedule, and checkpoints that resume exactly.
 //!
-//! One step (design.md §9.1–§9.4, batch size 1): run the reconstructor's T feedback steps on the N
+//! One sample's loss (design.md §9.1–§9.4): run the reconstructor's T feedback steps on the N
 //! sources; render every step's state in the target view too; supervise the T·(N+1) composited
 //! renders and alphas against the (broadcast) ground truth with L1 + λ(1−SSIM) + λ·mask L1, plus
-//! λ·uniform Laplacian of the T low-res canonical meshes; one Adam step with the encoder's
-//! learning rate on the encoder's parameters and the reconstructor's on the rest.
+//! λ·uniform Laplacian of the T low-res canonical meshes. One step: the mean gradient of a batch
+//! of such samples (one, the reference's batch size, unless `[train] accumulate` or MPI ranks
+//! make it larger: [`crate::data_parallel`]), then one Adam step with the encoder's learning
+//! rate on the encoder's parameters and the reconstructor's on the rest.
 //!
-//! **Exact resume.** Nothing random depends on history: sample `s` is drawn from the permutation
-//! of epoch `s / len` (seeded by `(seed, epoch)`), its backgrounds and source views from
-//! `Rng(seed).fork(s)`, and Burn's RNG (dropout) is re-seeded from `(seed, s)` before the forward.
-//! A checkpoint stores the weights (with their parameter ids), Adam's moments and the step, so a
-//! resumed run computes the same losses as an uninterrupted one on the same backend.
+//! **Exact resume.** Nothing random depends on history: sample `s` of the run's stream is drawn
+//! from the permutation of epoch `s / len` (seeded by `(seed, epoch)`), its backgrounds and source
+//! views from `Rng(seed).fork(s)`, and Burn's RNG (dropout) is re-seeded from `(seed, s)` before
+//! its forward. A checkpoint stores the weights (with their parameter ids), Adam's moments, the
+//! step and the samples consumed, so a resumed run computes the same losses as an uninterrupted
+//! one on the same backend, whatever batch it resumes with. Checkpoints are written between
+//! steps only: a run stopped inside a batch redoes that batch when it resumes.
 
 use lifegom_render::readback::{self, ReadbackError};
 use std::time::Instant;
 
-use burn::module::ParamGroup;
+use burn::module::{Module, ModuleVisitor, Param, ParamGroup};
 use burn::optim::lr_scheduler::LrSchedulerConfig;
 use burn::optim::lr_scheduler::module_lr_scheduler::{ModuleLearningRate, ModuleLrSchedulerConfig};
-use burn::optim::{GradientsParams, ModuleOptimizer};
+use burn::optim::{GradientsAccumulator, GradientsParams, ModuleOptimizer};
 
 use crate::adam::FusedAdamConfig;
 use burn::tensor::{Bytes, Device, Tensor};
@@ -32,6 +36,7 @@ use lifegom_render::rng::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::config::TrainSection;
+use crate::data_parallel::{self, ReplicaError, Replicas, SingleProcess};
 use crate::losses::{
     LossTerms, LossWeights, UniformLaplacian, WeightedLoss, l1, mask_l1, ssim_loss,
 };
@@ -60,6 +65,12 @@ pub enum TrainError {
     /// The trainer's own metadata could not be serialised for a checkpoint.
     #[error("serialising the trainer state: {0}")]
     TrainerState(#[from] serde_json::Error),
+    /// The ranks of a data-parallel job disagree or could not exchange their gradients.
+    #[error(transparent)]
+    Replicas(#[from] ReplicaError),
+    /// A step was asked to train on no sample.
+    #[error("a training step needs at least one sample")]
+    EmptyBatch,
     /// Reading or generating a training sample failed.
     #[error(transparent)]
     Data(#[from] lifegom_data::DataError),
@@ -90,6 +101,17 @@ pub struct StepStats {
     pub psnr_source_steps: Vec<f64>,
     /// Wall time of the step (s).
     pub seconds: f64,
+    /// Samples in the step's batch, over all ranks (the losses and PSNRs are their means).
+    #[serde(default = "one")]
+    pub batch: u64,
+    /// Wall time of the gradient exchange between ranks (s; 0 in one process): the
+    /// all-reduce, with the read-back and upload of the gradients around it.
+    #[serde(default)]
+    pub exchange_seconds: f64,
+}
+
+fn one() -> u64 {
+    1
 }
 
 /// A step's statistics and its last-iteration target render (detached, `[3, H, W]`).
@@ -118,6 +140,10 @@ pub struct StepLoss {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 struct TrainerMeta {
     step: u64,
+    /// Samples of the stream consumed (equal to `step` in runs with one sample a step, which is
+    /// what files without the field are).
+    #[serde(default)]
+    samples: Option<u64>,
     seed: u64,
     /// Version of the data schedule ([`schedule`]) and the per-step seeding: a run resumes
     /// exactly only under the schedule it started with. Files without the field are version 1
@@ -144,8 +170,36 @@ pub struct Trainer {
     weights: LossWeights,
     /// Optimiser steps taken so far.
     pub step: u64,
+    /// Samples of the run's stream consumed so far (the next batch starts here).
+    pub samples: u64,
     seed: u64,
     device: Device,
+}
+
+/// One sample of a step's batch: its index in the run's sample stream (which seeds its dropout)
+/// and its inputs.
+#[derive(Clone, Copy)]
+pub struct BatchSample<'a> {
+    /// Index in the stream ([`crate::data_parallel::BatchLayout::sample_index`]).
+    pub index: u64,
+    /// The sample's inputs, built on [`Trainer::device`].
+    pub inputs: &'a ModelInputs,
+}
+
+/// What one sample of a batch measured, as one flat row so that a batch's rows can be summed
+/// over ranks: the loss terms, the target PSNR, then the per-step target and source PSNRs.
+struct SampleRow {
+    names: Vec<&'static str>,
+    values: Vec<f64>,
+}
+
+/// Reads every parameter once (see [`Trainer::new`]).
+struct DrawParameters;
+
+impl ModuleVisitor for DrawParameters {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let _ = param.val();
+    }
 }
 
 /// A seed for `stream` of step-or-epoch `index`: unrelated for nearby seeds and indices.
@@ -214,11 +268,16 @@ impl Trainer {
         let device = device.clone().autodiff();
         device.seed(train.seed);
         let model = config.init(num_vertices, &device)?;
+        // Burn draws a parameter's values when it is first read. Read them all now, so the
+        // initial weights are a function of the seed alone, not of whatever first touches them
+        // (a first forward re-seeds the RNG for its dropout; the ranks of a data-parallel job
+        // each start with a different sample).
+        model.visit(&mut DrawParameters);
         Self::assemble(
             model,
             config,
             ModuleOptimizer::from(FusedAdamConfig::default().init()),
-            0,
+            (0, 0),
             train,
             device,
         )
@@ -228,7 +287,7 @@ impl Trainer {
         model: Reconstructor,
         config: ReconstructorConfig,
         optim: ModuleOptimizer,
-        step: u64,
+        (step, samples): (u64, u64),
         train: &TrainSection,
         device: Device,
     ) -> Result<Self, TrainError> {
@@ -239,6 +298,7 @@ impl Trainer {
             optim,
             weights: train.loss_weights(),
             step,
+            samples,
             seed: train.seed,
             device,
         })
@@ -290,7 +350,7 @@ impl Trainer {
             loaded.model,
             loaded.config,
             optim,
-            meta.step,
+            (meta.step, meta.samples.unwrap_or(meta.step)),
             &train,
             device,
         )
@@ -300,6 +360,7 @@ impl Trainer {
     pub fn save(&self, path: &std::path::Path, meta: serde_json::Value) -> Result<(), TrainError> {
         let state = serde_json::to_vec(&TrainerMeta {
             step: self.step,
+            samples: Some(self.samples),
             seed: self.seed,
             schedule_version: SCHEDULE_VERSION,
         })?;
@@ -341,7 +402,8 @@ impl Trainer {
         Ok(report.to_string())
     }
 
-    /// One optimiser step on `inputs` (built on [`Trainer::device`]).
+    /// One optimiser step on `inputs` (built on [`Trainer::device`]) alone: the next sample of
+    /// the stream, in a batch of one, in this process alone.
     pub fn train_step(
         &mut self,
         inputs: &ModelInputs,
@@ -351,49 +413,143 @@ impl Trainer {
         Ok(self.train_step_with_render(inputs, mesh, laplacian)?.stats)
     }
 
-    /// [`Trainer::train_step`], also returning the last iteration's target render. On a CPU
-    /// device the step runs on one of rayon's threads (`lifegom_render::device::on_pool_thread`).
+    /// [`Trainer::train_step`], also returning the last iteration's target render.
     pub fn train_step_with_render(
         &mut self,
         inputs: &ModelInputs,
         mesh: &GomMesh,
         laplacian: &UniformLaplacian,
     ) -> Result<StepOutput, TrainError> {
+        let sample = BatchSample {
+            index: self.samples,
+            inputs,
+        };
+        self.train_batch(&[sample], mesh, laplacian, &SingleProcess)
+    }
+
+    /// One optimiser step on the mean gradient of a batch: `batch` is this rank's share, and
+    /// every rank of `replicas` calls this with a share of the same size (module docs,
+    /// [`crate::data_parallel`]). The statistics are the batch's means over all ranks; the
+    /// render is this rank's last sample's. On a CPU device the samples' forward and backward
+    /// and the optimizer run on one of rayon's threads
+    /// (`lifegom_render::device::on_pool_thread`); the collectives run on the calling thread.
+    pub fn train_batch(
+        &mut self,
+        batch: &[BatchSample<'_>],
+        mesh: &GomMesh,
+        laplacian: &UniformLaplacian,
+        replicas: &dyn Replicas,
+    ) -> Result<StepOutput, TrainError> {
+        if batch.is_empty() {
+            return Err(TrainError::EmptyBatch);
+        }
+        let _span =
+            tracing::info_span!("train_step", step = self.step, batch = batch.len()).entered();
+        let start = Instant::now();
         let device = self.device.clone();
+        let (grads, rows, target_render) = on_pool_thread(&device, |parent| {
+            self.batch_gradients(batch, mesh, laplacian, parent)
+        })?;
+        let exchange = Instant::now();
+        let grads = data_parallel::average_gradients(&self.model, grads, batch.len(), replicas)?;
+        let exchange_seconds = if replicas.size() > 1 {
+            exchange.elapsed().as_secs_f64()
+        } else {
+            0.0
+        };
         on_pool_thread(&device, |parent| {
-            self.step_here(inputs, mesh, laplacian, parent)
+            let _span = tracing::debug_span!(parent: parent, "optimizer").entered();
+            self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
+        });
+        let samples = (batch.len() * replicas.size()) as u64;
+        self.step += 1;
+        self.samples += samples;
+
+        let _span = tracing::debug_span!("statistics").entered();
+        let mut sum = vec![0.0; rows[0].values.len()];
+        for row in &rows {
+            for (s, v) in sum.iter_mut().zip(&row.values) {
+                *s += v;
+            }
+        }
+        replicas.sum_f64(&mut sum);
+        let mean: Vec<f64> = sum.iter().map(|s| s / samples as f64).collect();
+        let names = &rows[0].names;
+        let (losses, rest) = mean.split_at(names.len());
+        let t = (rest.len() - 1) / 2;
+        let stats = StepStats {
+            step: self.step,
+            losses: names
+                .iter()
+                .zip(losses)
+                .map(|(n, v)| (n.to_string(), *v))
+                .collect(),
+            psnr_target: rest[0],
+            psnr_target_steps: rest[1..1 + t].to_vec(),
+            psnr_source_steps: rest[1 + t..].to_vec(),
+            seconds: start.elapsed().as_secs_f64(),
+            batch: samples,
+            exchange_seconds,
+        };
+        Ok(StepOutput {
+            stats,
+            target_render,
         })
     }
 
-    /// [`Trainer::train_step_with_render`] on the calling thread; its span is a child of
-    /// `parent`.
-    fn step_here(
-        &mut self,
-        inputs: &ModelInputs,
+    /// The summed gradients of this rank's share of a batch, each sample's statistics, and the
+    /// last sample's target render; on the calling thread, its span a child of `parent`.
+    fn batch_gradients(
+        &self,
+        batch: &[BatchSample<'_>],
         mesh: &GomMesh,
         laplacian: &UniformLaplacian,
         parent: &tracing::Span,
-    ) -> Result<StepOutput, TrainError> {
-        let _span = tracing::info_span!(parent: parent, "train_step", step = self.step).entered();
-        let start = Instant::now();
-        let StepLoss {
-            loss,
-            image_mse,
-            last_target,
-            iterations: t,
-        } = self.step_loss(inputs, mesh, laplacian)?;
-        let grads = {
-            let _span = tracing::debug_span!("backward").entered();
-            GradientsParams::from_grads(loss.total.backward(), &self.model)
-        };
-        {
-            let _span = tracing::debug_span!("optimizer").entered();
-            self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
+    ) -> Result<(GradientsParams, Vec<SampleRow>, Tensor<3>), TrainError> {
+        let _span = tracing::debug_span!(parent: parent, "batch_gradients").entered();
+        let mut accumulated = GradientsAccumulator::<Reconstructor>::new();
+        let mut rows = Vec::with_capacity(batch.len());
+        let mut target_render = None;
+        for sample in batch {
+            let StepLoss {
+                loss,
+                image_mse,
+                last_target,
+                iterations: t,
+            } = self.sample_loss(sample, mesh, laplacian)?;
+            let grads = {
+                let _span = tracing::debug_span!("backward").entered();
+                GradientsParams::from_grads(loss.total.backward(), &self.model)
+            };
+            if batch.len() == 1 {
+                // Nothing to add up: skip the accumulator's pass over every gradient.
+                let render = last_target.detach().squeeze_dim::<3>(0);
+                let row = Self::sample_row(sample.inputs, &loss, image_mse, &render, t)?;
+                return Ok((grads, vec![row], render));
+            }
+            accumulated.accumulate(&self.model, grads);
+            let render = last_target.detach().squeeze_dim::<3>(0);
+            rows.push(Self::sample_row(
+                sample.inputs,
+                &loss,
+                image_mse,
+                &render,
+                t,
+            )?);
+            target_render = Some(render);
         }
-        self.step += 1;
-        let _span = tracing::debug_span!("statistics").entered();
+        let render = target_render.ok_or(TrainError::EmptyBatch)?;
+        Ok((accumulated.grads(), rows, render))
+    }
 
-        let target_render = last_target.detach().squeeze_dim::<3>(0);
+    /// A sample's statistics ([`SampleRow`]).
+    fn sample_row(
+        inputs: &ModelInputs,
+        loss: &WeightedLoss,
+        image_mse: Tensor<1>,
+        target_render: &Tensor<3>,
+        t: usize,
+    ) -> Result<SampleRow, TrainError> {
         let mse = scalar(
             "target MSE",
             (target_render.clone() - inputs.target_rgb.clone())
@@ -404,26 +560,14 @@ impl Trainer {
         let views = image_mse.len() / t.max(1);
         let psnr = |mse: f64| 10.0 * (1.0 / mse.max(1e-12)).log10();
         let per_step = image_mse.chunks(views.max(1));
-        let psnr_target_steps = per_step.clone().map(|c| psnr(c[views - 1])).collect();
-        let psnr_source_steps = per_step
-            .map(|c| psnr(c[..views - 1].iter().sum::<f64>() / (views - 1).max(1) as f64))
-            .collect();
-        let stats = StepStats {
-            step: self.step,
-            losses: loss
-                .scalars()?
-                .into_iter()
-                .map(|(n, v)| (n.to_string(), v))
-                .collect(),
-            psnr_target: 10.0 * (1.0 / mse).log10(),
-            psnr_target_steps,
-            psnr_source_steps,
-            seconds: start.elapsed().as_secs_f64(),
-        };
-        Ok(StepOutput {
-            stats,
-            target_render,
-        })
+        let (names, mut values): (Vec<&'static str>, Vec<f64>) =
+            loss.scalars()?.into_iter().unzip();
+        values.push(10.0 * (1.0 / mse).log10());
+        values.extend(per_step.clone().map(|c| psnr(c[views - 1])));
+        values.extend(
+            per_step.map(|c| psnr(c[..views - 1].iter().sum::<f64>() / (views - 1).max(1) as f64)),
+        );
+        Ok(SampleRow { names, values })
     }
 
     /// The forward half of the next [`Trainer::train_step`] (same dropout masks, same loss),
@@ -437,8 +581,23 @@ impl Trainer {
         mesh: &GomMesh,
         laplacian: &UniformLaplacian,
     ) -> Result<StepLoss, TrainError> {
+        let sample = BatchSample {
+            index: self.samples,
+            inputs,
+        };
+        self.sample_loss(&sample, mesh, laplacian)
+    }
+
+    /// The loss of one sample of a batch, its dropout seeded by the sample's stream index.
+    fn sample_loss(
+        &self,
+        sample: &BatchSample<'_>,
+        mesh: &GomMesh,
+        laplacian: &UniformLaplacian,
+    ) -> Result<StepLoss, TrainError> {
+        let inputs = sample.inputs;
         self.device
-            .seed(derived_seed(self.seed, DROPOUT, self.step));
+            .seed(derived_seed(self.seed, DROPOUT, sample.index));
         let rec = self.model.forward(&inputs.subject, mesh, &inputs.sources)?;
         let span = tracing::debug_span!("target_renders").entered();
         let t = rec.states.len();

@@ -2,23 +2,38 @@
 //!
 //! ```text
 //! lifegom-train --config configs/synthetic-tiny.toml --out runs/tiny [--device flex|ndarray]
-//!               [--data <root>] [--resume] [--max-minutes M] [--steps N]
-//! lifegom-train --out runs/demo --export assets/demo/demo.lgck [--subdivide-test S]
+//!               [--data <root>] [--resume] [--max-minutes M] [--steps N] [--accumulate K]
+//! lifegom-train --out runs/demo --export assets/demo/demo.lgck [--from latest|best] [--subdivide-test S]
 //! ```
 //!
-//! Ctrl-C finishes the current step, writes a checkpoint and exits; `--resume` continues it.
-//! `--export` trains nothing: it writes the run's latest checkpoint without the optimizer state
-//! (an inference-only model file, a third of the size).
+//! Ctrl-C (or SIGTERM, or SIGUSR1) finishes the current step, writes a checkpoint and exits;
+//! `--resume` continues it.
+//! `--export` trains nothing: it writes the run's latest checkpoint (or, with `--from best`, its
+//! best validated weights) without the optimizer state (an inference-only model file, a third
+//! of the size).
+//!
+//! Built with the `mpi` feature, `mpirun -np N lifegom-train …` trains one model on N ranks,
+//! each one replica on its own share of every batch (docs/data-parallel.md). A rank that fails
+//! ends the whole job.
 
 use std::path::PathBuf;
 
 use clap::Parser;
-use lifegom_cli::train_run::{RunOptions, StopReason, export_model, latest_checkpoint, train};
+use lifegom_cli::train_run::{
+    RunOptions, StopReason, best_checkpoint, export_model, latest_checkpoint, train_with,
+};
 use lifegom_render::device::DeviceChoice;
 use lifegom_train::config::ExperimentConfig;
+use lifegom_train::data_parallel::{Replicas, SingleProcess};
+
+/// The end of `--help`: how to run data-parallel, and whether this binary can.
+#[cfg(feature = "mpi")]
+const DATA_PARALLEL_HELP: &str = "Data-parallel training: `mpirun -np N lifegom-train …` (or `srun` under Slurm) trains one model on N ranks, a batch of N × accumulate samples a step (docs/data-parallel.md). This binary is built with MPI.";
+#[cfg(not(feature = "mpi"))]
+const DATA_PARALLEL_HELP: &str = "Data-parallel training: `mpirun -np N lifegom-train …` (or `srun` under Slurm) trains one model on N ranks, a batch of N × accumulate samples a step (docs/data-parallel.md). This binary is built WITHOUT MPI: build with `--features lifegom-cli/mpi`.";
 
 #[derive(Parser, Debug)]
-#[command(about = "Train the LIFe-GoM reconstructor", version)]
+#[command(about = "Train the LIFe-GoM reconstructor", version, after_help = DATA_PARALLEL_HELP)]
 struct Args {
     /// Experiment config (configs/*.toml).
     #[arg(long, required_unless_present = "export")]
@@ -41,14 +56,30 @@ struct Args {
     /// Override `[train] steps`.
     #[arg(long)]
     steps: Option<u64>,
+    /// Override `[train] accumulate`: samples whose gradients each process sums before a step
+    /// (the step takes the batch's mean gradient, so the learning rates keep their meaning).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    accumulate: Option<u64>,
     /// Write `<out>/checkpoints/latest.lgck` without its optimizer state to this file and exit.
     #[arg(long)]
     export: Option<PathBuf>,
+    /// With `--export`: which of the run's checkpoints to export.
+    #[arg(long, value_enum, default_value = "latest", requires = "export")]
+    from: ExportSource,
     /// With `--export`: the Gaussians' subdivision the exported model renders at by default
     /// (the run's `subdivide_test` otherwise). The weights serve every level; pick the one the
     /// image size calls for (docs/design.md §10.9).
     #[arg(long, requires = "export")]
     subdivide_test: Option<u32>,
+}
+
+/// The checkpoint `--export` writes out.
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+enum ExportSource {
+    /// `<out>/checkpoints/latest.lgck`: where the run stopped.
+    Latest,
+    /// `<out>/checkpoints/best.lgck`: the best validation at the last feedback step.
+    Best,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -58,7 +89,10 @@ fn main() -> anyhow::Result<()> {
     // SAFETY: the first thing `main` does after parsing; no thread has started yet.
     unsafe { lifegom_cli::make_default_device(args.device) };
     if let Some(dest) = &args.export {
-        let source = latest_checkpoint(&args.out);
+        let source = match args.from {
+            ExportSource::Latest => latest_checkpoint(&args.out),
+            ExportSource::Best => best_checkpoint(&args.out),
+        };
         let bytes = export_model(&source, dest, args.subdivide_test, &args.device.device())?;
         println!(
             "{}",
@@ -77,7 +111,27 @@ fn main() -> anyhow::Result<()> {
     if let Some(root) = &args.data {
         cfg = cfg.with_root(root);
     }
+    if let Some(k) = args.accumulate {
+        cfg.train.accumulate = usize::try_from(k)?;
+    }
+    #[cfg(feature = "mpi")]
+    let mpi = lifegom_train::data_parallel::mpi::MpiReplicas::from_launcher()?;
+    #[cfg(feature = "mpi")]
+    let replicas: &dyn Replicas = match &mpi {
+        Some(m) => m,
+        None => &SingleProcess,
+    };
+    #[cfg(not(feature = "mpi"))]
+    let replicas: &dyn Replicas = {
+        if let Some(var) = lifegom_train::data_parallel::launcher_rank_variable() {
+            anyhow::bail!(
+                "started by an MPI launcher ({var} is set) but built without MPI: every rank would train alone into the same folder. Build with `--features lifegom-cli/mpi` (docs/data-parallel.md)"
+            );
+        }
+        &SingleProcess
+    };
     let stop = lifegom_cli::stop_on_ctrl_c("finishing this step and writing a checkpoint")?;
+    lifegom_cli::stop_on_job_signals(&stop)?;
     let opts = RunOptions {
         out: args.out.clone(),
         resume: args.resume,
@@ -86,7 +140,23 @@ fn main() -> anyhow::Result<()> {
         device: args.device.device(),
         progress: true,
     };
-    let summary = train(&cfg, &opts, stop)?;
+    let summary = match train_with(&cfg, &opts, stop, replicas) {
+        Ok(summary) => summary,
+        #[cfg(feature = "mpi")]
+        Err(e) if replicas.size() > 1 => {
+            // The other ranks wait in a collective for this one: end them all.
+            eprintln!("rank {}: error: {e:#}", replicas.rank());
+            if let Some(m) = &mpi {
+                m.abort(1);
+            }
+            return Err(e);
+        }
+        Err(e) => return Err(e),
+    };
+    let interrupted = summary.stop == StopReason::Interrupted;
+    if replicas.rank() > 0 {
+        return Ok(());
+    }
     let last = summary.history.last();
     println!(
         "{}",
@@ -96,12 +166,16 @@ fn main() -> anyhow::Result<()> {
             "steps_this_run": summary.steps_this_run,
             "seconds": summary.seconds,
             "backend": args.device.name(),
+            "ranks": replicas.size(),
             "checkpoint": summary.checkpoint.display().to_string(),
             "last_losses": last.map(|s| s.losses.clone()),
             "last_psnr_target": last.map(|s| s.psnr_target),
         })
     );
-    if summary.stop == StopReason::Interrupted {
+    if interrupted {
+        // MPI must be finalised (the universe dropped) before the process exits.
+        #[cfg(feature = "mpi")]
+        drop(mpi);
         std::process::exit(130);
     }
     Ok(())

@@ -49,6 +49,7 @@ use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::{HostConcurrency, MeshPurpose};
 use lifegom_render::device::DeviceChoice;
 use lifegom_train::config::{ExperimentConfig, TrainingSubjects};
+use lifegom_train::data_parallel::BatchLayout;
 use lifegom_train::losses::UniformLaplacian;
 use lifegom_train::prefetch::Prefetcher;
 use lifegom_train::source::{StepSample, TrainingSource};
@@ -213,8 +214,13 @@ fn main() -> anyhow::Result<()> {
     let mut wall_seconds = 0.0;
     // The warm-up steps compile every kernel: what a process pays once, kept apart from the median.
     let mut warmup_seconds = Vec::new();
-    let mut prefetch = (args.data == DataLoading::Prefetch)
-        .then(|| Prefetcher::new(source.clone(), trainer.seed(), trainer.step));
+    let mut prefetch = (args.data == DataLoading::Prefetch).then(|| {
+        Prefetcher::new(
+            source.clone(),
+            trainer.seed(),
+            BatchLayout::alone(trainer.samples),
+        )
+    });
     for i in 0..args.warmup + args.steps.max(1) {
         let mode = args.concurrency.mode(i);
         trainer.model = trainer.model.clone().with_concurrency(mode);
@@ -226,9 +232,9 @@ fn main() -> anyhow::Result<()> {
                 Some(inputs) => inputs,
                 None => {
                     let _span = tracing::debug_span!("data").entered();
-                    let StepSample { sample, rig } = match prefetch.as_mut() {
+                    let StepSample { sample, rig, .. } = match prefetch.as_mut() {
                         Some(p) => p.next_sample()?,
-                        None => source.sample(trainer.seed(), trainer.step)?,
+                        None => source.sample(trainer.seed(), trainer.samples)?,
                     };
                     let inputs = model_inputs(&rig, &sample, w, h, trainer.device())?;
                     if args.concurrency == Concurrency::Alternate {
