@@ -58,6 +58,9 @@ pub struct EvalOptions {
     /// Subjects the sweep scores (`None`: as many as the evaluation, so that its points and
     /// the baselines are scored on the same people). Each size costs 15 evaluations.
     pub sweep_subjects: Option<usize>,
+    /// Other trained models (`.lgck`) to score on the same views beside the checkpoint, e.g.
+    /// an earlier demo model: table rows and points of the accuracy-vs-time chart.
+    pub other_models: Vec<PathBuf>,
     /// Also score the baselines (template in one colour, projective texturing).
     pub baseline: bool,
     /// Score the per-scene optimisation baseline after each of these step counts (empty: no).
@@ -164,6 +167,30 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
     write_csvs(&opts.out, &scores.views)?;
     report.summary = Some(summary.clone());
     report.sheets = list_relative(&opts.out, "sheets");
+
+    for path in &opts.other_models {
+        let other = trained::load(path, &opts.device)?;
+        let mut s = evaluate_split(
+            &Method::Model {
+                model: &other.model,
+                config: &other.config,
+            },
+            &dataset,
+            // Its predictions and sheets would overwrite the checkpoint's.
+            &EvalSettings {
+                save_predictions: false,
+                sheets: 0,
+                ..settings(opts, &opts.out)
+            },
+            &opts.device,
+        )?;
+        let PerceptualOutcome { fid } = score_perceptual(&perceptual, &mut s, &opts.device)?;
+        let summary = Summary::of(&s, fid);
+        // Plain text: the chart's legend shows it too, in a font without backquotes.
+        let name = format!("{} (step {})", path.display(), other.header.meta["step"]);
+        progress(&format!("other model, T = {}", s.iterations), &summary);
+        report.other_models.push((name, summary));
+    }
 
     let mut baselines = Vec::new();
     if opts.baseline {

@@ -34,6 +34,7 @@ fn eval_on_a_tiny_split_writes_every_file() {
         sweep_sizes: vec![],
         sweep_subjects: Some(1),
         baseline: true,
+        other_models: vec![],
         per_scene: vec![1, 2],
         per_scene_subjects: Some(1),
         max_subjects: None,

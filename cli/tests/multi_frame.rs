@@ -98,6 +98,7 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
         sweep_sizes: vec![],
         sweep_subjects: Some(1),
         baseline: true,
+        other_models: vec![],
         per_scene: vec![],
         per_scene_subjects: None,
         max_subjects: None,

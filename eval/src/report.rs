@@ -141,6 +141,9 @@ pub struct Report {
     pub context: Vec<String>,
     /// The model's summary.
     pub summary: Option<Summary>,
+    /// Other trained models scored on the same views (name, summary), e.g. an earlier version
+    /// of the demo model.
+    pub other_models: Vec<(String, Summary)>,
     /// The baselines evaluated (name, summary), e.g. the template in one colour and projective
     /// texturing ([`crate::baselines`]).
     pub baselines: Vec<(String, Summary)>,
@@ -192,7 +195,7 @@ impl Report {
                 md.push_str(&table_row("model", s));
                 md.push('\n');
             }
-            for (name, b) in &self.baselines {
+            for (name, b) in self.other_models.iter().chain(&self.baselines) {
                 md.push_str(&table_row(name, b));
                 md.push('\n');
             }
@@ -283,6 +286,7 @@ impl Report {
             pareto_chart(
                 &self.sweep,
                 self.summary.as_ref(),
+                &self.other_models,
                 &self.baselines,
                 &self.per_scene,
             )
@@ -297,11 +301,13 @@ impl Report {
 
 /// PSNR against reconstruction time: the sweep's points, one series per subdivision level,
 /// labelled `T<n>` (and the size when several sizes were swept) — or, without a sweep, the
-/// evaluated model's own point —, the per-scene optimisation's points labelled `K<steps>`, and
-/// the no-learning baselines: every way of building an avatar on the same axes.
+/// evaluated model's own point —, other trained models' points labelled `T<n>`, the per-scene
+/// optimisation's points labelled `K<steps>`, and the no-learning baselines: every way of
+/// building an avatar on the same axes.
 pub fn pareto_chart(
     rows: &[SweepRow],
     model: Option<&Summary>,
+    other_models: &[(String, Summary)],
     baselines: &[(String, Summary)],
     per_scene: &[FitPoint],
 ) -> Chart {
@@ -345,20 +351,31 @@ pub fn pareto_chart(
             color: PALETTE[0],
         });
     }
+    let first_other = series.len();
+    for (k, (name, m)) in other_models.iter().enumerate() {
+        series.push(Series {
+            name: name.clone(),
+            points: vec![(m.recon_ms, m.psnr)],
+            labels: vec![format!("T{}", m.iterations)],
+            color: PALETTE[(first_other + k) % PALETTE.len()],
+        });
+    }
+    let next = series.len();
     if !per_scene.is_empty() {
         series.push(Series {
             name: "per-scene optimisation".into(),
             points: per_scene.iter().map(|p| (p.ms, p.psnr)).collect(),
             labels: per_scene.iter().map(|p| format!("K{}", p.steps)).collect(),
-            color: PALETTE[(levels.len().max(1)) % PALETTE.len()],
+            color: PALETTE[next % PALETTE.len()],
         });
     }
+    let next = series.len();
     for (k, (name, b)) in baselines.iter().enumerate() {
         series.push(Series {
             name: name.clone(),
             points: vec![(b.recon_ms.max(1e-3), b.psnr)],
             labels: vec![String::new()],
-            color: PALETTE[(levels.len().max(1) + 1 + k) % PALETTE.len()],
+            color: PALETTE[(next + k) % PALETTE.len()],
         });
     }
     Chart {
@@ -421,6 +438,55 @@ mod tests {
             ..scores
         };
         assert!((Summary::of(&with, None).lpips_alex_x1000.unwrap() - 200.0).abs() < 1e-9);
+    }
+
+    /// Another trained model scored on the same views (the previous demo model in the
+    /// quickstart) gets a row of the results table and a point of the accuracy-vs-time chart.
+    #[test]
+    fn other_models_are_rows_and_points() {
+        let scores = |psnr: f64, iterations: usize| SplitScores {
+            views: vec![view("a", psnr, None), view("b", psnr, None)],
+            images: MetricImages::default(),
+            num_gaussians: 10,
+            iterations,
+            subdivide: 1,
+        };
+        let report = Report {
+            title: "t".into(),
+            summary: Some(Summary::of(&scores(24.0, 3), None)),
+            other_models: vec![(
+                "v1.lgck (step 7)".into(),
+                Summary::of(&scores(21.0, 2), None),
+            )],
+            per_scene: vec![FitPoint {
+                steps: 30,
+                psnr: 22.0,
+                ssim: 0.8,
+                ms: 900.0,
+                subjects: 2,
+            }],
+            ..Default::default()
+        };
+        let md = report.markdown();
+        assert!(md.contains("| v1.lgck (step 7) | 2 | 1 | 21.00 |"), "{md}");
+        let chart = pareto_chart(
+            &report.sweep,
+            report.summary.as_ref(),
+            &report.other_models,
+            &report.baselines,
+            &report.per_scene,
+        );
+        let names: Vec<&str> = chart.series.iter().map(|s| s.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "model, subdiv 1",
+                "v1.lgck (step 7)",
+                "per-scene optimisation"
+            ]
+        );
+        assert_eq!(chart.series[1].points, [(100.0, 21.0)]);
+        assert_eq!(chart.series[1].labels, ["T2"]);
     }
 
     /// The sweep's table says how many people its rows are scored on, and whether they are the

@@ -54,6 +54,9 @@ struct Args {
     /// Also score the baselines (template in one colour, projective texturing).
     #[arg(long)]
     baseline: bool,
+    /// Other trained models to score on the same views (comma-separated `.lgck` files).
+    #[arg(long, value_delimiter = ',')]
+    compare: Vec<PathBuf>,
     /// Free-view turntable with this many frames (PNG frames + GIF).
     #[arg(long, num_args = 0..=1, default_missing_value = "36")]
     freeview: Option<usize>,
@@ -115,6 +118,7 @@ fn main() -> anyhow::Result<()> {
         sweep_sizes: args.sweep_sizes.clone(),
         sweep_subjects: args.sweep_subjects,
         baseline: args.baseline,
+        other_models: args.compare.clone(),
         per_scene: args.per_scene.clone(),
         per_scene_subjects: args.per_scene_subjects,
         max_subjects: args.max_subjects,

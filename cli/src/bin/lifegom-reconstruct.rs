@@ -2,7 +2,7 @@
 //! → an animatable avatar, its standard exports and renders (`lifegom_cli::reconstruct_run`).
 //!
 //! ```text
-//! lifegom-synth --config configs/demo.toml --out data/demo --json-example data/me
+//! lifegom-synth --config configs/demo-v2.toml --out data/demo-v2 --json-example data/me
 //! lifegom-reconstruct data/me --out out/me --motion walk
 //! ```
 
@@ -22,7 +22,7 @@ use lifegom_render::motion::{MotionSource, PoseSequence};
     version,
     about = "Reconstruct an animatable avatar from a few photos of a person",
     after_help = "Example (a synthetic person written in the JSON layout, then reconstructed):\n  \
-        lifegom-synth --config configs/demo.toml --out data/demo --json-example data/me\n  \
+        lifegom-synth --config configs/demo-v2.toml --out data/demo-v2 --json-example data/me\n  \
         lifegom-reconstruct data/me --out out/me --motion walk --refine-steps 10\n\n\
         Inputs: a subject folder in the official LIFe-GoM layout (images/, masks/, cameras.pkl,\n\
         mesh_infos.pkl, canonical_joints.pkl) or a subject.json (docs/custom-data.md)."
@@ -37,7 +37,7 @@ struct Args {
     #[arg(long, default_value = "assets/demo/demo.lgck")]
     model: PathBuf,
     /// The experiment the model was trained with: its image size and test background.
-    #[arg(long, default_value = "configs/demo.toml")]
+    #[arg(long, default_value = "configs/demo-v2.toml")]
     config: PathBuf,
     /// Input frames, by name or index (default: the first frames, as many as the model takes).
     #[arg(long, value_delimiter = ',')]

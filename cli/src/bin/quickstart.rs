@@ -5,7 +5,7 @@
 //! cargo run --release -p lifegom-cli --bin quickstart -- --train-minutes 60   # from scratch
 //! ```
 //!
-//! 1. generates the validation subjects of `configs/demo.toml` if they are missing (synthetic
+//! 1. generates the validation subjects of `configs/demo-v2.toml` if they are missing (synthetic
 //!    people no training step ever saw: another seed than the training stream);
 //! 2. loads the demo model (`assets/demo/demo.lgck`, trained on a fresh synthetic subject every
 //!    step; `assets/demo/README.md` says how), or with `--train-minutes N` trains one from
@@ -37,7 +37,7 @@ use lifegom_train::config::ExperimentConfig;
 )]
 struct Args {
     /// Experiment config: the validation subjects, and the training when `--train-minutes`.
-    #[arg(long, default_value = "configs/demo.toml")]
+    #[arg(long, default_value = "configs/demo-v2.toml")]
     config: PathBuf,
     /// The trained model to evaluate (ignored with `--train-minutes`).
     #[arg(long, default_value = "assets/demo/demo.lgck")]
@@ -72,6 +72,14 @@ struct Args {
     /// person, as the model and the baselines are scored (15 evaluations).
     #[arg(long)]
     sweep: bool,
+    /// Other trained models scored on the same people beside it (comma-separated; by default
+    /// the first demo model, when present; `--compare ""` for none).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "assets/demo/v1/demo.lgck"
+    )]
+    compare: Vec<PathBuf>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -191,6 +199,19 @@ fn main() -> anyhow::Result<()> {
         sweep_sizes: vec![],
         sweep_subjects: None,
         baseline: true,
+        other_models: args
+            .compare
+            .iter()
+            .filter(|p| !p.as_os_str().is_empty())
+            .filter(|p| {
+                let found = p.exists();
+                if !found {
+                    eprintln!("--compare: {} not found; not scored", p.display());
+                }
+                found
+            })
+            .cloned()
+            .collect(),
         per_scene: args.per_scene.iter().copied().filter(|&k| k > 0).collect(),
         per_scene_subjects: args.per_scene_subjects,
         max_subjects: None,
