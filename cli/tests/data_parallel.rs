@@ -151,8 +151,11 @@ impl TwoHosts {
             inside(&["ip", "addr", "add", "127.0.0.1/32", "dev", "lo"]);
             inside(&["ip", "link", "set", veth, "name", "mpi0"]);
             inside(&["ip", "addr", "add", &format!("{address}/24"), "dev", "mpi0"]);
-            inside(&["sysctl", "-qw", "net.ipv4.conf.all.route_localnet=1"]);
-            inside(&["sysctl", "-qw", "net.ipv4.conf.mpi0.route_localnet=1"]);
+            // `route_localnet` through /proc (per namespace), without procps' sysctl.
+            for conf in ["all", "mpi0"] {
+                let knob = format!("echo 1 > /proc/sys/net/ipv4/conf/{conf}/route_localnet");
+                inside(&["sh", "-c", &knob]);
+            }
             inside(&["ip", "link", "set", "mpi0", "up"]);
         }
         let script = format!(
