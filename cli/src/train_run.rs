@@ -17,6 +17,11 @@
 //! On `--resume` the loop restarts from `checkpoints/latest.lgck`, drops log lines past the
 //! checkpoint's step (they belong to work that was lost), and continues the same data schedule.
 //!
+//! A batch whose loss or gradient is not finite is not applied (`StepStats::applied`): the
+//! loop logs it with its samples (a `"skipped": true` line), keeps the weights and the step
+//! counter, and goes on with the next samples; [`MAX_SKIPPED_IN_A_ROW`] such batches in a row
+//! end the run with an error, the last checkpoint untouched.
+//!
 //! **Several ranks** (`mpirun -np N lifegom-train …`, [`train_with`]): every rank runs this loop
 //! on its share of each batch (`lifegom_train::data_parallel`); rank 0 alone writes the folder
 //! above, scores the validation split and shows progress. Every rank reads the checkpoint it
@@ -100,6 +105,10 @@ pub fn export_model(
         .with_context(|| format!("reading {}", dest.display()))?
         .len())
 }
+
+/// Batches with a non-finite loss or gradient that the loop skips in a row before it stops
+/// with an error (one is a bad sample; ten in a row is a broken run).
+pub const MAX_SKIPPED_IN_A_ROW: u32 = 10;
 
 /// Why the loop ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -505,6 +514,7 @@ pub fn train_with(
         replicas.agree(trainer.step, weights_checksum(&trainer.model)?)?;
     }
     let mut history = Vec::new();
+    let mut skipped_in_a_row = 0;
     let mut stop_reason = StopReason::Finished;
     let mut prefetch = Prefetcher::new(source.clone(), trainer.seed(), layout);
     while trainer.step < total_steps {
@@ -549,19 +559,34 @@ pub fn train_with(
             .train_batch(&batch, &mesh, &laplacian, replicas)
             .with_context(|| format!("training step {step} ({})", names()))?;
         let stats = out.stats;
-        let total = stats
-            .losses
-            .iter()
-            .find(|(n, _)| n == "total")
-            .map_or(f64::NAN, |(_, v)| *v);
-        if !total.is_finite() {
-            bail!(
-                "non-finite loss at step {step} ({}): {:?}; last good checkpoint: {}",
+        if !stats.applied {
+            skipped_in_a_row += 1;
+            say(&format!(
+                "step {} skipped: the loss or gradient of {} is not finite ({:?}); the weights are unchanged",
+                step + 1,
                 names(),
-                stats.losses,
-                ckpt.display()
-            );
+                stats.losses
+            ));
+            if let Some(log) = &mut log {
+                let line = serde_json::json!({
+                    "step": trainer.step,
+                    "skipped": true,
+                    "sample": names(),
+                    "losses": stats.losses,
+                });
+                writeln!(log, "{line}")?;
+                log.flush()?;
+            }
+            if skipped_in_a_row >= MAX_SKIPPED_IN_A_ROW {
+                bail!(
+                    "{MAX_SKIPPED_IN_A_ROW} batches in a row had a non-finite loss or gradient (the last: {}); stopping. Last good checkpoint: {}",
+                    names(),
+                    ckpt.display()
+                );
+            }
+            continue;
         }
+        skipped_in_a_row = 0;
         display.step(&stats);
         if let Some(log) = &mut log
             && (trainer.step.is_multiple_of(cfg.train.log_every) || trainer.step == 1)

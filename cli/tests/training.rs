@@ -16,7 +16,7 @@ use lifegom_data::synth;
 use lifegom_model::inputs::{SubjectRig, model_inputs};
 use lifegom_model::reconstructor::MeshPurpose;
 use lifegom_train::config::ExperimentConfig;
-use lifegom_train::data_parallel::BatchLayout;
+use lifegom_train::data_parallel::{BatchLayout, weights_checksum};
 use lifegom_train::losses::UniformLaplacian;
 use lifegom_train::prefetch::Prefetcher;
 use lifegom_train::trainer::{Trainer, sample_for_step};
@@ -272,6 +272,50 @@ fn a_stop_request_saves_a_checkpoint_and_bad_checkpoints_are_errors() {
         .unwrap()
         .to_string();
     assert!(err.contains("bad.lgck"), "{err}");
+}
+
+/// A batch whose loss is not finite leaves the weights and the step counter alone (design.md
+/// §1.6); its samples count as used, and the next batch trains normally.
+#[test]
+fn a_batch_with_a_non_finite_loss_is_not_applied() {
+    let _serial = serial();
+    let cfg = experiment();
+    let device = Device::ndarray();
+    let data = Dataset::open(&cfg.file.data, Split::Train).unwrap();
+    let bodies = SubjectRig::for_split(&data).unwrap();
+    let mut trainer = Trainer::new(
+        cfg.reconstructor().with_iterations(1),
+        bodies[0].num_vertices(),
+        &cfg.train,
+        &device,
+    )
+    .unwrap();
+    let mesh = trainer
+        .config
+        .mesh(&bodies[0].topology, MeshPurpose::Training, trainer.device())
+        .unwrap();
+    let lap = UniformLaplacian::new(&bodies[0].topology.faces, bodies[0].num_vertices()).unwrap();
+    let sample = sample_for_step(&data, 7, 0).unwrap();
+    let body = bodies.iter().find(|b| b.name == sample.subject).unwrap();
+    let inputs = model_inputs(body, &sample, 64, 64, trainer.device()).unwrap();
+    let mut poisoned = inputs.clone();
+    poisoned.target_rgb = poisoned.target_rgb.clone() * f32::NAN;
+
+    let before = weights_checksum(&trainer.model).unwrap();
+    let stats = trainer.train_step(&poisoned, &mesh, &lap).unwrap();
+    assert!(!stats.applied);
+    assert!(
+        stats.losses.iter().any(|(_, v)| !v.is_finite()),
+        "{:?}",
+        stats.losses
+    );
+    assert_eq!((trainer.step, trainer.samples), (0, 1));
+    assert_eq!(weights_checksum(&trainer.model).unwrap(), before);
+
+    let stats = trainer.train_step(&inputs, &mesh, &lap).unwrap();
+    assert!(stats.applied);
+    assert_eq!((trainer.step, trainer.samples), (1, 2));
+    assert_ne!(weights_checksum(&trainer.model).unwrap(), before);
 }
 
 #[test]

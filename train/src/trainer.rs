@@ -108,6 +108,15 @@ pub struct StepStats {
     /// all-reduce, with the read-back and upload of the gradients around it.
     #[serde(default)]
     pub exchange_seconds: f64,
+    /// Whether the optimizer step was taken: `false` when the batch's loss (or, where the
+    /// gradients reach the host, their sum) was not finite. A skipped step leaves the weights
+    /// and `step` as they were and uses up its samples.
+    #[serde(default = "yes")]
+    pub applied: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 fn one() -> u64 {
@@ -429,7 +438,8 @@ impl Trainer {
 
     /// One optimiser step on the mean gradient of a batch: `batch` is this rank's share, and
     /// every rank of `replicas` calls this with a share of the same size (module docs,
-    /// [`crate::data_parallel`]). The statistics are the batch's means over all ranks; the
+    /// [`crate::data_parallel`]). A batch whose loss is not finite is not applied
+    /// ([`StepStats::applied`]). The statistics are the batch's means over all ranks; the
     /// render is this rank's last sample's. On a CPU device the samples' forward and backward
     /// and the optimizer run on one of rayon's threads
     /// (`lifegom_render::device::on_pool_thread`); the collectives run on the calling thread.
@@ -450,22 +460,10 @@ impl Trainer {
         let (grads, rows, target_render) = on_pool_thread(&device, |parent| {
             self.batch_gradients(batch, mesh, laplacian, parent)
         })?;
-        let exchange = Instant::now();
-        let grads = data_parallel::average_gradients(&self.model, grads, batch.len(), replicas)?;
-        let exchange_seconds = if replicas.size() > 1 {
-            exchange.elapsed().as_secs_f64()
-        } else {
-            0.0
-        };
-        on_pool_thread(&device, |parent| {
-            let _span = tracing::debug_span!(parent: parent, "optimizer").entered();
-            self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
-        });
         let samples = (batch.len() * replicas.size()) as u64;
-        self.step += 1;
-        self.samples += samples;
 
-        let _span = tracing::debug_span!("statistics").entered();
+        // The batch's mean statistics, over all ranks: also what decides whether the step is
+        // taken, so every rank decides the same.
         let mut sum = vec![0.0; rows[0].values.len()];
         for row in &rows {
             for (s, v) in sum.iter_mut().zip(&row.values) {
@@ -476,6 +474,30 @@ impl Trainer {
         let mean: Vec<f64> = sum.iter().map(|s| s / samples as f64).collect();
         let names = &rows[0].names;
         let (losses, rest) = mean.split_at(names.len());
+
+        // A step on a non-finite loss or gradient would put NaN into every weight it touches:
+        // it is skipped (the samples count as used, the step counter does not move).
+        let exchange = Instant::now();
+        let averaged = if losses.iter().all(|l| l.is_finite()) {
+            data_parallel::average_gradients(&self.model, grads, batch.len(), replicas)?
+        } else {
+            None
+        };
+        let exchange_seconds = if replicas.size() > 1 {
+            exchange.elapsed().as_secs_f64()
+        } else {
+            0.0
+        };
+        let applied = averaged.is_some();
+        if let Some(grads) = averaged {
+            on_pool_thread(&device, |parent| {
+                let _span = tracing::debug_span!(parent: parent, "optimizer").entered();
+                self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
+            });
+            self.step += 1;
+        }
+        self.samples += samples;
+
         let t = (rest.len() - 1) / 2;
         let stats = StepStats {
             step: self.step,
@@ -490,6 +512,7 @@ impl Trainer {
             seconds: start.elapsed().as_secs_f64(),
             batch: samples,
             exchange_seconds,
+            applied,
         };
         Ok(StepOutput {
             stats,

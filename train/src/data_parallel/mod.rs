@@ -165,24 +165,26 @@ impl BatchLayout {
 
 /// Turns `grads`, the sum of this rank's gradients over `local` samples, into the mean
 /// gradient of the whole batch (`local` samples on each of the ranks), on every rank (module
-/// docs). `module` names the parameters and their order.
+/// docs). `module` names the parameters and their order. `None` when the ranks' summed
+/// gradient is not finite (checked where it passes through the host: with several ranks), the
+/// same on every rank.
 pub fn average_gradients<M: Module>(
     module: &M,
     grads: GradientsParams,
     local: usize,
     replicas: &dyn Replicas,
-) -> Result<GradientsParams, ReplicaError> {
+) -> Result<Option<GradientsParams>, ReplicaError> {
     let samples = local * replicas.size();
     if replicas.size() == 1 {
         if samples == 1 {
-            return Ok(grads);
+            return Ok(Some(grads));
         }
         let mut scale = Scale {
             grads,
             factor: 1.0 / samples as f32,
         };
         module.visit(&mut scale);
-        return Ok(scale.grads);
+        return Ok(Some(scale.grads));
     }
     // Every rank must divide by the same batch.
     let (min, max) = replicas.min_max(local as u64);
@@ -206,6 +208,9 @@ pub fn average_gradients<M: Module>(
         let _span = tracing::debug_span!("all_reduce", floats = buffer.len()).entered();
         replicas.sum_f32(&mut buffer);
     }
+    if !buffer.iter().all(|v| v.is_finite()) {
+        return Ok(None);
+    }
     let (values, present) = buffer.split_at(n);
     let mut scatter = Scatter {
         values,
@@ -216,7 +221,7 @@ pub fn average_gradients<M: Module>(
         grads: GradientsParams::new(),
     };
     module.visit(&mut scatter);
-    Ok(scatter.grads)
+    Ok(Some(scatter.grads))
 }
 
 /// FNV-1a over the bits of every float parameter, in the module's visiting order: equal on two
@@ -386,7 +391,9 @@ mod tests {
         let mut acc = burn::optim::GradientsAccumulator::<Linear>::new();
         acc.accumulate(&layer, grads_of(&layer, x0.clone()));
         acc.accumulate(&layer, grads_of(&layer, x1.clone()));
-        let single = average_gradients(&layer, acc.grads(), 2, &SingleProcess).expect("single");
+        let single = average_gradients(&layer, acc.grads(), 2, &SingleProcess)
+            .expect("single")
+            .expect("finite");
 
         // Two ranks, one sample each: rank 0 receives rank 1's flat buffer in its sum.
         let mut rank1 = Gather {
@@ -401,8 +408,9 @@ mod tests {
             rank: 0,
             other: &other,
         };
-        let parallel =
-            average_gradients(&layer, grads_of(&layer, x0), 1, &replicas).expect("two ranks");
+        let parallel = average_gradients(&layer, grads_of(&layer, x0), 1, &replicas)
+            .expect("two ranks")
+            .expect("finite");
 
         let id = layer.weight.id;
         let (a, b) = (
