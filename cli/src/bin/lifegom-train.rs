@@ -60,7 +60,8 @@ struct Args {
     /// (the step takes the batch's mean gradient, so the learning rates keep their meaning).
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     accumulate: Option<u64>,
-    /// Write `<out>/checkpoints/latest.lgck` without its optimizer state to this file and exit.
+    /// Write the run's latest checkpoint (or `--from best`'s) without its optimizer state to
+    /// this file and exit.
     #[arg(long)]
     export: Option<PathBuf>,
     /// With `--export`: which of the run's checkpoints to export.
