@@ -42,22 +42,15 @@ impl Setup {
         path
     }
 
-    /// `lifegom-train` on `config` for `steps` steps into `out`, started as `launch` says; the
-    /// environment's `LIFEGOM_MPI_FAULT` is `fault`. Fails the test on a hang.
-    fn train(
-        &self,
-        config: &Path,
-        out: &Path,
-        steps: u64,
-        launch: &Launch,
-        resume: bool,
-        fault: Option<&str>,
-    ) -> Output {
-        let cmd = self.command(config, out, steps, launch, resume, fault);
-        run_with_timeout(cmd, Duration::from_secs(600))
+    /// [`Setup::command`] without a fault, run to its end; fails the test unless it succeeds.
+    fn train_ok(&self, config: &Path, out: &Path, steps: u64, launch: &Launch, resume: bool) {
+        succeeded(&finish(
+            self.command(config, out, steps, launch, resume, None),
+        ));
     }
 
-    /// The command [`Setup::train`] runs.
+    /// `lifegom-train` on `config` for `steps` steps into `out`, started as `launch` says; the
+    /// environment's `LIFEGOM_MPI_FAULT` is `fault`.
     fn command(
         &self,
         config: &Path,
@@ -241,6 +234,11 @@ fn ip(args: &[&str]) {
     );
 }
 
+/// `cmd` run to its end ([`Setup::command`]); fails the test on a hang.
+fn finish(cmd: Command) -> Output {
+    run_with_timeout(cmd, Duration::from_secs(600))
+}
+
 /// Runs `cmd`, failing the test (after killing it) if it outlives `limit`: a hang is the
 /// failure these tests look for.
 fn run_with_timeout(mut cmd: Command, limit: Duration) -> Output {
@@ -316,16 +314,16 @@ fn two_ranks_train_what_one_process_trains_with_accumulate_2_and_resume_with_ano
     let accumulate = s.config("accumulate", "accumulate = 2");
     let (one, two, mixed) = (s.tmp.join("one"), s.tmp.join("two"), s.tmp.join("mixed"));
 
-    succeeded(&s.train(&accumulate, &one, 3, &Launch::Alone, false, None));
-    succeeded(&s.train(&plain, &two, 3, &Launch::Local(2), false, None));
+    s.train_ok(&accumulate, &one, 3, &Launch::Alone, false);
+    s.train_ok(&plain, &two, 3, &Launch::Local(2), false);
     // Two steps on two ranks, the third in one process accumulating both samples.
-    succeeded(&s.train(&plain, &mixed, 2, &Launch::Local(2), false, None));
-    succeeded(&s.train(&accumulate, &mixed, 3, &Launch::Alone, true, None));
+    s.train_ok(&plain, &mixed, 2, &Launch::Local(2), false);
+    s.train_ok(&accumulate, &mixed, 3, &Launch::Alone, true);
 
     let reference = weights(&one);
     let untrained = {
         let fresh = s.tmp.join("fresh");
-        succeeded(&s.train(&plain, &fresh, 0, &Launch::Alone, false, None));
+        s.train_ok(&plain, &fresh, 0, &Launch::Alone, false);
         weights(&fresh)
     };
     assert!(
@@ -365,7 +363,7 @@ fn the_weights_checksum_stops_replicas_that_diverged() {
     let s = Setup::new("mpi-diverge");
     let plain = s.config("plain", "");
     let out = s.tmp.join("run");
-    let run = s.train(&plain, &out, 2, &Launch::Local(2), false, Some("diverge:1"));
+    let run = finish(s.command(&plain, &out, 2, &Launch::Local(2), false, Some("diverge:1")));
     let text = stderr(&run);
     assert!(!run.status.success(), "a diverged job must fail:\n{text}");
     assert!(text.contains("weights differ"), "{text}");
@@ -378,14 +376,14 @@ fn a_rank_that_dies_ends_the_job_instead_of_hanging_it() {
     let s = Setup::new("mpi-dies");
     let plain = s.config("plain", "");
     let start = Instant::now();
-    let run = s.train(
+    let run = finish(s.command(
         &plain,
         &s.tmp.join("run"),
         50,
         &Launch::Local(2),
         false,
         Some("fail:1"),
-    );
+    ));
     let text = stderr(&run);
     assert!(!run.status.success(), "the job must fail:\n{text}");
     assert!(text.contains("exits as if it had died"), "{text}");
@@ -404,9 +402,9 @@ fn two_ranks_on_two_hosts_train_over_tcp() {
     let accumulate = s.config("accumulate", "accumulate = 2");
     let hosts = TwoHosts::new(&s.tmp);
     let (one, two) = (s.tmp.join("one"), s.tmp.join("two"));
-    succeeded(&s.train(&accumulate, &one, 2, &Launch::Alone, false, None));
+    s.train_ok(&accumulate, &one, 2, &Launch::Alone, false);
     let before = hosts.sent_bytes(1);
-    succeeded(&s.train(&plain, &two, 2, &Launch::Network(&hosts), false, None));
+    s.train_ok(&plain, &two, 2, &Launch::Network(&hosts), false);
     let sent = hosts.sent_bytes(1) - before;
 
     let d = max_relative_difference(&weights(&one), &weights(&two));

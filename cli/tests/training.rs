@@ -76,21 +76,24 @@ fn total(stats: &lifegom_train::trainer::StepStats) -> f64 {
     stats.losses.iter().find(|(n, _)| n == "total").unwrap().1
 }
 
-#[test]
-fn a_few_steps_lower_the_loss_on_a_fixed_batch() {
-    let _serial = serial();
+/// A fresh T = 1 trainer (on ndarray, `train`'s settings) and the inputs of the first sample of
+/// the seed-7 schedule, at 64 px.
+struct OneSample {
+    trainer: Trainer,
+    mesh: lifegom_render::gom::GomMesh,
+    lap: UniformLaplacian,
+    inputs: lifegom_model::inputs::ModelInputs,
+}
+
+fn one_sample(train: &lifegom_train::config::TrainSection) -> OneSample {
     let cfg = experiment();
-    let device = Device::ndarray();
     let data = Dataset::open(&cfg.file.data, Split::Train).unwrap();
     let bodies = SubjectRig::for_split(&data).unwrap();
-    let mut section = cfg.train.clone();
-    section.lr_reconstructor = 1e-3;
-    section.lr_encoder = 1e-3;
-    let mut trainer = Trainer::new(
+    let trainer = Trainer::new(
         cfg.reconstructor().with_iterations(1),
         bodies[0].num_vertices(),
-        &section,
-        &device,
+        train,
+        &Device::ndarray(),
     )
     .unwrap();
     let mesh = trainer
@@ -101,6 +104,26 @@ fn a_few_steps_lower_the_loss_on_a_fixed_batch() {
     let sample = sample_for_step(&data, 7, 0).unwrap();
     let body = bodies.iter().find(|b| b.name == sample.subject).unwrap();
     let inputs = model_inputs(body, &sample, 64, 64, trainer.device()).unwrap();
+    OneSample {
+        trainer,
+        mesh,
+        lap,
+        inputs,
+    }
+}
+
+#[test]
+fn a_few_steps_lower_the_loss_on_a_fixed_batch() {
+    let _serial = serial();
+    let mut section = experiment().train;
+    section.lr_reconstructor = 1e-3;
+    section.lr_encoder = 1e-3;
+    let OneSample {
+        mut trainer,
+        mesh,
+        lap,
+        inputs,
+    } = one_sample(&section);
     let losses: Vec<f64> = (0..6)
         .map(|_| total(&trainer.train_step(&inputs, &mesh, &lap).unwrap()))
         .collect();
@@ -279,25 +302,12 @@ fn a_stop_request_saves_a_checkpoint_and_bad_checkpoints_are_errors() {
 #[test]
 fn a_batch_with_a_non_finite_loss_is_not_applied() {
     let _serial = serial();
-    let cfg = experiment();
-    let device = Device::ndarray();
-    let data = Dataset::open(&cfg.file.data, Split::Train).unwrap();
-    let bodies = SubjectRig::for_split(&data).unwrap();
-    let mut trainer = Trainer::new(
-        cfg.reconstructor().with_iterations(1),
-        bodies[0].num_vertices(),
-        &cfg.train,
-        &device,
-    )
-    .unwrap();
-    let mesh = trainer
-        .config
-        .mesh(&bodies[0].topology, MeshPurpose::Training, trainer.device())
-        .unwrap();
-    let lap = UniformLaplacian::new(&bodies[0].topology.faces, bodies[0].num_vertices()).unwrap();
-    let sample = sample_for_step(&data, 7, 0).unwrap();
-    let body = bodies.iter().find(|b| b.name == sample.subject).unwrap();
-    let inputs = model_inputs(body, &sample, 64, 64, trainer.device()).unwrap();
+    let OneSample {
+        mut trainer,
+        mesh,
+        lap,
+        inputs,
+    } = one_sample(&experiment().train);
     let mut poisoned = inputs.clone();
     poisoned.target_rgb = poisoned.target_rgb.clone() * f32::NAN;
 

@@ -530,6 +530,8 @@ impl Trainer {
         parent: &tracing::Span,
     ) -> Result<(GradientsParams, Vec<SampleRow>, Tensor<3>), TrainError> {
         let _span = tracing::debug_span!(parent: parent, "batch_gradients").entered();
+        // One sample needs no adding up: its gradients skip the accumulator's pass.
+        let mut alone = None;
         let mut accumulated = GradientsAccumulator::<Reconstructor>::new();
         let mut rows = Vec::with_capacity(batch.len());
         let mut target_render = None;
@@ -545,12 +547,10 @@ impl Trainer {
                 GradientsParams::from_grads(loss.total.backward(), &self.model)
             };
             if batch.len() == 1 {
-                // Nothing to add up: skip the accumulator's pass over every gradient.
-                let render = last_target.detach().squeeze_dim::<3>(0);
-                let row = Self::sample_row(sample.inputs, &loss, image_mse, &render, t)?;
-                return Ok((grads, vec![row], render));
+                alone = Some(grads);
+            } else {
+                accumulated.accumulate(&self.model, grads);
             }
-            accumulated.accumulate(&self.model, grads);
             let render = last_target.detach().squeeze_dim::<3>(0);
             rows.push(Self::sample_row(
                 sample.inputs,
@@ -562,7 +562,8 @@ impl Trainer {
             target_render = Some(render);
         }
         let render = target_render.ok_or(TrainError::EmptyBatch)?;
-        Ok((accumulated.grads(), rows, render))
+        let grads = alone.unwrap_or_else(|| accumulated.grads());
+        Ok((grads, rows, render))
     }
 
     /// A sample's statistics ([`SampleRow`]).

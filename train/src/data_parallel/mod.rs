@@ -345,28 +345,30 @@ mod tests {
     use burn::module::Module;
     use burn::nn::{Linear, LinearConfig};
 
-    /// Two ranks summing in one process: what `MPI_Allreduce` would hand each of them.
-    struct TwoRanks<'a> {
-        rank: usize,
-        other: &'a std::sync::Mutex<Vec<f32>>,
+    /// Rank 0 of two, in one process: its sums add the other rank's buffer `other`, and its
+    /// `min_max` sees the other rank's value `other_value` (its own when `None`), as
+    /// `MPI_Allreduce` would.
+    struct TwoRanks {
+        other: Vec<f32>,
+        other_value: Option<u64>,
     }
 
-    impl Replicas for TwoRanks<'_> {
+    impl Replicas for TwoRanks {
         fn rank(&self) -> usize {
-            self.rank
+            0
         }
         fn size(&self) -> usize {
             2
         }
         fn sum_f32(&self, values: &mut [f32]) {
-            let other = self.other.lock().map(|o| o.clone()).unwrap_or_default();
-            for (v, o) in values.iter_mut().zip(other) {
+            for (v, o) in values.iter_mut().zip(&self.other) {
                 *v += o;
             }
         }
         fn sum_f64(&self, _values: &mut [f64]) {}
         fn min_max(&self, value: u64) -> (u64, u64) {
-            (value, value)
+            let other = self.other_value.unwrap_or(value);
+            (value.min(other), value.max(other))
         }
     }
 
@@ -403,10 +405,9 @@ mod tests {
             error: None,
         };
         layer.visit(&mut rank1);
-        let other = std::sync::Mutex::new([rank1.values, rank1.present].concat());
         let replicas = TwoRanks {
-            rank: 0,
-            other: &other,
+            other: [rank1.values, rank1.present].concat(),
+            other_value: None,
         };
         let parallel = average_gradients(&layer, grads_of(&layer, x0), 1, &replicas)
             .expect("two ranks")
@@ -466,27 +467,14 @@ mod tests {
             .slice_assign([0..1, 0..1], Tensor::<2>::from_data([[1e-6]], &device));
         nudged.weight = Param::from_tensor(w + bump);
         assert_ne!(a, weights_checksum(&nudged).expect("checksum"));
-        let diverged = TwoRanksChecksums(a, a ^ 1).agree(7, a);
+        let diverged = TwoRanks {
+            other: vec![],
+            other_value: Some(a ^ 1),
+        }
+        .agree(7, a);
         assert!(
             matches!(diverged, Err(ReplicaError::Diverged { step: 7, .. })),
             "{diverged:?}"
         );
-    }
-
-    /// Ranks whose checksums are the two given values.
-    struct TwoRanksChecksums(u64, u64);
-
-    impl Replicas for TwoRanksChecksums {
-        fn rank(&self) -> usize {
-            0
-        }
-        fn size(&self) -> usize {
-            2
-        }
-        fn sum_f32(&self, _values: &mut [f32]) {}
-        fn sum_f64(&self, _values: &mut [f64]) {}
-        fn min_max(&self, _value: u64) -> (u64, u64) {
-            (self.0.min(self.1), self.0.max(self.1))
-        }
     }
 }
