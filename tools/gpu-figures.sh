@@ -13,11 +13,12 @@
 #
 # Every figure is one JSON line from a benchmark binary (recon-bench, train-bench, render-bench),
 # appended to $OUT/figures.jsonl with the step's name. On wgpu the lines carry
-# `kernel_launches` and `top_kernels` (lifegom_cli::launches). The set, about 8 minutes:
+# `kernel_launches` and `top_kernels` (lifegom_cli::launches). The set, about 10 minutes:
 #   1. the quickstart training step and the paper-setting reconstruction on wgpu, alternated
 #      with the same commands from the binaries of each folder in $BIN_BEFORE (a space-separated
 #      list; a folder may hold only some of the binaries) when it is set: before/after pairs
 #      from one machine, since figures move between machines of the same kind;
+#      then the same two from $BIN with Burn's kernel fusion off (LIFEGOM_FUSION=off);
 #   2. the paper network's reconstruction at 256² (the size the issue records launches at);
 #   3. per-kernel device times (`--kernel-times`) of the paper-setting reconstruction and of a
 #      training step at the paper preset (configs/paper-bench.toml);
@@ -112,6 +113,11 @@ compare() {
 }
 compare train-wgpu-quickstart 90 train-bench --device wgpu "${QUICK[@]}"
 compare recon-wgpu-paper-1024-s2 90 recon-bench --device wgpu "${PAPER[@]}"
+
+# 1b. The same binaries with Burn's kernel fusion off (LIFEGOM_FUSION=off: every op its own
+#     kernel), to see what fusion gains or costs at each size (design.md §1.4).
+step fusion-off-train-wgpu-quickstart 90 env LIFEGOM_FUSION=off "$BIN/train-bench" --device wgpu "${QUICK[@]}"
+step fusion-off-recon-wgpu-paper-1024-s2 90 env LIFEGOM_FUSION=off "$BIN/recon-bench" --device wgpu "${PAPER[@]}"
 
 GPU_DEVICE=wgpu
 

@@ -35,7 +35,10 @@ impl DeviceChoice {
         match self {
             DeviceChoice::NdArray => Device::ndarray(),
             DeviceChoice::Flex => Device::flex(),
-            DeviceChoice::Wgpu => Device::wgpu(DeviceKind::DefaultDevice),
+            DeviceChoice::Wgpu => {
+                KernelFusion::current();
+                Device::wgpu(DeviceKind::DefaultDevice)
+            }
         }
     }
 
@@ -62,6 +65,57 @@ impl std::str::FromStr for DeviceChoice {
             other => Err(format!(
                 "unknown device `{other}` (expected ndarray, flex or wgpu)"
             )),
+        }
+    }
+}
+
+/// Whether Burn's kernel fusion merges ops on CubeCL devices.
+///
+/// Fusion is compiled in: on a CubeCL device every tensor op is recorded in a stream, and runs of
+/// elementwise ops, reductions and matmul epilogues become one kernel each (design.md §1.4).
+/// `LIFEGOM_FUSION=off` removes Burn's fusers instead, so that every op runs as its own kernel, as
+/// without the feature: what the parity tests compare against and the benchmarks measure beside.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum KernelFusion {
+    /// Burn's fusers merge what they can (the default).
+    On,
+    /// Every op runs alone (`LIFEGOM_FUSION=off`).
+    Off,
+}
+
+impl KernelFusion {
+    /// This process's choice, read from `LIFEGOM_FUSION` once, before the first CubeCL device
+    /// is made (Burn's fuser registry is sealed by the first op). Any value but `off` leaves
+    /// fusion on; an unknown value says so on stderr.
+    pub fn current() -> Self {
+        static MODE: OnceLock<KernelFusion> = OnceLock::new();
+        *MODE.get_or_init(|| {
+            let mode = match std::env::var("LIFEGOM_FUSION").as_deref() {
+                Ok("off") => KernelFusion::Off,
+                Ok("on") | Err(_) => KernelFusion::On,
+                Ok(other) => {
+                    eprintln!(
+                        "warning: LIFEGOM_FUSION={other} is neither `on` nor `off`; kernel fusion stays on"
+                    );
+                    KernelFusion::On
+                }
+            };
+            if mode == KernelFusion::Off {
+                for name in burn_cubecl::fusion::BUILTIN_NAMES {
+                    if let Err(err) = burn_cubecl::fusion::remove(name) {
+                        eprintln!("warning: cannot turn kernel fusion off: {err}");
+                    }
+                }
+            }
+            mode
+        })
+    }
+
+    /// The name printed in benchmark JSON (`kernel_fusion` field).
+    pub fn name(self) -> &'static str {
+        match self {
+            KernelFusion::On => "on",
+            KernelFusion::Off => "off",
         }
     }
 }

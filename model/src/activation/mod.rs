@@ -1,4 +1,4 @@
-//! ReLU with one kernel each way on GPU devices.
+//! ReLU with one kernel each way on GPU devices when Burn's kernel fusion is off.
 //!
 //! Burn 0.22.1's CubeCL backend has no ReLU kernel: its default `relu` is a comparison and a
 //! masked fill (two launches), and so is `relu_backward`. The model applies ReLU about a hundred
@@ -6,21 +6,30 @@
 //! that was about 1,100 of a quickstart step's launches (BENCHMARKS.md, "Kernel launches per
 //! training step"). [`relu`] is:
 //! - on the CPU backends exactly Burn's `relu` (numerics unchanged);
-//! - on CubeCL devices the [`op::ReluOps`] extension: one elementwise kernel forward and one
-//!   backward (`cube`), with Burn's semantics to the bit (`x ≤ 0 → 0`, NaN passes; the backward
-//!   zeroes the gradient where the output is `≤ 0`).
+//! - on CubeCL devices with Burn's kernel fusion on (the default, [`KernelFusion`]) Burn's `relu`
+//!   too: fusion merges its two ops into the kernel of the ops around it, where a custom op
+//!   would stand between them as a kernel of its own (a quickstart step launched 7,248 kernels
+//!   so, 7,841 with the op; BENCHMARKS.md);
+//! - on CubeCL devices with fusion off the [`op::ReluOps`] extension: one elementwise kernel
+//!   forward and one backward (`cube`), with Burn's semantics to the bit (`x ≤ 0 → 0`, NaN
+//!   passes; the backward zeroes the gradient where the output is `≤ 0`).
 
 mod cube;
 pub mod op;
 
 use burn::tensor::Tensor;
-use lifegom_render::device::runs_on_host;
+use lifegom_render::device::{KernelFusion, runs_on_host};
 
 /// `max(x, 0)` elementwise, Burn's `relu` (module docs).
 pub fn relu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
-    if runs_on_host(&x.device()) {
+    if runs_on_host(&x.device()) || KernelFusion::current() == KernelFusion::On {
         return burn::tensor::activation::relu(x);
     }
+    relu_op(x)
+}
+
+/// The [`op::ReluOps`] extension, whatever the device (CPU backends do not implement it).
+fn relu_op<const D: usize>(x: Tensor<D>) -> Tensor<D> {
     Tensor::from_dispatch(<burn::backend::Dispatch as op::ReluOps>::fused_relu(
         x.into_dispatch(),
     ))
@@ -32,8 +41,9 @@ mod tests {
     use burn::tensor::{Device, TensorData};
     use lifegom_render::testing::read;
 
-    /// [`relu`] equals Burn's `relu` computed on Flex, values and gradient, on positive,
-    /// negative and zero inputs and a non-contiguous view.
+    /// [`relu`] (on GPU devices the op itself, whether or not fusion would route around it)
+    /// equals Burn's `relu` computed on Flex, values and gradient, on positive, negative and
+    /// zero inputs and a non-contiguous view.
     fn check_matches_burn(device: &Device) {
         let values: Vec<f32> = (0..60)
             .map(|i| (i as f32 - 29.5) * 0.37)
@@ -47,7 +57,9 @@ mod tests {
                 .require_grad();
             // A transposed view: the op must not assume contiguous input.
             let xt = x.clone().transpose();
-            let y = if ours {
+            let y = if ours && !runs_on_host(device) {
+                relu_op(xt)
+            } else if ours {
                 relu(xt)
             } else {
                 burn::tensor::activation::relu(xt)

@@ -6,14 +6,17 @@ use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{Autodiff, Backend, backend_extension};
+use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
+use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
 use lifegom_render::op_backward::gradient_per_input;
 
 /// `max(x, 0)` elementwise with Burn's semantics (see [`super`]).
-#[backend_extension(Cube, Autodiff)]
+#[backend_extension(Cube, Fusion, Autodiff)]
 pub trait ReluOps: Backend {
     /// The activation.
+    #[fusion(dtype = x, shape = x)]
     fn fused_relu(x: FloatTensor<Self>) -> FloatTensor<Self>;
 }
 
@@ -53,5 +56,28 @@ impl<B: ReluOps + ReluKernels, C: CheckpointStrategy> ReluOps for Autodiff<B, C>
             }
             OpsKind::UnTracked(prep) => prep.finish(B::fused_relu(x)),
         }
+    }
+}
+
+impl<B: FusionBackend + ReluKernels> ReluKernels for Fusion<B> {
+    fn fused_relu_backward(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let spec = float_like::<B>(&grad, grad.shape());
+        let inputs = vec![Input::Float(output), Input::Float(grad)];
+        let [dx] = array(deferred::<B, _>(
+            "fused_relu_backward",
+            inputs,
+            vec![spec],
+            |v| {
+                let [output, grad] = array(v);
+                vec![Value::Float(B::fused_relu_backward(
+                    output.float(),
+                    grad.float(),
+                ))]
+            },
+        ));
+        dx
     }
 }

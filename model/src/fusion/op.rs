@@ -24,10 +24,12 @@ use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops};
+use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::Element;
 use bytemuck::Pod;
+use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
 
 use super::kernels::{self, AttentionShape, Real};
 use lifegom_render::in_precision;
@@ -58,9 +60,10 @@ pub struct AttentionHeads(pub usize);
 ///
 /// Inputs: `x` and `residual` of one shape `[.., D]`, `gamma` and `beta` `[D]`; output the
 /// shape of `x`. Gradients flow to all four.
-#[backend_extension(NdArray, Flex, Cube, Autodiff)]
+#[backend_extension(NdArray, Flex, Cube, Fusion, Autodiff)]
 pub trait AddLayerNormOps: Backend {
     /// Normalises the residual sum.
+    #[fusion(dtype = x, shape = x)]
     fn add_layer_norm(
         x: FloatTensor<Self>,
         residual: FloatTensor<Self>,
@@ -396,6 +399,67 @@ impl<B: AddLayerNormOps + LayerNormKernels, C: CheckpointStrategy> AddLayerNormO
             inputs,
             B::layer_norm_forward,
         )
+    }
+}
+
+impl<B: FusionBackend + LayerNormKernels> LayerNormKernels for Fusion<B> {
+    fn layer_norm_forward(inputs: LayerNormInputs<Self>) -> FloatTensor<Self> {
+        let spec = float_like::<B>(&inputs.x, inputs.x.shape());
+        let epsilon = inputs.epsilon;
+        let [out] = array(deferred::<B, _>(
+            "layer_norm_forward",
+            layer_norm_inputs(inputs),
+            vec![spec],
+            move |v| {
+                vec![Value::Float(B::layer_norm_forward(layer_norm_values(
+                    v, epsilon,
+                )))]
+            },
+        ));
+        out
+    }
+
+    fn layer_norm_backward(
+        inputs: LayerNormInputs<Self>,
+        grad: FloatTensor<Self>,
+    ) -> [FloatTensor<Self>; 3] {
+        let specs = vec![
+            float_like::<B>(&inputs.x, inputs.x.shape()),
+            float_like::<B>(&inputs.gamma, inputs.gamma.shape()),
+            float_like::<B>(&inputs.beta, inputs.beta.shape()),
+        ];
+        let epsilon = inputs.epsilon;
+        let mut recorded = layer_norm_inputs(inputs);
+        recorded.push(Input::Float(grad));
+        array(deferred::<B, _>(
+            "layer_norm_backward",
+            recorded,
+            specs,
+            move |mut v| {
+                let grad = v.pop().expect("the gradient was recorded last").float();
+                let grads = B::layer_norm_backward(layer_norm_values(v, epsilon), grad);
+                grads.into_iter().map(Value::Float).collect()
+            },
+        ))
+    }
+}
+
+/// The LayerNorm op's four tensors, in the order [`layer_norm_values`] reads them back.
+fn layer_norm_inputs<B: FusionBackend>(inputs: LayerNormInputs<Fusion<B>>) -> Vec<Input<B>> {
+    [inputs.x, inputs.residual, inputs.gamma, inputs.beta]
+        .into_iter()
+        .map(Input::Float)
+        .collect()
+}
+
+fn layer_norm_values<B: FusionBackend>(values: Vec<Value<B>>, epsilon: f64) -> LayerNormInputs<B> {
+    let [x, residual, gamma, beta] = array(values);
+    LayerNormInputs {
+        x: x.float(),
+        residual: residual.float(),
+        gamma: gamma.float(),
+        beta: beta.float(),
+        epsilon,
     }
 }
 

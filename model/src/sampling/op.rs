@@ -28,10 +28,12 @@ use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops};
+use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
-use burn::tensor::Element;
+use burn::tensor::{Element, Shape};
 use bytemuck::Pod;
+use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
 
 use super::bilinear::{self, LevelShape, Pyramid, Real};
 use lifegom_render::in_precision;
@@ -49,15 +51,27 @@ pub struct PyramidLayout {
     pub levels: Vec<LevelShape>,
 }
 
+impl PyramidLayout {
+    /// The output's shape for `uv` of shape `[N, P, 2]` and a tail of shape `[C_last, C_out]`:
+    /// `[P, N, Σ_{l<L−1} C_l + C_out]`.
+    pub fn output_shape(&self, uv: &Shape, tail: &Shape) -> Shape {
+        let channels: usize = self.levels.iter().map(|l| l.channels).sum();
+        let c_last = self.levels.last().map_or(1, |l| l.channels);
+        let width = channels.saturating_sub(c_last) + tail.num_elements() / c_last.max(1);
+        Shape::new([uv[1], self.views, width])
+    }
+}
+
 /// Bilinear sampling of a whole feature pyramid with zero padding, fused.
 ///
 /// Inputs: `rows` `[Σ_l N·H_l·W_l·C_l]` (each level's maps channel-last, level after level),
 /// `uv` `[N, P, 2]` image-pixel coordinates, `tail` `[C_last, C_out]`. Output
 /// `[P, N, Σ_{l<L−1} C_l + C_out]` in `rows`' float dtype; see [`Pyramid`] for the exact map.
 /// Gradients flow to all three inputs. Callers check shapes (see [`super::PreparedMaps`]).
-#[backend_extension(NdArray, Flex, Cube, Autodiff)]
+#[backend_extension(NdArray, Flex, Cube, Fusion, Autodiff)]
 pub trait BilinearSampleOps: Backend {
     /// Samples every level of every view at its points.
+    #[fusion(dtype = rows, shape = layout.output_shape(uv, tail))]
     fn bilinear_sample(
         rows: FloatTensor<Self>,
         uv: FloatTensor<Self>,
@@ -280,5 +294,84 @@ impl<B: BilinearSampleOps + BilinearKernels, C: CheckpointStrategy> BilinearSamp
             inputs,
             B::bilinear_forward,
         )
+    }
+}
+
+impl<B: FusionBackend + BilinearKernels> BilinearKernels for Fusion<B> {
+    fn bilinear_forward(inputs: SampleInputs<Self>) -> FloatTensor<Self> {
+        let shape = inputs
+            .layout
+            .output_shape(&inputs.uv.shape(), &inputs.tail.shape());
+        let spec = float_like::<B>(&inputs.rows, shape);
+        let (recorded, layout) = sample_inputs(inputs);
+        let [out] = array(deferred::<B, _>(
+            "bilinear_forward",
+            recorded,
+            vec![spec],
+            move |v| vec![Value::Float(B::bilinear_forward(sample_values(v, &layout)))],
+        ));
+        out
+    }
+
+    fn bilinear_backward(
+        inputs: SampleInputs<Self>,
+        grad: FloatTensor<Self>,
+        wanted: Wanted,
+    ) -> SampleGrads<Self> {
+        // Only the wanted gradients are outputs: rows (if wanted), uv, tail (if wanted).
+        let mut specs = Vec::new();
+        if wanted.rows {
+            specs.push(float_like::<B>(&inputs.rows, inputs.rows.shape()));
+        }
+        specs.push(float_like::<B>(&inputs.uv, inputs.uv.shape()));
+        if wanted.tail {
+            specs.push(float_like::<B>(&inputs.tail, inputs.tail.shape()));
+        }
+        let (mut recorded, layout) = sample_inputs(inputs);
+        recorded.push(Input::Float(grad));
+        let outputs = deferred::<B, _>("bilinear_backward", recorded, specs, move |mut v| {
+            let grad = v.pop().expect("the gradient was recorded last").float();
+            let (rows, uv, tail) = B::bilinear_backward(sample_values(v, &layout), grad, wanted);
+            let wanted_or_absent = |g: Option<_>, want: bool| {
+                // A backend returns a gradient exactly when it is wanted.
+                debug_assert_eq!(g.is_some(), want);
+                g.map(Value::Float)
+            };
+            let mut out = Vec::new();
+            out.extend(wanted_or_absent(rows, wanted.rows));
+            out.push(Value::Float(uv));
+            out.extend(wanted_or_absent(tail, wanted.tail));
+            out
+        });
+        let mut outputs = outputs.into_iter();
+        let rows = wanted.rows.then(|| outputs.next().expect("recorded"));
+        let uv = outputs.next().expect("recorded");
+        let tail = wanted.tail.then(|| outputs.next().expect("recorded"));
+        (rows, uv, tail)
+    }
+}
+
+/// The sampling op's three tensors, in the order [`sample_values`] reads them back, and its
+/// layout.
+fn sample_inputs<B: FusionBackend>(
+    inputs: SampleInputs<Fusion<B>>,
+) -> (Vec<Input<B>>, PyramidLayout) {
+    let tensors = [inputs.rows, inputs.uv, inputs.tail]
+        .into_iter()
+        .map(Input::Float)
+        .collect();
+    (tensors, inputs.layout)
+}
+
+fn sample_values<B: FusionBackend>(
+    values: Vec<Value<B>>,
+    layout: &PyramidLayout,
+) -> SampleInputs<B> {
+    let [rows, uv, tail] = array(values);
+    SampleInputs {
+        rows: rows.float(),
+        uv: uv.float(),
+        tail: tail.float(),
+        layout: layout.clone(),
     }
 }

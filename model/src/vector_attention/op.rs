@@ -9,17 +9,23 @@ use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops};
+use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{Autodiff, Backend, backend_extension};
+use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
+use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
 use lifegom_render::op_backward::{gradient_per_input, record};
 
 /// `Σ_κ softmax_κ(logits)·values` (see [`super`]).
 ///
 /// `values` `[n, k, S, C/S]`, `logits` `[n, k, C/S]` → `[n, S, C/S]` in `values`' float dtype.
 /// Gradients flow to both inputs. Callers check shapes ([`super::aggregate`]).
-#[backend_extension(Cube, Autodiff)]
+#[backend_extension(Cube, Fusion, Autodiff)]
 pub trait VectorAttentionOps: Backend {
     /// The softmax-weighted sum over the neighbours.
+    #[fusion(dtype = values, shape = {
+        let [n, _, s, c] = values.dims::<4>();
+        burn::tensor::Shape::new([n, s, c])
+    })]
     fn attention_aggregate(
         values: FloatTensor<Self>,
         logits: FloatTensor<Self>,
@@ -80,5 +86,35 @@ impl<B: VectorAttentionOps + VectorAttentionKernels, C: CheckpointStrategy> Vect
             AggregateInputs { values, logits },
             |inputs| B::attention_aggregate(inputs.values, inputs.logits),
         )
+    }
+}
+
+impl<B: FusionBackend + VectorAttentionKernels> VectorAttentionKernels for Fusion<B> {
+    fn attention_aggregate_backward(
+        values: FloatTensor<Self>,
+        logits: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let specs = vec![
+            float_like::<B>(&values, values.shape()),
+            float_like::<B>(&logits, logits.shape()),
+        ];
+        let inputs = vec![
+            Input::Float(values),
+            Input::Float(logits),
+            Input::Float(grad),
+        ];
+        let [d_values, d_logits] = array(deferred::<B, _>(
+            "attention_aggregate_backward",
+            inputs,
+            specs,
+            |v| {
+                let [values, logits, grad] = array(v);
+                let (d_values, d_logits) =
+                    B::attention_aggregate_backward(values.float(), logits.float(), grad.float());
+                vec![Value::Float(d_values), Value::Float(d_logits)]
+            },
+        ));
+        (d_values, d_logits)
     }
 }

@@ -28,6 +28,20 @@ pub fn reconstruct_with(
     views: usize,
     concurrency: HostConcurrency,
 ) -> Vec<f32> {
+    reconstruct_parts(device, seed, views, concurrency)
+        .into_iter()
+        .flat_map(|(_, values)| values)
+        .collect()
+}
+
+/// [`reconstruct_with`]'s values, named: `xyz`, `colors`, and on an autodiff device
+/// `vertex_embed_grad`.
+pub fn reconstruct_parts(
+    device: &Device,
+    seed: u64,
+    views: usize,
+    concurrency: HostConcurrency,
+) -> Vec<(&'static str, Vec<f32>)> {
     device.seed(seed);
     let body = BodyTemplate::load(lowres_template_path()).unwrap();
     let k = Intrinsics {
@@ -64,8 +78,10 @@ pub fn reconstruct_with(
         .with_concurrency(concurrency);
     let avatar = model.reconstruct(&subject, &mesh, &sources).unwrap();
     let values = |t: Tensor<2>| t.into_data().try_into_vec_as::<f32>().unwrap();
-    let mut out = values(avatar.xyz.clone());
-    out.extend(values(avatar.faces.colors.clone()));
+    let mut out = vec![
+        ("xyz", values(avatar.xyz.clone())),
+        ("colors", values(avatar.faces.colors.clone())),
+    ];
     if device.is_autodiff() {
         let grads = (avatar.xyz.sum() + avatar.faces.colors.sum()).backward();
         let embed = model
@@ -73,7 +89,7 @@ pub fn reconstruct_with(
             .val()
             .grad(&grads)
             .expect("the embedding takes part");
-        out.extend(values(embed));
+        out.push(("vertex_embed_grad", values(embed)));
     }
     out
 }

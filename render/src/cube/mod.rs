@@ -5,11 +5,13 @@
 //!
 //! - [`atomic`]: float atomic adds in kernels, native or emulated with exchanges, and which
 //!   one a device gets (public for the other crates' scatter kernels, as [`host`] is).
+//! - [`deferred`]: the ops on Burn's fusion backend, recorded as opaque steps of its stream.
 //! - [`host`]: host-side plumbing — tensor preparation, buffer allocation, kernel arguments,
 //!   1D launch shapes, small read-backs. Nothing here is specific to one op.
 //! - `view` (crate-private): the camera record every projecting kernel takes (`ViewArgs`),
 //!   passed as launch scalars with named fields instead of a flat `&[f32]` with magic offsets.
 
 pub mod atomic;
+pub mod deferred;
 pub mod host;
 pub(crate) mod view;

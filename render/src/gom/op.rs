@@ -22,11 +22,13 @@ use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops};
+use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::DType;
 
 use super::cpu::{self, GeometrySlices, OUT_LANES};
+use crate::cube::deferred::{Input, Value, array, deferred, float_like};
 use crate::op_backward::{gradient_per_input, record};
 use crate::readback::{self, HostLend};
 
@@ -45,9 +47,10 @@ use crate::readback::{self, HostLend};
 /// table entries that read the vertex in increasing entry order (what
 /// [`super::GomMesh::new`] builds). The CPU backends sum by face block instead and do
 /// not read them.
-#[backend_extension(NdArray, Flex, Cube, Autodiff)]
+#[backend_extension(NdArray, Flex, Cube, Fusion, Autodiff)]
 pub trait GomGeometryOps: Backend {
     /// Builds one Gaussian per face.
+    #[fusion(dtype = vertices, shape = burn::tensor::Shape::new([so3[0], OUT_LANES]))]
     // A backend extension takes its tensors one argument each (the generated dispatch needs it).
     #[allow(clippy::too_many_arguments)]
     fn gom_geometry(
@@ -257,6 +260,82 @@ impl<B: GomGeometryOps + GomKernels, C: CheckpointStrategy> GomGeometryOps for A
             inputs,
             B::gom_forward,
         )
+    }
+}
+
+impl<B: FusionBackend + GomKernels> GomKernels for Fusion<B> {
+    fn gom_forward(inputs: GomInputs<Self>) -> FloatTensor<Self> {
+        let faces = inputs.so3.shape()[0];
+        let spec = float_like::<B>(&inputs.vertices, [faces, OUT_LANES]);
+        let [out] = array(deferred::<B, _>(
+            "gom_forward",
+            gom_inputs(inputs),
+            vec![spec],
+            |v| vec![Value::Float(B::gom_forward(gom_values(v)))],
+        ));
+        out
+    }
+
+    fn gom_backward(inputs: GomInputs<Self>, grad: FloatTensor<Self>) -> [FloatTensor<Self>; 4] {
+        let specs = [
+            &inputs.vertices,
+            &inputs.so3,
+            &inputs.scales,
+            &inputs.offsets,
+        ]
+        .map(|t| float_like::<B>(t, t.shape()))
+        .into();
+        let mut recorded = gom_inputs(inputs);
+        recorded.push(Input::Float(grad));
+        array(deferred::<B, _>(
+            "gom_backward",
+            recorded,
+            specs,
+            |mut v| {
+                let grad = v.pop().expect("the gradient was recorded last").float();
+                B::gom_backward(gom_values(v), grad)
+                    .into_iter()
+                    .map(Value::Float)
+                    .collect()
+            },
+        ))
+    }
+}
+
+/// The GoM op's eight tensors, in the order [`gom_values`] reads them back.
+fn gom_inputs<B: FusionBackend>(inputs: GomInputs<Fusion<B>>) -> Vec<Input<B>> {
+    vec![
+        Input::Float(inputs.vertices),
+        Input::Float(inputs.so3),
+        Input::Float(inputs.scales),
+        Input::Float(inputs.offsets),
+        Input::Int(inputs.corner_index),
+        Input::Float(inputs.corner_weight),
+        Input::Int(inputs.vertex_corner_offsets),
+        Input::Int(inputs.corner_from_vertex_order),
+    ]
+}
+
+fn gom_values<B: FusionBackend>(values: Vec<Value<B>>) -> GomInputs<B> {
+    let [
+        vertices,
+        so3,
+        scales,
+        offsets,
+        index,
+        weight,
+        offsets_by_vertex,
+        order,
+    ] = array(values);
+    GomInputs {
+        vertices: vertices.float(),
+        so3: so3.float(),
+        scales: scales.float(),
+        offsets: offsets.float(),
+        corner_index: index.int(),
+        corner_weight: weight.float(),
+        vertex_corner_offsets: offsets_by_vertex.int(),
+        corner_from_vertex_order: order.int(),
     }
 }
 

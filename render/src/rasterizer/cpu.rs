@@ -109,6 +109,15 @@ pub struct RasterConfig {
 }
 
 impl RasterConfig {
+    /// The output image's shape, `[H, W, C]`.
+    pub fn image_shape(&self) -> burn::tensor::Shape {
+        burn::tensor::Shape::new([
+            self.view.height as usize,
+            self.view.width as usize,
+            self.channels.count(),
+        ])
+    }
+
     fn tiles(&self) -> (usize, usize) {
         let w = self.view.width as usize;
         let h = self.view.height as usize;

@@ -18,17 +18,20 @@
 
 use std::any::Any;
 use std::fmt;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
+use crate::cube::deferred::{Input, Output, Value, array, deferred};
 use crate::op_backward::gradient_per_input;
 use burn::backend::TensorMetadata;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::fusion::custom::TensorSpec;
+use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
-use burn::tensor::TensorData;
+use burn::tensor::{DType, TensorData};
 
 use super::cpu::{self, GaussianSlices, RasterConfig};
 use crate::readback::{self, HostLend};
@@ -39,9 +42,12 @@ use crate::readback::{self, HostLend};
 /// opacities `[N]`. Output: `[H, W, C]`, premultiplied RGB, alpha, and depth when
 /// `config.channels` asks for it. Callers validate shapes and finiteness first (see
 /// [`super::rasterize`]); the kernels themselves cull anything non-finite rather than panic.
-#[backend_extension(NdArray, Flex, Cube, Autodiff)]
+#[backend_extension(NdArray, Flex, Cube, Fusion, Autodiff)]
 pub trait GaussianRasterOps: Backend {
     /// Renders the Gaussians.
+    #[fusion(meta = |_means, _covariances, _colors, _opacities, config| {
+        TensorSpec::new(config.image_shape(), DType::F32)
+    })]
     fn rasterize_gaussians(
         means: FloatTensor<Self>,
         covariances: FloatTensor<Self>,
@@ -249,5 +255,90 @@ impl<B: GaussianRasterOps + RasterKernels, C: CheckpointStrategy> GaussianRaster
                 config,
             )),
         }
+    }
+}
+
+/// The fusion backend's forward state. The forward is recorded, not run, so the inner backend's
+/// state exists only once the stream has run it: the cell is filled then. The backward reads it
+/// when the stream runs the backward, which records the forward's image as an input so that it
+/// runs after the forward even when autodiff runs on another thread's stream.
+struct DeferredSaved<B: FusionBackend> {
+    inner: Arc<OnceLock<SavedRaster>>,
+    image: FloatTensor<Fusion<B>>,
+    gaussians: usize,
+}
+
+impl<B: FusionBackend + RasterKernels> RasterKernels for Fusion<B> {
+    fn rasterize_saving(
+        means: FloatTensor<Self>,
+        covariances: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        config: RasterConfig,
+    ) -> (FloatTensor<Self>, SavedRaster) {
+        let gaussians = opacities.shape().num_elements();
+        let spec = Output::Float(TensorSpec::new(config.image_shape(), DType::F32));
+        let inputs = [means, covariances, colors, opacities]
+            .into_iter()
+            .map(Input::Float)
+            .collect();
+        let inner = Arc::new(OnceLock::new());
+        let filled = inner.clone();
+        let [image] = array(deferred::<B, _>(
+            "rasterize_saving",
+            inputs,
+            vec![spec],
+            move |v| {
+                let [means, covariances, colors, opacities] = array(v);
+                let (image, saved) = B::rasterize_saving(
+                    means.float(),
+                    covariances.float(),
+                    colors.float(),
+                    opacities.float(),
+                    config,
+                );
+                // The stream runs a recorded op once; a second run would find the cell full and
+                // keep the first state, which is the same.
+                let _ = filled.set(saved);
+                vec![Value::Float(image)]
+            },
+        ));
+        let saved = DeferredSaved::<B> {
+            inner,
+            image: image.clone(),
+            gaussians,
+        };
+        (image, SavedRaster(Arc::new(saved)))
+    }
+
+    fn rasterize_backward(
+        saved: &SavedRaster,
+        grad_image: FloatTensor<Self>,
+    ) -> [FloatTensor<Self>; 4] {
+        let saved = saved
+            .0
+            .downcast_ref::<DeferredSaved<B>>()
+            .expect("fusion backward given a fusion forward state");
+        let n = saved.gaussians;
+        let specs = [vec![n, 3], vec![n, 6], vec![n, 3], vec![n]]
+            .map(|shape| Output::Float(TensorSpec::new(shape.into(), DType::F32)))
+            .into();
+        let inputs = vec![Input::Float(grad_image), Input::Float(saved.image.clone())];
+        let inner = saved.inner.clone();
+        array(deferred::<B, _>(
+            "rasterize_backward",
+            inputs,
+            specs,
+            move |v| {
+                let [grad_image, _forward_image] = array(v);
+                let state = inner
+                    .get()
+                    .expect("the stream ran the forward before its backward");
+                B::rasterize_backward(state, grad_image.float())
+                    .into_iter()
+                    .map(Value::Float)
+                    .collect()
+            },
+        ))
     }
 }

@@ -11,10 +11,13 @@ use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::fusion::custom::TensorSpec;
+use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Autodiff, Backend, backend_extension};
 use burn::tensor::DType;
 
+use crate::cube::deferred::{Input, Output, Value, array, deferred};
 use crate::op_backward::gradient_per_input;
 
 /// `tensor.select(dim, indices)` with a parallel backward.
@@ -23,9 +26,14 @@ use crate::op_backward::gradient_per_input;
 /// is `tensor`'s shape with `N` along `dim`, row `i` being row `indices[i]`. Gradients flow to
 /// `tensor`; an index outside `0..R` reads what Burn's `select` reads and contributes no
 /// gradient.
-#[backend_extension(Cube, Autodiff)]
+#[backend_extension(Cube, Fusion, Autodiff)]
 pub trait RowGatherOps: Backend {
     /// Gathers rows along `dim`.
+    #[fusion(dtype = tensor, shape = {
+        let mut shape = tensor.clone();
+        shape[*dim] = indices[0];
+        shape
+    })]
     fn gather_rows(
         tensor: FloatTensor<Self>,
         dim: usize,
@@ -101,5 +109,36 @@ impl<B: RowGatherOps + RowGatherKernels, C: CheckpointStrategy> RowGatherOps for
             OpsKind::Tracked(prep) => prep.finish(state, B::gather_rows(tensor, dim, indices)),
             OpsKind::UnTracked(prep) => prep.finish(B::gather_rows(tensor, dim, indices)),
         }
+    }
+}
+
+impl<B: FusionBackend + RowGatherKernels> RowGatherKernels for Fusion<B> {
+    fn scatter_add_rows(
+        grad: FloatTensor<Self>,
+        dim: usize,
+        indices: IntTensor<Self>,
+        rows: usize,
+        dtype: DType,
+    ) -> FloatTensor<Self> {
+        let mut shape = grad.shape();
+        shape[dim] = rows;
+        let spec = Output::Float(TensorSpec::new(shape, dtype));
+        let inputs = vec![Input::Float(grad), Input::Int(indices)];
+        let [out] = array(deferred::<B, _>(
+            "scatter_add_rows",
+            inputs,
+            vec![spec],
+            move |v| {
+                let [grad, indices] = array(v);
+                vec![Value::Float(B::scatter_add_rows(
+                    grad.float(),
+                    dim,
+                    indices.int(),
+                    rows,
+                    dtype,
+                ))]
+            },
+        ));
+        out
     }
 }

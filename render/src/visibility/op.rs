@@ -13,11 +13,12 @@
 #![allow(deprecated)]
 
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::fusion::custom::TensorSpec;
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{
     Autodiff, AutodiffBackend, Backend, Flex, NdArray, TensorMetadata, backend_extension,
 };
-use burn::tensor::TensorData;
+use burn::tensor::{DType, TensorData};
 use glam::Vec3;
 
 use super::cpu::{self, TriangleIdBuffer};
@@ -25,11 +26,15 @@ use crate::camera::Camera;
 use crate::readback;
 
 /// Triangle-ID rasterization and the per-vertex visibility derived from it.
-#[backend_extension(NdArray, Flex, Cube, Autodiff)]
+#[backend_extension(NdArray, Flex, Cube, Fusion, Autodiff)]
 pub trait TriangleIdOps: Backend {
     /// Rasterizes `faces` (`[F, 3]`, vertex indices) over world-space `vertices` (`[V, 3]`).
     /// Returns the owning face per pixel (`[H, W]`, `-1` where empty) and its camera-space
     /// depth (`[H, W]`, `+inf` where empty).
+    #[fusion(meta = |_vertices, _faces, camera| {
+        let shape = burn::tensor::Shape::new([camera.height as usize, camera.width as usize]);
+        (TensorSpec::new(shape.clone(), DType::I32), TensorSpec::new(shape, DType::F32))
+    })]
     fn rasterize_triangle_ids(
         vertices: FloatTensor<Self>,
         faces: IntTensor<Self>,
@@ -37,6 +42,9 @@ pub trait TriangleIdOps: Backend {
     ) -> (IntTensor<Self>, FloatTensor<Self>);
 
     /// `[num_vertices]`, 1 for every vertex of a face that owns a pixel of `face_ids`, else 0.
+    #[fusion(meta = |_face_ids, _faces, num_vertices| {
+        TensorSpec::new(burn::tensor::Shape::new([*num_vertices]), DType::I32)
+    })]
     fn visible_vertices(
         face_ids: IntTensor<Self>,
         faces: IntTensor<Self>,

@@ -57,9 +57,12 @@ pub enum MomentInputs {
 }
 
 /// One Adam step of a flat parameter `[n]`, in one kernel.
-#[backend_extension(Cube)]
+#[backend_extension(Cube, Fusion)]
 pub trait AdamStepOps: Backend {
     /// `param`, `grad` and the moments are `[n]`. Returns the updated parameter and moments.
+    #[fusion(meta = |param, _grad, _moment_1, _moment_2, _inputs, _scalars| {
+        (param.clone(), param.clone(), param.clone())
+    })]
     fn adam_step(
         param: FloatTensor<Self>,
         grad: FloatTensor<Self>,
