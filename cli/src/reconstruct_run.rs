@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use burn::tensor::Device;
-use lifegom_data::dataset::load_sample;
+use lifegom_data::dataset::{exposure_warning, load_sample};
 use lifegom_data::format::Subject;
 use lifegom_data::kinematics::KinematicTree;
 use lifegom_eval::animate::{orbit_camera, posed_joint};
@@ -88,6 +88,9 @@ pub struct ReconstructOutcome {
     pub held_out: Option<(String, f64)>,
     /// Files written, relative to the output folder.
     pub files: Vec<PathBuf>,
+    /// What looked wrong in the input without stopping it (the binary prints each as
+    /// `warning: …`): views exposed very differently.
+    pub warnings: Vec<String>,
 }
 
 /// Reads the subject in whichever layout `path` is (module docs).
@@ -213,6 +216,10 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
     // there is one, otherwise the first input stands in and is not scored.
     let target = held_out.unwrap_or(inputs_at[0]);
     let sample = load_sample(&subject, &inputs_at, target, bg.map(|c| c * 255.0), (w, h))?;
+    let warnings: Vec<String> = exposure_warning(&sample.views[..inputs_at.len()])
+        .map(|w| format!("{}: {w}", opts.subject.display()))
+        .into_iter()
+        .collect();
     let inputs = model_inputs(&rig, &sample, w, h, &opts.device)?;
     let subdivide = opts.subdivide.unwrap_or(loaded.config.subdivide_test);
     let mesh = GomMesh::new(&rig.topology, subdivide, &opts.device)?;
@@ -322,10 +329,12 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
         input_psnr,
         held_out,
         files,
+        warnings,
     };
     let json = opts.out.join("reconstruct.json");
     let report = serde_json::json!({
         "subject": outcome.subject,
+        "warnings": outcome.warnings,
         "model": opts.model,
         "inputs": outcome.inputs,
         "refine_steps": opts.refine_steps,

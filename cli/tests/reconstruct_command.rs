@@ -199,3 +199,38 @@ fn bad_input_is_one_error_naming_file_and_field() {
     // Nothing was written for a refused subject.
     assert!(!tmp.join("o4").exists());
 }
+
+/// Views exposed very differently are reconstructed with a warning naming both frames; the
+/// synthetic person's views, lit alike, give none.
+#[test]
+fn differently_exposed_views_are_a_warning() {
+    let (tmp, official, _, model) = setup("recon-exposure");
+    let outcome = run(&ReconstructOptions {
+        turntable_frames: 0,
+        motions: vec![],
+        ..options(&official, &model, tmp.join("even"))
+    })
+    .unwrap();
+    assert!(outcome.warnings.is_empty(), "{:?}", outcome.warnings);
+
+    // One input photographed three stops darker.
+    let dark = &outcome.inputs[1];
+    let path = official.join("images").join(format!("{dark}.png"));
+    let mut img = image::open(&path).unwrap().to_rgb8();
+    img.pixels_mut().for_each(|p| p.0 = p.0.map(|c| c / 8));
+    img.save(&path).unwrap();
+    let outcome = run(&ReconstructOptions {
+        turntable_frames: 0,
+        motions: vec![],
+        ..options(&official, &model, tmp.join("dark"))
+    })
+    .unwrap();
+    let [warning] = &outcome.warnings[..] else {
+        panic!("one warning expected: {:?}", outcome.warnings)
+    };
+    for part in [format!("frame `{dark}`"), "exposed differently".into()] {
+        assert!(warning.contains(&part), "`{warning}` lacks `{part}`");
+    }
+    let json = std::fs::read_to_string(tmp.join("dark/reconstruct.json")).unwrap();
+    assert!(json.contains("exposed differently"), "{json}");
+}

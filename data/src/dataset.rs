@@ -428,6 +428,49 @@ pub fn load_sample(
     })
 }
 
+/// The share of a mask's pixels above one half beyond which the mask "covers the whole image".
+const FULL_COVER: f64 = 0.995;
+
+/// How many times brighter one view's person may be than another's before
+/// [`exposure_warning`] speaks: two stops.
+pub const EXPOSURE_RATIO: f32 = 4.0;
+
+/// A warning when the person's mean brightness (Rec. 709 luma over the mask) differs by more than
+/// [`EXPOSURE_RATIO`] between two of `views`, naming the darkest and the brightest frame; `None`
+/// otherwise. Views of one person from a few sides differ by their clothes' colours; two stops
+/// apart is an exposure (or white balance, or a wrong image), which the reconstruction would
+/// bake into the avatar's colours.
+pub fn exposure_warning(views: &[View]) -> Option<String> {
+    let brightness = |v: &View| {
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for (px, &a) in v.rgb.chunks_exact(3).zip(&v.mask) {
+            if a >= 0.5 {
+                sum += f64::from(0.2126 * px[0] + 0.7152 * px[1] + 0.0722 * px[2]);
+                n += 1;
+            }
+        }
+        (n > 0).then(|| (sum / n as f64) as f32)
+    };
+    let lit: Vec<(&str, f32)> = views
+        .iter()
+        .filter_map(|v| brightness(v).map(|b| (v.frame.as_str(), b)))
+        .collect();
+    let darkest = lit.iter().min_by(|a, b| a.1.total_cmp(&b.1))?;
+    let brightest = lit.iter().max_by(|a, b| a.1.total_cmp(&b.1))?;
+    (brightest.1 > EXPOSURE_RATIO * darkest.1.max(1e-3)).then(|| {
+        format!(
+            "frame `{}` shows the person {:.1} times brighter than frame `{}` (mean luma {:.3} \
+             against {:.3}): the views look exposed differently, and the avatar's colours will \
+             mix both",
+            brightest.0,
+            brightest.1 / darkest.1.max(1e-3),
+            darkest.0,
+            brightest.1,
+            darkest.1
+        )
+    })
+}
+
 /// Reads, undistorts, composites and resizes frame `f` of `subject` (design.md §8.3).
 pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) -> Result<View> {
     let frame = &subject.frames[f];
@@ -461,6 +504,20 @@ pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) ->
                 "the mask shows no person: its largest value is {} of 255 (masks are 0 for \
                  background and 255 for the person; a 0/1 mask must be scaled to 0/255)",
                 (peak * 255.0).round()
+            ),
+        });
+    }
+    // A mask that leaves no background is inverted (255 for the background) or not a mask at
+    // all; the person never fills a whole photo edge to edge.
+    let covered = alpha.data.iter().filter(|&&a| a >= 0.5).count() as f64;
+    let cover = covered / alpha.data.len().max(1) as f64;
+    if cover > FULL_COVER {
+        return Err(DataError::Image {
+            location: Box::new(at(&mask_path, "masks")),
+            reason: format!(
+                "the mask covers the whole image ({:.1} % of its pixels): it shows no background \
+                 (masks are 255 for the person and 0 for the background; is it inverted?)",
+                100.0 * cover
             ),
         });
     }
@@ -536,6 +593,43 @@ pub fn fold_body_transform(e: &[[f64; 4]; 4], rh: glam::Vec3, th: glam::Vec3) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A 2×2 view whose person (the left column) has one grey level and whose background is
+    /// white, so only the masked pixels may count.
+    fn grey_view(frame: &str, level: f32) -> View {
+        View {
+            frame: frame.into(),
+            rgb: [level, level, level, 1.0, 1.0, 1.0].repeat(2).to_vec(),
+            mask: vec![1.0, 0.0, 1.0, 0.0],
+            k: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            e: [[0.0; 4]; 4],
+            poses: Vec::new(),
+            tpose_joints: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn exposure_warning_names_the_darkest_and_brightest_frames() {
+        let views = [
+            grey_view("front", 0.5),
+            grey_view("side", 0.3),
+            grey_view("back", 0.1),
+        ];
+        let warning = exposure_warning(&views).expect("five times brighter");
+        for part in ["frame `front`", "frame `back`", "5.0 times brighter"] {
+            assert!(warning.contains(part), "`{warning}` lacks `{part}`");
+        }
+        // Within two stops (and a white background that must not count): no warning.
+        assert_eq!(exposure_warning(&views[..2]), None);
+        assert_eq!(
+            exposure_warning(&[grey_view("a", 0.2), grey_view("b", 0.79)]),
+            None
+        );
+        // No view with a person: nothing to compare.
+        let mut empty = grey_view("empty", 0.5);
+        empty.mask = vec![0.0; 4];
+        assert_eq!(exposure_warning(&[empty]), None);
+    }
 
     fn rule(protocol: Protocol, split: Split, n: usize) -> FrameRule {
         FrameRule {

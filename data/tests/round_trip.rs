@@ -355,6 +355,27 @@ fn bad_data_errors_name_subject_frame_and_field() {
         );
     }
 
+    // A mask with no background (inverted, or a white image saved as the mask).
+    let d = scratch_subject("fullcover");
+    image::save_buffer(
+        d.join("masks/frame_000004.png"),
+        &[255u8; 64 * 64],
+        64,
+        64,
+        image::ExtendedColorType::L8,
+    )
+    .unwrap();
+    assert_error(
+        &d,
+        &[
+            "subject `0000`",
+            "frame `frame_000004`",
+            "masks",
+            "covers the whole image (100.0 % of its pixels)",
+            "inverted",
+        ],
+    );
+
     // A frame without a camera, and a missing pickle.
     let d = scratch_subject("nocam");
     edit_pickle(&d.join("cameras.pkl"), |v| {

@@ -105,6 +105,9 @@ fn main() -> anyhow::Result<()> {
     };
     let outcome =
         run(&opts).with_context(|| format!("reconstructing {}", opts.subject.display()))?;
+    for warning in &outcome.warnings {
+        eprintln!("warning: {warning}");
+    }
     eprintln!(
         "subject `{}` from frames {}: reconstructed in {:.0} ms{}",
         outcome.subject,
