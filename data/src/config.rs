@@ -99,6 +99,21 @@ mod tests {
             e.contains("tiny.toml") && e.contains("data.img_size"),
             "{e}"
         );
+        // Sizes are checked before anything is allocated.
+        let huge = text.replace("img_size = [64, 64]", "img_size = [100000, 64]");
+        let e = ConfigFile::parse(&huge, Path::new("tiny.toml"))
+            .unwrap_err()
+            .to_string();
+        for part in ["tiny.toml", "data.img_size", "at most 8192", "[100000, 64]"] {
+            assert!(e.contains(part), "`{e}` lacks `{part}`");
+        }
+        let huge = text.replace("image_size = 64", "image_size = 100000");
+        let e = ConfigFile::parse(&huge, Path::new("tiny.toml"))
+            .unwrap_err()
+            .to_string();
+        for part in ["synthetic.image_size", "at most 8192", "100000"] {
+            assert!(e.contains(part), "`{e}` lacks `{part}`");
+        }
         let e = ConfigFile::parse("[data]\nroot = 3\n", Path::new("x.toml"))
             .unwrap_err()
             .to_string();

@@ -133,6 +133,17 @@ impl DataConfig {
                 format!("must be positive, got {:?}", self.img_size),
             ));
         }
+        if self.img_size.iter().any(|&side| side > MAX_IMAGE_SIDE) {
+            return Err(bad(
+                "img_size",
+                format!(
+                    "at most {MAX_IMAGE_SIDE} pixels a side, got {:?} (one view in f32 RGB would \
+                     take {:.1} GB)",
+                    self.img_size,
+                    view_bytes(self.img_size) as f64 / 1e9
+                ),
+            ));
+        }
         if self.n_input_frames == 0 {
             return Err(bad("n_input_frames", "must be at least 1".into()));
         }
@@ -146,6 +157,16 @@ impl DataConfig {
         }
         Ok(())
     }
+}
+
+/// The largest image side a config may ask for: a view of 8,192² pixels is 0.8 GB as f32 RGB,
+/// and a training sample holds N + 1 of them with their renders. Checked before anything is
+/// allocated, so that a typo is an error naming the field rather than an aborted allocation.
+pub const MAX_IMAGE_SIDE: u32 = 8192;
+
+/// Bytes of one `[w, h]` view in f32 RGB.
+fn view_bytes([w, h]: [u32; 2]) -> u64 {
+    u64::from(w) * u64::from(h) * 3 * 4
 }
 
 /// One sample's frames: indices into the subject's frame list.

@@ -73,6 +73,19 @@ impl Subdivision {
                 lowres.num_vertices
             )));
         }
+        // Checked before any level is built: each level quadruples the faces, and a typo such as
+        // 12 levels would otherwise allocate until the process is killed.
+        let highres = 4usize
+            .checked_pow(levels)
+            .and_then(|f| f.checked_mul(lowres.faces.len()));
+        if highres.is_none_or(|f| f > MAX_HIGHRES_FACES) {
+            return Err(too_large(format!(
+                "{levels} levels of {} faces would give {} faces; at most {MAX_HIGHRES_FACES} \
+                 (one Gaussian each)",
+                lowres.faces.len(),
+                highres.map_or_else(|| "more than 2^64".to_string(), |f| f.to_string())
+            )));
+        }
         let mut faces = lowres.faces.clone();
         let mut table: Vec<Barycentric> = (0..lowres.num_vertices as u32)
             .map(|v| [(v, 1.0), (0, 0.0), (0, 0.0)])
@@ -232,6 +245,10 @@ fn midpoint(p: &Barycentric, q: &Barycentric) -> Barycentric {
     out
 }
 
+/// The most high-res faces a subdivision may make: 2^24, fifty times the paper's 2 levels of
+/// SMPL-X (334,528), about 3 GB of Gaussian parameters and gradients in f32.
+pub const MAX_HIGHRES_FACES: usize = 1 << 24;
+
 fn too_large(reason: String) -> RenderError {
     RenderError::InvalidInput {
         what: "levels",
@@ -243,6 +260,21 @@ fn too_large(reason: String) -> RenderError {
 mod tests {
     use super::*;
     use crate::testing::octahedron;
+
+    /// Absurd level counts are an error naming the field before anything is allocated.
+    #[test]
+    fn too_many_levels_are_refused_before_allocating() {
+        let (topology, _) = octahedron();
+        for levels in [11, 12, 40, u32::MAX] {
+            let e = Subdivision::new(&topology, levels).unwrap_err().to_string();
+            assert!(
+                e.contains("levels") && e.contains("at most 16777216"),
+                "{e}"
+            );
+        }
+        // 8 faces · 4^10 = 8,388,608: allowed (not built here: it is large).
+        assert!(8 * 4usize.pow(10) <= MAX_HIGHRES_FACES);
+    }
 
     fn tetrahedron() -> (MeshTopology, Vec<Vec3>) {
         let faces = vec![[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]];

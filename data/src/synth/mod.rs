@@ -249,6 +249,20 @@ impl SynthConfig {
                 format!("must be in 1..=8, got {}", self.supersample),
             ));
         }
+        // The generator renders at `image_size · supersample` a side before averaging down.
+        let rendered = u64::from(self.image_size) * u64::from(self.supersample);
+        if rendered > u64::from(crate::dataset::MAX_IMAGE_SIDE) {
+            return Err(bad(
+                "image_size",
+                format!(
+                    "image_size × supersample must be at most {} pixels a side (the size the \
+                     generator renders at), got {} × {} = {rendered}",
+                    crate::dataset::MAX_IMAGE_SIDE,
+                    self.image_size,
+                    self.supersample
+                ),
+            ));
+        }
         if self.setting == SynthSetting::MultiFrame {
             return self.validate_multi_frame(data, source);
         }
