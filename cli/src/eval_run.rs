@@ -270,8 +270,11 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         "perceptual": perceptual.note().unwrap_or_else(|| "computed".into()),
     });
     let path = opts.out.join("summary.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&json)?)
-        .with_context(|| format!("writing {}", path.display()))?;
+    lifegom_render::atomic_file::write_atomic(
+        &path,
+        serde_json::to_string_pretty(&json)?.as_bytes(),
+    )
+    .with_context(|| format!("writing {}", path.display()))?;
     report.write(&opts.out)?;
     Ok(EvalOutcome {
         summary,

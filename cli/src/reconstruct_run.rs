@@ -31,6 +31,7 @@ use lifegom_eval::metrics::{ImageRef, psnr};
 use lifegom_model::avatar::Avatar;
 use lifegom_model::inputs::{SubjectRig, model_inputs};
 use lifegom_model::trained;
+use lifegom_render::atomic_file::write_atomic;
 use lifegom_render::gom::GomMesh;
 use lifegom_render::motion::{MotionSource, PoseSequence, with_known_joint_names};
 use lifegom_render::skeleton::BodyPose;
@@ -345,7 +346,7 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
         "held_out": outcome.held_out.as_ref().map(|(f, db)| serde_json::json!({"frame": f, "psnr": db})),
         "files": outcome.files,
     });
-    std::fs::write(&json, serde_json::to_string_pretty(&report)?)
+    write_atomic(&json, serde_json::to_string_pretty(&report)?.as_bytes())
         .with_context(|| format!("writing {}", json.display()))?;
     Ok(outcome)
 }

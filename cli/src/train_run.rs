@@ -144,8 +144,10 @@ pub fn latest_checkpoint(out: &Path) -> PathBuf {
 }
 
 fn read_history(path: &Path, up_to: u64) -> Vec<serde_json::Value> {
-    std::fs::read_to_string(path)
-        .unwrap_or_default()
+    // Bytes, not a string: a line torn by a full disk or a kill may end inside a UTF-8
+    // character, and must cost that line only.
+    let bytes = std::fs::read(path).unwrap_or_default();
+    String::from_utf8_lossy(&bytes)
         .lines()
         .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
         .filter(|v| v["step"].as_u64().is_some_and(|s| s <= up_to))
@@ -461,11 +463,15 @@ pub fn train_with(
     // describe lost work.
     let keep_log = |path: &Path| -> anyhow::Result<(std::fs::File, Vec<serde_json::Value>)> {
         let kept = read_history(path, trainer.step);
-        let mut file =
-            std::fs::File::create(path).with_context(|| format!("writing {}", path.display()))?;
-        for v in &kept {
-            writeln!(file, "{v}")?;
-        }
+        // Rewritten whole and renamed into place, then appended to: a full disk here leaves
+        // the old log, never a truncated one.
+        let text: String = kept.iter().map(|v| format!("{v}\n")).collect();
+        lifegom_render::atomic_file::write_atomic(path, text.as_bytes())
+            .with_context(|| format!("writing {}", path.display()))?;
+        let file = std::fs::OpenOptions::new()
+            .append(true)
+            .open(path)
+            .with_context(|| format!("writing {}", path.display()))?;
         Ok((file, kept))
     };
     let (mut val_log, mut log, elapsed_before) = if root {

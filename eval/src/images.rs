@@ -4,6 +4,8 @@
 //! reference dumps predictions (design.md §10.1): `uint8(255 · clip(x, 0, 1))`, truncating, so a
 //! metric computed on our PNGs matches one computed on the reference's.
 
+use image::ImageEncoder;
+use lifegom_render::atomic_file::write_atomic;
 use std::path::Path;
 
 use burn::tensor::Tensor;
@@ -92,20 +94,20 @@ impl Image {
 
     /// Writes a PNG.
     pub fn save_png(&self, path: &Path) -> Result<(), ImageError> {
-        if let Some(dir) = path.parent() {
-            let _ = std::fs::create_dir_all(dir);
-        }
-        image::save_buffer(
-            path,
-            &self.to_rgb8(),
-            self.width as u32,
-            self.height as u32,
-            image::ExtendedColorType::Rgb8,
-        )
-        .map_err(|source| ImageError::Write {
+        let err = |source| ImageError::Write {
             path: path.to_path_buf(),
             source,
-        })
+        };
+        let mut png = Vec::new();
+        image::codecs::png::PngEncoder::new(&mut png)
+            .write_image(
+                &self.to_rgb8(),
+                self.width as u32,
+                self.height as u32,
+                image::ExtendedColorType::Rgb8,
+            )
+            .map_err(err)?;
+        write_atomic(path, &png).map_err(|e| err(image::ImageError::IoError(e)))
     }
 
     /// Reads a PNG (or any format the `image` crate was built with) as RGB.
@@ -209,11 +211,8 @@ pub fn save_gif(path: &Path, frames: &[Image], delay_ms: u32) -> Result<(), Imag
         path: path.to_path_buf(),
         source,
     };
-    if let Some(dir) = path.parent() {
-        let _ = std::fs::create_dir_all(dir);
-    }
-    let file = std::fs::File::create(path).map_err(|e| err(image::ImageError::IoError(e)))?;
-    let mut encoder = GifEncoder::new_with_speed(file, 10);
+    let mut gif = Vec::new();
+    let mut encoder = GifEncoder::new_with_speed(&mut gif, 10);
     encoder.set_repeat(Repeat::Infinite).map_err(err)?;
     for f in frames {
         let rgba: Vec<u8> = f
@@ -227,7 +226,8 @@ pub fn save_gif(path: &Path, frames: &[Image], delay_ms: u32) -> Result<(), Imag
             image::Frame::from_parts(buffer, 0, 0, image::Delay::from_numer_denom_ms(delay_ms, 1));
         encoder.encode_frame(frame).map_err(err)?;
     }
-    Ok(())
+    drop(encoder);
+    write_atomic(path, &gif).map_err(|e| err(image::ImageError::IoError(e)))
 }
 
 #[cfg(test)]

@@ -1110,7 +1110,8 @@ pub fn generate_split(
                 .map_err(|e| DataError::io(Location::file(parent), e))?;
         }
         let text = serde_json::to_string_pretty(&value).unwrap_or_default();
-        std::fs::write(&path, text).map_err(|e| DataError::io(Location::file(&path), e))
+        lifegom_render::atomic_file::write_atomic(&path, text.as_bytes())
+            .map_err(|e| DataError::io(Location::file(&path), e))
     };
     write_json(out.join(&data.train_split), serde_json::json!(train))?;
     // A config whose validation subjects are listed in `[data] val_subjects` may share one

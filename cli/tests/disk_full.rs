@@ -1,0 +1,180 @@
+//! A full disk while the commands write: the write fails with an error naming the file, and the
+//! previous file stays whole. The disk fills by a file-size limit (`ulimit -f`, with SIGXFSZ
+//! ignored so that a write past it fails with EFBIG instead of killing the process): what a full
+//! filesystem does to a writer, without mounting one (no root needed).
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use common::{tiny_split, untrained_tiny_model};
+
+/// Runs `exe args` with files limited to `limit_kib` KiB (`None`: unlimited).
+fn run(exe: &str, args: &[&str], limit_kib: Option<u64>) -> Output {
+    let limit = limit_kib.map_or("unlimited".to_string(), |k| k.to_string());
+    Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            r#"trap "" XFSZ; ulimit -f {limit}; exec "$0" "$@""#
+        ))
+        .arg(exe)
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("running bash")
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+fn config() -> String {
+    let config = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic-tiny.toml");
+    config.to_str().unwrap().to_string()
+}
+
+/// The folder's files (recursively) and their bytes.
+fn snapshot(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut files = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for entry in std::fs::read_dir(&d).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                stack.push(path);
+            } else {
+                let bytes = std::fs::read(&path).unwrap();
+                files.push((path, bytes));
+            }
+        }
+    }
+    files.sort();
+    files
+}
+
+fn assert_no_temporaries(dir: &Path) {
+    for (path, _) in snapshot(dir) {
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        assert!(
+            !name.starts_with(".lifegom-"),
+            "a temporary was left: {}",
+            path.display()
+        );
+    }
+}
+
+/// Training: a checkpoint that cannot be written stops the run with an error naming it; the
+/// previous checkpoint is whole, the logs hold only whole lines, and `--resume` goes on.
+#[test]
+fn a_full_disk_during_training_loses_nothing() {
+    let (tmp, cfg) = tiny_split("disk-train", |_| {});
+    let root = cfg.data.root.to_str().unwrap().to_string();
+    let out = tmp.join("run");
+    let out_s = out.to_str().unwrap();
+    let exe = env!("CARGO_BIN_EXE_lifegom-train");
+    let cfg_path = config();
+    let args = |steps: &'static str, resume: bool| {
+        let mut a = vec![
+            "--config", &cfg_path, "--device", "ndarray", "--data", &root, "--out", out_s,
+            "--steps", steps,
+        ];
+        if resume {
+            a.push("--resume");
+        }
+        a
+    };
+    let first = run(exe, &args("1", false), None);
+    assert!(first.status.success(), "{}", stderr(&first));
+    let checkpoint = out.join("checkpoints/latest.lgck");
+    let before = std::fs::read(&checkpoint).unwrap();
+    assert!(
+        before.len() > 256 * 1024,
+        "the checkpoint must exceed the limit"
+    );
+
+    let full = run(exe, &args("2", true), Some(256));
+    let msg = stderr(&full);
+    assert!(
+        !full.status.success(),
+        "a run on a full disk succeeded:\n{msg}"
+    );
+    assert!(msg.contains("File too large"), "{msg}");
+    assert!(msg.contains(out_s), "the error names the file:\n{msg}");
+    eprintln!("the training run's error: {msg}");
+    assert_eq!(
+        std::fs::read(&checkpoint).unwrap(),
+        before,
+        "the old checkpoint changed"
+    );
+    assert_no_temporaries(&out);
+
+    let again = run(exe, &args("2", true), None);
+    assert!(again.status.success(), "{}", stderr(&again));
+    let log = std::fs::read_to_string(out.join("metrics.jsonl")).unwrap();
+    let steps: Vec<u64> = log
+        .lines()
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).expect("whole lines only");
+            v["step"].as_u64().unwrap()
+        })
+        .collect();
+    assert_eq!(steps, [1, 2], "{log}");
+    std::fs::remove_dir_all(&tmp).ok();
+}
+
+/// Reconstruction: exports (`.lgom`, `.ply`, `.glb`), images and the report that cannot be
+/// written are an error naming the file; the previous run's files stay whole.
+#[test]
+fn a_full_disk_during_export_leaves_the_previous_files() {
+    let (tmp, cfg) = tiny_split("disk-export", |s| {
+        (s.train_subjects, s.val_subjects) = (0, 1)
+    });
+    let (val_dir, _) = cfg.data.split_paths(lifegom_data::dataset::Split::Val);
+    let subject = std::fs::read_dir(&val_dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.is_dir())
+        .unwrap();
+    let model = untrained_tiny_model(&tmp, 1, 0);
+    let out = tmp.join("out");
+    let exe = env!("CARGO_BIN_EXE_lifegom-reconstruct");
+    let cfg_path = config();
+    let args = [
+        subject.to_str().unwrap(),
+        "--model",
+        model.to_str().unwrap(),
+        "--config",
+        &cfg_path,
+        "--device",
+        "ndarray",
+        "--turntable",
+        "4",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let first = run(exe, &args, None);
+    assert!(first.status.success(), "{}", stderr(&first));
+    let before = snapshot(&out);
+    let largest = before.iter().map(|(_, b)| b.len()).max().unwrap();
+    assert!(largest > 16 * 1024, "some output must exceed the limit");
+
+    let full = run(exe, &args, Some(16));
+    let msg = stderr(&full);
+    assert!(
+        !full.status.success(),
+        "an export on a full disk succeeded:\n{msg}"
+    );
+    assert!(msg.contains("File too large"), "{msg}");
+    assert!(
+        msg.contains(out.to_str().unwrap()),
+        "the error names the file:\n{msg}"
+    );
+    eprintln!("the export's error: {msg}");
+    let after = snapshot(&out);
+    assert_eq!(after.len(), before.len(), "files appeared or vanished");
+    for ((path, old), (_, new)) in before.iter().zip(&after) {
+        assert!(old == new, "{} changed", path.display());
+    }
+    std::fs::remove_dir_all(&tmp).ok();
+}
