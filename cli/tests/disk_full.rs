@@ -1,4 +1,5 @@
-//! A full disk while the commands write: the write fails with an error naming the file, and the
+//! A full disk while the commands write, and kills at random moments: a write fails with an error
+//! naming the file, and the
 //! previous file stays whole. The disk fills by a file-size limit (`ulimit -f`, with SIGXFSZ
 //! ignored so that a write past it fails with EFBIG instead of killing the process): what a full
 //! filesystem does to a writer, without mounting one (no root needed).
@@ -176,5 +177,93 @@ fn a_full_disk_during_export_leaves_the_previous_files() {
     for ((path, old), (_, new)) in before.iter().zip(&after) {
         assert!(old == new, "{} changed", path.display());
     }
+    std::fs::remove_dir_all(&tmp).ok();
+}
+
+/// Kills: `kill -9` at seeded random moments of a run that writes a checkpoint every step;
+/// after each, `--resume` starts from a whole checkpoint and the log has only whole lines, its
+/// steps counting up from 1 without a gap or a repeat.
+#[test]
+fn kills_at_random_moments_lose_nothing() {
+    let (tmp, cfg) = tiny_split("disk-kill", |_| {});
+    let root = cfg.data.root.to_str().unwrap().to_string();
+    let text = std::fs::read_to_string(config())
+        .unwrap()
+        .replace("checkpoint_every = 50", "checkpoint_every = 1")
+        .replace("snapshot_every = 50", "snapshot_every = 1");
+    let cfg_path = tmp.join("every-step.toml");
+    std::fs::write(&cfg_path, text).unwrap();
+    let out = tmp.join("run");
+    let exe = env!("CARGO_BIN_EXE_lifegom-train");
+    let mut rng = lifegom_render::rng::Rng::new(7);
+    let kills = 6;
+    for kill in 0..kills {
+        let mut cmd = Command::new(exe);
+        cmd.arg("--config")
+            .arg(&cfg_path)
+            .args(["--device", "ndarray", "--data", &root, "--out"])
+            .arg(&out)
+            .env("RUST_LOG", "warn")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null());
+        if kill > 0 {
+            cmd.arg("--resume");
+        }
+        let mut child = cmd.spawn().unwrap();
+        // Long enough to pass start-up and write some checkpoints, short of the 200 steps.
+        let wait_ms = 3000 + (rng.uniform() * 4000.0) as u64;
+        std::thread::sleep(std::time::Duration::from_millis(wait_ms));
+        child.kill().unwrap(); // SIGKILL
+        child.wait().unwrap();
+        let checkpoint = out.join("checkpoints/latest.lgck");
+        if checkpoint.exists() {
+            #[allow(deprecated)] // Device::ndarray(): the CI backend (design.md §1.4).
+            let device = burn::tensor::Device::ndarray();
+            lifegom_model::trained::load(&checkpoint, &device)
+                .unwrap_or_else(|e| panic!("kill {kill}: the checkpoint is damaged: {e}"));
+        }
+    }
+    // A last resume runs one step past the checkpoint and stops cleanly.
+    let checkpoint = out.join("checkpoints/latest.lgck");
+    #[allow(deprecated)]
+    let device = burn::tensor::Device::ndarray();
+    let step = lifegom_model::trained::load(&checkpoint, &device)
+        .unwrap()
+        .header
+        .meta["step"]
+        .as_u64()
+        .unwrap();
+    assert!(step >= 2, "the runs got past start-up (step {step})");
+    let next = (step + 1).to_string();
+    let resumed = run(
+        exe,
+        &[
+            "--config",
+            cfg_path.to_str().unwrap(),
+            "--device",
+            "ndarray",
+            "--data",
+            &root,
+            "--out",
+            out.to_str().unwrap(),
+            "--steps",
+            &next,
+            "--resume",
+        ],
+        None,
+    );
+    assert!(resumed.status.success(), "{}", stderr(&resumed));
+    let log = std::fs::read_to_string(out.join("metrics.jsonl")).unwrap();
+    let steps: Vec<u64> = log
+        .lines()
+        .map(|l| {
+            let v: serde_json::Value =
+                serde_json::from_str(l).unwrap_or_else(|e| panic!("torn line `{l}`: {e}"));
+            v["step"].as_u64().unwrap()
+        })
+        .collect();
+    assert_eq!(steps, (1..=step + 1).collect::<Vec<_>>(), "{log}");
+    assert_no_temporaries(&out);
+    eprintln!("{kills} kills; resumed at step {step}, finished at {next}");
     std::fs::remove_dir_all(&tmp).ok();
 }
