@@ -1,8 +1,7 @@
-//! A full disk while the commands write, and kills at random moments: a write fails with an error
-//! naming the file, and the
-//! previous file stays whole. The disk fills by a file-size limit (`ulimit -f`, with SIGXFSZ
-//! ignored so that a write past it fails with EFBIG instead of killing the process): what a full
-//! filesystem does to a writer, without mounting one (no root needed).
+//! A full disk while the commands write, and kills at random moments: a write fails with an
+//! error naming the file, and the previous file stays whole. The disk fills by a file-size limit
+//! (`ulimit -f`, with SIGXFSZ ignored so that a write past it fails with EFBIG instead of killing
+//! the process): what a full filesystem does to a writer, without mounting one (no root needed).
 
 mod common;
 
