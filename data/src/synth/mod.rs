@@ -230,6 +230,11 @@ pub const HEIGHT_RANGE: std::ops::RangeInclusive<f32> = 1.55..=1.92;
 /// Look-at point of the camera ring (0.85 m above the floor, as in the official THuman renders; design.md §8.7).
 pub const LOOK_AT: Vec3 = Vec3::new(0.0, 0.85, 0.0);
 
+/// The most subjects of one split a config may ask for (one folder each).
+const MAX_SUBJECTS: usize = 100_000;
+/// The most target views per subject a config may ask for.
+const MAX_VIEWS: usize = 10_000;
+
 impl SynthConfig {
     /// Checks settings serde cannot; `source` names the config in errors.
     pub fn validate(&self, data: &DataConfig, source: &Path) -> Result<()> {
@@ -248,6 +253,17 @@ impl SynthConfig {
                 "supersample",
                 format!("must be in 1..=8, got {}", self.supersample),
             ));
+        }
+        // Counts that size lists and folders, bounded before anything is allocated.
+        for (field, value, limit) in [
+            ("train_subjects", self.train_subjects, MAX_SUBJECTS),
+            ("val_subjects", self.val_subjects, MAX_SUBJECTS),
+            ("target_views", self.target_views, MAX_VIEWS),
+            ("val_target_views", self.val_target_views, MAX_VIEWS),
+        ] {
+            if value > limit {
+                return Err(bad(field, format!("must be at most {limit}, got {value}")));
+            }
         }
         // The generator renders at `image_size · supersample` a side before averaging down.
         let rendered = u64::from(self.image_size) * u64::from(self.supersample);

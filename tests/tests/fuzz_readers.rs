@@ -1,0 +1,247 @@
+//! Structure-blind mutation fuzzing of the file readers, bounded for CI: seeded bit flips,
+//! truncations, splices of another part of the file, huge little-endian length fields, and for
+//! the text formats numbers replaced by NaN, inf or huge values. Each reader must return (an
+//! error naming the file, or a value), never panic, and never ask for more than
+//! [`ALLOCATION_BOUND`] bytes at once (a counting global allocator records the largest request).
+//! The pickle reader has its own fuzzer (`data/src/pickle/reader.rs`).
+//!
+//! The case counts fit CI; `LIFEGOM_FUZZ_CASES=N` runs N per reader instead (a longer run:
+//! `LIFEGOM_FUZZ_CASES=20000 cargo test --release --workspace --test fuzz_readers`).
+
+#![allow(deprecated)] // Device::ndarray(): the CI backend (design.md §1.4).
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use burn::tensor::Device;
+use lifegom_model::reconstructor::ReconstructorConfig;
+use lifegom_model::trained;
+use lifegom_render::motion::{JointRoles, Motion, PoseSequence};
+use lifegom_render::rng::Rng;
+use lifegom_render::template::{BodyTemplate, lowres_template_path};
+use lifegom_train::config::ExperimentConfig;
+
+/// The largest single allocation a reader may ask for while reading a damaged file: 1 GiB.
+const ALLOCATION_BOUND: usize = 1 << 30;
+
+/// The system allocator, recording the largest request.
+struct Counting;
+
+static LARGEST: AtomicUsize = AtomicUsize::new(0);
+
+// SAFETY: forwards to the system allocator unchanged; only records sizes.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        LARGEST.fetch_max(layout.size(), Ordering::Relaxed);
+        // SAFETY: the caller's contract is the system allocator's.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: as above.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        LARGEST.fetch_max(new_size, Ordering::Relaxed);
+        // SAFETY: as above.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static ALLOCATOR: Counting = Counting;
+
+fn cases(default: usize) -> usize {
+    std::env::var("LIFEGOM_FUZZ_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+/// One mutation of `base`.
+fn mutate(base: &[u8], text: bool, rng: &mut Rng) -> Vec<u8> {
+    let mut b = base.to_vec();
+    let at = |rng: &mut Rng, len: usize| rng.below(len.max(1));
+    match rng.below(if text { 6 } else { 5 }) {
+        0 => {
+            for _ in 0..1 + rng.below(8) {
+                let i = at(rng, b.len());
+                if let Some(byte) = b.get_mut(i) {
+                    *byte ^= 1 << rng.below(8);
+                }
+            }
+        }
+        1 => b.truncate(at(rng, b.len())),
+        2 => {
+            // Splice: a run of the file copied over another place.
+            let (from, to) = (at(rng, b.len()), at(rng, b.len()));
+            let n = rng.below(64).min(b.len() - from.max(to));
+            let run = b[from..from + n].to_vec();
+            b[to..to + n].copy_from_slice(&run);
+        }
+        3 => {
+            // A huge length field: 4 or 8 bytes of 0xff or of a large count.
+            let i = at(rng, b.len());
+            let word: [u8; 8] = if rng.below(2) == 0 {
+                [0xff; 8]
+            } else {
+                (1u64 << (30 + rng.below(30))).to_le_bytes()
+            };
+            let n = if rng.below(2) == 0 { 4 } else { 8 };
+            for (k, w) in word.iter().take(n).enumerate() {
+                if let Some(byte) = b.get_mut(i + k) {
+                    *byte = *w;
+                }
+            }
+        }
+        4 => {
+            // Random bytes inserted.
+            let i = at(rng, b.len());
+            let junk: Vec<u8> = (0..1 + rng.below(32))
+                .map(|_| rng.below(256) as u8)
+                .collect();
+            b.splice(i..i, junk);
+        }
+        _ => {
+            // A number in the text replaced by an extreme one.
+            let s = String::from_utf8_lossy(&b).into_owned();
+            let digits: Vec<usize> = s
+                .char_indices()
+                .filter(|(_, c)| c.is_ascii_digit())
+                .map(|(i, _)| i)
+                .collect();
+            if let Some(&i) = digits.get(at(rng, digits.len())) {
+                let end = s[i..]
+                    .find(|c: char| !(c.is_ascii_digit() || c == '.' || c == 'e' || c == '-'))
+                    .map_or(s.len(), |k| i + k);
+                let repl =
+                    ["NaN", "inf", "-inf", "1e300", "-1", "99999999999", "nan"][rng.below(7)];
+                b = format!("{}{}{}", &s[..i], repl, &s[end..]).into_bytes();
+            }
+        }
+    }
+    b
+}
+
+/// Fuzzes `read` on mutations of `base`, written to `path` each time. Returns the cases run.
+fn fuzz<T, E: std::fmt::Display>(
+    name: &str,
+    base: &[u8],
+    text: bool,
+    path: &Path,
+    n: usize,
+    read: impl Fn(&Path) -> Result<T, E>,
+) -> usize {
+    let mut rng = Rng::new(name.len() as u64 * 7919 + 13);
+    let file = path.file_name().unwrap().to_string_lossy().into_owned();
+    let (mut errors, mut ok) = (0, 0);
+    for case in 0..n {
+        let bytes = mutate(base, text, &mut rng);
+        std::fs::write(path, &bytes).unwrap();
+        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read(path)));
+        match outcome {
+            Err(_) => panic!(
+                "{name}: case {case} panicked (input kept at {})",
+                path.display()
+            ),
+            Ok(Err(e)) => {
+                let msg = e.to_string();
+                assert!(
+                    msg.contains(&file),
+                    "{name}: case {case}: `{msg}` does not name {file}"
+                );
+                errors += 1;
+            }
+            Ok(Ok(_)) => ok += 1,
+        }
+    }
+    eprintln!("{name}: {n} cases, {errors} errors, {ok} read, 0 panics");
+    n
+}
+
+fn scratch(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("lifegom-fuzz-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+#[test]
+fn no_reader_panics_or_overallocates_on_damaged_files() {
+    let dir = scratch("readers");
+    let device = Device::ndarray();
+    let mut total = 0;
+
+    // The trained-model file (.lgck) of the tiny network.
+    let config = ReconstructorConfig::tiny(3).with_iterations(1);
+    let model = config.init(1229, &device).unwrap();
+    let lgck = dir.join("model.lgck");
+    trained::save(
+        &lgck,
+        &model,
+        &config,
+        serde_json::json!({"step": 3}),
+        b"payload",
+    )
+    .unwrap();
+    let base = std::fs::read(&lgck).unwrap();
+    total += fuzz(
+        "lgck",
+        &base,
+        false,
+        &dir.join("fuzz.lgck"),
+        cases(150),
+        |p| trained::load(p, &device),
+    );
+
+    // The experiment config (TOML).
+    let toml = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic-tiny.toml");
+    let base = std::fs::read(&toml).unwrap();
+    total += fuzz(
+        "config",
+        &base,
+        true,
+        &dir.join("fuzz.toml"),
+        cases(1500),
+        |p| ExperimentConfig::load(p),
+    );
+
+    // A motion file.
+    let motion = dir.join("walk.json");
+    PoseSequence::from_motion(
+        Motion::Walk,
+        &JointRoles::for_rig(104).unwrap(),
+        104,
+        3,
+        10.0,
+    )
+    .save(&motion)
+    .unwrap();
+    let base = std::fs::read(&motion).unwrap();
+    total += fuzz(
+        "motion",
+        &base,
+        true,
+        &dir.join("fuzz.json"),
+        cases(1500),
+        |p| PoseSequence::load(p),
+    );
+
+    // The body template (.glb).
+    let base = std::fs::read(lowres_template_path()).unwrap();
+    total += fuzz(
+        "template",
+        &base,
+        false,
+        &dir.join("fuzz.glb"),
+        cases(300),
+        |p| BodyTemplate::load(p),
+    );
+
+    let largest = LARGEST.load(Ordering::Relaxed);
+    eprintln!("{total} cases in all; largest single allocation {largest} bytes");
+    assert!(
+        largest <= ALLOCATION_BOUND,
+        "an allocation of {largest} bytes"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
