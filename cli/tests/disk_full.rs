@@ -128,7 +128,7 @@ fn a_full_disk_during_training_loses_nothing() {
 #[test]
 fn a_full_disk_during_export_leaves_the_previous_files() {
     let (tmp, cfg) = tiny_split("disk-export", |s| {
-        (s.train_subjects, s.val_subjects) = (0, 1)
+        (s.train_subjects, s.val_subjects) = (0, 1);
     });
     let (val_dir, _) = cfg.data.split_paths(lifegom_data::dataset::Split::Val);
     let subject = std::fs::read_dir(&val_dir)

@@ -202,7 +202,7 @@ fn no_reader_panics_or_overallocates_on_damaged_files() {
         true,
         &dir.join("fuzz.toml"),
         cases(1500),
-        |p| ExperimentConfig::load(p),
+        ExperimentConfig::load,
     );
 
     // A motion file.
