@@ -228,8 +228,16 @@ impl Avatar {
             let (shape, v) = t2
                 .get("opacities")
                 .ok_or_else(|| file_error(path, "missing tensor `opacities`"))?;
+            if shape.len() != 1 {
+                return Err(file_error(
+                    path,
+                    format!("tensor `opacities` has shape {shape:?}, expected 1-D"),
+                ));
+            }
             Tensor::<1>::from_data(TensorData::new(v.clone(), [shape[0]]), device)
         };
+        // The parts below check themselves; their errors get the file's name.
+        let named = |e: crate::error::ModelError| file_error(path, e.to_string());
         let parents = header
             .joint_parents
             .iter()
@@ -243,9 +251,12 @@ impl Avatar {
                 .iter()
                 .map(|j| Vec3::from_array(*j))
                 .collect(),
-        )?;
-        let topology = MeshTopology::new(header.faces, header.num_vertices)?;
-        let mesh = GomMesh::new(&topology, header.subdivision, device)?;
+        )
+        .map_err(|e| named(e.into()))?;
+        let topology =
+            MeshTopology::new(header.faces, header.num_vertices).map_err(|e| named(e.into()))?;
+        let mesh =
+            GomMesh::new(&topology, header.subdivision, device).map_err(|e| named(e.into()))?;
         let faces = GomParams {
             so3: get2("so3")?,
             scales: get2("scales")?,

@@ -1,4 +1,5 @@
-//! Structure-blind mutation fuzzing of the file readers, bounded for CI: seeded bit flips,
+//! Structure-blind mutation fuzzing of the file readers (`.lgck`, `.lgom`, configs, motion files,
+//! the body template), bounded for CI: seeded bit flips,
 //! truncations, splices of another part of the file, huge little-endian length fields, and for
 //! the text formats numbers replaced by NaN, inf or huge values. Each reader must return (an
 //! error naming the file, or a value), never panic, and never ask for more than
@@ -15,8 +16,10 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use burn::tensor::Device;
+use lifegom_model::avatar::Avatar;
 use lifegom_model::reconstructor::ReconstructorConfig;
 use lifegom_model::trained;
+use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::motion::{JointRoles, Motion, PoseSequence};
 use lifegom_render::rng::Rng;
 use lifegom_render::template::{BodyTemplate, lowres_template_path};
@@ -191,6 +194,28 @@ fn no_reader_panics_or_overallocates_on_damaged_files() {
         &dir.join("fuzz.lgck"),
         cases(150),
         |p| trained::load(p, &device),
+    );
+
+    // An avatar file (.lgom): the low-res template at one subdivision, initial parameters.
+    let body = BodyTemplate::load(lowres_template_path()).unwrap();
+    let mesh = GomMesh::new(&body.topology, 1, &device).unwrap();
+    let avatar = Avatar::new(
+        body.vertex_tensor(&device),
+        GomParams::init(mesh.num_gaussians(), &device),
+        body.skin.tensor(&device),
+        body.skeleton.clone(),
+        mesh,
+    );
+    let lgom = dir.join("avatar.lgom");
+    avatar.save(&lgom).unwrap();
+    let base = std::fs::read(&lgom).unwrap();
+    total += fuzz(
+        "lgom",
+        &base,
+        false,
+        &dir.join("fuzz.lgom"),
+        cases(150),
+        |p| Avatar::load(p, &device),
     );
 
     // The experiment config (TOML).
