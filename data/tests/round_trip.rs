@@ -332,8 +332,9 @@ fn bad_data_errors_name_subject_frame_and_field() {
         &["frame `frame_000005`", "size mismatch", "64×64", "16×8"],
     );
 
-    // An empty mask, and a mask written 0/1 instead of 0/255.
-    for (name, value) in [("empty", 0u8), ("binary", 1u8)] {
+    // A uniform mask: empty, written 0/1 instead of 0/255, or with no background (inverted, or
+    // a white image saved as the mask).
+    let uniform_mask = |name: &str, value: u8| {
         let d = scratch_subject(name);
         image::save_buffer(
             d.join("masks/frame_000004.png"),
@@ -343,37 +344,18 @@ fn bad_data_errors_name_subject_frame_and_field() {
             image::ExtendedColorType::L8,
         )
         .unwrap();
-        assert_error(
-            &d,
-            &[
-                "subject `0000`",
-                "frame `frame_000004`",
-                "masks",
-                "shows no person",
-                &format!("largest value is {value} of 255"),
-            ],
-        );
+        d
+    };
+    let frame = ["subject `0000`", "frame `frame_000004`", "masks"];
+    for (name, value) in [("empty", 0u8), ("binary", 1u8)] {
+        let largest = format!("largest value is {value} of 255");
+        let parts = [&frame[..], &["shows no person", &largest]].concat();
+        assert_error(&uniform_mask(name, value), &parts);
     }
-
-    // A mask with no background (inverted, or a white image saved as the mask).
-    let d = scratch_subject("fullcover");
-    image::save_buffer(
-        d.join("masks/frame_000004.png"),
-        &[255u8; 64 * 64],
-        64,
-        64,
-        image::ExtendedColorType::L8,
-    )
-    .unwrap();
+    let full = ["covers the whole image (100.0 % of its pixels)", "inverted"];
     assert_error(
-        &d,
-        &[
-            "subject `0000`",
-            "frame `frame_000004`",
-            "masks",
-            "covers the whole image (100.0 % of its pixels)",
-            "inverted",
-        ],
+        &uniform_mask("fullcover", 255),
+        &[&frame[..], &full].concat(),
     );
 
     // A frame without a camera, and a missing pickle.

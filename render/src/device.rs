@@ -111,6 +111,12 @@ impl KernelFusion {
         })
     }
 
+    /// What `device` runs with: this process's choice on CubeCL devices, `None` on the host
+    /// backends (which have no fusion).
+    pub fn on_device(device: &Device) -> Option<Self> {
+        (!runs_on_host(device)).then(Self::current)
+    }
+
     /// The name printed in benchmark JSON (`kernel_fusion` field).
     pub fn name(self) -> &'static str {
         match self {

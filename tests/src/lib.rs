@@ -486,3 +486,25 @@ pub fn pattern_colors(
         .collect();
     Tensor::from_data(TensorData::new(colors, [f, 3]), &device)
 }
+
+/// The body template at `template` as an avatar at `levels` subdivisions: its own vertices,
+/// skin and skeleton, the initial Gaussians, coloured by [`pattern_colors`].
+pub fn patterned_avatar(
+    template: &std::path::Path,
+    levels: u32,
+    device: &Device,
+) -> lifegom_model::avatar::Avatar {
+    let body = lifegom_render::template::BodyTemplate::load(template).expect("template loads");
+    let mesh = lifegom_render::gom::GomMesh::new(&body.topology, levels, device)
+        .expect("template subdivides");
+    let subject = template_subject(&body, device);
+    let mut faces = GomParams::init(mesh.num_gaussians(), device);
+    faces.colors = pattern_colors(&mesh, subject.canonical_vertices.clone());
+    lifegom_model::avatar::Avatar::new(
+        subject.canonical_vertices,
+        faces,
+        subject.lbs_weights,
+        subject.skeleton,
+        mesh,
+    )
+}

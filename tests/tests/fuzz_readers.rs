@@ -19,10 +19,10 @@ use burn::tensor::Device;
 use lifegom_model::avatar::Avatar;
 use lifegom_model::reconstructor::ReconstructorConfig;
 use lifegom_model::trained;
-use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::motion::{JointRoles, Motion, PoseSequence};
 use lifegom_render::rng::Rng;
 use lifegom_render::template::{BodyTemplate, lowres_template_path};
+use lifegom_tests::patterned_avatar;
 use lifegom_train::config::ExperimentConfig;
 
 /// The largest single allocation a reader may ask for while reading a damaged file: 1 GiB.
@@ -196,16 +196,8 @@ fn no_reader_panics_or_overallocates_on_damaged_files() {
         |p| trained::load(p, &device),
     );
 
-    // An avatar file (.lgom): the low-res template at one subdivision, initial parameters.
-    let body = BodyTemplate::load(lowres_template_path()).unwrap();
-    let mesh = GomMesh::new(&body.topology, 1, &device).unwrap();
-    let avatar = Avatar::new(
-        body.vertex_tensor(&device),
-        GomParams::init(mesh.num_gaussians(), &device),
-        body.skin.tensor(&device),
-        body.skeleton.clone(),
-        mesh,
-    );
+    // An avatar file (.lgom): the low-res template at one subdivision.
+    let avatar = patterned_avatar(&lowres_template_path(), 1, &device);
     let lgom = dir.join("avatar.lgom");
     avatar.save(&lgom).unwrap();
     let base = std::fs::read(&lgom).unwrap();

@@ -21,30 +21,15 @@ use std::path::{Path, PathBuf};
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat4, DVec3, Vec3};
 use lifegom_model::avatar::Avatar;
-use lifegom_render::gom::{GomMesh, GomParams, gaussians_from_triangles};
+use lifegom_render::gom::{GomParams, gaussians_from_triangles};
 use lifegom_render::skeleton::{BodyPose, rodrigues};
 use lifegom_render::skinning::skin_vertices;
-use lifegom_render::template::{BodyTemplate, full_template_path, lowres_template_path};
-use lifegom_tests::{Rng, pattern_colors, read, template_subject};
+use lifegom_render::template::{full_template_path, lowres_template_path};
+use lifegom_tests::{Rng, patterned_avatar, read};
 
 /// The low-res template as an avatar at `levels` subdivisions, with a colour pattern.
 fn template_avatar(levels: u32, device: &Device) -> Avatar {
-    avatar_of(&lowres_template_path(), levels, device)
-}
-
-fn avatar_of(template: &Path, levels: u32, device: &Device) -> Avatar {
-    let body = BodyTemplate::load(template).unwrap();
-    let mesh = GomMesh::new(&body.topology, levels, device).unwrap();
-    let subject = template_subject(&body, device);
-    let mut faces = GomParams::init(mesh.num_gaussians(), device);
-    faces.colors = pattern_colors(&mesh, subject.canonical_vertices.clone());
-    Avatar::new(
-        subject.canonical_vertices,
-        faces,
-        subject.lbs_weights,
-        subject.skeleton,
-        mesh,
-    )
+    patterned_avatar(&lowres_template_path(), levels, device)
 }
 
 /// A pose that bends every joint a little (up to ±0.35 rad per axis) and the arms and legs a
@@ -390,7 +375,7 @@ fn lbs_order_difference_is_measured() {
         (lowres_template_path(), 2),
         (full_template_path(), 1),
     ] {
-        let avatar = avatar_of(&template, levels, &device);
+        let avatar = patterned_avatar(&template, levels, &device);
         let sub = &avatar.mesh.subdivision;
         let lowres = vec3s(&read(avatar.xyz.clone()));
         let edges = sub.lowres.unique_edges();

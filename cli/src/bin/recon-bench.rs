@@ -217,8 +217,7 @@ fn main() -> anyhow::Result<()> {
             })
             .collect::<serde_json::Map<_, _>>(),
         "runtime": lifegom_render::device::cube_runtime_name(&device),
-        "kernel_fusion": lifegom_render::device::cube_runtime_name(&device)
-            .map(|_| lifegom_render::device::KernelFusion::current().name()),
+        "kernel_fusion": lifegom_render::device::KernelFusion::on_device(&device).map(|k| k.name()),
         "threads": rayon::current_num_threads(),
     });
     if let Some(counter) = &launches {

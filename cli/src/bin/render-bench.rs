@@ -180,8 +180,7 @@ fn main() -> anyhow::Result<()> {
         "gaussians": n,
         "size": size,
         "runtime": lifegom_render::device::cube_runtime_name(&device),
-        "kernel_fusion": lifegom_render::device::cube_runtime_name(&device)
-            .map(|_| lifegom_render::device::KernelFusion::current().name()),
+        "kernel_fusion": lifegom_render::device::KernelFusion::on_device(&device).map(|k| k.name()),
         "threads": rayon::current_num_threads(),
         "runs": args.runs,
         "forward_ms": round(forward_ms),

@@ -336,8 +336,7 @@ fn main() -> anyhow::Result<()> {
         "system_per_wall": (system_seconds / wall_seconds * 100.0).round() / 100.0,
         "peak_rss_mib": peak_resident_mib().map(f64::round),
         "runtime": lifegom_render::device::cube_runtime_name(&device),
-        "kernel_fusion": lifegom_render::device::cube_runtime_name(&device)
-            .map(|_| lifegom_render::device::KernelFusion::current().name()),
+        "kernel_fusion": lifegom_render::device::KernelFusion::on_device(&device).map(|k| k.name()),
         "threads": rayon::current_num_threads(),
         "concurrency": format!("{:?}", args.concurrency).to_lowercase(),
         "by_concurrency": by_concurrency,

@@ -68,12 +68,6 @@ impl<B: FusionBackend> Input<B> {
             Input::Float(t) | Input::Int(t) => t,
         }
     }
-
-    /// The spec of a float or int input (its shape and dtype).
-    pub fn spec(&self) -> TensorSpec {
-        let t = self.tensor();
-        TensorSpec::new(t.shape(), t.dtype())
-    }
 }
 
 #[derive(Clone, Copy)]
