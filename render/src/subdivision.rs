@@ -272,8 +272,11 @@ mod tests {
                 "{e}"
             );
         }
-        // 8 faces · 4^10 = 8,388,608: allowed (not built here: it is large).
-        assert!(8 * 4usize.pow(10) <= MAX_HIGHRES_FACES);
+        // Small level counts still subdivide: 8 faces · 4² = 128.
+        assert_eq!(
+            Subdivision::new(&topology, 2).unwrap().highres.faces.len(),
+            128
+        );
     }
 
     fn tetrahedron() -> (MeshTopology, Vec<Vec3>) {
