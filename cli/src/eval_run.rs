@@ -13,7 +13,7 @@ use anyhow::Context;
 use burn::tensor::Device;
 use lifegom_data::dataset::{DataConfig, Dataset, Split};
 use lifegom_model::inputs::{SubjectRig, model_inputs};
-use lifegom_model::reconstructor::Reconstructor;
+use lifegom_model::reconstructor::{Reconstructor, ReconstructorConfig};
 use lifegom_model::trained;
 use lifegom_render::gom::GomMesh;
 use lifegom_render::motion::{MotionSource, known_joint_names, with_known_joint_names};
@@ -35,8 +35,11 @@ use lifegom_train::losses::LossWeights;
 pub struct EvalOptions {
     /// The `[data]` section (root already overridden).
     pub data: DataConfig,
-    /// Trained-model file (`.lgck`).
+    /// Trained-model file: a `.lgck`, or an official checkpoint (`.pth` / `.safetensors`).
     pub checkpoint: PathBuf,
+    /// The network an official checkpoint's weights are loaded into (the experiment's
+    /// `[model]` for its number of input views); a `.lgck` carries its own.
+    pub official_network: ReconstructorConfig,
     /// Output folder.
     pub out: PathBuf,
     /// Device (no autodiff needed).
@@ -110,18 +113,25 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
     let _span = tracing::info_span!("eval", out = %opts.out.display()).entered();
     std::fs::create_dir_all(&opts.out)
         .with_context(|| format!("creating {}", opts.out.display()))?;
-    let loaded = trained::load(&opts.checkpoint, &opts.device)?;
-    let (model, config) = (loaded.model, loaded.config);
+    let loaded = trained::load_any(&opts.checkpoint, &opts.official_network, &opts.device)?;
     let dataset = Dataset::open(&opts.data, Split::Val)?;
+    if let Some(subject) = dataset.subjects.first() {
+        let rig = SubjectRig::new(&subject.name, &subject.canonical)?;
+        loaded
+            .check_template(&opts.checkpoint, rig.num_vertices())
+            .with_context(|| format!("validation subject `{}`", subject.name))?;
+    }
+    let provenance = loaded.provenance();
+    let (model, config) = (loaded.model, loaded.config);
     let mut report = Report {
         title: "LIFe-GoM evaluation".into(),
         context: opts.context.clone(),
         ..Default::default()
     };
     report.context.push(format!(
-        "checkpoint `{}` (step {}), split `{}` ({} subjects, {:?}), {}×{} px",
+        "checkpoint `{}` ({}), split `{}` ({} subjects, {:?}), {}×{} px",
         opts.checkpoint.display(),
-        loaded.header.meta["step"],
+        provenance,
         opts.data.split_paths(Split::Val).0.display(),
         dataset.subjects.len(),
         dataset.rule.protocol,
@@ -169,7 +179,7 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
     report.sheets = list_relative(&opts.out, "sheets");
 
     for path in &opts.other_models {
-        let other = trained::load(path, &opts.device)?;
+        let other = trained::load_any(path, &opts.official_network, &opts.device)?;
         let mut s = evaluate_split(
             &Method::Model {
                 model: &other.model,
@@ -187,7 +197,7 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         let PerceptualOutcome { fid } = score_perceptual(&perceptual, &mut s, &opts.device)?;
         let summary = Summary::of(&s, fid);
         // Plain text: the chart's legend shows it too, in a font without backquotes.
-        let name = format!("{} (step {})", path.display(), other.header.meta["step"]);
+        let name = format!("{} ({})", path.display(), other.provenance());
         progress(&format!("other model, T = {}", s.iterations), &summary);
         report.other_models.push((name, summary));
     }

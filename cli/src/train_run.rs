@@ -44,7 +44,7 @@ use lifegom_eval::images::{Image, error_map, grid};
 use lifegom_eval::plot::{Chart, PALETTE, Scale, Series, Style};
 use lifegom_eval::validation::score_feedback_steps;
 use lifegom_model::inputs::model_inputs;
-use lifegom_model::reconstructor::MeshPurpose;
+use lifegom_model::reconstructor::{MeshPurpose, ReconstructorConfig};
 use lifegom_model::trained;
 
 use lifegom_train::config::{ExperimentConfig, LpipsFallback};
@@ -64,6 +64,10 @@ pub struct RunOptions {
     pub out: PathBuf,
     /// Continue from `out/checkpoints/latest.lgck` if it exists.
     pub resume: bool,
+    /// Fine-tune: start a new run from these weights (a `.lgck` or an official checkpoint)
+    /// with a fresh optimiser. A run resumed from its own checkpoint ignores it (it started
+    /// from these weights).
+    pub init: Option<PathBuf>,
     /// Stop (with a checkpoint) after this many minutes of training.
     pub max_minutes: Option<f64>,
     /// Override of `[train] steps`.
@@ -75,17 +79,53 @@ pub struct RunOptions {
     pub progress: bool,
 }
 
-/// Writes the model of the checkpoint `source` (weights, config, metadata) to `dest` without
-/// the trainer's payload (optimizer state, data position): what inference needs.
+/// Where `--export` writes to, told by the destination's extension.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ExportFormat {
+    /// A lifegom trained-model file (`.lgck`; any other extension too).
+    Lifegom,
+    /// The official code's state dict, under its key names and PyTorch layouts, in a
+    /// SafeTensors file (`.safetensors`): for PyTorch users; weights only.
+    OfficialSafetensors,
+}
+
+impl ExportFormat {
+    /// The format `dest` asks for.
+    pub fn of(dest: &Path) -> Self {
+        if dest
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("safetensors"))
+        {
+            Self::OfficialSafetensors
+        } else {
+            Self::Lifegom
+        }
+    }
+}
+
+/// Writes the model of `source` (a run's checkpoint, or any `.lgck` or official checkpoint;
+/// weights, config, metadata) to `dest` without the trainer's payload (optimizer state, data
+/// position): what inference needs. An official checkpoint carries no config: it is loaded
+/// into `official_network` (the experiment's network), and refused without one.
 /// `subdivide_test` replaces the default subdivision at inference (the weights serve every
-/// level). Returns the size written.
+/// level). A `dest` ending in `.safetensors` gets the official state dict instead
+/// ([`ExportFormat`]). Returns the size written.
 pub fn export_model(
     source: &Path,
     dest: &Path,
     subdivide_test: Option<u32>,
+    official_network: Option<&ReconstructorConfig>,
     device: &Device,
 ) -> anyhow::Result<u64> {
-    let mut loaded = trained::load(source, device)?;
+    let mut loaded = match official_network {
+        Some(network) => trained::load_any(source, network, device)?,
+        None if !trained::is_lifegom_file(source)? => bail!(
+            "{}: not a lifegom model file; an official checkpoint holds weights only: pass the \
+             experiment's `--config` so that its `[model]` network receives them",
+            source.display()
+        ),
+        None => trained::load(source, device)?,
+    };
     if let Some(s) = subdivide_test {
         loaded.config.subdivide_test = s;
     }
@@ -100,7 +140,14 @@ pub fn export_model(
     if let Some(dir) = dest.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    trained::save(dest, &loaded.model, &loaded.config, loaded.header.meta, &[])?;
+    match ExportFormat::of(dest) {
+        ExportFormat::Lifegom => {
+            trained::save(dest, &loaded.model, &loaded.config, loaded.header.meta, &[])?
+        }
+        ExportFormat::OfficialSafetensors => {
+            lifegom_model::checkpoint::save_official_safetensors(&loaded.model, dest)?
+        }
+    }
     Ok(std::fs::metadata(dest)
         .with_context(|| format!("reading {}", dest.display()))?
         .len())
@@ -417,16 +464,28 @@ pub fn train_with(
             }
             let _ = std::fs::remove_file(opts.out.join("metrics.jsonl"));
         }
-        let mut t = Trainer::new(cfg.reconstructor(), num_vertices, &cfg.train, &opts.device)?;
-        if let Some(path) = &cfg.model.encoder_weights {
-            let report = t.load_encoder_weights(path)?;
-            say(&report);
+        if let Some(init) = &opts.init {
+            let (t, line) = Trainer::from_weights(
+                init,
+                cfg.reconstructor(),
+                num_vertices,
+                &cfg.train,
+                &opts.device,
+            )?;
+            say(&line);
+            t
         } else {
-            say(
-                "no ImageNet ResNet-18 weights configured ([model] encoder_weights): the encoder starts from RANDOM initialisation",
-            );
+            let mut t = Trainer::new(cfg.reconstructor(), num_vertices, &cfg.train, &opts.device)?;
+            if let Some(path) = &cfg.model.encoder_weights {
+                let report = t.load_encoder_weights(path)?;
+                say(&report);
+            } else {
+                say(
+                    "no ImageNet ResNet-18 weights configured ([model] encoder_weights): the encoder starts from RANDOM initialisation",
+                );
+            }
+            t
         }
-        t
     };
     let layout = BatchLayout {
         first_sample: trainer.samples,

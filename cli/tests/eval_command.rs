@@ -23,6 +23,7 @@ fn eval_on_a_tiny_split_writes_every_file() {
     let outcome = run(&EvalOptions {
         data: cfg.data.clone(),
         checkpoint: ckpt,
+        official_network: lifegom_model::reconstructor::ReconstructorConfig::tiny(2),
         out: out.clone(),
         device: Device::ndarray(),
         subdivide: None,

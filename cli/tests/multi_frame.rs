@@ -39,6 +39,7 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
         &RunOptions {
             out: run_dir.clone(),
             resume: false,
+            init: None,
             max_minutes: None,
             steps: Some(3),
             device: Device::ndarray(),
@@ -87,6 +88,7 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
     let outcome = run(&EvalOptions {
         data: cfg.file.data.clone(),
         checkpoint: summary.checkpoint.clone(),
+        official_network: cfg.reconstructor(),
         out: out.clone(),
         device: Device::ndarray(),
         subdivide: None,

@@ -40,6 +40,7 @@ fn options(subject: &Path, model: &Path, out: PathBuf) -> ReconstructOptions {
     ReconstructOptions {
         subject: subject.to_path_buf(),
         model: model.to_path_buf(),
+        official_network: lifegom_model::reconstructor::ReconstructorConfig::tiny(1),
         img_size: [64, 64],
         background: [0.0; 3],
         kinematic_tree: KinematicTree::Stored,

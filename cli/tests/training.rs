@@ -60,6 +60,7 @@ fn run_options(out: PathBuf, steps: u64, resume: bool) -> RunOptions {
     RunOptions {
         out,
         resume,
+        init: None,
         max_minutes: None,
         steps: Some(steps),
         device: Device::ndarray(),
@@ -275,6 +276,7 @@ fn a_stop_request_saves_a_checkpoint_and_bad_checkpoints_are_errors() {
         &RunOptions {
             out: out.clone(),
             resume: false,
+            init: None,
             max_minutes: None,
             steps: Some(10),
             device: Device::ndarray(),

@@ -113,18 +113,25 @@ impl fmt::Display for ShapeMismatch {
     }
 }
 
+/// Entries an error lists before it summarises the rest: a wrong network can miss hundreds of
+/// keys, and one screen must still show the first ones.
+const LISTED: usize = 6;
+
+fn capped(items: Vec<String>, sep: &str) -> String {
+    let more = items.len().saturating_sub(LISTED);
+    let mut text = items.into_iter().take(LISTED).collect::<Vec<_>>().join(sep);
+    if more > 0 {
+        text.push_str(&format!("{sep}… and {more} more"));
+    }
+    text
+}
+
 fn list(keys: &[String]) -> String {
-    keys.iter()
-        .map(|k| format!("`{k}`"))
-        .collect::<Vec<_>>()
-        .join(", ")
+    capped(keys.iter().map(|k| format!("`{k}`")).collect(), ", ")
 }
 
 fn list_shapes(m: &[ShapeMismatch]) -> String {
-    m.iter()
-        .map(ToString::to_string)
-        .collect::<Vec<_>>()
-        .join("; ")
+    capped(m.iter().map(ToString::to_string).collect(), "; ")
 }
 
 /// Errors of [`load_official_checkpoint`]. Every variant about a file names it.
@@ -519,6 +526,38 @@ pub fn official_key_names(model: &Reconstructor) -> Result<Vec<OfficialTensor>, 
     }
 }
 
+/// Writes `model`'s weights as an official-format state dict in a SafeTensors file: the
+/// official keys and PyTorch layouts of [`official_key_names`], `f32`. The official code (or
+/// anyone with `safetensors.torch.load_file`) reads it back as its `network` state dict, and
+/// [`load_official_checkpoint`] imports it. Written atomically.
+pub fn save_official_safetensors(
+    model: &Reconstructor,
+    path: &Path,
+) -> Result<(), CheckpointError> {
+    let names = official_key_names(model)?;
+    let torch = model.collect(None, Some(Box::new(BurnToPyTorchAdapter)), true);
+    let format_err = |reason: String| CheckpointError::Format {
+        path: path.to_path_buf(),
+        format: CheckpointFormat::SafeTensors,
+        reason,
+    };
+    let mut tensors = Vec::with_capacity(names.len());
+    // `official_key_names` lists the same collection in the same order.
+    for (t, name) in torch.iter().zip(&names) {
+        let values = burn::store::bridge::to_data(t)
+            .map_err(|e| format_err(format!("`{}`: {e}", name.key)))?
+            .convert::<f32>()
+            .try_to_vec::<f32>()
+            .map_err(|e| format_err(format!("`{}`: {e:?}", name.key)))?;
+        tensors.push((name.key.clone(), name.shape.clone(), values));
+    }
+    let bytes = crate::weights_file::encode_safetensors(&tensors).map_err(format_err)?;
+    lifegom_render::atomic_file::write_atomic(path, &bytes).map_err(|source| CheckpointError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
 /// Strips the wrapper prefixes (`network.`, `module.`, any number, any order) of a key.
 fn strip_wrappers(key: &str) -> (&str, &str) {
     let mut rest = key;
@@ -576,6 +615,56 @@ fn read_tensors(path: &Path) -> Result<(CheckpointFormat, bool, Vec<PackTensor>)
     }
 }
 
+/// A file's state dict, keyed by official key (wrapper prefixes stripped).
+struct StateDict {
+    format: CheckpointFormat,
+    nested_under_network: bool,
+    stripped_prefix: Option<String>,
+    /// Official key → (raw key, tensor renamed to the official key).
+    tensors: BTreeMap<String, (String, PackTensor)>,
+}
+
+fn read_state_dict(path: &Path) -> Result<StateDict, CheckpointError> {
+    let (format, nested_under_network, raw) = read_tensors(path)?;
+    let mut stripped_prefix = None;
+    let mut tensors: BTreeMap<String, (String, PackTensor)> = BTreeMap::new();
+    for mut t in raw {
+        let raw_name = t.name.clone();
+        let (prefix, key) = strip_wrappers(&raw_name);
+        if !prefix.is_empty() {
+            stripped_prefix.get_or_insert_with(|| prefix.to_string());
+        }
+        let key = key.to_string();
+        t.name = key.clone();
+        if let Some((first, _)) = tensors.get(&key) {
+            return Err(CheckpointError::DuplicateKey {
+                path: path.to_path_buf(),
+                key,
+                first: first.clone(),
+                second: raw_name,
+            });
+        }
+        tensors.insert(key, (raw_name, t));
+    }
+    Ok(StateDict {
+        format,
+        nested_under_network,
+        stripped_prefix,
+        tensors,
+    })
+}
+
+/// The official key and shape of every tensor of a checkpoint file (wrapper prefixes
+/// stripped), without reading the tensors' data: what a caller needs to build the matching
+/// network (the vertex embedding's rows) before loading it.
+pub fn read_official_shapes(path: &Path) -> Result<BTreeMap<String, Vec<usize>>, CheckpointError> {
+    Ok(read_state_dict(path)?
+        .tensors
+        .into_iter()
+        .map(|(key, (_, t))| (key, t.shape.to_vec()))
+        .collect())
+}
+
 /// Loads an official LIFe-GoM checkpoint with [`VertexEmbed::Load`]; see the module docs.
 pub fn load_official_checkpoint(
     model: Reconstructor,
@@ -596,30 +685,13 @@ pub fn load_official_checkpoint_with(
     vertex_embed: VertexEmbed,
 ) -> Result<(Reconstructor, ImportReport), CheckpointError> {
     let expected = official_key_names(&model)?;
-    let (format, nested_under_network, raw) = read_tensors(path)?;
+    let StateDict {
+        format,
+        nested_under_network,
+        stripped_prefix,
+        tensors: mut file,
+    } = read_state_dict(path)?;
     let file_err = || path.to_path_buf();
-
-    // Official key → tensor (renamed to the official key).
-    let mut stripped_prefix = None;
-    let mut file: BTreeMap<String, (String, PackTensor)> = BTreeMap::new();
-    for mut t in raw {
-        let raw_name = t.name.clone();
-        let (prefix, key) = strip_wrappers(&raw_name);
-        if !prefix.is_empty() {
-            stripped_prefix.get_or_insert_with(|| prefix.to_string());
-        }
-        let key = key.to_string();
-        t.name = key.clone();
-        if let Some((first, _)) = file.get(&key) {
-            return Err(CheckpointError::DuplicateKey {
-                path: file_err(),
-                key,
-                first: first.clone(),
-                second: raw_name,
-            });
-        }
-        file.insert(key, (raw_name, t));
-    }
 
     let mut kept_init = Vec::new();
     let mut skip: BTreeSet<String> = BTreeSet::new();
@@ -654,21 +726,12 @@ pub fn load_official_checkpoint_with(
     }
 
     let wanted: Vec<&OfficialTensor> = expected.iter().filter(|e| !skip.contains(&e.key)).collect();
-    let missing: Vec<String> = wanted
-        .iter()
-        .filter(|e| !file.contains_key(&e.key))
-        .map(|e| e.key.clone())
-        .collect();
-    if !missing.is_empty() {
-        return Err(CheckpointError::Missing {
-            path: file_err(),
-            keys: missing,
-        });
-    }
+    // Shapes first: a network of another size also misses or adds keys, and the shapes of the
+    // keys both have say best what differs.
     let mismatches: Vec<ShapeMismatch> = wanted
         .iter()
         .filter_map(|e| {
-            let found = file[&e.key].1.shape.to_vec();
+            let found = file.get(&e.key)?.1.shape.to_vec();
             (found != e.shape).then(|| ShapeMismatch {
                 key: e.key.clone(),
                 expected: e.shape.clone(),
@@ -680,6 +743,17 @@ pub fn load_official_checkpoint_with(
         return Err(CheckpointError::Shape {
             path: file_err(),
             mismatches,
+        });
+    }
+    let missing: Vec<String> = wanted
+        .iter()
+        .filter(|e| !file.contains_key(&e.key))
+        .map(|e| e.key.clone())
+        .collect();
+    if !missing.is_empty() {
+        return Err(CheckpointError::Missing {
+            path: file_err(),
+            keys: missing,
         });
     }
     if let Some(e) = wanted.iter().find(|e| !file[&e.key].1.dtype.is_float()) {

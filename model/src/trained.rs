@@ -16,6 +16,16 @@
 //! The header holds the [`ReconstructorConfig`], the low-res vertex count (the vertex embedding
 //! has one row per template vertex) and free-form metadata. Burnpack keeps parameter ids, so an
 //! optimizer state saved alongside resumes against the same parameters.
+//!
+//! # Official checkpoints
+//!
+//! [`load_any`] also takes the official code's weights: a `torch.save` file (zip or legacy
+//! pickle, the state dict bare or under `network`) or a `.safetensors` file, told apart from a
+//! `.lgck` by its first bytes. Such a file holds weights only, so the network is the one the
+//! caller's experiment config describes (`[model]` and the number of input views); its shapes
+//! are checked against the file's, tensor by tensor, and a mismatch is one error naming the key
+//! and both shapes, with the preset the file does match when it matches one
+//! ([`crate::checkpoint`] has the key map).
 
 use std::path::{Path, PathBuf};
 
@@ -57,6 +67,34 @@ pub enum TrainedError {
         /// Burn's explanation.
         reason: String,
     },
+    /// An official checkpoint that cannot be imported (the error names the file and the key).
+    #[error("{import}{hint}")]
+    Official {
+        /// The importer's error (its text is this error's; not repeated as a cause).
+        import: Box<crate::checkpoint::CheckpointError>,
+        /// What the file's shapes do describe, when that helps (empty otherwise).
+        hint: String,
+    },
+    /// The model was trained for another body template: its per-vertex embedding has one row
+    /// per vertex of that template.
+    #[error(
+        "{path}: `{key}` has shape {file:?}, one row per vertex of the body template the model \
+         was trained with, but this template has {template_vertices} low-res vertices (needs \
+         {needed:?}); use the template the model was trained on (the demo model: the low-res Anny \
+         template)"
+    )]
+    Template {
+        /// The file.
+        path: PathBuf,
+        /// The embedding's key as the file names it.
+        key: &'static str,
+        /// Its shape in the file.
+        file: Vec<usize>,
+        /// The shape this template needs.
+        needed: Vec<usize>,
+        /// Low-res vertices of the template.
+        template_vertices: usize,
+    },
     /// The config in the header cannot build a network.
     #[error("{path}: {source}")]
     Model {
@@ -78,6 +116,15 @@ pub struct TrainedHeader {
     pub meta: serde_json::Value,
 }
 
+/// Where a loaded model's weights came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ModelFileKind {
+    /// A lifegom trained-model file (`.lgck`).
+    Lifegom,
+    /// An official LIFe-GoM checkpoint, in this container format.
+    Official(crate::weights_file::WeightsFormat),
+}
+
 /// A loaded trained-model file.
 #[derive(Debug)]
 pub struct TrainedModel {
@@ -89,6 +136,63 @@ pub struct TrainedModel {
     pub header: TrainedHeader,
     /// The writer's payload (empty when none).
     pub payload: Vec<u8>,
+    /// What kind of file it was.
+    pub kind: ModelFileKind,
+}
+
+impl TrainedModel {
+    /// One phrase for reports: `step 7000` for a lifegom model, `official PyTorch checkpoint`
+    /// for an imported one.
+    pub fn provenance(&self) -> String {
+        match self.kind {
+            ModelFileKind::Official(format) => format!("official {format} checkpoint"),
+            ModelFileKind::Lifegom => match self.header.meta["step"].as_u64() {
+                Some(step) => format!("step {step}"),
+                None => "step unknown".into(),
+            },
+        }
+    }
+
+    /// Checks that the model's per-vertex embedding fits a template of `template_vertices`
+    /// low-res vertices; `path` is the file the model came from.
+    pub fn check_template(
+        &self,
+        path: &Path,
+        template_vertices: usize,
+    ) -> Result<(), TrainedError> {
+        let [rows, width] = self.model.vertex_embed.dims();
+        if rows == template_vertices {
+            return Ok(());
+        }
+        Err(TrainedError::Template {
+            path: path.to_path_buf(),
+            key: match self.kind {
+                ModelFileKind::Lifegom => "vertex_embed",
+                ModelFileKind::Official(_) => crate::checkpoint::VERTEX_EMBED_KEY,
+            },
+            file: vec![rows, width],
+            needed: vec![template_vertices, width],
+            template_vertices,
+        })
+    }
+
+    /// Whether this model's network has the architecture of `config` (what the weights'
+    /// shapes depend on; feedback steps, subdivisions and dropout may differ).
+    pub fn same_architecture(&self, config: &ReconstructorConfig) -> bool {
+        architecture(&self.config) == architecture(config)
+    }
+}
+
+/// The parts of a config the weights' shapes depend on, as JSON (the config types derive no
+/// equality).
+fn architecture(config: &ReconstructorConfig) -> serde_json::Value {
+    serde_json::json!({
+        "encoder": serde_json::from_str::<serde_json::Value>(&config.encoder.to_string()).ok(),
+        "point_transformer":
+            serde_json::from_str::<serde_json::Value>(&config.point_transformer.to_string()).ok(),
+        "num_views": config.num_views,
+        "n_heads": config.n_heads,
+    })
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainedError + '_ {
@@ -215,7 +319,141 @@ pub fn load(path: &Path, device: &Device) -> Result<TrainedModel, TrainedError> 
         config,
         header,
         payload: payload.to_vec(),
+        kind: ModelFileKind::Lifegom,
     })
+}
+
+/// Whether the file at `path` is a lifegom trained-model file (by its magic, not its name).
+pub fn is_lifegom_file(path: &Path) -> Result<bool, TrainedError> {
+    use std::io::Read;
+    let mut head = Vec::with_capacity(MAGIC.len());
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAGIC.len() as u64).read_to_end(&mut head))
+        .map_err(io(path))?;
+    Ok(head == MAGIC)
+}
+
+/// Loads a `.lgck` ([`load`]) or an official checkpoint (module docs), told apart by content.
+/// `official` is the network an official file's weights are loaded into (the experiment's
+/// `[model]` for its number of views); a `.lgck` carries its own config and ignores it.
+pub fn load_any(
+    path: &Path,
+    official: &ReconstructorConfig,
+    device: &Device,
+) -> Result<TrainedModel, TrainedError> {
+    if is_lifegom_file(path)? {
+        return load(path, device);
+    }
+    let _span = tracing::info_span!("import_official", path = %path.display()).entered();
+    let official_err =
+        |e: crate::checkpoint::CheckpointError, hint: String| TrainedError::Official {
+            import: Box::new(e),
+            hint,
+        };
+    let shapes = crate::checkpoint::read_official_shapes(path)
+        .map_err(|e| official_err(e, String::new()))?;
+    // The embedding has one row per vertex of the template the weights were trained with; the
+    // caller checks that against its template ([`TrainedModel::check_template`]).
+    let rows = match shapes
+        .get(crate::checkpoint::VERTEX_EMBED_KEY)
+        .map(Vec::as_slice)
+    {
+        Some(&[rows, _]) => rows,
+        _ => {
+            return Err(official_err(
+                crate::checkpoint::CheckpointError::Missing {
+                    path: path.to_path_buf(),
+                    keys: vec![crate::checkpoint::VERTEX_EMBED_KEY.into()],
+                },
+                String::new(),
+            ));
+        }
+    };
+    let model = official
+        .init(rows, device)
+        .map_err(|e| TrainedError::Model {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        })?;
+    let (model, report) =
+        crate::checkpoint::load_official_checkpoint(model, path).map_err(|e| {
+            let hint = match &e {
+                crate::checkpoint::CheckpointError::Shape { .. }
+                | crate::checkpoint::CheckpointError::Missing { .. }
+                | crate::checkpoint::CheckpointError::Unexpected { .. } => {
+                    described_preset_hint(&shapes, rows, official, device)
+                }
+                _ => String::new(),
+            };
+            official_err(e, hint)
+        })?;
+    let header = TrainedHeader {
+        config: serde_json::from_str(&official.to_string()).map_err(|e| TrainedError::Format {
+            path: path.to_path_buf(),
+            reason: format!("config: {e}"),
+        })?,
+        num_vertices: rows,
+        meta: serde_json::json!({
+            "source": "official LIFe-GoM checkpoint",
+            "file": path.display().to_string(),
+            "format": report.format.to_string(),
+            "tensors": report.applied.len(),
+        }),
+    };
+    Ok(TrainedModel {
+        model,
+        config: official.clone(),
+        header,
+        payload: Vec::new(),
+        kind: ModelFileKind::Official(report.format),
+    })
+}
+
+/// The presets a state dict is compared with when it does not fit the asked network.
+const PRESETS: [(&str, fn(usize) -> ReconstructorConfig); 3] = [
+    ("paper", ReconstructorConfig::paper),
+    ("cpu", ReconstructorConfig::cpu),
+    ("tiny", ReconstructorConfig::tiny),
+];
+
+/// Views a described preset is looked for with.
+const MAX_DESCRIBED_VIEWS: usize = 8;
+
+/// `"; the file holds the `[model] preset = "tiny"` network for 3 views"` when the file's
+/// shapes are exactly one preset's, else empty. Parameters are drawn lazily, so building the
+/// candidates allocates no weights.
+fn described_preset_hint(
+    shapes: &std::collections::BTreeMap<String, Vec<usize>>,
+    rows: usize,
+    asked: &ReconstructorConfig,
+    device: &Device,
+) -> String {
+    for (name, preset) in PRESETS {
+        for views in 1..=MAX_DESCRIBED_VIEWS {
+            let Ok(model) = preset(views).init(rows, device) else {
+                continue;
+            };
+            let Ok(names) = crate::checkpoint::official_key_names(&model) else {
+                continue;
+            };
+            let fits = names
+                .iter()
+                .all(|t| shapes.get(&t.key).is_some_and(|s| *s == t.shape))
+                && shapes
+                    .keys()
+                    .filter(|k| !crate::checkpoint::is_ignorable_buffer(k))
+                    .count()
+                    == names.len();
+            if fits {
+                return format!(
+                    "; the file holds the `[model] preset = \"{name}\"` network for {views} input \
+                     views (`[data] n_input_frames = {views}`), not the config's network ({} views)",
+                    asked.num_views
+                );
+            }
+        }
+    }
+    "; the file matches none of the presets (paper, cpu, tiny) for 1 to 8 views".into()
 }
 
 #[cfg(test)]
@@ -276,6 +514,67 @@ mod tests {
         assert_eq!(loaded.header.num_vertices, template.num_vertices());
         assert_eq!(loaded.config.iterations, 3);
         assert!(loaded.header.meta["step"].as_u64().unwrap() > 0);
+    }
+
+    /// The same weights as a `.lgck` and as an official-format SafeTensors file load into the
+    /// same network; a file that does not fit the asked network is one error naming a key, both
+    /// shapes and the preset the file does hold; a template of another size is refused.
+    #[test]
+    fn official_files_load_like_lifegom_files_and_mismatches_name_key_and_shapes() {
+        let device = Device::ndarray();
+        let config = ReconstructorConfig::tiny(3).with_iterations(2);
+        let model = config.init(23, &device).unwrap();
+        let lgck = tmp("same.lgck");
+        save(&lgck, &model, &config, serde_json::json!({"step": 3}), &[]).unwrap();
+        let official = tmp("same.safetensors");
+        crate::checkpoint::save_official_safetensors(&model, &official).unwrap();
+
+        let a = load_any(&lgck, &ReconstructorConfig::paper(3), &device).unwrap();
+        let b = load_any(&official, &config, &device).unwrap();
+        assert_eq!(a.kind, ModelFileKind::Lifegom);
+        assert_eq!(
+            b.kind,
+            ModelFileKind::Official(crate::weights_file::WeightsFormat::SafeTensors)
+        );
+        assert_eq!(b.header.num_vertices, 23);
+        assert!(a.same_architecture(&b.config));
+        assert_eq!(a.provenance(), "step 3");
+        assert_eq!(b.provenance(), "official SafeTensors checkpoint");
+        let values = |m: &Reconstructor| -> Vec<Vec<f32>> {
+            use burn::store::ModuleSnapshot;
+            m.collect(None, None, true)
+                .iter()
+                .map(|t| {
+                    let data = burn::store::bridge::to_data(t).unwrap();
+                    data.convert::<f32>().to_vec().unwrap()
+                })
+                .collect()
+        };
+        let (va, vb) = (values(&a.model), values(&b.model));
+        assert_eq!(va.len(), vb.len());
+        assert!(va == vb, "every tensor equal");
+
+        // Asked for 2 views: the heads' input widths differ.
+        let err = load_any(&official, &ReconstructorConfig::tiny(2), &device)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("same.safetensors"), "{err}");
+        assert!(
+            err.contains("`reconstructor.so3_update_layer.0.weight`: model needs [32, 312], file has [32, 456]"),
+            "{err}"
+        );
+        assert!(
+            err.contains("preset = \"tiny\"` network for 3 input"),
+            "{err}"
+        );
+
+        let err = b.check_template(&official, 1229).unwrap_err().to_string();
+        assert!(
+            err.contains("`reconstructor.vertex_embed` has shape [23, "),
+            "{err}"
+        );
+        assert!(err.contains("needs [1229, "), "{err}");
+        assert!(a.check_template(&lgck, 23).is_ok());
     }
 
     #[test]

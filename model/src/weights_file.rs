@@ -49,6 +49,41 @@ impl WeightsFormat {
     }
 }
 
+/// Encodes `f32` tensors `(name, shape, values)` as a SafeTensors file, in the given order: the
+/// header's length as a little-endian `u64`, the JSON header (padded with spaces to a multiple
+/// of 8 bytes, as the reference writer does), then the little-endian payloads back to back.
+pub fn encode_safetensors(tensors: &[(String, Vec<usize>, Vec<f32>)]) -> Result<Vec<u8>, String> {
+    let mut header = serde_json::Map::new();
+    let mut offset = 0usize;
+    for (name, shape, values) in tensors {
+        if values.len() != shape.iter().product::<usize>() {
+            return Err(format!(
+                "`{name}`: {} values for shape {shape:?}",
+                values.len()
+            ));
+        }
+        let end = offset + 4 * values.len();
+        header.insert(
+            name.clone(),
+            serde_json::json!({"dtype": "F32", "shape": shape, "data_offsets": [offset, end]}),
+        );
+        offset = end;
+    }
+    let mut json = serde_json::to_vec(&header).map_err(|e| e.to_string())?;
+    while !json.len().is_multiple_of(8) {
+        json.push(b' ');
+    }
+    let mut out = Vec::with_capacity(8 + json.len() + offset);
+    out.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    out.extend(json);
+    for (_, _, values) in tensors {
+        values
+            .iter()
+            .for_each(|x| out.extend_from_slice(&x.to_le_bytes()));
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

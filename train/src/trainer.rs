@@ -292,6 +292,56 @@ impl Trainer {
         )
     }
 
+    /// Fine-tuning: the weights of `path` (a `.lgck`, or an official checkpoint loaded into
+    /// `config`'s network) with a fresh optimiser at step 0, on `device` (made autodiff here).
+    /// The network is `config`'s: a `.lgck` of another architecture is refused (feedback
+    /// steps, subdivisions and dropout are `config`'s whatever the file says), as is a model
+    /// for a template of other than `num_vertices` low-res vertices. Burn's RNG is seeded from
+    /// `train.seed`, as [`Trainer::new`] seeds it. Returns the trainer and a line saying what
+    /// was loaded.
+    pub fn from_weights(
+        path: &std::path::Path,
+        config: ReconstructorConfig,
+        num_vertices: usize,
+        train: &TrainSection,
+        device: &Device,
+    ) -> Result<(Self, String), TrainError> {
+        let device = device.clone().autodiff();
+        device.seed(train.seed);
+        let loaded = trained::load_any(path, &config, &device)?;
+        loaded.check_template(path, num_vertices)?;
+        if !loaded.same_architecture(&config) {
+            return Err(TrainError::Checkpoint(TrainedError::Format {
+                path: path.to_path_buf(),
+                reason: format!(
+                    "its network ({} views) is not the config's `[model]` network ({} views{}); \
+                     fine-tuning keeps the architecture: use a `[model]` that matches the file",
+                    loaded.config.num_views,
+                    config.num_views,
+                    if loaded.config.num_views == config.num_views {
+                        ", another preset"
+                    } else {
+                        ""
+                    }
+                ),
+            }));
+        }
+        let line = format!(
+            "fine-tuning from {} ({}); fresh optimiser, step 0",
+            path.display(),
+            loaded.provenance()
+        );
+        let trainer = Self::assemble(
+            loaded.model,
+            config,
+            ModuleOptimizer::from(FusedAdamConfig::default().init()),
+            (0, 0),
+            train,
+            device,
+        )?;
+        Ok((trainer, line))
+    }
+
     fn assemble(
         model: Reconstructor,
         config: ReconstructorConfig,

@@ -30,7 +30,9 @@ struct Args {
     /// Experiment config (its `[data]` section names the split).
     #[arg(long)]
     config: PathBuf,
-    /// Trained-model file (`.lgck`, e.g. `runs/<name>/checkpoints/latest.lgck`).
+    /// Trained-model file: a `.lgck` (e.g. `runs/<name>/checkpoints/latest.lgck`), or an
+    /// official LIFe-GoM checkpoint (`.pth` from `torch.save`, or `.safetensors`) loaded into the
+    /// network the config's `[model]` describes.
     #[arg(long)]
     checkpoint: PathBuf,
     /// Dataset root (overrides `[data] root`).
@@ -99,14 +101,17 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     // SAFETY: the first thing `main` does after parsing; no thread has started yet.
     unsafe { lifegom_cli::make_default_device(args.device) };
-    let mut cfg = lifegom_data::config::ConfigFile::load(&args.config)?;
+    let mut experiment = lifegom_train::config::ExperimentConfig::load(&args.config)?;
     if let Some(root) = &args.data {
-        cfg = cfg.with_root(root);
+        experiment = experiment.with_root(root);
     }
+    let official_network = experiment.reconstructor();
+    let cfg = experiment.file;
     let command: Vec<String> = std::env::args().collect();
     let outcome = run(&EvalOptions {
         data: cfg.data,
         checkpoint: args.checkpoint.clone(),
+        official_network,
         out: args.out.clone(),
         device: args.device.device(),
         subdivide: args.subdivide,

@@ -11,11 +11,11 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Parser;
 use lifegom_cli::reconstruct_run::{ReconstructOptions, run};
-use lifegom_data::config::ConfigFile;
 use lifegom_data::dataset::Background;
 use lifegom_data::kinematics::KinematicTree;
 use lifegom_render::device::DeviceChoice;
 use lifegom_render::motion::{MotionSource, PoseSequence};
+use lifegom_train::config::ExperimentConfig;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -33,10 +33,12 @@ struct Args {
     /// Output folder.
     #[arg(long, default_value = "out/reconstruct")]
     out: PathBuf,
-    /// The trained model.
+    /// The trained model: a `.lgck`, or an official LIFe-GoM checkpoint (`.pth` from
+    /// `torch.save`, or `.safetensors`) loaded into the network `--config`'s `[model]` describes.
     #[arg(long, default_value = "assets/demo/demo.lgck")]
     model: PathBuf,
-    /// The experiment the model was trained with: its image size and test background.
+    /// The experiment the model was trained with: its image size and test background (and, for
+    /// an official checkpoint, its network: `[model]` and `[data] n_input_frames`).
     #[arg(long, default_value = "configs/demo-v2.toml")]
     config: PathBuf,
     /// Input frames, by name or index (default: the first frames, as many as the model takes).
@@ -82,7 +84,8 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     // SAFETY: the first thing `main` does after parsing; no thread has started yet.
     unsafe { lifegom_cli::make_default_device(args.device) };
-    let cfg = ConfigFile::load(&args.config)?;
+    let experiment = ExperimentConfig::load(&args.config)?;
+    let cfg = &experiment.file;
     let background = match cfg.data.test_background {
         Background::Fixed(c) => c.map(|v| f32::from(v) / 255.0),
         // A random test background has no single colour to show: white, as AIST++ uses.
@@ -91,6 +94,7 @@ fn main() -> anyhow::Result<()> {
     let opts = ReconstructOptions {
         subject: args.subject,
         model: args.model,
+        official_network: experiment.reconstructor(),
         img_size: cfg.data.img_size,
         background,
         kinematic_tree: args.kinematic_tree.unwrap_or(cfg.data.kinematic_tree),

@@ -3,14 +3,22 @@
 //! ```text
 //! lifegom-train --config configs/synthetic-tiny.toml --out runs/tiny [--device flex|ndarray]
 //!               [--data <root>] [--resume] [--max-minutes M] [--steps N] [--accumulate K]
-//! lifegom-train --out runs/demo --export assets/demo/demo.lgck [--from latest|best] [--subdivide-test S]
+//!               [--init WEIGHTS]
+//! lifegom-train --out runs/demo --export assets/demo/demo.lgck [--from latest|best|FILE] [--subdivide-test S]
 //! ```
 //!
 //! Ctrl-C (or SIGTERM, or SIGUSR1) finishes the current step, writes a checkpoint and exits;
 //! `--resume` continues it.
 //! `--export` trains nothing: it writes the run's latest checkpoint (or, with `--from best`, its
-//! best validated weights) without the optimizer state (an inference-only model file, a third
-//! of the size).
+//! best validated weights, or with `--from FILE` any model file) without the optimizer state (an
+//! inference-only model file, a third of the size). An export to `*.safetensors` writes the
+//! official code's state dict instead (its key names and layouts), for PyTorch users.
+//!
+//! Model files are a `.lgck` or an official LIFe-GoM checkpoint (`.pth` written by
+//! `torch.save`, zip or legacy, or `.safetensors`), told apart by content. An official file
+//! holds weights only: they are loaded into the network of `--config`'s `[model]`.
+//! `--init WEIGHTS` fine-tunes: the run starts from those weights with a fresh optimizer; with
+//! `--resume`, a run that has its own checkpoint continues from that instead.
 //!
 //! Built with the `mpi` feature, `mpirun -np N lifegom-train …` trains one model on N ranks,
 //! each one replica on its own share of every batch (docs/data-parallel.md). A rank that fails
@@ -38,6 +46,11 @@ struct Args {
     /// Experiment config (configs/*.toml).
     #[arg(long, required_unless_present = "export")]
     config: Option<PathBuf>,
+    /// Start from these weights (a `.lgck`, or an official `.pth` / `.safetensors` loaded into
+    /// `--config`'s network) with a fresh optimizer: fine-tuning. `--resume` still continues a
+    /// run from its own checkpoint when it has one.
+    #[arg(long, conflicts_with = "export")]
+    init: Option<PathBuf>,
     /// Backend.
     #[arg(long, default_value = "flex")]
     device: DeviceChoice,
@@ -64,8 +77,9 @@ struct Args {
     /// this file and exit.
     #[arg(long)]
     export: Option<PathBuf>,
-    /// With `--export`: which of the run's checkpoints to export.
-    #[arg(long, value_enum, default_value = "latest", requires = "export")]
+    /// With `--export`: which model to export: `latest` or `best` of the run in `--out`, or a
+    /// model file (`.lgck`, or an official checkpoint with `--config`).
+    #[arg(long, default_value = "latest", requires = "export")]
     from: ExportSource,
     /// With `--export`: the Gaussians' subdivision the exported model renders at by default
     /// (the run's `subdivide_test` otherwise). The weights serve every level; pick the one the
@@ -74,13 +88,26 @@ struct Args {
     subdivide_test: Option<u32>,
 }
 
-/// The checkpoint `--export` writes out.
-#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+/// The model `--export` writes out.
+#[derive(Clone, Debug)]
 enum ExportSource {
     /// `<out>/checkpoints/latest.lgck`: where the run stopped.
     Latest,
     /// `<out>/checkpoints/best.lgck`: the best validation at the last feedback step.
     Best,
+    /// A model file.
+    File(PathBuf),
+}
+
+impl std::str::FromStr for ExportSource {
+    type Err = std::convert::Infallible;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Ok(match s {
+            "latest" => Self::Latest,
+            "best" => Self::Best,
+            file => Self::File(file.into()),
+        })
+    }
 }
 
 fn main() -> anyhow::Result<()> {
@@ -90,11 +117,22 @@ fn main() -> anyhow::Result<()> {
     // SAFETY: the first thing `main` does after parsing; no thread has started yet.
     unsafe { lifegom_cli::make_default_device(args.device) };
     if let Some(dest) = &args.export {
-        let source = match args.from {
+        let source = match &args.from {
             ExportSource::Latest => latest_checkpoint(&args.out),
             ExportSource::Best => best_checkpoint(&args.out),
+            ExportSource::File(path) => path.clone(),
         };
-        let bytes = export_model(&source, dest, args.subdivide_test, &args.device.device())?;
+        let network = match &args.config {
+            Some(config) => Some(ExperimentConfig::load(config)?.reconstructor()),
+            None => None,
+        };
+        let bytes = export_model(
+            &source,
+            dest,
+            args.subdivide_test,
+            network.as_ref(),
+            &args.device.device(),
+        )?;
         println!(
             "{}",
             serde_json::json!({
@@ -136,6 +174,7 @@ fn main() -> anyhow::Result<()> {
     let opts = RunOptions {
         out: args.out.clone(),
         resume: args.resume,
+        init: args.init.clone(),
         max_minutes: args.max_minutes,
         steps: args.steps,
         device: args.device.device(),

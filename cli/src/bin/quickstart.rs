@@ -39,7 +39,8 @@ struct Args {
     /// Experiment config: the validation subjects, and the training when `--train-minutes`.
     #[arg(long, default_value = "configs/demo-v2.toml")]
     config: PathBuf,
-    /// The trained model to evaluate (ignored with `--train-minutes`).
+    /// The trained model to evaluate (ignored with `--train-minutes`): a `.lgck`, or an official
+    /// LIFe-GoM checkpoint (`.pth` / `.safetensors`) loaded into the config's `[model]` network.
     #[arg(long, default_value = "assets/demo/demo.lgck")]
     model: PathBuf,
     /// Train a model from scratch for this many minutes (into `<out>`) instead of loading
@@ -142,6 +143,7 @@ fn main() -> anyhow::Result<()> {
                 &RunOptions {
                     out: args.out.clone(),
                     resume: args.resume,
+                    init: None,
                     max_minutes: Some(minutes),
                     steps: None,
                     device: args.device.device(),
@@ -161,21 +163,23 @@ fn main() -> anyhow::Result<()> {
             (summary.checkpoint, how)
         }
         None => {
-            let header = trained::read_header(&args.model).context(
-                "the demo model is missing or unreadable; train one with `--train-minutes N` (or pass --model)",
-            )?;
+            let missing = "the demo model is missing or unreadable; train one with `--train-minutes N` (or pass --model)";
+            let trained_for = if trained::is_lifegom_file(&args.model).context(missing)? {
+                let header = trained::read_header(&args.model).context(missing)?;
+                format!("{} training steps", header.meta["step"])
+            } else {
+                "an official LIFe-GoM checkpoint, loaded into the config's `[model]` network".into()
+            };
             stage(
                 2,
                 format!(
-                    "loading the demo model {} (trained {} steps, never on these subjects)",
+                    "loading the model {} ({trained_for}, never trained on these subjects)",
                     args.model.display(),
-                    header.meta["step"]
                 ),
             );
             let how = format!(
-                "the shipped demo model `{}` ({} training steps; how it was trained: `assets/demo/README.md`)",
+                "`{}` ({trained_for}; how the shipped demo model was trained: `assets/demo/README.md`)",
                 args.model.display(),
-                header.meta["step"]
             );
             (args.model.clone(), how)
         }
@@ -188,6 +192,7 @@ fn main() -> anyhow::Result<()> {
     let outcome = run_eval(&EvalOptions {
         data: cfg.file.data.clone(),
         checkpoint,
+        official_network: cfg.reconstructor(),
         out: args.out.clone(),
         device: args.device.device(),
         subdivide: None,
