@@ -31,6 +31,7 @@ use lifegom_eval::metrics::{ImageRef, psnr};
 use lifegom_model::avatar::Avatar;
 use lifegom_model::inputs::{SubjectRig, model_inputs};
 use lifegom_model::reconstructor::ReconstructorConfig;
+use lifegom_model::rig_export::RigAnimation;
 use lifegom_model::trained;
 use lifegom_render::atomic_file::write_atomic;
 use lifegom_render::gom::GomMesh;
@@ -251,7 +252,18 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
         &BodyPose::rest(rig.skeleton.num_joints()),
         write("avatar.ply"),
     )?;
-    avatar.export_glb(write("avatar.glb"))?;
+    // The motions ride along as glTF animations, one each: other tools retarget them by the
+    // bones' names.
+    let animations: Vec<RigAnimation<'_>> = motions
+        .iter()
+        .map(|(name, seq)| RigAnimation {
+            name,
+            fps: seq.fps,
+            poses: seq.poses(),
+            root_translations: seq.root_translations.as_deref(),
+        })
+        .collect();
+    avatar.export_glb_animated(write("avatar.glb"), &animations)?;
 
     // Inputs beside their re-renders; the held-out view last.
     let mut rows = Vec::new();

@@ -41,6 +41,16 @@
 //! white that the vertex colours multiply. The mesh's `extras` record the low-res vertex count
 //! and the subdivision level.
 //!
+//! # Animations
+//!
+//! [`Avatar::export_glb_animated`] adds one glTF animation per [`RigAnimation`] (a motion the
+//! avatar plays): keyframe `k` at time `k / fps`, `LINEAR` interpolation, and for every joint a
+//! `rotation` channel on its node holding the quaternion of the pose's axis-angle (rotations are
+//! local to the world-aligned joint frames, so the quaternion is the node's rotation as it is,
+//! as above). A motion with root translations (capture data) also gets a `translation` channel
+//! on each root joint: its rest translation plus the frame's offset. All channels of an
+//! animation share one time accessor, whose `min`/`max` glTF requires.
+//!
 //! # The `.ply` rig
 //!
 //! [`GaussianRig`] is the per-Gaussian part: the triangle the Gaussian sits on (its index and
@@ -61,6 +71,7 @@ use json::validation::{Checked::Valid, USize64};
 
 use lifegom_render::atomic_file::write_atomic;
 use lifegom_render::readback;
+use lifegom_render::skeleton::BodyPose;
 
 use crate::avatar::Avatar;
 use crate::error::{ModelError, Result};
@@ -135,6 +146,58 @@ fn srgb_to_linear(c: f32) -> f32 {
         c / 12.92
     } else {
         ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// A motion to write into the `.glb` as a glTF animation (module docs, "Animations").
+#[derive(Debug, Clone, Copy)]
+pub struct RigAnimation<'a> {
+    /// The animation's name (`walk`, a motion file's stem).
+    pub name: &'a str,
+    /// Keyframes per second.
+    pub fps: f32,
+    /// One pose per keyframe, for the avatar's skeleton.
+    pub poses: &'a [BodyPose],
+    /// Per keyframe, the offset of the root joint(s) from their rest position, in metres, when
+    /// the motion moves the body (capture data); `None` keeps the body in place.
+    pub root_translations: Option<&'a [Vec3]>,
+}
+
+impl RigAnimation<'_> {
+    /// Checks the animation against a skeleton of `num_joints` joints before anything is
+    /// written: an error names the animation, and the frame and joint where it applies.
+    fn check(&self, num_joints: usize) -> Result<()> {
+        let bad = |reason: String| invalid("glb animation", format!("`{}`: {reason}", self.name));
+        if !(self.fps.is_finite() && self.fps > 0.0) {
+            return Err(bad(format!("fps must be > 0, got {}", self.fps)));
+        }
+        if self.poses.is_empty() {
+            return Err(bad("no frames".into()));
+        }
+        for (k, pose) in self.poses.iter().enumerate() {
+            if pose.num_joints() != num_joints {
+                return Err(bad(format!(
+                    "frame {k} has {} joints, the skeleton {num_joints}",
+                    pose.num_joints()
+                )));
+            }
+            if let Some(j) = pose.joint_rotations.iter().position(|r| !r.is_finite()) {
+                return Err(bad(format!("frame {k}, joint {j}: non-finite rotation")));
+            }
+        }
+        if let Some(t) = self.root_translations {
+            if t.len() != self.poses.len() {
+                return Err(bad(format!(
+                    "{} root translations for {} frames",
+                    t.len(),
+                    self.poses.len()
+                )));
+            }
+            if let Some(k) = t.iter().position(|v| !v.is_finite()) {
+                return Err(bad(format!("frame {k}: non-finite root translation")));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -397,8 +460,28 @@ impl Avatar {
 
     /// The rigged `.glb` of [`Avatar::export_glb`] as bytes.
     pub fn glb_bytes(&self) -> Result<Vec<u8>> {
+        self.glb_bytes_animated(&[])
+    }
+
+    /// Writes the rigged `.glb` with `animations` (module docs, "Animations"), atomically.
+    pub fn export_glb_animated(
+        &self,
+        path: impl AsRef<Path>,
+        animations: &[RigAnimation<'_>],
+    ) -> Result<()> {
+        let path = path.as_ref();
+        let bytes = self.glb_bytes_animated(animations)?;
+        write_atomic(path, &bytes)
+            .map_err(|e| invalid("glb export", format!("{}: {e}", path.display())))
+    }
+
+    /// The rigged `.glb` with `animations`, as bytes.
+    pub fn glb_bytes_animated(&self, animations: &[RigAnimation<'_>]) -> Result<Vec<u8>> {
+        for animation in animations {
+            animation.check(self.skeleton.num_joints())?;
+        }
         let rig = self.canonical_rig()?;
-        GlbWriter::default().write(self, &rig)
+        GlbWriter::default().write(self, &rig, animations)
     }
 }
 
@@ -416,6 +499,7 @@ enum Element {
     Vec4F32,
     Vec4U16,
     ScalarU32,
+    ScalarF32,
     Mat4F32,
 }
 
@@ -428,7 +512,7 @@ impl GlbWriter {
         count: usize,
         element: Element,
         target: Option<json::buffer::Target>,
-        min_max: Option<(Vec3, Vec3)>,
+        min_max: Option<(Vec<f32>, Vec<f32>)>,
     ) -> json::Index<json::Accessor> {
         while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
@@ -451,9 +535,10 @@ impl GlbWriter {
             Element::Vec4F32 => (C::F32, T::Vec4),
             Element::Vec4U16 => (C::U16, T::Vec4),
             Element::ScalarU32 => (C::U32, T::Scalar),
+            Element::ScalarF32 => (C::F32, T::Scalar),
             Element::Mat4F32 => (C::F32, T::Mat4),
         };
-        let bound = |v: Vec3| Some(json::Value::from(v.to_array().to_vec()));
+        let bound = |v: Vec<f32>| Some(json::Value::from(v));
         self.root.push(json::Accessor {
             buffer_view: Some(view),
             byte_offset: None,
@@ -462,7 +547,7 @@ impl GlbWriter {
             extensions: None,
             extras: Default::default(),
             type_: Valid(kind),
-            min: min_max.and_then(|(lo, _)| bound(lo)),
+            min: min_max.clone().and_then(|(lo, _)| bound(lo)),
             max: min_max.and_then(|(_, hi)| bound(hi)),
             name: None,
             normalized: false,
@@ -470,11 +555,81 @@ impl GlbWriter {
         })
     }
 
+    /// Appends one animation (module docs); `animation` was checked against the skeleton.
+    fn animation(&mut self, avatar: &Avatar, animation: &RigAnimation<'_>) {
+        use json::animation::{Channel, Interpolation, Property, Sampler, Target};
+        let skeleton = &avatar.skeleton;
+        let frames = animation.poses.len();
+        let times: Vec<f32> = (0..frames).map(|k| k as f32 / animation.fps).collect();
+        let last = times.last().copied().unwrap_or(0.0);
+        let input = self.accessor(
+            &Self::f32_bytes(times),
+            frames,
+            Element::ScalarF32,
+            None,
+            Some((vec![0.0], vec![last])),
+        );
+        let mut channels = Vec::new();
+        let mut samplers = Vec::new();
+        let mut channel =
+            |this: &mut Self, node: usize, path: Property, bytes: Vec<u8>, element| {
+                let output = this.accessor(&bytes, frames, element, None, None);
+                channels.push(Channel {
+                    sampler: json::Index::new(samplers.len() as u32),
+                    target: Target {
+                        node: json::Index::new(node as u32),
+                        path: Valid(path),
+                        extensions: None,
+                        extras: Default::default(),
+                    },
+                    extensions: None,
+                    extras: Default::default(),
+                });
+                samplers.push(Sampler {
+                    input,
+                    interpolation: Valid(Interpolation::Linear),
+                    output,
+                    extensions: None,
+                    extras: Default::default(),
+                });
+            };
+        for j in 0..skeleton.num_joints() {
+            let quats = Self::f32_bytes(animation.poses.iter().flat_map(|pose| {
+                glam::Quat::from_scaled_axis(pose.joint_rotations[j])
+                    .normalize()
+                    .to_array()
+            }));
+            channel(self, j, Property::Rotation, quats, Element::Vec4F32);
+        }
+        if let Some(offsets) = animation.root_translations {
+            for (j, parent) in skeleton.parents.iter().enumerate() {
+                if parent.is_none() {
+                    let rest = skeleton.rest_joints[j];
+                    let bytes =
+                        Self::f32_bytes(offsets.iter().flat_map(|t| (rest + *t).to_array()));
+                    channel(self, j, Property::Translation, bytes, Element::Vec3F32);
+                }
+            }
+        }
+        self.root.push(json::Animation {
+            name: Some(animation.name.to_string()),
+            channels,
+            samplers,
+            extensions: None,
+            extras: Default::default(),
+        });
+    }
+
     fn f32_bytes(values: impl IntoIterator<Item = f32>) -> Vec<u8> {
         values.into_iter().flat_map(f32::to_le_bytes).collect()
     }
 
-    fn write(mut self, avatar: &Avatar, rig: &CanonicalRig) -> Result<Vec<u8>> {
+    fn write(
+        mut self,
+        avatar: &Avatar,
+        rig: &CanonicalRig,
+        animations: &[RigAnimation<'_>],
+    ) -> Result<Vec<u8>> {
         use json::buffer::Target::{ArrayBuffer, ElementArrayBuffer};
         let skeleton = &avatar.skeleton;
         let num_joints = skeleton.num_joints();
@@ -530,7 +685,7 @@ impl GlbWriter {
             v,
             Element::Vec3F32,
             Some(ArrayBuffer),
-            Some((lo, hi)),
+            Some((lo.to_array().to_vec(), hi.to_array().to_vec())),
         );
         let normal = self.accessor(
             &Self::f32_bytes(rig.normals.iter().flat_map(|n| n.to_array())),
@@ -639,6 +794,9 @@ impl GlbWriter {
             extras: Default::default(),
         });
         self.root.scene = Some(scene);
+        for animation in animations {
+            self.animation(avatar, animation);
+        }
         while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
         }

@@ -248,6 +248,11 @@ pub struct PoseSequence {
     pub joint_names: Option<Vec<String>>,
     /// One pose per frame.
     pub poses: Vec<BodyPose>,
+    /// Per frame, the body's offset from its rest position in metres, when the source moves it
+    /// (capture data, e.g. AIST++'s `smpl_trans`); `None` keeps it in place. The avatar's
+    /// renders follow the camera's view of the body and ignore it; the `.glb` animations
+    /// carry it.
+    pub root_translations: Option<Vec<Vec3>>,
 }
 
 impl PoseSequence {
@@ -321,6 +326,7 @@ impl PoseSequence {
             fps: file.fps,
             joint_names: file.joint_names,
             poses,
+            root_translations: None,
         };
         seq.check_self()?;
         Ok(seq)
@@ -417,6 +423,7 @@ impl PoseSequence {
             fps,
             joint_names: None,
             poses: motion.cycle(roles, num_joints, frames),
+            root_translations: None,
         }
     }
 
