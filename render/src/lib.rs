@@ -63,6 +63,7 @@ pub mod motion;
 pub mod op_backward;
 pub mod rasterizer;
 pub mod readback;
+pub mod retarget;
 pub mod rng;
 pub mod select;
 pub mod skeleton;

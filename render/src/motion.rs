@@ -18,7 +18,9 @@
 //!   joint count and, when the file names its joints, the names). Every error names the file and
 //!   the field (`frames[12][40]`, `joint_names[3]`).
 //!
-//! [`MotionSource`] is what a `--motion` option takes: a procedural name or a file path.
+//! [`MotionSource`] is what a `--motion` option takes: a procedural name or a file path. A file
+//! written for SMPL (capture data such as AIST++, read by `lifegom_data::capture`) plays on an
+//! Anny avatar through [`crate::retarget`].
 
 use std::path::{Path, PathBuf};
 
@@ -60,12 +62,75 @@ pub const SMPL_JOINT_NAMES: [&str; 24] = [
     "right_hand",
 ];
 
-/// Joint names of a rig known by its joint count: SMPL (24) or the bundled Anny template
-/// (its joint count), `None` otherwise. Rigs read from data carry only parents, so this is how a
+/// The 55 SMPL-X joint names, in SMPL-X's order: SMPL's first 22, then the jaw, the eyes and
+/// 15 finger joints per hand.
+pub const SMPLX_JOINT_NAMES: [&str; 55] = [
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "jaw",
+    "left_eye_smplhf",
+    "right_eye_smplhf",
+    "left_index1",
+    "left_index2",
+    "left_index3",
+    "left_middle1",
+    "left_middle2",
+    "left_middle3",
+    "left_pinky1",
+    "left_pinky2",
+    "left_pinky3",
+    "left_ring1",
+    "left_ring2",
+    "left_ring3",
+    "left_thumb1",
+    "left_thumb2",
+    "left_thumb3",
+    "right_index1",
+    "right_index2",
+    "right_index3",
+    "right_middle1",
+    "right_middle2",
+    "right_middle3",
+    "right_pinky1",
+    "right_pinky2",
+    "right_pinky3",
+    "right_ring1",
+    "right_ring2",
+    "right_ring3",
+    "right_thumb1",
+    "right_thumb2",
+    "right_thumb3",
+];
+
+/// Joint names of a rig known by its joint count: SMPL (24), SMPL-X (55) or the bundled Anny
+/// template (its joint count), `None` otherwise. Rigs read from data carry only parents, so this is how a
 /// file's `joint_names` can be checked against them.
 pub fn known_joint_names(num_joints: usize) -> Option<Vec<String>> {
     if num_joints == SMPL_JOINT_NAMES.len() {
         return Some(SMPL_JOINT_NAMES.iter().map(|s| (*s).to_owned()).collect());
+    }
+    if num_joints == SMPLX_JOINT_NAMES.len() {
+        return Some(SMPLX_JOINT_NAMES.iter().map(|s| (*s).to_owned()).collect());
     }
     let template = BodyTemplate::load(lowres_template_path()).ok()?;
     (template.num_joints() == num_joints).then(|| template.skeleton.names.clone())
@@ -434,6 +499,29 @@ impl PoseSequence {
         self
     }
 
+    /// Frames a rendered preview (GIF) of a sequence plays at most: a 20-second capture at
+    /// 60 fps is 1,200 renders, far more than a preview needs.
+    pub const MAX_PREVIEW_FRAMES: usize = 240;
+
+    /// The sequence with every `s`-th frame, `s` the smallest stride that leaves at most
+    /// `max_frames` (the frame rate divided by `s`, so it plays as long); itself when short.
+    pub fn subsampled(&self, max_frames: usize) -> PoseSequence {
+        let stride = self.len().div_ceil(max_frames.max(1)).max(1);
+        if stride == 1 {
+            return self.clone();
+        }
+        PoseSequence {
+            source: self.source.clone(),
+            fps: self.fps / stride as f32,
+            joint_names: self.joint_names.clone(),
+            poses: self.poses.iter().step_by(stride).cloned().collect(),
+            root_translations: self
+                .root_translations
+                .as_ref()
+                .map(|t| t.iter().step_by(stride).copied().collect()),
+        }
+    }
+
     /// The poses, one per frame.
     pub fn poses(&self) -> &[BodyPose] {
         &self.poses
@@ -547,6 +635,10 @@ impl MotionSource {
                 ))
             }
             Self::File(seq) => {
+                if let Some(retargeted) = crate::retarget::retarget_if_needed(seq, skeleton)? {
+                    retargeted.validate_for(skeleton)?;
+                    return Ok(retargeted);
+                }
                 seq.validate_for(skeleton)?;
                 Ok(seq.clone())
             }
@@ -605,6 +697,27 @@ mod tests {
         );
         assert_eq!(known_joint_names(24).unwrap()[4], "left_knee");
         assert!(known_joint_names(7).is_none());
+    }
+
+    #[test]
+    fn long_sequences_are_subsampled_for_previews_and_keep_their_duration() {
+        let seq = PoseSequence {
+            source: "long.pkl".into(),
+            fps: 60.0,
+            joint_names: None,
+            poses: (0..1000)
+                .map(|k| BodyPose {
+                    joint_rotations: vec![Vec3::splat(k as f32)],
+                })
+                .collect(),
+            root_translations: Some((0..1000).map(|k| Vec3::splat(k as f32)).collect()),
+        };
+        let short = seq.subsampled(240);
+        assert_eq!(short.len(), 200);
+        assert_eq!(short.fps, 12.0);
+        assert_eq!(short.poses()[1].joint_rotations[0].x, 5.0);
+        assert_eq!(short.root_translations.as_ref().unwrap()[199].x, 995.0);
+        assert_eq!(seq.subsampled(1000).len(), 1000);
     }
 
     #[test]

@@ -58,7 +58,9 @@ def main():
     actions = [a.name for a in bpy.data.actions]
     # The importer names an action after its animation, with a suffix when several objects
     # take part; take the one that starts with the animation's name.
-    matching = [a for a in bpy.data.actions if a.name.split("_")[0] == animation]
+    matching = [
+        a for a in bpy.data.actions if a.name == animation or a.name.startswith(animation + "_")
+    ]
     if not matching:
         raise SystemExit(f"{glb}: no action for animation `{animation}` among {actions}")
     action = matching[0]

@@ -62,9 +62,10 @@ struct Args {
     /// Free-view turntable with this many frames (PNG frames + GIF).
     #[arg(long, num_args = 0..=1, default_missing_value = "36")]
     freeview: Option<usize>,
-    /// Novel-pose sequences: procedural names (walk, arm-raise, squat) or pose-sequence files
-    /// (`docs/motions.md`), comma-separated; alone, the three procedural ones.
-    #[arg(long, num_args = 0..=1, value_delimiter = ',', default_missing_value = "walk,arm-raise,squat")]
+    /// Novel-pose sequences: procedural names (walk, arm-raise, squat), pose-sequence files
+    /// (`docs/motions.md`) or SMPL capture files (AIST++ `.pkl`, `.npz`), comma-separated; alone,
+    /// the three procedural ones.
+    #[arg(long, num_args = 0..=1, value_delimiter = ',', default_missing_value = "walk,arm-raise,squat", value_parser = lifegom_data::capture::parse_motion)]
     motion: Option<Vec<MotionSource>>,
     /// Accuracy vs time: T = 1..5 × subdivisions 0..2.
     #[arg(long)]

@@ -56,9 +56,10 @@ struct Args {
     /// Frames of the turntable GIF (0: none).
     #[arg(long, default_value_t = 36)]
     turntable: usize,
-    /// Motions to play as GIFs: walk, arm-raise, squat, or a pose-sequence file
-    /// (docs/motions.md); comma-separated or repeated.
-    #[arg(long, value_delimiter = ',')]
+    /// Motions to play as GIFs and to write into the `.glb` as animations: walk, arm-raise,
+    /// squat, a pose-sequence file (docs/motions.md), or an SMPL capture file (AIST++ `.pkl` or
+    /// `.npz`; retargeted to an Anny avatar); comma-separated or repeated.
+    #[arg(long, value_delimiter = ',', value_parser = lifegom_data::capture::parse_motion)]
     motion: Vec<MotionSource>,
     /// Pose files (docs/motions.md) to render as stills, one PNG each; comma-separated or
     /// repeated.

@@ -50,9 +50,9 @@ struct Args {
     /// With `--train-minutes`: continue `<out>/checkpoints/latest.lgck`.
     #[arg(long, requires = "train_minutes")]
     resume: bool,
-    /// Novel-pose motions: procedural names (walk, arm-raise, squat) or pose-sequence files
-    /// (`docs/motions.md`), comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "walk,arm-raise,squat")]
+    /// Novel-pose motions: procedural names (walk, arm-raise, squat), pose-sequence files
+    /// (`docs/motions.md`) or SMPL capture files (AIST++ `.pkl`, `.npz`), comma-separated.
+    #[arg(long, value_delimiter = ',', value_parser = lifegom_data::capture::parse_motion, default_value = "walk,arm-raise,squat")]
     motion: Vec<lifegom_render::motion::MotionSource>,
     /// Output folder.
     #[arg(long, default_value = "runs/quickstart")]

@@ -769,7 +769,7 @@ impl<'a> Vm<'a> {
         }
     }
 
-    /// Decodes raw array bytes into C-order elements.
+    /// Decodes raw array bytes into C-order elements ([`decode_array`]).
     fn decode(
         &self,
         raw: &[u8],
@@ -778,89 +778,7 @@ impl<'a> Vm<'a> {
         shape: &[usize],
         fortran: bool,
     ) -> R<Elements> {
-        let count = shape
-            .iter()
-            .try_fold(1usize, |acc, &d| acc.checked_mul(d))
-            .map_or_else(|| self.err("array shape overflows"), Ok)?;
-        let size = dtype.size();
-        if count.checked_mul(size) != Some(raw.len()) {
-            return self.err(format!(
-                "array data has {} bytes, but shape {shape:?} of {dtype} needs {}",
-                raw.len(),
-                count.saturating_mul(size)
-            ));
-        }
-        let big = match order {
-            b'>' => true,
-            b'<' | b'|' => false,
-            b'=' => cfg!(target_endian = "big"),
-            o => return self.err(format!("unknown byte order {:?}", o as char)),
-        };
-        let word = |i: usize| -> [u8; 8] {
-            let mut a = [0u8; 8];
-            let src = &raw[i * size..(i + 1) * size];
-            if big && dtype.has_byte_order() {
-                for (k, &b) in src.iter().rev().enumerate() {
-                    a[k] = b;
-                }
-            } else {
-                a[..size].copy_from_slice(src);
-            }
-            a
-        };
-        // Memory order → C order: element at C index `c` lives at memory index `perm(c)`.
-        let index = fortran_to_c(shape, fortran);
-        let at = |c: usize| index.as_ref().map_or(c, |idx| idx[c]);
-        let elements = match dtype {
-            DType::Bool => Elements::Bool((0..count).map(|c| raw[at(c)] != 0).collect()),
-            DType::F16 => Elements::Float(
-                (0..count)
-                    .map(|c| f16_to_f64(u16::from_le_bytes([word(at(c))[0], word(at(c))[1]])))
-                    .collect(),
-            ),
-            DType::F32 => Elements::Float(
-                (0..count)
-                    .map(|c| {
-                        let w = word(at(c));
-                        f32::from_le_bytes([w[0], w[1], w[2], w[3]]) as f64
-                    })
-                    .collect(),
-            ),
-            DType::F64 => Elements::Float(
-                (0..count)
-                    .map(|c| f64::from_le_bytes(word(at(c))))
-                    .collect(),
-            ),
-            DType::U64 => {
-                let mut out = Vec::with_capacity(count);
-                for c in 0..count {
-                    let v = u64::from_le_bytes(word(at(c)));
-                    match i64::try_from(v) {
-                        Ok(v) => out.push(v),
-                        Err(_) => return self.err(format!("uint64 value {v} exceeds i64")),
-                    }
-                }
-                Elements::Int(out)
-            }
-            int => {
-                let signed = matches!(int, DType::I8 | DType::I16 | DType::I32 | DType::I64);
-                Elements::Int(
-                    (0..count)
-                        .map(|c| {
-                            let w = word(at(c));
-                            let v = i64::from_le_bytes(w);
-                            if signed && size < 8 {
-                                let shift = 64 - 8 * size as u32;
-                                (v << shift) >> shift
-                            } else {
-                                v
-                            }
-                        })
-                        .collect(),
-                )
-            }
-        };
-        Ok(elements)
+        decode_array(raw, dtype, order, shape, fortran).or_else(|reason| self.err(reason))
     }
 
     fn to_value(&self, id: usize, depth: usize) -> R<Value> {
@@ -955,6 +873,103 @@ fn f16_to_f64(h: u16) -> f64 {
         31 => f64::NAN,
         e => (1.0 + frac / 1024.0) * 2f64.powi(e - 15),
     }
+}
+
+/// Decodes raw numpy array bytes (`dtype`, byte order `order` as numpy writes it: `<`, `>`,
+/// `|` or `=`, C or Fortran memory order) into C-order elements; the `.npy` reader uses it too.
+pub(crate) fn decode_array(
+    raw: &[u8],
+    dtype: DType,
+    order: u8,
+    shape: &[usize],
+    fortran: bool,
+) -> Result<Elements, String> {
+    fn fail<T>(reason: impl Into<String>) -> Result<T, String> {
+        Err(reason.into())
+    }
+    let count = shape
+        .iter()
+        .try_fold(1usize, |acc, &d| acc.checked_mul(d))
+        .map_or_else(|| fail("array shape overflows"), Ok)?;
+    let size = dtype.size();
+    if count.checked_mul(size) != Some(raw.len()) {
+        return fail(format!(
+            "array data has {} bytes, but shape {shape:?} of {dtype} needs {}",
+            raw.len(),
+            count.saturating_mul(size)
+        ));
+    }
+    let big = match order {
+        b'>' => true,
+        b'<' | b'|' => false,
+        b'=' => cfg!(target_endian = "big"),
+        o => return fail(format!("unknown byte order {:?}", o as char)),
+    };
+    let word = |i: usize| -> [u8; 8] {
+        let mut a = [0u8; 8];
+        let src = &raw[i * size..(i + 1) * size];
+        if big && dtype.has_byte_order() {
+            for (k, &b) in src.iter().rev().enumerate() {
+                a[k] = b;
+            }
+        } else {
+            a[..size].copy_from_slice(src);
+        }
+        a
+    };
+    // Memory order → C order: element at C index `c` lives at memory index `perm(c)`.
+    let index = fortran_to_c(shape, fortran);
+    let at = |c: usize| index.as_ref().map_or(c, |idx| idx[c]);
+    let elements = match dtype {
+        DType::Bool => Elements::Bool((0..count).map(|c| raw[at(c)] != 0).collect()),
+        DType::F16 => Elements::Float(
+            (0..count)
+                .map(|c| f16_to_f64(u16::from_le_bytes([word(at(c))[0], word(at(c))[1]])))
+                .collect(),
+        ),
+        DType::F32 => Elements::Float(
+            (0..count)
+                .map(|c| {
+                    let w = word(at(c));
+                    f32::from_le_bytes([w[0], w[1], w[2], w[3]]) as f64
+                })
+                .collect(),
+        ),
+        DType::F64 => Elements::Float(
+            (0..count)
+                .map(|c| f64::from_le_bytes(word(at(c))))
+                .collect(),
+        ),
+        DType::U64 => {
+            let mut out = Vec::with_capacity(count);
+            for c in 0..count {
+                let v = u64::from_le_bytes(word(at(c)));
+                match i64::try_from(v) {
+                    Ok(v) => out.push(v),
+                    Err(_) => return fail(format!("uint64 value {v} exceeds i64")),
+                }
+            }
+            Elements::Int(out)
+        }
+        int => {
+            let signed = matches!(int, DType::I8 | DType::I16 | DType::I32 | DType::I64);
+            Elements::Int(
+                (0..count)
+                    .map(|c| {
+                        let w = word(at(c));
+                        let v = i64::from_le_bytes(w);
+                        if signed && size < 8 {
+                            let shift = 64 - 8 * size as u32;
+                            (v << shift) >> shift
+                        } else {
+                            v
+                        }
+                    })
+                    .collect(),
+            )
+        }
+    };
+    Ok(elements)
 }
 
 #[cfg(test)]
