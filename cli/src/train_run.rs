@@ -142,10 +142,10 @@ pub fn export_model(
     }
     match ExportFormat::of(dest) {
         ExportFormat::Lifegom => {
-            trained::save(dest, &loaded.model, &loaded.config, loaded.header.meta, &[])?
+            trained::save(dest, &loaded.model, &loaded.config, loaded.header.meta, &[])?;
         }
         ExportFormat::OfficialSafetensors => {
-            lifegom_model::checkpoint::save_official_safetensors(&loaded.model, dest)?
+            lifegom_model::checkpoint::save_official_safetensors(&loaded.model, dest)?;
         }
     }
     Ok(std::fs::metadata(dest)

@@ -434,7 +434,7 @@ mod tests {
         let mut v1 = b"\x93NUMPY\x01\x00".to_vec();
         let header = "{'descr': '>f8', 'fortran_order': True, 'shape': (2, 3), }";
         let mut h = header.to_string();
-        while (10 + h.len() + 1) % 64 != 0 {
+        while !(10 + h.len() + 1).is_multiple_of(64) {
             h.push(' ');
         }
         h.push('\n');

@@ -354,20 +354,17 @@ pub fn load_any(
         .map_err(|e| official_err(e, String::new()))?;
     // The embedding has one row per vertex of the template the weights were trained with; the
     // caller checks that against its template ([`TrainedModel::check_template`]).
-    let rows = match shapes
+    let Some(&[rows, _]) = shapes
         .get(crate::checkpoint::VERTEX_EMBED_KEY)
         .map(Vec::as_slice)
-    {
-        Some(&[rows, _]) => rows,
-        _ => {
-            return Err(official_err(
-                crate::checkpoint::CheckpointError::Missing {
-                    path: path.to_path_buf(),
-                    keys: vec![crate::checkpoint::VERTEX_EMBED_KEY.into()],
-                },
-                String::new(),
-            ));
-        }
+    else {
+        return Err(official_err(
+            crate::checkpoint::CheckpointError::Missing {
+                path: path.to_path_buf(),
+                keys: vec![crate::checkpoint::VERTEX_EMBED_KEY.into()],
+            },
+            String::new(),
+        ));
     };
     let model = official
         .init(rows, device)
@@ -409,8 +406,11 @@ pub fn load_any(
     })
 }
 
+/// A preset's constructor, taking the number of views.
+type PresetFn = fn(usize) -> ReconstructorConfig;
+
 /// The presets a state dict is compared with when it does not fit the asked network.
-const PRESETS: [(&str, fn(usize) -> ReconstructorConfig); 3] = [
+const PRESETS: [(&str, PresetFn); 3] = [
     ("paper", ReconstructorConfig::paper),
     ("cpu", ReconstructorConfig::cpu),
     ("tiny", ReconstructorConfig::tiny),
