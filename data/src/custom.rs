@@ -158,6 +158,16 @@ pub fn load_subject(path: &Path) -> Result<Subject> {
         }
         cameras.push(read_camera(&value, &at)?);
         mesh_infos.push(read_mesh_info(&value, &at, canonical.joints.len())?);
+        // A path that names no file is the subject file's mistake: say so there, field and all
+        // (the image reader would name only the path it was given).
+        for (field, file) in [("image", &frame.image), ("mask", &frame.mask)] {
+            if !dir.join(file).is_file() {
+                return Err(DataError::invalid(
+                    at.clone().field(format!("frames[{i}].{field}")),
+                    format!("`{}` is not a file in {}", file.display(), dir.display()),
+                ));
+            }
+        }
         files.push(FrameFiles {
             image: dir.join(&frame.image),
             mask: dir.join(&frame.mask),

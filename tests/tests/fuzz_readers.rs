@@ -1,5 +1,6 @@
-//! Structure-blind mutation fuzzing of the file readers (`.lgck`, `.lgom`, configs, motion files,
-//! the body template), bounded for CI: seeded bit flips,
+//! Structure-blind mutation fuzzing of the file readers (`.lgck`, `.lgom`, the official
+//! checkpoints as `torch.save` zip and SafeTensors, configs, motion files, AIST++ capture pickles
+//! and `.npz`, `subject.json`, the body template), bounded for CI: seeded bit flips,
 //! truncations, splices of another part of the file, huge little-endian length fields, and for
 //! the text formats numbers replaced by NaN, inf or huge values. Each reader must return (an
 //! error naming the file, or a value), never panic, and never ask for more than
@@ -241,6 +242,66 @@ fn no_reader_panics_or_overallocates_on_damaged_files() {
         &dir.join("fuzz.json"),
         cases(1500),
         |p| PoseSequence::load(p),
+    );
+
+    // An official checkpoint written by real `torch.save` (zip), and the same weights as an
+    // official-format SafeTensors file, read as the commands read them.
+    let fixtures = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures");
+    let official = ReconstructorConfig::tiny(3);
+    let base = std::fs::read(fixtures.join("official/demo-v2.pth")).unwrap();
+    total += fuzz(
+        "official-pth",
+        &base,
+        false,
+        &dir.join("fuzz.pth"),
+        cases(60),
+        |p| trained::load_any(p, &official, &device),
+    );
+    let safetensors = dir.join("model.safetensors");
+    lifegom_model::checkpoint::save_official_safetensors(&model, &safetensors).unwrap();
+    let base = std::fs::read(&safetensors).unwrap();
+    total += fuzz(
+        "official-safetensors",
+        &base,
+        false,
+        &dir.join("fuzz.safetensors"),
+        cases(60),
+        |p| trained::load_any(p, &official, &device),
+    );
+
+    // AIST++-style capture files: Python's pickle and numpy's compressed .npz.
+    for (name, file, n) in [
+        ("capture-pkl", "aist_like.pkl", 600),
+        ("capture-npz", "aist_like.npz", 600),
+    ] {
+        let base = std::fs::read(fixtures.join("capture").join(file)).unwrap();
+        let ext = Path::new(file).extension().unwrap().to_str().unwrap();
+        total += fuzz(
+            name,
+            &base,
+            false,
+            &dir.join(format!("fuzz.{ext}")),
+            cases(n),
+            lifegom_data::capture::load,
+        );
+    }
+
+    // A subject in the JSON layout (its images beside it, as shipped in data/me).
+    let me = dir.join("me");
+    std::fs::create_dir_all(&me).unwrap();
+    let shipped = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/me");
+    for entry in std::fs::read_dir(&shipped).unwrap() {
+        let entry = entry.unwrap().path();
+        std::fs::copy(&entry, me.join(entry.file_name().unwrap())).unwrap();
+    }
+    let base = std::fs::read(me.join("subject.json")).unwrap();
+    total += fuzz(
+        "subject-json",
+        &base,
+        true,
+        &me.join("subject.json"),
+        cases(300),
+        lifegom_data::custom::load_subject,
     );
 
     // The body template (.glb).

@@ -7,6 +7,12 @@
 //! - **Scan** (`exclusive_scan`): each thread turns its chunk of `SCAN_CHUNK` values into an
 //!   exclusive scan in place and writes the chunk total; the totals are scanned recursively (each
 //!   level is `SCAN_CHUNK` times shorter); then every value adds the scanned total of its chunk.
+//!   An array of at most `BLOCK_SCAN_MAX` values (every scan of a training-size render, and
+//!   every level but the first of a large one) is scanned by one cube in one launch instead:
+//!   its threads scan their chunks, one thread scans their totals in shared memory, and each
+//!   adds its offset. A training step renders about fifteen times with eleven scans each, so
+//!   this saves two launches a scan (two levels and the add) where the launch, not the work,
+//!   is the cost. The sums are integer, so both paths give the same values.
 //! - **Radix sort** (`radix_sort_pairs`): 4 bits per pass, least significant digit first. Per pass,
 //!   each thread counts the 16 digits of its chunk into `counts[digit * num_chunks + chunk]`
 //!   (digit-major), the counts are scanned, and each thread walks its chunk again writing every
@@ -25,6 +31,10 @@ use crate::cube::host::{ComputeClient, THREADS_1D, arg, count_1d, empty_u32};
 
 /// Elements a scan thread walks serially.
 const SCAN_CHUNK: u32 = 256;
+/// Threads of the one cube that scans a short array in one launch.
+const BLOCK_SCAN_THREADS: u32 = 256;
+/// The longest array one cube scans ([`scan_block`]): each thread walks at most `SCAN_CHUNK`.
+const BLOCK_SCAN_MAX: usize = (BLOCK_SCAN_THREADS * SCAN_CHUNK) as usize;
 /// Elements a radix-sort thread walks serially.
 const SORT_CHUNK: u32 = 64;
 /// Bits of the key one radix-sort pass sorts on.
@@ -60,9 +70,55 @@ fn scan_add(data: &mut [u32], scanned_totals: &[u32], n: u32) {
     }
 }
 
+/// The exclusive scan of `data[..n]`, `n ≤ BLOCK_SCAN_MAX`, by one cube of
+/// `BLOCK_SCAN_THREADS` threads (module docs).
+#[cube(launch)]
+fn scan_block(data: &mut [u32], n: u32) {
+    let mut totals = Shared::<[u32]>::new_slice(BLOCK_SCAN_THREADS as usize);
+    let unit = UNIT_POS;
+    let per = n.div_ceil(BLOCK_SCAN_THREADS);
+    let start = unit * per;
+    let end = min(start + per, n);
+    let mut running = 0u32;
+    if start < n {
+        for i in start..end {
+            let value = data[i as usize];
+            data[i as usize] = running;
+            running += value;
+        }
+    }
+    totals[unit as usize] = running;
+    sync_cube();
+    if unit == 0 {
+        let mut sum = 0u32;
+        for t in 0..BLOCK_SCAN_THREADS {
+            let total = totals[t as usize];
+            totals[t as usize] = sum;
+            sum += total;
+        }
+    }
+    sync_cube();
+    let offset = totals[unit as usize];
+    if start < n {
+        for i in start..end {
+            data[i as usize] += offset;
+        }
+    }
+}
+
 /// Replaces the first `n` values of `data` by their exclusive prefix sum.
 pub(crate) fn exclusive_scan(client: &ComputeClient, data: &Handle, n: usize) {
     if n == 0 {
+        return;
+    }
+    if n <= BLOCK_SCAN_MAX {
+        scan_block::launch(
+            client,
+            CubeCount::Static(1, 1, 1),
+            CubeDim::new_1d(BLOCK_SCAN_THREADS),
+            arg(data, n),
+            n as u32,
+        );
         return;
     }
     let chunks = n.div_ceil(SCAN_CHUNK as usize);
@@ -190,4 +246,88 @@ pub(crate) fn radix_sort_pairs(
 /// Number of bits needed to hold every value in `0..=max`.
 pub(crate) fn bits_for(max: u32) -> u32 {
     32 - max.leading_zeros()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    fn client() -> Option<ComputeClient> {
+        let device = crate::testing::wgpu_test_device()?;
+        match device.as_dispatch() {
+            burn::backend::DispatchDevice::Cube(cube) => Some(cube.client()),
+            _ => None,
+        }
+    }
+
+    fn read(client: &ComputeClient, handle: Handle, n: usize) -> Vec<u32> {
+        let bytes = client.read_one(handle).unwrap();
+        bytes[..4 * n]
+            .chunks_exact(4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect()
+    }
+
+    /// The one-cube scan (short arrays) and the multi-level one (long arrays, whose upper
+    /// levels are one-cube scans) both give the exact exclusive prefix sum, at the sizes around
+    /// the switch.
+    #[test]
+    fn exclusive_scan_is_exact_on_both_paths() {
+        let Some(client) = client() else { return };
+        let mut rng = Rng::new(5);
+        for n in [
+            1,
+            2,
+            255,
+            257,
+            BLOCK_SCAN_MAX - 1,
+            BLOCK_SCAN_MAX,
+            BLOCK_SCAN_MAX + 1,
+            300_001,
+        ] {
+            let values: Vec<u32> = (0..n).map(|_| rng.below(17) as u32).collect();
+            let handle = client.create_from_slice(&crate::cube::host::u32_bytes(&values));
+            exclusive_scan(&client, &handle, n);
+            let mut expected = Vec::with_capacity(n);
+            let mut sum = 0u32;
+            for v in &values {
+                expected.push(sum);
+                sum += v;
+            }
+            assert!(read(&client, handle, n) == expected, "n = {n}");
+        }
+    }
+
+    /// The radix sort is a stable sort on the low `bits` bits, as the rasterizer needs.
+    #[test]
+    fn radix_sort_is_stable() {
+        let Some(client) = client() else { return };
+        let mut rng = Rng::new(9);
+        for (n, bits) in [(1000, 32), (100_003, 32), (70_000, 6)] {
+            let keys: Vec<u32> = (0..n)
+                .map(|_| {
+                    (rng.next_u64() as u32)
+                        & if bits == 32 {
+                            u32::MAX >> 12
+                        } else {
+                            (1 << bits) - 1
+                        }
+                })
+                .collect();
+            let ids: Vec<u32> = (0..n as u32).collect();
+            let (k, v) = radix_sort_pairs(
+                &client,
+                client.create_from_slice(&crate::cube::host::u32_bytes(&keys)),
+                client.create_from_slice(&crate::cube::host::u32_bytes(&ids)),
+                n,
+                bits,
+            );
+            let mut expected: Vec<(u32, u32)> = keys.iter().copied().zip(ids).collect();
+            expected.sort_by_key(|&(key, _)| key);
+            let (ek, ev): (Vec<u32>, Vec<u32>) = expected.into_iter().unzip();
+            assert!(read(&client, k, n) == ek, "keys, n = {n}");
+            assert!(read(&client, v, n) == ev, "values (stability), n = {n}");
+        }
+    }
 }
