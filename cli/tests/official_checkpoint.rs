@@ -256,3 +256,55 @@ fn all_values(model: &lifegom_model::reconstructor::Reconstructor) -> Vec<Vec<f3
         })
         .collect()
 }
+
+/// `lifegom-train --export` takes an official file as its input (with `--config` for the
+/// network) and writes the official state dict when asked for `.safetensors`: both round trips
+/// keep every weight.
+#[test]
+fn export_converts_between_official_and_lifegom_files() {
+    let tmp = std::env::temp_dir().join(format!("lifegom-official-export-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    let (lgck, safetensors) = (tmp.join("from-pth.lgck"), tmp.join("demo.safetensors"));
+    let config = repo("configs/demo-v2.toml");
+    let export = |from: &Path, to: &Path, config: Option<&Path>| {
+        let mut args = vec!["--export", s(to), "--from", s(from), "--device", "ndarray"];
+        if let Some(c) = config {
+            args.extend(["--config", s(c)]);
+        }
+        command(env!("CARGO_BIN_EXE_lifegom-train"), &args)
+    };
+    // Without a config an official file has no network to go into: one clear error.
+    let out = export(&official_fixture(), &lgck, None);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("demo-v2.pth") && err.contains("--config"),
+        "{err}"
+    );
+    for (from, to, config) in [
+        (official_fixture(), &lgck, Some(config.as_path())),
+        (demo_lgck(), &safetensors, None),
+    ] {
+        let out = export(&from, to, config);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    #[allow(deprecated)] // Device::ndarray(): the CI backend (design.md §1.4).
+    let device = burn::tensor::Device::ndarray();
+    let demo = lifegom_model::trained::load(&demo_lgck(), &device).unwrap();
+    let back = lifegom_model::trained::load(&lgck, &device).unwrap();
+    let st = lifegom_model::trained::load_any(&safetensors, &demo.config, &device).unwrap();
+    let start = all_values(&demo.model);
+    assert!(
+        all_values(&back.model) == start,
+        ".pth → .lgck changed weights"
+    );
+    assert!(
+        all_values(&st.model) == start,
+        ".lgck → .safetensors changed weights"
+    );
+    let _ = std::fs::remove_dir_all(&tmp);
+}
