@@ -25,7 +25,11 @@
 #   4. the rasterizer's headline (1024², 2 subdivisions) and test binaries named `test-*` in $BIN
 #      (run with LIFEGOM_REQUIRE_WGPU=1: the CubeCL kernels' parity with the CPU reference on the
 #      card);
-#   5. with AUTOTUNE_BIN set, the kernels Burn's autotune picks at the paper setting.
+#   5. with AUTOTUNE_BIN set, the kernels Burn's autotune picks at the paper setting;
+#   6. with CUDA_BIN set (binaries built with `--features lifegom-cli/cuda`), the quickstart
+#      step and the paper reconstruction on `--device cuda` beside wgpu. CubeCL's CUDA runtime
+#      compiles kernels with NVRTC: put the CUDA toolkit's libnvrtc*.so* in $CUDA_LIBS (default
+#      .cuda/) when the machine lacks them.
 # Each step has its own time limit, so one that hangs cannot eat the others' time.
 set -uo pipefail
 BIN=${BIN:?BIN: folder of release binaries}
@@ -155,5 +159,16 @@ if [ -n "${AUTOTUNE_BIN:-}" ] && [ -x "$AUTOTUNE_BIN/recon-bench" ]; then
     (cd "$tune_dir" && step autotune-recon-paper-1024-s2 240 "$repo/$AUTOTUNE_BIN/recon-bench" \
         --device wgpu --config paper --size 1024 --subdiv 2 --runs 1 --json \
         --template "$repo/$TEMPLATE" --kernel-times --top-kernels 25)
+fi
+# 6. Optional: the CUDA runtime beside wgpu, same commands (issue: keep the faster as the
+#    recommended GPU device).
+if [ -n "${CUDA_BIN:-}" ] && [ -x "$CUDA_BIN/train-bench" ]; then
+    CUDA_LIBS=${CUDA_LIBS:-.cuda}
+    if [ -d "$CUDA_LIBS" ]; then
+        export LD_LIBRARY_PATH="$PWD/$CUDA_LIBS${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+    fi
+    step cuda-train-quickstart 90 "$CUDA_BIN/train-bench" --device cuda "${QUICK[@]}"
+    step cuda-recon-paper-1024-s2 90 "$CUDA_BIN/recon-bench" --device cuda "${PAPER[@]}"
+    step cuda-wgpu-train-quickstart 90 "$CUDA_BIN/train-bench" --device wgpu "${QUICK[@]}"
 fi
 echo "== done ($(date +%T))"

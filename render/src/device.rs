@@ -8,6 +8,14 @@
 //! the workspace) relies on the default; every caller names its device. On a machine without a
 //! GPU, wgpu runs on Mesa's software Vulkan (lavapipe) when it is installed; [`wgpu_available`]
 //! tells callers whether any adapter comes up at all.
+//!
+//! `--device cuda` (NVIDIA cards, through CubeCL's CUDA runtime) exists in binaries built with
+//! the `cuda` cargo feature (`--features lifegom-cli/cuda`); the default build and CI do not
+//! need CUDA. It is the same CubeCL backend as wgpu with another runtime, so every custom op
+//! (all CubeCL kernels) and Burn's kernel fusion run on it unchanged. At run time it needs the
+//! NVIDIA driver (`libcuda`) and the CUDA toolkit's NVRTC (`libnvrtc`), which compiles the
+//! kernels; a build needs neither (`.cargo/config.toml` names the CUDA version the bindings
+//! target, so no `nvcc` is looked for).
 
 // `Device::ndarray()` is deprecated in Burn 0.22 in favour of Flex; ndarray is the CI backend
 // the project requires (design.md §1.4).
@@ -27,6 +35,9 @@ pub enum DeviceChoice {
     Flex,
     /// Burn's CubeCL backend on wgpu's default adapter (a GPU, or lavapipe on the CPU).
     Wgpu,
+    /// Burn's CubeCL backend on CUDA's first device (module docs; the `cuda` feature).
+    #[cfg(feature = "cuda")]
+    Cuda,
 }
 
 impl DeviceChoice {
@@ -39,6 +50,11 @@ impl DeviceChoice {
                 KernelFusion::current();
                 Device::wgpu(DeviceKind::DefaultDevice)
             }
+            #[cfg(feature = "cuda")]
+            DeviceChoice::Cuda => {
+                KernelFusion::current();
+                Device::cuda(0)
+            }
         }
     }
 
@@ -48,6 +64,8 @@ impl DeviceChoice {
             DeviceChoice::NdArray => "ndarray",
             DeviceChoice::Flex => "flex",
             DeviceChoice::Wgpu => "wgpu",
+            #[cfg(feature = "cuda")]
+            DeviceChoice::Cuda => "cuda",
         }
     }
 
@@ -62,8 +80,17 @@ impl std::str::FromStr for DeviceChoice {
             "ndarray" => Ok(DeviceChoice::NdArray),
             "flex" => Ok(DeviceChoice::Flex),
             "wgpu" => Ok(DeviceChoice::Wgpu),
+            #[cfg(feature = "cuda")]
+            "cuda" => Ok(DeviceChoice::Cuda),
+            #[cfg(not(feature = "cuda"))]
+            "cuda" => Err(
+                "this binary was built without CUDA: build with `--features lifegom-cli/cuda` \
+                 (an NVIDIA driver and the CUDA toolkit's NVRTC are needed at run time), or use \
+                 `--device wgpu`, which runs on NVIDIA cards through Vulkan"
+                    .into(),
+            ),
             other => Err(format!(
-                "unknown device `{other}` (expected ndarray, flex or wgpu)"
+                "unknown device `{other}` (expected ndarray, flex, wgpu or cuda)"
             )),
         }
     }
