@@ -550,7 +550,7 @@ fn bad_json_subjects_name_file_frame_and_field() {
     check(
         "missing-view",
         &|v| v["frames"][0]["image"] = serde_json::json!("nowhere.png"),
-        &["nowhere.png", "cannot read"],
+        &["nowhere.png", "frames[0].image", "is not a file"],
     );
     check(
         "mask-size",
