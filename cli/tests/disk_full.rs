@@ -179,6 +179,91 @@ fn a_full_disk_during_export_leaves_the_previous_files() {
     std::fs::remove_dir_all(&tmp).ok();
 }
 
+/// Runs `exe args` twice into the same output folder, the second time on a "full disk" of
+/// `limit_kib` KiB: the second run fails with an error naming a file of `out`, and every file of
+/// the first run is still there, byte for byte, with no temporary left beside it.
+fn second_run_on_a_full_disk_changes_nothing(exe: &str, args: &[&str], out: &Path, limit_kib: u64) {
+    let first = run(exe, args, None);
+    assert!(first.status.success(), "{}", stderr(&first));
+    let before = snapshot(out);
+    let largest = before.iter().map(|(_, b)| b.len()).max().unwrap();
+    assert!(
+        largest as u64 > limit_kib * 1024,
+        "some output must exceed the limit"
+    );
+    let full = run(exe, args, Some(limit_kib));
+    let msg = stderr(&full);
+    assert!(
+        !full.status.success(),
+        "a run on a full disk succeeded:\n{msg}"
+    );
+    assert!(msg.contains("File too large"), "{msg}");
+    assert!(
+        msg.contains(out.to_str().unwrap()),
+        "the error names the file:\n{msg}"
+    );
+    eprintln!("{}: {msg}", Path::new(exe).file_name().unwrap().display());
+    let after = snapshot(out);
+    assert_eq!(
+        after.iter().map(|(p, _)| p).collect::<Vec<_>>(),
+        before.iter().map(|(p, _)| p).collect::<Vec<_>>(),
+        "files appeared or vanished"
+    );
+    for ((path, old), (_, new)) in before.iter().zip(&after) {
+        assert!(old == new, "{} changed", path.display());
+    }
+    assert_no_temporaries(out);
+}
+
+/// Data generation: regenerating a split on a full disk leaves the old split whole (images,
+/// masks, pickles, split lists).
+#[test]
+fn a_full_disk_during_data_generation_leaves_the_previous_split() {
+    let tmp = std::env::temp_dir().join(format!("lifegom-disk-synth-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    let out = tmp.join("data");
+    let cfg_path = config();
+    second_run_on_a_full_disk_changes_nothing(
+        env!("CARGO_BIN_EXE_lifegom-synth"),
+        &["--config", &cfg_path, "--out", out.to_str().unwrap()],
+        &out,
+        8,
+    );
+    std::fs::remove_dir_all(&tmp).ok();
+}
+
+/// Evaluation: a report that cannot be written is an error, and the previous report, tables,
+/// predictions and sheets stay whole.
+#[test]
+fn a_full_disk_during_evaluation_leaves_the_previous_report() {
+    let (tmp, cfg) = tiny_split("disk-eval", |s| {
+        (s.train_subjects, s.val_subjects) = (0, 1);
+    });
+    let model = untrained_tiny_model(&tmp, 1, 0);
+    let out = tmp.join("eval");
+    let cfg_path = config();
+    second_run_on_a_full_disk_changes_nothing(
+        env!("CARGO_BIN_EXE_lifegom-eval"),
+        &[
+            "--config",
+            &cfg_path,
+            "--data",
+            cfg.data.root.to_str().unwrap(),
+            "--checkpoint",
+            model.to_str().unwrap(),
+            "--device",
+            "ndarray",
+            "--sheets",
+            "1",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &out,
+        1,
+    );
+    std::fs::remove_dir_all(&tmp).ok();
+}
+
 /// Kills: `kill -9` at seeded random moments of a run that writes a checkpoint every step;
 /// after each, `--resume` starts from a whole checkpoint and the log has only whole lines, its
 /// steps counting up from 1 without a gap or a repeat.

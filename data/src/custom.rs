@@ -295,9 +295,9 @@ pub fn write_subject(subject: &Subject, template: TemplateChoice, dir: &Path) ->
     for (i, name) in subject.frames.iter().enumerate() {
         let (image, mask) = (format!("{name}.png"), format!("{name}_mask.png"));
         let src = subject.image_path(i);
-        std::fs::copy(&src, dir.join(&image)).map_err(|e| io(&src, e))?;
+        copy_atomic(&src, &dir.join(&image))?;
         let src = subject.mask_path(i);
-        std::fs::copy(&src, dir.join(&mask)).map_err(|e| io(&src, e))?;
+        copy_atomic(&src, &dir.join(&mask))?;
         let (cam, info) = (&subject.cameras[i], &subject.mesh_infos[i]);
         let mut entry = serde_json::json!({
             "name": name,
@@ -322,6 +322,15 @@ pub fn write_subject(subject: &Subject, template: TemplateChoice, dir: &Path) ->
     let path = dir.join("subject.json");
     let text = serde_json::to_string_pretty(&json)
         .map_err(|e| DataError::invalid(Location::file(&path), e.to_string()))?;
-    std::fs::write(&path, text).map_err(|e| io(&path, e))?;
+    lifegom_render::atomic_file::write_atomic(&path, text.as_bytes())
+        .map_err(|e| DataError::write(Location::file(&path), e))?;
     Ok(path)
+}
+
+/// Copies `src` to `dest` through a temporary and a rename, so that a failed copy (a full disk)
+/// leaves a previous `dest` whole.
+fn copy_atomic(src: &Path, dest: &Path) -> Result<()> {
+    let bytes = std::fs::read(src).map_err(|e| DataError::io(Location::file(src), e))?;
+    lifegom_render::atomic_file::write_atomic(dest, &bytes)
+        .map_err(|e| DataError::write(Location::file(dest), e))
 }

@@ -83,6 +83,15 @@ pub enum DataError {
         /// The underlying error.
         source: std::io::Error,
     },
+    /// A file that cannot be written (a full disk, a read-only folder); the previous file, if
+    /// any, is left whole (writes go through a temporary and a rename).
+    #[error("{location}: cannot write: {source}")]
+    Write {
+        /// What was being written.
+        location: Box<Location>,
+        /// The underlying error.
+        source: std::io::Error,
+    },
     /// A pickle stream the VM cannot execute (truncated, unknown opcode, unknown global, ...).
     #[error("{location}: pickle error at byte {offset}: {reason}")]
     Pickle {
@@ -139,6 +148,14 @@ impl DataError {
     /// A [`DataError::Io`] for `path`.
     pub fn io(location: Location, source: std::io::Error) -> Self {
         Self::Io {
+            location: Box::new(location),
+            source,
+        }
+    }
+
+    /// A [`DataError::Write`] for `location`.
+    pub fn write(location: Location, source: std::io::Error) -> Self {
+        Self::Write {
             location: Box::new(location),
             source,
         }

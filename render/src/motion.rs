@@ -685,7 +685,10 @@ mod tests {
         );
         assert_eq!(known_joint_names(24).unwrap()[4], "left_knee");
         let smplx = known_joint_names(55).unwrap();
-        assert_eq!((smplx[21].as_str(), smplx[22].as_str()), ("right_wrist", "jaw"));
+        assert_eq!(
+            (smplx[21].as_str(), smplx[22].as_str()),
+            ("right_wrist", "jaw")
+        );
         assert_eq!(smplx[54], "right_thumb3");
         assert!(known_joint_names(7).is_none());
     }

@@ -26,9 +26,10 @@ pub fn load(path: &Path) -> Result<Value> {
     })
 }
 
-/// Writes `value` as a pickle at `path`.
+/// Writes `value` as a pickle at `path`, atomically (a failed write leaves the old file whole).
 pub fn save(path: &Path, value: &Value) -> Result<()> {
     let bytes =
         writer::to_vec(value).map_err(|reason| DataError::invalid(Location::file(path), reason))?;
-    std::fs::write(path, bytes).map_err(|source| DataError::io(Location::file(path), source))
+    lifegom_render::atomic_file::write_atomic(path, &bytes)
+        .map_err(|source| DataError::write(Location::file(path), source))
 }

@@ -1019,10 +1019,10 @@ pub fn write_subject(
             ),
             reason: format!("cannot write PNG: {e}"),
         };
-        image::save_buffer(&img_path, &frame.rgb, w, h, image::ExtendedColorType::Rgb8)
+        save_png(&img_path, &frame.rgb, w, h, image::ExtendedColorType::Rgb8)
             .map_err(|e| save_err(&img_path, e))?;
         let mask_path = root.join("masks").join(format!("{}.png", frame.name));
-        image::save_buffer(&mask_path, &frame.mask, w, h, image::ExtendedColorType::L8)
+        save_png(&mask_path, &frame.mask, w, h, image::ExtendedColorType::L8)
             .map_err(|e| save_err(&mask_path, e))?;
         let camera = frame.frame_camera();
         let info = subject.mesh_info(frame);
@@ -1127,7 +1127,7 @@ pub fn generate_split(
         }
         let text = serde_json::to_string_pretty(&value).unwrap_or_default();
         lifegom_render::atomic_file::write_atomic(&path, text.as_bytes())
-            .map_err(|e| DataError::io(Location::file(&path), e))
+            .map_err(|e| DataError::write(Location::file(&path), e))
     };
     write_json(out.join(&data.train_split), serde_json::json!(train))?;
     // A config whose validation subjects are listed in `[data] val_subjects` may share one
@@ -1189,4 +1189,24 @@ pub fn contact_sheet(
         }
     }
     Ok((w, h, sheet.into_raw()))
+}
+
+/// Encodes a PNG in memory and writes it atomically: regenerating a split on a full disk leaves
+/// each old image whole, never a truncated one.
+fn save_png(
+    path: &Path,
+    pixels: &[u8],
+    width: u32,
+    height: u32,
+    color: image::ExtendedColorType,
+) -> image::ImageResult<()> {
+    let mut png = Vec::new();
+    image::ImageEncoder::write_image(
+        image::codecs::png::PngEncoder::new(&mut png),
+        pixels,
+        width,
+        height,
+        color,
+    )?;
+    lifegom_render::atomic_file::write_atomic(path, &png).map_err(image::ImageError::IoError)
 }
