@@ -109,7 +109,7 @@ pub struct StepStats {
     #[serde(default)]
     pub exchange_seconds: f64,
     /// Whether the optimizer step was taken: `false` when the batch's loss (or, where the
-    /// gradients reach the host, their sum) was not finite. A skipped step leaves the weights
+    /// gradients are on the host: CPU backends and MPI, a gradient) was not finite. A skipped step leaves the weights
     /// and `step` as they were and uses up its samples.
     #[serde(default = "yes")]
     pub applied: bool,

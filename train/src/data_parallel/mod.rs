@@ -176,6 +176,18 @@ pub fn average_gradients<M: Module>(
 ) -> Result<Option<GradientsParams>, ReplicaError> {
     let samples = local * replicas.size();
     if replicas.size() == 1 {
+        // Where the gradients live on the host, a pass over them costs little: a finite loss
+        // with a non-finite gradient (a 0/0 in some backward) is caught here as under MPI.
+        // On a GPU it would cost a read-back of every gradient a step, so there only the loss
+        // is checked (design.md §1.6).
+        let mut check = HostGradientsFinite {
+            grads: &grads,
+            finite: true,
+        };
+        module.visit(&mut check);
+        if !check.finite {
+            return Ok(None);
+        }
         if samples == 1 {
             return Ok(Some(grads));
         }
@@ -258,6 +270,29 @@ impl ModuleVisitor for Scale {
 
 /// Flattens the gradients into one host buffer (zeros where a parameter has none) and a
 /// presence flag per parameter.
+/// Whether every gradient that lives on the host (ndarray, Flex) is finite; gradients on a
+/// CubeCL device are not read.
+struct HostGradientsFinite<'a> {
+    grads: &'a GradientsParams,
+    finite: bool,
+}
+
+impl ModuleVisitor for HostGradientsFinite<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        if !self.finite {
+            return;
+        }
+        if let Some(g) = self.grads.get::<D>(param.id)
+            && lifegom_render::device::runs_on_host(&g.device())
+        {
+            // A read failure is not a non-finite value; the step itself reports it.
+            if let Ok(values) = readback::read::<f32, D, _>("gradient", g) {
+                self.finite = values.iter().all(|v| v.is_finite());
+            }
+        }
+    }
+}
+
 struct Gather {
     grads: GradientsParams,
     values: Vec<f32>,
@@ -427,6 +462,32 @@ mod tests {
             host(single.get::<1>(bias).expect("bias gradient")),
             host(parallel.get::<1>(bias).expect("bias gradient"))
         );
+    }
+
+    /// One process on a host backend: a finite loss whose gradient is not finite (the `sqrt`
+    /// of zero has an infinite derivative) gives no step, as a non-finite loss does.
+    #[test]
+    fn a_non_finite_gradient_behind_a_finite_loss_gives_no_step() {
+        for device in [Device::ndarray(), Device::flex()] {
+            let device = device.autodiff();
+            device.seed(4);
+            let layer: Linear = LinearConfig::new(2, 1).with_bias(false).init(&device);
+            let x = Tensor::<2>::from_data([[0.0, 0.0]], &device);
+            let loss = layer.forward(x.clone()).abs().sqrt().sum();
+            assert!(host(loss.clone()).iter().all(|v| v.is_finite()));
+            let grads = GradientsParams::from_grads(loss.backward(), &layer);
+            assert!(
+                average_gradients(&layer, grads, 1, &SingleProcess)
+                    .unwrap()
+                    .is_none()
+            );
+            let fine = grads_of(&layer, Tensor::from_data([[1.0, 2.0]], &device));
+            assert!(
+                average_gradients(&layer, fine, 1, &SingleProcess)
+                    .unwrap()
+                    .is_some()
+            );
+        }
     }
 
     #[test]
