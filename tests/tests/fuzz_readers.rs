@@ -7,6 +7,9 @@
 //! [`ALLOCATION_BOUND`] bytes at once (a counting global allocator records the largest request).
 //! The pickle reader has its own fuzzer (`data/src/pickle/reader.rs`).
 //!
+//! A second test mutates the length-prefixed formats (`.lgck`, `.lgom`, SafeTensors) where
+//! their structure is: every section's length field and boundaries.
+//!
 //! The case counts fit CI; `LIFEGOM_FUZZ_CASES=N` runs N per reader instead (a longer run:
 //! `LIFEGOM_FUZZ_CASES=20000 cargo test --release --workspace --test fuzz_readers`).
 
@@ -161,6 +164,128 @@ fn fuzz<T, E: std::fmt::Display>(
     }
     eprintln!("{name}: {n} cases, {errors} errors, {ok} read, 0 panics");
     n
+}
+
+/// The structure-aware cases of a file whose sections are `u64` little-endian length fields
+/// followed by that many bytes, at `fields` (each field's offset): every length set to 0, one
+/// less, one more, 2^40 and `u64::MAX`, and the file cut at each field, after it, one byte
+/// before its section's end, at the end and one byte past it (a byte of junk).
+fn section_cases(base: &[u8], fields: &[usize]) -> Vec<Vec<u8>> {
+    let mut cases = Vec::new();
+    for &at in fields {
+        let len = u64::from_le_bytes(base[at..at + 8].try_into().unwrap());
+        for value in [0, len.saturating_sub(1), len + 1, 1 << 40, u64::MAX] {
+            let mut b = base.to_vec();
+            b[at..at + 8].copy_from_slice(&value.to_le_bytes());
+            cases.push(b);
+        }
+        let end = at + 8 + len as usize;
+        for cut in [at, at + 8, end.saturating_sub(1), end] {
+            cases.push(base[..cut.min(base.len())].to_vec());
+        }
+        let mut junk = base[..end.min(base.len())].to_vec();
+        junk.push(0x5a);
+        cases.push(junk);
+    }
+    cases
+}
+
+/// Runs `read` on each of `cases`, written to `path`: no panic, and every error names the
+/// file. Returns the number of cases.
+fn run_cases<T, E: std::fmt::Display>(
+    name: &str,
+    cases: &[Vec<u8>],
+    path: &Path,
+    read: impl Fn(&Path) -> Result<T, E>,
+) -> usize {
+    let file = path.file_name().unwrap().to_string_lossy().into_owned();
+    let mut errors = 0;
+    for (case, bytes) in cases.iter().enumerate() {
+        std::fs::write(path, bytes).unwrap();
+        match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read(path))) {
+            Err(_) => panic!("{name}: section case {case} panicked"),
+            Ok(Err(e)) => {
+                let msg = e.to_string();
+                assert!(
+                    msg.contains(&file),
+                    "{name}: case {case}: `{msg}` does not name {file}"
+                );
+                errors += 1;
+            }
+            Ok(Ok(_)) => {}
+        }
+    }
+    eprintln!(
+        "{name}: {} section cases, {errors} errors, 0 panics",
+        cases.len()
+    );
+    cases.len()
+}
+
+/// The length-prefixed formats, mutated where their structure is: each section's length field
+/// and each section's boundaries (module docs; the random mutations above rarely land there).
+#[test]
+fn section_lengths_and_boundaries_are_errors_not_panics() {
+    let dir = scratch("sections");
+    let device = Device::ndarray();
+    let config = ReconstructorConfig::tiny(3).with_iterations(1);
+    let model = config.init(1229, &device).unwrap();
+    let mut total = 0;
+
+    // `.lgck`: magic (8), version (4), then header, weights and payload, each length-prefixed.
+    let lgck = dir.join("model.lgck");
+    trained::save(
+        &lgck,
+        &model,
+        &config,
+        serde_json::json!({"step": 1}),
+        b"payload",
+    )
+    .unwrap();
+    let base = std::fs::read(&lgck).unwrap();
+    let mut fields = vec![12usize];
+    for _ in 0..2 {
+        let at = *fields.last().unwrap();
+        let len = u64::from_le_bytes(base[at..at + 8].try_into().unwrap()) as usize;
+        fields.push(at + 8 + len);
+    }
+    total += run_cases(
+        "lgck",
+        &section_cases(&base, &fields),
+        &dir.join("cut.lgck"),
+        |p| trained::load(p, &device),
+    );
+
+    // `.lgom`: magic (8), then the length-prefixed JSON header.
+    let avatar = patterned_avatar(&lowres_template_path(), 1, &device);
+    let lgom = dir.join("avatar.lgom");
+    avatar.save(&lgom).unwrap();
+    let base = std::fs::read(&lgom).unwrap();
+    total += run_cases(
+        "lgom",
+        &section_cases(&base, &[8]),
+        &dir.join("cut.lgom"),
+        |p| Avatar::load(p, &device),
+    );
+
+    // SafeTensors: the length-prefixed JSON header, then the data; read as an official file.
+    let safetensors = dir.join("model.safetensors");
+    lifegom_model::checkpoint::save_official_safetensors(&model, &safetensors).unwrap();
+    let base = std::fs::read(&safetensors).unwrap();
+    total += run_cases(
+        "safetensors",
+        &section_cases(&base, &[0]),
+        &dir.join("cut.safetensors"),
+        |p| trained::load_any(p, &ReconstructorConfig::tiny(3), &device),
+    );
+
+    let largest = LARGEST.load(Ordering::Relaxed);
+    eprintln!("{total} section cases; largest single allocation {largest} bytes");
+    assert!(
+        largest <= ALLOCATION_BOUND,
+        "an allocation of {largest} bytes"
+    );
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 fn scratch(tag: &str) -> PathBuf {
