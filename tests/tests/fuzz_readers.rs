@@ -1,6 +1,6 @@
 //! Structure-blind mutation fuzzing of the file readers (`.lgck`, `.lgom`, the official
 //! checkpoints as `torch.save` zip and SafeTensors, configs, motion files, AIST++ capture pickles
-//! and `.npz`, `subject.json`, the body template), bounded for CI: seeded bit flips,
+//! and `.npz`, `subject.json` and its PNG photo and mask, the body template), bounded for CI: seeded bit flips,
 //! truncations, splices of another part of the file, huge little-endian length fields, and for
 //! the text formats numbers replaced by NaN, inf or huge values. Each reader must return (an
 //! error naming the file, or a value), never panic, and never ask for more than
@@ -428,6 +428,20 @@ fn no_reader_panics_or_overallocates_on_damaged_files() {
         cases(300),
         lifegom_data::custom::load_subject,
     );
+    std::fs::copy(shipped.join("subject.json"), me.join("subject.json")).unwrap();
+
+    // Its photo and mask (PNG), decoded as reconstruction decodes them.
+    for (name, file, n) in [
+        ("photo-png", "frame_000000.png", 150),
+        ("mask-png", "frame_000000_mask.png", 150),
+    ] {
+        let base = std::fs::read(shipped.join(file)).unwrap();
+        total += fuzz(name, &base, false, &me.join(file), cases(n), |p| {
+            let subject = lifegom_data::custom::load_subject(&p.with_file_name("subject.json"))?;
+            lifegom_data::dataset::load_sample(&subject, &[0, 1, 2], 3, [0.0; 3], (128, 128))
+        });
+        std::fs::copy(shipped.join(file), me.join(file)).unwrap();
+    }
 
     // The body template (.glb).
     let base = std::fs::read(lowres_template_path()).unwrap();
