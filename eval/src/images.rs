@@ -4,7 +4,6 @@
 //! reference dumps predictions (design.md §10.1): `uint8(255 · clip(x, 0, 1))`, truncating, so a
 //! metric computed on our PNGs matches one computed on the reference's.
 
-use image::ImageEncoder;
 use lifegom_render::atomic_file::write_atomic;
 use std::path::Path;
 
@@ -98,16 +97,14 @@ impl Image {
             path: path.to_path_buf(),
             source,
         };
-        let mut png = Vec::new();
-        image::codecs::png::PngEncoder::new(&mut png)
-            .write_image(
-                &self.to_rgb8(),
-                self.width as u32,
-                self.height as u32,
-                image::ExtendedColorType::Rgb8,
-            )
-            .map_err(err)?;
-        write_atomic(path, &png).map_err(|e| err(image::ImageError::IoError(e)))
+        lifegom_render::atomic_file::write_png(
+            path,
+            &self.to_rgb8(),
+            self.width as u32,
+            self.height as u32,
+            image::ExtendedColorType::Rgb8,
+        )
+        .map_err(err)
     }
 
     /// Reads a PNG (or any format the `image` crate was built with) as RGB.

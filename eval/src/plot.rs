@@ -166,7 +166,7 @@ impl Canvas {
 
     /// Writes the canvas as a PNG.
     pub fn save(&self, path: &Path) -> image::ImageResult<()> {
-        image::save_buffer(
+        lifegom_render::atomic_file::write_png(
             path,
             &self.pixels,
             self.width,

@@ -1,5 +1,6 @@
 //! Telling a weights file's container format from its first bytes: the one place that does it
 //! (the official checkpoint importer, the encoder's torchvision import, the perceptual metrics).
+//! lifegom's own `.lgck` files carry a magic of their own ([`crate::trained::is_lifegom_file`]).
 //!
 //! A SafeTensors file starts with its JSON header's length as a little-endian `u64`, then the
 //! header itself, which opens with `{`. Anything else is handed to Burn's PyTorch reader, which

@@ -1,5 +1,6 @@
 //! Writing a file so that a reader sees either its old or its new contents, never a truncated
-//! mix: the one place the workspace does it (avatars, trained-model checkpoints, reports).
+//! mix: the one place the workspace does it (avatars, trained-model checkpoints, reports,
+//! pictures: [`write_png`] encodes in memory first).
 //!
 //! The bytes go to a temporary file in the target's own folder (a rename is atomic only
 //! within one file system), are flushed to disk, and the temporary file is then renamed over
@@ -23,6 +24,26 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     tmp.as_file().sync_all()?;
     tmp.persist(path).map_err(|e| e.error)?;
     Ok(())
+}
+
+/// Encodes `pixels` (`width × height`, `color` layout) as a PNG in memory and writes it with
+/// [`write_atomic`]: on a full disk the previous picture stays whole.
+pub fn write_png(
+    path: &Path,
+    pixels: &[u8],
+    width: u32,
+    height: u32,
+    color: image::ExtendedColorType,
+) -> image::ImageResult<()> {
+    let mut png = Vec::new();
+    image::ImageEncoder::write_image(
+        image::codecs::png::PngEncoder::new(&mut png),
+        pixels,
+        width,
+        height,
+        color,
+    )?;
+    write_atomic(path, &png).map_err(image::ImageError::IoError)
 }
 
 #[cfg(test)]

@@ -77,7 +77,7 @@ fn main() -> anyhow::Result<()> {
             }
         };
         let (w, h, rgb) = synth::contact_sheet(&dir, &subjects, &views)?;
-        image::save_buffer(&path, &rgb, w, h, image::ExtendedColorType::Rgb8)
+        lifegom_render::atomic_file::write_png(&path, &rgb, w, h, image::ExtendedColorType::Rgb8)
             .with_context(|| format!("writing {}", path.display()))?;
         eprintln!("contact sheet: {}", path.display());
     }

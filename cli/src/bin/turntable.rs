@@ -127,8 +127,14 @@ fn main() -> anyhow::Result<()> {
             .map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
             .collect();
         let file = args.out.join(format!("frame_{frame:03}.png"));
-        image::save_buffer(&file, &pixels, size, size, image::ExtendedColorType::Rgb8)
-            .with_context(|| format!("writing {}", file.display()))?;
+        lifegom_render::atomic_file::write_png(
+            &file,
+            &pixels,
+            size,
+            size,
+            image::ExtendedColorType::Rgb8,
+        )
+        .with_context(|| format!("writing {}", file.display()))?;
         println!(
             "{}",
             serde_json::json!({"frame": frame, "file": file.display().to_string(), "gaussians": n, "size": size, "ms": start.elapsed().as_secs_f64() * 1e3})

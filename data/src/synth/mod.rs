@@ -57,6 +57,7 @@ pub mod texture;
 use std::path::{Path, PathBuf};
 
 use glam::Vec3;
+use lifegom_render::atomic_file::write_png;
 use lifegom_render::camera::{Camera, Intrinsics};
 use lifegom_render::motion::{JointRoles, Motion};
 use lifegom_render::skeleton::{BodyPose, Skeleton};
@@ -1019,10 +1020,11 @@ pub fn write_subject(
             ),
             reason: format!("cannot write PNG: {e}"),
         };
-        save_png(&img_path, &frame.rgb, w, h, image::ExtendedColorType::Rgb8)
+        // By rename: regenerating a split on a full disk leaves each old picture whole.
+        write_png(&img_path, &frame.rgb, w, h, image::ExtendedColorType::Rgb8)
             .map_err(|e| save_err(&img_path, e))?;
         let mask_path = root.join("masks").join(format!("{}.png", frame.name));
-        save_png(&mask_path, &frame.mask, w, h, image::ExtendedColorType::L8)
+        write_png(&mask_path, &frame.mask, w, h, image::ExtendedColorType::L8)
             .map_err(|e| save_err(&mask_path, e))?;
         let camera = frame.frame_camera();
         let info = subject.mesh_info(frame);
@@ -1189,24 +1191,4 @@ pub fn contact_sheet(
         }
     }
     Ok((w, h, sheet.into_raw()))
-}
-
-/// Encodes a PNG in memory and writes it atomically: regenerating a split on a full disk leaves
-/// each old image whole, never a truncated one.
-fn save_png(
-    path: &Path,
-    pixels: &[u8],
-    width: u32,
-    height: u32,
-    color: image::ExtendedColorType,
-) -> image::ImageResult<()> {
-    let mut png = Vec::new();
-    image::ImageEncoder::write_image(
-        image::codecs::png::PngEncoder::new(&mut png),
-        pixels,
-        width,
-        height,
-        color,
-    )?;
-    lifegom_render::atomic_file::write_atomic(path, &png).map_err(image::ImageError::IoError)
 }
