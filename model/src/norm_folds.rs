@@ -31,6 +31,8 @@ pub struct NormFolds<'a> {
     affine: RefCell<HashMap<usize, (Tensor<1>, Tensor<1>)>>,
     /// By `Linear` address: the folded `(weight [in, out], bias [out])` of `linear_bn`.
     linear: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
+    /// By the first layer's address: layers side by side, `(weight [in, Σ out], bias [Σ out])`.
+    stacked: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
     layers: PhantomData<&'a ()>,
 }
 
@@ -38,6 +40,33 @@ impl<'a> NormFolds<'a> {
     /// No folds yet.
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// Layers with biases that read the same input, as one layer whose outputs are theirs side
+    /// by side: `(cat(W₁, W₂, …) [in, Σ out], cat(b₁, b₂, …))`. One product then replaces
+    /// several, forward and backward (the Point Transformer's query, key and value).
+    ///
+    /// # Panics
+    ///
+    /// If `layers` is empty or a layer has no bias.
+    pub(crate) fn stacked(&self, layers: &[&'a Linear], device: &Device) -> (Tensor<2>, Tensor<1>) {
+        let key = std::ptr::from_ref(layers[0]) as usize;
+        if let Some(found) = self.stacked.borrow().get(&key) {
+            return found.clone();
+        }
+        let weight = Tensor::cat(layers.iter().map(|l| l.weight.val()).collect(), 1);
+        let bias = Tensor::cat(
+            layers
+                .iter()
+                .map(|l| l.bias.as_ref().expect("stacked layers have biases").val())
+                .collect(),
+            0,
+        );
+        let (weight, bias) = (weight.to_device(device), bias.to_device(device));
+        self.stacked
+            .borrow_mut()
+            .insert(key, (weight.clone(), bias.clone()));
+        (weight, bias)
     }
 
     /// How many BN and `Linear` folds are kept.

@@ -90,6 +90,7 @@ use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
 use burn::tensor::{Device, Int, Tensor, TensorData};
+use lifegom_render::device::runs_on_host;
 use lifegom_render::readback::{self, ReadbackError};
 
 use crate::knn::{Neighbours, farthest_point_sampling, knn};
@@ -645,6 +646,9 @@ impl PointTransformerLayer {
         rel: Tensor<3>,
         nbr: Tensor<1, Int>,
     ) -> Tensor<2> {
+        if !runs_on_host(&x.device()) {
+            return self.forward_stacked(folds, x, rel, nbr);
+        }
         let [n, c] = x.dims();
         let [_, k, _] = rel.dims();
         let s = self.share_planes;
@@ -668,6 +672,34 @@ impl PointTransformerLayer {
 
         let values = (vf + delta).reshape([n, k, s, c / s]);
         vector_attention::aggregate(values, w)
+    }
+
+    /// [`Self::forward`] on CubeCL devices: the query, key and value as one `[n, 3c]` product
+    /// (weights stacked once per [`NormFolds`]), and the neighbourhood work around `MLP_w` as
+    /// the two ops of [`vector_attention::relation`] and [`vector_attention::aggregate_gathered`],
+    /// which gather from that product themselves: the same maths as the composition in fewer
+    /// launches (BENCHMARKS.md, session 23).
+    fn forward_stacked<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        x: Tensor<2>,
+        rel: Tensor<3>,
+        nbr: Tensor<1, Int>,
+    ) -> Tensor<2> {
+        let device = x.device();
+        let (w_qkv, b_qkv) =
+            folds.stacked(&[&self.linear_q, &self.linear_k, &self.linear_v], &device);
+        let qkv = linear_op::affine(x, w_qkv, Some(b_qkv));
+
+        let mp = &self.linear_p;
+        let delta = linear_op::forward(&mp.fc3, relu(linear_bn(folds, &mp.fc0, &mp.bn1, rel))); // [n, k, c]
+
+        let mw = &self.linear_w;
+        let (scale, shift) = folds.affine(&mw.bn0, &device);
+        let w = vector_attention::relation(qkv.clone(), nbr.clone(), delta.clone(), scale, shift);
+        let w = relu(linear_bn(folds, &mw.fc2, &mw.bn3, w));
+        let w = linear_op::forward(&mw.fc5, w); // [n, k, c/s]
+        vector_attention::aggregate_gathered(qkv, nbr, delta, w)
     }
 }
 
@@ -1176,6 +1208,80 @@ mod tests {
     }
 
     lifegom_render::cpu_backend_tests!(point_transformer_gradients => check_gradients);
+
+    /// The tiny network on wgpu (stacked query/key/value product and the neighbourhood ops of
+    /// `vector_attention`) against the tensor-op composition on Flex, with the same weights and
+    /// inputs: the output and the gradients of the positions, the features and every trainable
+    /// parameter, each within 1e-4 of its largest magnitude plus 1e-6. The logit biases' true
+    /// gradient is zero (a softmax ignores a shift shared by all neighbours): theirs must be
+    /// rounding noise on both devices.
+    #[test]
+    fn point_transformer_wgpu_matches_flex() {
+        let Some(wgpu) = lifegom_render::testing::wgpu_test_device() else {
+            return;
+        };
+        let run = |device: &Device| {
+            let device = device.clone().autodiff();
+            let net = PointTransformerConfig::tiny(3 + 5)
+                .init(&device)
+                .map(&mut Reinit {
+                    rng: Rng::new(11),
+                    path: Vec::new(),
+                });
+            let mut rng = Rng::new(6);
+            let p = random_tensor(&mut rng, [600, 3], &device).require_grad();
+            let x = random_tensor(&mut rng, [600, 5], &device).require_grad();
+            let probe = random_tensor(&mut rng, [600, 8], &device);
+            let out = net.forward(p.clone(), x.clone()).unwrap();
+            let grads = (out.clone() * probe).sum().backward();
+            let mut collect = CollectGrads {
+                grads: &grads,
+                path: Vec::new(),
+                out: Vec::new(),
+            };
+            net.visit(&mut collect);
+            let mut parts = vec![
+                ("output".to_string(), read(out)),
+                ("positions".to_string(), read(p.grad(&grads).unwrap())),
+                ("features".to_string(), read(x.grad(&grads).unwrap())),
+            ];
+            parts.extend(
+                collect
+                    .out
+                    .into_iter()
+                    .filter_map(|g| g.grad.map(|grad| (g.path, grad))),
+            );
+            parts
+        };
+        let want = run(&Device::flex());
+        let got = run(&wgpu);
+        assert_eq!(got.len(), want.len());
+        assert!(want.len() > 100, "{} compared tensors", want.len());
+        let magnitude = |v: &[f32]| v.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+        let largest = want.iter().fold(0.0f32, |m, (_, v)| m.max(magnitude(v)));
+        for ((name, a), (name_b, b)) in got.iter().zip(&want) {
+            assert_eq!(name, name_b);
+            if name.ends_with("linear_w.fc5.bias") {
+                for (device, v) in [("wgpu", a), ("flex", b)] {
+                    assert!(
+                        magnitude(v) <= 1e-5 * largest,
+                        "{name} on {device}: {:.2e} against {largest:.2e}",
+                        magnitude(v)
+                    );
+                }
+                continue;
+            }
+            let scale = magnitude(b);
+            let diff = a
+                .iter()
+                .zip(b)
+                .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+            assert!(
+                diff <= 1e-4 * scale + 1e-6,
+                "{name}: max diff {diff:.2e} (largest magnitude {scale:.2e})"
+            );
+        }
+    }
 
     #[test]
     fn point_transformer_paper_config() {

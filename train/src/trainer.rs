@@ -24,7 +24,7 @@ use burn::optim::lr_scheduler::LrSchedulerConfig;
 use burn::optim::lr_scheduler::module_lr_scheduler::{ModuleLearningRate, ModuleLrSchedulerConfig};
 use burn::optim::{GradientsAccumulator, GradientsParams, ModuleOptimizer};
 
-use crate::adam::FusedAdamConfig;
+use crate::adam::{FusedAdamConfig, GradientWatch};
 use burn::tensor::{Bytes, Device, Tensor};
 use lifegom_data::dataset::Dataset;
 use lifegom_model::inputs::ModelInputs;
@@ -108,9 +108,10 @@ pub struct StepStats {
     /// all-reduce, with the read-back and upload of the gradients around it.
     #[serde(default)]
     pub exchange_seconds: f64,
-    /// Whether the optimizer step was taken: `false` when the batch's loss (or, where the
-    /// gradients are on the host: CPU backends and MPI, a gradient) was not finite. A skipped step leaves the weights
-    /// and `step` as they were and uses up its samples.
+    /// Whether the optimizer step was taken: `false` when the batch's loss or a gradient was not
+    /// finite (gradients are checked on the host on the CPU backends and under MPI, by the
+    /// optimizer's kernels on a GPU, `crate::adam`). A skipped step leaves the weights, the
+    /// optimizer state and `step` as they were and uses up its samples.
     #[serde(default = "yes")]
     pub applied: bool,
 }
@@ -175,6 +176,8 @@ pub struct Trainer {
     /// The config it was built from.
     pub config: ReconstructorConfig,
     optim: ModuleOptimizer,
+    /// Reports a non-finite gradient from the optimizer's GPU kernels (`crate::adam`).
+    watch: GradientWatch,
     lr: ModuleLearningRate,
     weights: LossWeights,
     /// Optimiser steps taken so far.
@@ -282,10 +285,12 @@ impl Trainer {
         // (a first forward re-seeds the RNG for its dropout; the ranks of a data-parallel job
         // each start with a different sample).
         model.visit(&mut DrawParameters);
+        let watch = GradientWatch::default();
         Self::assemble(
             model,
             config,
-            ModuleOptimizer::from(FusedAdamConfig::default().init()),
+            ModuleOptimizer::from(FusedAdamConfig::default().init_watched(watch.clone())),
+            watch,
             (0, 0),
             train,
             device,
@@ -331,10 +336,12 @@ impl Trainer {
             path.display(),
             loaded.provenance()
         );
+        let watch = GradientWatch::default();
         let trainer = Self::assemble(
             loaded.model,
             config,
-            ModuleOptimizer::from(FusedAdamConfig::default().init()),
+            ModuleOptimizer::from(FusedAdamConfig::default().init_watched(watch.clone())),
+            watch,
             (0, 0),
             train,
             device,
@@ -346,6 +353,7 @@ impl Trainer {
         model: Reconstructor,
         config: ReconstructorConfig,
         optim: ModuleOptimizer,
+        watch: GradientWatch,
         (step, samples): (u64, u64),
         train: &TrainSection,
         device: Device,
@@ -355,6 +363,7 @@ impl Trainer {
             model,
             config,
             optim,
+            watch,
             weights: train.loss_weights(),
             step,
             samples,
@@ -398,7 +407,8 @@ impl Trainer {
                 meta.schedule_version
             )));
         }
-        let optim = ModuleOptimizer::from(FusedAdamConfig::default().init())
+        let watch = GradientWatch::default();
+        let optim = ModuleOptimizer::from(FusedAdamConfig::default().init_watched(watch.clone()))
             .from_bytes(Bytes::from_bytes_vec(payload[8 + n..].to_vec()))
             .map_err(|e| bad(format!("optimizer state: {e}")))?;
         let train = TrainSection {
@@ -409,6 +419,7 @@ impl Trainer {
             loaded.model,
             loaded.config,
             optim,
+            watch,
             (meta.step, meta.samples.unwrap_or(meta.step)),
             &train,
             device,
@@ -488,7 +499,7 @@ impl Trainer {
 
     /// One optimiser step on the mean gradient of a batch: `batch` is this rank's share, and
     /// every rank of `replicas` calls this with a share of the same size (module docs,
-    /// [`crate::data_parallel`]). A batch whose loss is not finite is not applied
+    /// [`crate::data_parallel`]). A batch whose loss or gradient is not finite is not applied
     /// ([`StepStats::applied`]). The statistics are the batch's means over all ranks; the
     /// render is this rank's last sample's. On a CPU device the samples' forward and backward
     /// and the optimizer run on one of rayon's threads
@@ -538,13 +549,22 @@ impl Trainer {
         } else {
             0.0
         };
-        let applied = averaged.is_some();
+        let mut applied = false;
         if let Some(grads) = averaged {
+            // Handles, not copies: what a step with a non-finite gradient is undone to. On a
+            // GPU the gradients are only seen by the step's kernels (`crate::adam`).
+            let before = (self.model.clone(), self.optim.clone());
+            self.watch.arm(&device);
             on_pool_thread(&device, |parent| {
                 let _span = tracing::debug_span!(parent: parent, "optimizer").entered();
                 self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
             });
-            self.step += 1;
+            if self.watch.tripped()? {
+                (self.model, self.optim) = before;
+            } else {
+                self.step += 1;
+                applied = true;
+            }
         }
         self.samples += samples;
 

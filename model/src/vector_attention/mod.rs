@@ -14,13 +14,28 @@
 //! - on CubeCL devices through the [`op::VectorAttentionOps`] extension: one forward kernel and
 //!   one backward kernel (`cube`) in place of the composition's eight forward and about a dozen
 //!   backward launches per layer and pass.
+//!
+//! On CubeCL devices the layer's neighbourhood work around the attention-weight MLP runs as two
+//! more ops ([`neighbour_op`]), so that the gathered keys and values are never materialised:
+//! - [`relation`]: the input of `MLP_w`, `relu(BN₀(k_j − q_i + δ_ij))`, from the layer's one
+//!   `[n, 3c]` product of queries, keys and values, the neighbour table and the positional
+//!   encoding `δ`;
+//! - [`aggregate_gathered`]: [`aggregate`] with the values `v_j + δ_ij` gathered inside.
+//!
+//! Each replaces two gathers, their scatter-add backwards and zero-fills, and the broadcast
+//! arithmetic between them (about twenty launches per layer and pass in all) with one forward and
+//! two backward launches. The CPU backends compose the same maths from tensor ops
+//! ([`relation_reference`], [`aggregate_gathered_reference`]), which are also the test reference.
 
 mod cube;
+mod neighbour_cube;
+pub mod neighbour_op;
 pub mod op;
 
-use burn::tensor::Tensor;
 use burn::tensor::activation::softmax;
+use burn::tensor::{Int, Tensor};
 use lifegom_render::device::runs_on_host;
+use lifegom_render::select::select_rows;
 
 /// `Σ_κ softmax_κ(logits)·values` (module docs): `values` `[n, k, S, C/S]`, `logits`
 /// `[n, k, C/S]` → `[n, C]`.
@@ -56,6 +71,123 @@ pub fn aggregate_reference(values: Tensor<4>, logits: Tensor<3>) -> Tensor<2> {
     (values * weights.unsqueeze_dim::<4>(2))
         .sum_dim(1)
         .reshape([n, s * cs])
+}
+
+/// The relation of the Point Transformer layer through its frozen BatchNorm and ReLU (the first
+/// two steps of `MLP_w`): for point `i` and its κ-th neighbour `j = neighbours[i·k + κ]`,
+/// `relu((k_j − q_i + δ[i, κ])·scale + shift)` per channel.
+///
+/// `qkv` `[n, 3c]` holds the queries, keys and values in its column blocks `0..c`, `c..2c`,
+/// `2c..3c`; `neighbours` `[n·k]` (every index in `0..n`); `delta` `[n, k, c]`; `scale`,
+/// `shift` `[c]` are constants (no gradient reaches them on CubeCL devices: callers pass a
+/// frozen BatchNorm's fold). Returns `[n, k, c]`.
+///
+/// # Panics
+///
+/// If the shapes do not match as above, or `k = 0`.
+pub fn relation(
+    qkv: Tensor<2>,
+    neighbours: Tensor<1, Int>,
+    delta: Tensor<3>,
+    scale: Tensor<1>,
+    shift: Tensor<1>,
+) -> Tensor<3> {
+    check_gathered_shapes(&qkv, &neighbours, &delta);
+    let c = delta.dims()[2];
+    assert_eq!(scale.dims(), [c], "relation: scale must be [c]");
+    assert_eq!(shift.dims(), [c], "relation: shift must be [c]");
+    if runs_on_host(&qkv.device()) {
+        return relation_reference(qkv, neighbours, delta, scale, shift);
+    }
+    Tensor::from_dispatch(
+        <burn::backend::Dispatch as neighbour_op::NeighbourAttentionOps>::attention_relation(
+            qkv.into_dispatch(),
+            neighbours.into_dispatch(),
+            delta.into_dispatch(),
+            scale.into_dispatch(),
+            shift.into_dispatch(),
+        ),
+    )
+}
+
+/// [`aggregate`] of the gathered values `v_j + δ[i, κ]` (`qkv`, `neighbours`, `delta` as in
+/// [`relation`]) with `logits` `[n, k, C/S]`; returns `[n, c]`.
+///
+/// # Panics
+///
+/// If the shapes do not match, or `C/S` does not divide `c`.
+pub fn aggregate_gathered(
+    qkv: Tensor<2>,
+    neighbours: Tensor<1, Int>,
+    delta: Tensor<3>,
+    logits: Tensor<3>,
+) -> Tensor<2> {
+    check_gathered_shapes(&qkv, &neighbours, &delta);
+    let [n, k, c] = delta.dims();
+    let cs = logits.dims()[2];
+    assert!(
+        logits.dims() == [n, k, cs] && cs > 0 && c.is_multiple_of(cs),
+        "vector attention: logits {:?} must be [n, k, C/S] for delta {:?}",
+        logits.dims(),
+        delta.dims()
+    );
+    if runs_on_host(&qkv.device()) {
+        return aggregate_gathered_reference(qkv, neighbours, delta, logits);
+    }
+    Tensor::from_dispatch(
+        <burn::backend::Dispatch as neighbour_op::NeighbourAttentionOps>::attention_aggregate_gathered(
+            qkv.into_dispatch(),
+            neighbours.into_dispatch(),
+            delta.into_dispatch(),
+            logits.into_dispatch(),
+        ),
+    )
+}
+
+/// `qkv` `[n, 3c]`, `neighbours` `[n·k]`, `delta` `[n, k, c]` with `k ≥ 1`.
+fn check_gathered_shapes(qkv: &Tensor<2>, neighbours: &Tensor<1, Int>, delta: &Tensor<3>) {
+    let [n, k, c] = delta.dims();
+    assert!(
+        qkv.dims() == [n, 3 * c] && neighbours.dims() == [n * k] && k > 0,
+        "vector attention: qkv {:?} and neighbours {:?} must be [n, 3c] and [n·k] for delta {:?}",
+        qkv.dims(),
+        neighbours.dims(),
+        delta.dims()
+    );
+}
+
+/// The neighbours' rows of `qkv`, `[n, k, 3c]`.
+fn gather_neighbours(qkv: Tensor<2>, neighbours: Tensor<1, Int>, k: usize) -> Tensor<3> {
+    let [n, c3] = qkv.dims();
+    select_rows(qkv, 0, neighbours).reshape([n, k, c3])
+}
+
+/// [`relation`] as Burn tensor ops.
+pub fn relation_reference(
+    qkv: Tensor<2>,
+    neighbours: Tensor<1, Int>,
+    delta: Tensor<3>,
+    scale: Tensor<1>,
+    shift: Tensor<1>,
+) -> Tensor<3> {
+    let [n, k, c] = delta.dims();
+    let q = qkv.clone().slice([0..n, 0..c]);
+    let keys = gather_neighbours(qkv, neighbours, k).slice([0..n, 0..k, c..2 * c]);
+    let pre = keys - q.unsqueeze_dim::<3>(1) + delta;
+    burn::tensor::activation::relu(pre * scale.reshape([1, 1, c]) + shift.reshape([1, 1, c]))
+}
+
+/// [`aggregate_gathered`] as Burn tensor ops.
+pub fn aggregate_gathered_reference(
+    qkv: Tensor<2>,
+    neighbours: Tensor<1, Int>,
+    delta: Tensor<3>,
+    logits: Tensor<3>,
+) -> Tensor<2> {
+    let [n, k, c] = delta.dims();
+    let cs = logits.dims()[2];
+    let values = gather_neighbours(qkv, neighbours, k).slice([0..n, 0..k, 2 * c..3 * c]) + delta;
+    aggregate_reference(values.reshape([n, k, c / cs, cs]), logits)
 }
 
 #[cfg(test)]
@@ -123,6 +255,103 @@ mod tests {
     }
 
     lifegom_render::cpu_backend_tests!(aggregate_matches_reference => check_matches_reference);
+
+    /// [`relation`] and [`aggregate_gathered`] against their references computed on Flex, chained
+    /// as a layer chains them (one `qkv` and one `δ` feeding both, so their gradients add up):
+    /// values and the gradients of `qkv`, `δ` and the logits. Neighbour lists repeat points, hold
+    /// the point itself, and leave some points ungathered; the BatchNorm's scale is negative on
+    /// some channels and its shift puts about half of the ReLU's inputs below zero.
+    fn check_gathered_match_reference(device: &Device) {
+        let (n, k, c, cs) = (37usize, 5usize, 12usize, 4usize);
+        let mut rng = Rng::new(23);
+        let mut uniform = |len: usize, lo: f32, hi: f32| -> Vec<f32> {
+            (0..len).map(|_| rng.range_f32(lo, hi)).collect()
+        };
+        let qkv = uniform(n * 3 * c, -1.0, 1.0);
+        let delta = uniform(n * k * c, -1.0, 1.0);
+        let logits = uniform(n * k * cs, -4.0, 4.0);
+        let scale = uniform(c, -1.5, 1.5);
+        let shift = uniform(c, -0.3, 0.3);
+        let out_weight = uniform(n * c, -1.0, 1.0);
+        let relation_weight = uniform(n * k * c, -1.0, 1.0);
+        let neighbours: Vec<i64> = (0..n * k)
+            .map(|ik| {
+                let (i, kk) = (ik / k, ik % k);
+                if kk == 0 {
+                    i as i64
+                } else {
+                    ((i * 7 + kk * kk * 3) % (n - 4)) as i64
+                }
+            })
+            .collect();
+        let run = |device: &Device, fused: bool| {
+            let ad = device.clone().autodiff();
+            fn t<const D: usize>(v: &[f32], shape: [usize; D], device: &Device) -> Tensor<D> {
+                Tensor::from_data(TensorData::new(v.to_vec(), shape), device)
+            }
+            let qkv = t(&qkv, [n, 3 * c], &ad).require_grad();
+            let delta = t(&delta, [n, k, c], &ad).require_grad();
+            let logits = t(&logits, [n, k, cs], &ad).require_grad();
+            let nbr = Tensor::<1, burn::tensor::Int>::from_data(
+                TensorData::new(neighbours.clone(), [n * k]),
+                &ad,
+            );
+            let (scale, shift) = (t(&scale, [c], &ad), t(&shift, [c], &ad));
+            let (rel, out) = if fused {
+                (
+                    relation(qkv.clone(), nbr.clone(), delta.clone(), scale, shift),
+                    aggregate_gathered(qkv.clone(), nbr, delta.clone(), logits.clone()),
+                )
+            } else {
+                (
+                    relation_reference(qkv.clone(), nbr.clone(), delta.clone(), scale, shift),
+                    aggregate_gathered_reference(qkv.clone(), nbr, delta.clone(), logits.clone()),
+                )
+            };
+            let loss = (out.clone() * t(&out_weight, [n, c], &ad)).sum()
+                + (rel.clone() * t(&relation_weight, [n, k, c], &ad)).sum();
+            let grads = loss.backward();
+            [
+                read(rel),
+                read(out),
+                read(qkv.grad(&grads).expect("qkv gradient")),
+                read(delta.grad(&grads).expect("delta gradient")),
+                read(logits.grad(&grads).expect("logits gradient")),
+            ]
+        };
+        let want = run(&Device::flex(), false);
+        let got = run(device, true);
+        let names = [
+            "relation",
+            "aggregate",
+            "qkv gradient",
+            "delta gradient",
+            "logits gradient",
+        ];
+        for (name, (a, b)) in names.iter().zip(got.iter().zip(&want)) {
+            assert_eq!(a.len(), b.len(), "{name}");
+            let diff = a
+                .iter()
+                .zip(b)
+                .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+            assert!(diff <= 1e-5, "{name} on {device:?}: max diff {diff:.2e}");
+        }
+        let zeros = want[0].iter().filter(|v| **v == 0.0).count();
+        assert!(
+            zeros > want[0].len() / 5 && zeros < want[0].len() * 4 / 5,
+            "the ReLU should cut part of the relation: {zeros} of {} are zero",
+            want[0].len()
+        );
+    }
+
+    lifegom_render::cpu_backend_tests!(gathered_match_reference => check_gathered_match_reference);
+
+    #[test]
+    fn gathered_match_reference_wgpu() {
+        if let Some(device) = lifegom_render::testing::wgpu_test_device() {
+            check_gathered_match_reference(&device);
+        }
+    }
 
     #[test]
     fn aggregate_matches_reference_wgpu() {

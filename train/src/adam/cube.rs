@@ -1,6 +1,9 @@
 //! The fused Adam step on Burn's CubeCL backend: one thread per parameter element reads the
 //! parameter, its gradient and both moments and writes all three back, in the order of Burn's
 //! op-by-op update (`m·β₁ + g·(1 − β₁)`, `v·β₂ + g²·(1 − β₂)`, `p − (m·c / (√v + ε'))·lr`).
+//! A thread whose gradient is NaN or infinite also stores 1 into the one-element `watch`
+//! buffer, which the op hands back as its fourth output: every writer stores the same value, so
+//! the race between them is harmless, and a finite gradient writes nothing.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -25,6 +28,7 @@ fn adam_step_kernel(
     param_out: &mut [f32],
     moment_1_out: &mut [f32],
     moment_2_out: &mut [f32],
+    watch: &mut [f32],
     units: usize,
     first: u32,
     beta_1: f32,
@@ -38,6 +42,9 @@ fn adam_step_kernel(
     let i = ABSOLUTE_POS;
     if i < units {
         let g = grad[i];
+        if f32::is_nan(g) || f32::is_inf(g) {
+            watch[0] = 1.0;
+        }
         let mut m = g * one_minus_beta_1;
         let mut v = (g * g) * one_minus_beta_2;
         if first == 0 {
@@ -58,9 +65,15 @@ impl AdamStepOps for CubeBackend {
         grad: FloatTensor<Self>,
         moment_1: FloatTensor<Self>,
         moment_2: FloatTensor<Self>,
+        watch: FloatTensor<Self>,
         inputs: MomentInputs,
         s: AdamScalars,
-    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+    ) -> (
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+    ) {
         let dtype = param.dtype();
         let shape = param.shape();
         let n = shape.num_elements();
@@ -71,6 +84,7 @@ impl AdamStepOps for CubeBackend {
             MomentInputs::Zero => (1u32, grad.clone(), grad.clone()),
             MomentInputs::Given => (0u32, prepare(moment_1), prepare(moment_2)),
         };
+        let watch = prepare(watch);
         let outputs = [(); 3].map(|()| client.empty(4 * n.max(1)));
         if n > 0 {
             adam_step_kernel::launch(
@@ -84,6 +98,7 @@ impl AdamStepOps for CubeBackend {
                 arg(&outputs[0], n),
                 arg(&outputs[1], n),
                 arg(&outputs[2], n),
+                tensor_arg(&watch),
                 n,
                 first,
                 s.beta_1,
@@ -96,6 +111,6 @@ impl AdamStepOps for CubeBackend {
             );
         }
         let [p, m, v] = outputs.map(|h| cast_to(tensor_f32(&client, &device, h, &shape), dtype));
-        (p, m, v)
+        (p, m, v, watch)
     }
 }

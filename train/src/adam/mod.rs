@@ -13,13 +13,24 @@
 //!   the bit.
 //! - It does what `AdamConfig::new()` does: no weight decay, no AMSGrad, no gradient clipping
 //!   (the trainer uses none of them).
+//!
+//! **A non-finite gradient on a GPU.** On the CPU backends the trainer reads every gradient
+//! before the step (they are on the host already). On a GPU that would cost a read-back or a
+//! reduction per parameter, so the step kernels watch instead: with a [`GradientWatch`] armed,
+//! each kernel sets a one-element flag wherever its gradient is NaN or infinite, the same flag
+//! passing from one parameter's step to the next. The trainer reads it once after the step (one
+//! read-back, no extra launch) and, if it is set, puts back the weights and the optimiser state
+//! it kept from before the step: the step is not applied (design.md §1.6).
 
 pub(crate) mod cube;
 pub mod op;
 
+use std::sync::{Arc, Mutex, PoisonError};
+
 use burn::optim::{Adam, AdamConfig, AdamState, AdaptiveMomentumState, LearningRate, Optimizer};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Tensor, TensorData};
 use lifegom_render::device::runs_on_host;
+use lifegom_render::readback::{self, ReadbackError};
 
 use op::{AdamScalars, MomentInputs};
 
@@ -46,9 +57,18 @@ impl Default for FusedAdamConfig {
 }
 
 impl FusedAdamConfig {
+    /// The optimizer, reporting non-finite gradients to `watch` when it is armed.
+    pub fn init_watched(self, watch: GradientWatch) -> FusedAdam {
+        FusedAdam {
+            watch,
+            ..self.init()
+        }
+    }
+
     /// The optimizer.
     pub fn init(self) -> FusedAdam {
         FusedAdam {
+            watch: GradientWatch::default(),
             config: self,
             host: AdamConfig::new()
                 .with_beta_1(self.beta_1)
@@ -64,6 +84,7 @@ impl FusedAdamConfig {
 #[derive(Clone)]
 pub struct FusedAdam {
     config: FusedAdamConfig,
+    watch: GradientWatch,
     /// Burn's Adam with the same hyper-parameters: the CPU path.
     host: Adam,
 }
@@ -104,14 +125,30 @@ impl Optimizer for FusedAdam {
             Some((m, v)) => (MomentInputs::Given, flat(m), flat(v)),
             None => (MomentInputs::Zero, grad.clone(), grad.clone()),
         };
-        let (param, moment_1, moment_2) = <burn::backend::Dispatch as op::AdamStepOps>::adam_step(
-            flat(tensor),
-            grad,
-            moment_1,
-            moment_2,
-            inputs,
-            scalars,
-        );
+        let mut slot = self
+            .watch
+            .flag
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        // Unwatched, the kernel still needs a flag to write: a fresh one, never read.
+        let watch = match slot.take() {
+            Some(flag) => flag,
+            None => Tensor::<1>::from_data(TensorData::from([0.0f32]), &tensor.device()),
+        };
+        let (param, moment_1, moment_2, watch) =
+            <burn::backend::Dispatch as op::AdamStepOps>::adam_step(
+                flat(tensor),
+                grad,
+                moment_1,
+                moment_2,
+                watch.into_dispatch(),
+                inputs,
+                scalars,
+            );
+        if self.watch.armed.load(std::sync::atomic::Ordering::Relaxed) {
+            *slot = Some(Tensor::from_dispatch(watch));
+        }
+        drop(slot);
         let back = |t| Tensor::<1>::from_dispatch(t).reshape(shape.clone());
         let momentum = AdaptiveMomentumState::new(time, back(moment_1), back(moment_2));
         (back(param), Some(AdamState::new(momentum)))
@@ -119,6 +156,46 @@ impl Optimizer for FusedAdam {
 
     fn to_device<const D: usize>(state: Self::State<D>, device: &Device) -> Self::State<D> {
         <Adam as Optimizer>::to_device(state, device)
+    }
+}
+
+/// A flag that the GPU step kernels set when a gradient is not finite (module docs), shared
+/// between the trainer, which arms and reads it, and the optimizer inside its
+/// `ModuleOptimizer`. Clones share one flag.
+#[derive(Debug, Clone, Default)]
+pub struct GradientWatch {
+    flag: Arc<Mutex<Option<Tensor<1>>>>,
+    armed: Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl GradientWatch {
+    /// Starts watching the next optimizer step on `device` with a cleared flag (an upload, no
+    /// kernel launch). On the CPU backends nothing is watched: their steps do not run the
+    /// kernels, and the trainer checks their gradients on the host.
+    pub fn arm(&self, device: &Device) {
+        if runs_on_host(device) {
+            return;
+        }
+        let device = device.clone().inner();
+        *self.flag.lock().unwrap_or_else(PoisonError::into_inner) =
+            Some(Tensor::from_data(TensorData::from([0.0f32]), &device));
+        self.armed.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Whether a gradient of the watched step was not finite: one read-back of the flag, which
+    /// waits for the step's kernels. Disarms the watch. `false` when nothing was watched.
+    pub fn tripped(&self) -> Result<bool, ReadbackError> {
+        self.armed
+            .store(false, std::sync::atomic::Ordering::Relaxed);
+        let flag = self
+            .flag
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
+        match flag {
+            Some(flag) => Ok(readback::read::<f32, 1, _>("gradient watch", flag)?[0] != 0.0),
+            None => Ok(false),
+        }
     }
 }
 
@@ -182,6 +259,59 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// On wgpu an armed [`GradientWatch`] reports a gradient with one infinite or NaN element,
+    /// in any parameter of the step, through the `ModuleOptimizer` the trainer uses; it stays
+    /// clear for finite gradients, and a watch that was not armed reports nothing.
+    #[test]
+    fn watch_reports_a_non_finite_gradient_wgpu() {
+        use burn::nn::{Linear, LinearConfig};
+        use burn::optim::{GradientsParams, ModuleOptimizer};
+        let Some(device) = wgpu_test_device() else {
+            return;
+        };
+        let ad = device.clone().autodiff();
+        let watch = GradientWatch::default();
+        let mut optim =
+            ModuleOptimizer::from(FusedAdamConfig::default().init_watched(watch.clone()));
+        let mut layer: Linear = LinearConfig::new(2, 3).init(&ad);
+        let mut step = |weight: [f32; 6], bias: [f32; 3], armed: bool| {
+            let mut grads = GradientsParams::new();
+            grads.register(layer.weight.id, tensor(&weight, [2, 3], &device));
+            let bias_id = layer.bias.as_ref().expect("a bias").id;
+            grads.register(
+                bias_id,
+                Tensor::<1>::from_data(TensorData::from(bias), &device),
+            );
+            if armed {
+                watch.arm(&ad);
+            }
+            let before = read(layer.weight.val());
+            layer = optim.step(1e-3, layer.clone(), grads);
+            let moved = read(layer.weight.val()) != before;
+            (watch.tripped().expect("the flag reads back"), moved)
+        };
+        let finite = [0.5, -1.0, 2.0, 0.25, 1e-3, -3.0];
+        assert_eq!(step(finite, [1.0, 2.0, 3.0], true), (false, true));
+        let mut infinite = finite;
+        infinite[4] = f32::INFINITY;
+        assert!(
+            step(infinite, [1.0, 2.0, 3.0], true).0,
+            "an infinite weight gradient"
+        );
+        assert!(
+            step(finite, [1.0, f32::NAN, 3.0], true).0,
+            "a NaN bias gradient"
+        );
+        assert!(
+            !step(finite, [1.0, 2.0, 3.0], true).0,
+            "the flag starts clear each step"
+        );
+        assert!(
+            !step(infinite, [1.0, 2.0, 3.0], false).0,
+            "an unarmed watch reported"
+        );
     }
 
     /// On the CPU backends the fused optimizer is Burn's: equal to the bit.

@@ -59,16 +59,26 @@ pub enum MomentInputs {
 /// One Adam step of a flat parameter `[n]`, in one kernel.
 #[backend_extension(Cube, Fusion)]
 pub trait AdamStepOps: Backend {
-    /// `param`, `grad` and the moments are `[n]`. Returns the updated parameter and moments.
-    #[fusion(meta = |param, _grad, _moment_1, _moment_2, _inputs, _scalars| {
-        (param.clone(), param.clone(), param.clone())
+    /// `param`, `grad` and the moments are `[n]`; `watch` is `[1]`. Returns the updated
+    /// parameter and moments, and `watch` itself, set to 1 where any element of `grad` is not
+    /// finite and otherwise left as it was: the same buffer, so that one flag threaded through
+    /// every parameter's step of an optimiser step reports the whole gradient
+    /// ([`super::GradientWatch`]).
+    #[fusion(meta = |param, _grad, _moment_1, _moment_2, watch, _inputs, _scalars| {
+        (param.clone(), param.clone(), param.clone(), watch.clone())
     })]
     fn adam_step(
         param: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         moment_1: FloatTensor<Self>,
         moment_2: FloatTensor<Self>,
+        watch: FloatTensor<Self>,
         inputs: MomentInputs,
         scalars: AdamScalars,
-    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
+    ) -> (
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+    );
 }
