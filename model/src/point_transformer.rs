@@ -675,8 +675,9 @@ impl PointTransformerLayer {
     }
 
     /// [`Self::forward`] on CubeCL devices: the query, key and value as one `[n, 3c]` product
-    /// (weights stacked once per [`NormFolds`]), and the neighbourhood work around `MLP_w` as
-    /// the two ops of [`vector_attention::relation`] and [`vector_attention::aggregate_gathered`],
+    /// (weights stacked once per [`NormFolds`]), `MLP_p` as [`vector_attention::position_encoding`],
+    /// and the neighbourhood work around `MLP_w` as the two ops of [`vector_attention::relation`]
+    /// and [`vector_attention::aggregate_gathered`],
     /// which gather from that product themselves: the same maths as the composition in fewer
     /// launches (BENCHMARKS.md, session 23).
     fn forward_stacked<'a>(
@@ -692,7 +693,9 @@ impl PointTransformerLayer {
         let qkv = linear_op::affine(x, w_qkv, Some(b_qkv));
 
         let mp = &self.linear_p;
-        let delta = linear_op::forward(&mp.fc3, relu(linear_bn(folds, &mp.fc0, &mp.bn1, rel))); // [n, k, c]
+        let (w0, b0) = folds.linear(&mp.fc0, &mp.bn1, &device);
+        let b3 = mp.fc3.bias.as_ref().expect("MLP_p's last layer has a bias");
+        let delta = vector_attention::position_encoding(rel, w0, b0, mp.fc3.weight.val(), b3.val());
 
         let mw = &self.linear_w;
         let (scale, shift) = folds.affine(&mw.bn0, &device);

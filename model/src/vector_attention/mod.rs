@@ -22,7 +22,10 @@
 //!   encoding `δ`;
 //! - [`aggregate_gathered`]: [`aggregate`] with the values `v_j + δ_ij` gathered inside.
 //!
-//! Each replaces two gathers, their scatter-add backwards and zero-fills, and the broadcast
+//! - [`position_encoding`]: `MLP_p`'s two layers, `δ = relu(rel·W₀ + b₀)·W₃ + b₃` (three hidden
+//!   units), as one forward and three backward launches ([`position_op`]).
+//!
+//! The first two each replace two gathers, their scatter-add backwards and zero-fills, and the broadcast
 //! arithmetic between them (about twenty launches per layer and pass in all) with one forward and
 //! two backward launches. The CPU backends compose the same maths from tensor ops
 //! ([`relation_reference`], [`aggregate_gathered_reference`]), which are also the test reference.
@@ -31,6 +34,8 @@ mod cube;
 mod neighbour_cube;
 pub mod neighbour_op;
 pub mod op;
+mod position_cube;
+pub mod position_op;
 
 use burn::tensor::activation::softmax;
 use burn::tensor::{Int, Tensor};
@@ -142,6 +147,61 @@ pub fn aggregate_gathered(
             logits.into_dispatch(),
         ),
     )
+}
+
+/// The positional encoding `δ = relu(rel·W₀ + b₀)·W₃ + b₃` of the Point Transformer layer
+/// (`MLP_p` with its BatchNorm folded into `W₀`, `b₀`) for neighbour offsets `rel` `[n, k, 3]`,
+/// `w0` `[3, 3]`, `b0` `[3]`, `w3` `[3, c]`, `b3` `[c]` (Burn's `[in, out]` layout); returns
+/// `[n, k, c]`. Gradients reach every input.
+///
+/// # Panics
+///
+/// If the shapes do not match as above.
+pub fn position_encoding(
+    rel: Tensor<3>,
+    w0: Tensor<2>,
+    b0: Tensor<1>,
+    w3: Tensor<2>,
+    b3: Tensor<1>,
+) -> Tensor<3> {
+    let c = w3.dims()[1];
+    assert!(
+        rel.dims()[2] == 3
+            && w0.dims() == [3, 3]
+            && b0.dims() == [3]
+            && w3.dims() == [3, c]
+            && b3.dims() == [c],
+        "position encoding: rel {:?}, W0 {:?}, b0 {:?}, W3 {:?}, b3 {:?} must be [n, k, 3], [3, 3], [3], [3, c], [c]",
+        rel.dims(),
+        w0.dims(),
+        b0.dims(),
+        w3.dims(),
+        b3.dims()
+    );
+    if runs_on_host(&rel.device()) {
+        return position_encoding_reference(rel, w0, b0, w3, b3);
+    }
+    Tensor::from_dispatch(
+        <burn::backend::Dispatch as position_op::PositionEncodingOps>::position_encoding(
+            rel.into_dispatch(),
+            w0.into_dispatch(),
+            b0.into_dispatch(),
+            w3.into_dispatch(),
+            b3.into_dispatch(),
+        ),
+    )
+}
+
+/// [`position_encoding`] as the two affine layers the network runs on the CPU backends.
+pub fn position_encoding_reference(
+    rel: Tensor<3>,
+    w0: Tensor<2>,
+    b0: Tensor<1>,
+    w3: Tensor<2>,
+    b3: Tensor<1>,
+) -> Tensor<3> {
+    let hidden = burn::tensor::activation::relu(crate::linear_op::affine(rel, w0, Some(b0)));
+    crate::linear_op::affine(hidden, w3, Some(b3))
 }
 
 /// `qkv` `[n, 3c]`, `neighbours` `[n·k]`, `delta` `[n, k, c]` with `k ≥ 1`.
@@ -342,6 +402,72 @@ mod tests {
             "the ReLU should cut part of the relation: {zeros} of {} are zero",
             want[0].len()
         );
+    }
+
+    /// [`position_encoding`] against its reference on Flex: values and the gradients of every
+    /// input, over more rows than one partial sum covers (the backward's two-stage sums), with
+    /// about half of the hidden units cut by the ReLU.
+    fn check_position_encoding_matches_reference(device: &Device) {
+        let (n, k, c) = (97usize, 7usize, 10usize);
+        let mut rng = Rng::new(31);
+        let mut uniform = |len: usize, lo: f32, hi: f32| -> Vec<f32> {
+            (0..len).map(|_| rng.range_f32(lo, hi)).collect()
+        };
+        let rel = uniform(n * k * 3, -0.5, 0.5);
+        let w0 = uniform(9, -2.0, 2.0);
+        let b0 = uniform(3, -0.3, 0.3);
+        let w3 = uniform(3 * c, -1.0, 1.0);
+        let b3 = uniform(c, -1.0, 1.0);
+        let probe = uniform(n * k * c, -1.0, 1.0);
+        let run = |device: &Device, op: bool| {
+            let ad = device.clone().autodiff();
+            fn t<const D: usize>(v: &[f32], shape: [usize; D], device: &Device) -> Tensor<D> {
+                Tensor::from_data(TensorData::new(v.to_vec(), shape), device).require_grad()
+            }
+            let rel = t(&rel, [n, k, 3], &ad);
+            let (w0, b0) = (t(&w0, [3, 3], &ad), t(&b0, [3], &ad));
+            let (w3, b3) = (t(&w3, [3, c], &ad), t(&b3, [c], &ad));
+            let f = if op {
+                position_encoding
+            } else {
+                position_encoding_reference
+            };
+            let out = f(rel.clone(), w0.clone(), b0.clone(), w3.clone(), b3.clone());
+            let grads = (out.clone() * t(&probe, [n, k, c], &ad)).sum().backward();
+            let g = |name: &str, t: Option<Tensor<1>>| read(t.unwrap_or_else(|| panic!("{name}")));
+            [
+                read(out),
+                read(rel.grad(&grads).expect("rel gradient")),
+                read(w0.grad(&grads).expect("W0 gradient")),
+                g("b0 gradient", b0.grad(&grads)),
+                read(w3.grad(&grads).expect("W3 gradient")),
+                g("b3 gradient", b3.grad(&grads)),
+            ]
+        };
+        let want = run(&Device::flex(), false);
+        let got = run(device, true);
+        let names = ["encoding", "rel", "W0", "b0", "W3", "b3"];
+        for (name, (a, b)) in names.iter().zip(got.iter().zip(&want)) {
+            assert_eq!(a.len(), b.len(), "{name}");
+            let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1.0);
+            let diff = a
+                .iter()
+                .zip(b)
+                .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+            assert!(
+                diff <= 1e-5 * scale,
+                "{name} on {device:?}: max diff {diff:.2e}"
+            );
+        }
+    }
+
+    lifegom_render::cpu_backend_tests!(position_encoding_matches_reference => check_position_encoding_matches_reference);
+
+    #[test]
+    fn position_encoding_matches_reference_wgpu() {
+        if let Some(device) = lifegom_render::testing::wgpu_test_device() {
+            check_position_encoding_matches_reference(&device);
+        }
     }
 
     lifegom_render::cpu_backend_tests!(gathered_match_reference => check_gathered_match_reference);
