@@ -49,7 +49,7 @@ fn row_of_cube() -> usize {
 /// result does not depend on scheduling. `shared` holds one slot per thread; the closing barrier
 /// lets the next call reuse it.
 #[cube]
-fn cube_sum(shared: &mut Shared<[f32]>, value: f32) -> f32 {
+pub(super) fn cube_sum(shared: &mut Shared<[f32]>, value: f32) -> f32 {
     let unit = UNIT_POS as usize;
     shared[unit] = value;
     sync_cube();

@@ -14,11 +14,12 @@
 //! `MultiHeadAttention`) so the parameter names map one-to-one onto the official state dict
 //! (`multiview_embed.{0,1}.self_attn.W_{q,k,v,o}`, `feed_forward.fc{1,2}`, `norm{1,2}`).
 //!
-//! On the CPU backends the attention core (scores, softmax, weighted values, for all heads) and
-//! each `LN(a + b)` run as single custom ops with hand-written backwards ([`op`], math in
-//! [`kernels`]); on CubeCL devices, and as their test reference, they are the tensor-op
-//! compositions written here.
+//! The attention core (scores, softmax, weighted values, for all heads) and each `LN(a + b)` run
+//! as single custom ops with hand-written backwards ([`op`]): slice code on the CPU backends
+//! (math in [`kernels`]), CubeCL kernels on the devices. Their test reference is the tensor-op
+//! composition written here.
 
+mod attention_cube;
 mod cube;
 pub mod kernels;
 pub mod op;
@@ -41,9 +42,8 @@ use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
 pub enum FusionKernel {
     /// Both as the custom ops of [`op`] (CPU backends: slice code).
     HostOps,
-    /// The residual LayerNorm as the custom op (its CubeCL kernels), the attention core as
-    /// tensor ops (CubeCL devices, where the composition's batched products already run as
-    /// parallel kernels).
+    /// Both as the custom ops' CubeCL kernels (CubeCL devices); attention over more keys than
+    /// the kernels hold (16 views) as tensor ops.
     DeviceOps,
     /// Both as Burn tensor-op compositions (the reference in tests).
     TensorOps,
@@ -215,8 +215,14 @@ impl AttentionLayer {
     /// Scaled dot-product attention of projected `q` `[B, Lq, D]` over `k`, `v` `[B, Lk, D]`,
     /// heads side by side in the channels; `[B, Lq, D]`.
     fn attend(&self, q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, kernel: FusionKernel) -> Tensor<3> {
-        match kernel {
-            FusionKernel::HostOps => Tensor::from_dispatch(
+        let op = match kernel {
+            FusionKernel::HostOps => true,
+            // The CubeCL kernels keep one query's scores in a local array.
+            FusionKernel::DeviceOps => k.dims()[1] <= attention_cube::MAX_KEYS,
+            FusionKernel::TensorOps => false,
+        };
+        match op {
+            true => Tensor::from_dispatch(
                 <burn::backend::Dispatch as FusionAttentionOps>::fusion_attention(
                     q.into_dispatch(),
                     k.into_dispatch(),
@@ -224,7 +230,7 @@ impl AttentionLayer {
                     AttentionHeads(self.n_heads),
                 ),
             ),
-            FusionKernel::DeviceOps | FusionKernel::TensorOps => {
+            false => {
                 let [b, lq, d] = q.dims();
                 let [_, lk, _] = k.dims();
                 let h = self.n_heads;
@@ -648,16 +654,24 @@ mod tests {
     /// single-query cross-attention.
     fn host_ops_equal_tensor_ops(device: &Device) {
         let ad = device.clone().autodiff();
-        let layer = AttentionLayerConfig::new(24, 24, 4)
-            .with_dropout(0.0)
-            .init(&ad);
-        for (lq, lk) in [(3, 3), (1, 3), (1, 5)] {
+        // Widths (d, heads) of 24/4 and of 160/2, whose 80 channels per head are more than the
+        // CubeCL kernels' threads per cube; 17 keys run as tensor ops on a device.
+        for (d, heads, lq, lk) in [
+            (24, 4, 3, 3),
+            (24, 4, 1, 3),
+            (24, 4, 1, 5),
+            (160, 2, 2, 4),
+            (24, 4, 1, 17),
+        ] {
+            let layer = AttentionLayerConfig::new(d, 24, heads)
+                .with_dropout(0.0)
+                .init(&ad);
             let b = 150; // more than one rayon task of the kernels
-            let q = Tensor::<3>::random([b, lq, 24], Distribution::Normal(0.0, 1.0), &ad)
-                .require_grad();
-            let c = Tensor::<3>::random([b, lk, 24], Distribution::Normal(0.0, 1.0), &ad)
-                .require_grad();
-            let w = Tensor::<3>::random([b, lq, 24], Distribution::Normal(0.0, 1.0), &ad);
+            let q =
+                Tensor::<3>::random([b, lq, d], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+            let c =
+                Tensor::<3>::random([b, lk, d], Distribution::Normal(0.0, 1.0), &ad).require_grad();
+            let w = Tensor::<3>::random([b, lq, d], Distribution::Normal(0.0, 1.0), &ad);
             let run = |kernel| {
                 let out = layer.forward_with(q.clone(), c.clone(), kernel, [MaskSeed::Device; 2]);
                 let grads = (out.clone() * w.clone()).sum().backward();
@@ -715,8 +729,8 @@ mod tests {
 
     lifegom_render::cpu_backend_tests!(host_ops => host_ops_equal_tensor_ops);
 
-    /// On wgpu the residual LayerNorm runs as the op's CubeCL kernels, the attention core as
-    /// tensor ops ([`FusionKernel::DeviceOps`]).
+    /// On wgpu the residual LayerNorm and the attention core run as the ops' CubeCL kernels
+    /// ([`FusionKernel::DeviceOps`]).
     #[test]
     fn device_ops_equal_tensor_ops_wgpu() {
         if let Some(device) = lifegom_render::testing::wgpu_test_device() {

@@ -41,9 +41,10 @@ use lifegom_render::readback::{HostLend, cpu_float_from};
 /// Inputs: `query` `[B, L_q, D]`, `key` and `value` `[B, L_k, D]` (already projected, heads
 /// side by side in the channels); output `[B, L_q, D]` in `query`'s dtype. Gradients flow to all
 /// three. Callers check shapes (see [`super::AttentionLayer`]).
-#[backend_extension(NdArray, Flex, Autodiff)]
+#[backend_extension(NdArray, Flex, Cube, Fusion, Autodiff)]
 pub trait FusionAttentionOps: Backend {
     /// Attends every problem's queries to its keys, `heads` heads at once.
+    #[fusion(dtype = query, shape = query)]
     fn fusion_attention(
         query: FloatTensor<Self>,
         key: FloatTensor<Self>,
@@ -80,10 +81,10 @@ pub struct LayerNormEpsilon(pub f64);
 /// The attention op's inputs on one backend: what the forward takes and the node keeps.
 #[derive(Debug, Clone)]
 pub struct AttentionInputs<B: Backend> {
-    query: FloatTensor<B>,
-    key: FloatTensor<B>,
-    value: FloatTensor<B>,
-    heads: usize,
+    pub(super) query: FloatTensor<B>,
+    pub(super) key: FloatTensor<B>,
+    pub(super) value: FloatTensor<B>,
+    pub(super) heads: usize,
 }
 
 /// The LayerNorm op's inputs on one backend.
@@ -399,6 +400,69 @@ impl<B: AddLayerNormOps + LayerNormKernels, C: CheckpointStrategy> AddLayerNormO
             inputs,
             B::layer_norm_forward,
         )
+    }
+}
+
+impl<B: FusionBackend + AttentionKernels> AttentionKernels for Fusion<B> {
+    fn attention_forward(inputs: AttentionInputs<Self>) -> FloatTensor<Self> {
+        let spec = float_like::<B>(&inputs.query, inputs.query.shape());
+        let heads = inputs.heads;
+        let [out] = array(deferred::<B, _>(
+            "attention_forward",
+            attention_inputs(inputs),
+            vec![spec],
+            move |v| {
+                vec![Value::Float(B::attention_forward(attention_values(
+                    v, heads,
+                )))]
+            },
+        ));
+        out
+    }
+
+    fn attention_backward(
+        inputs: AttentionInputs<Self>,
+        grad: FloatTensor<Self>,
+    ) -> [FloatTensor<Self>; 3] {
+        let specs = vec![
+            float_like::<B>(&inputs.query, inputs.query.shape()),
+            float_like::<B>(&inputs.key, inputs.key.shape()),
+            float_like::<B>(&inputs.value, inputs.value.shape()),
+        ];
+        let heads = inputs.heads;
+        let mut recorded = attention_inputs(inputs);
+        recorded.push(Input::Float(grad));
+        array(deferred::<B, _>(
+            "attention_backward",
+            recorded,
+            specs,
+            move |mut v| {
+                let grad = v.pop().expect("the gradient was recorded last").float();
+                B::attention_backward(attention_values(v, heads), grad)
+                    .map(Value::Float)
+                    .into()
+            },
+        ))
+    }
+}
+
+/// The attention op's tensors as a deferred op records them.
+fn attention_inputs<B: FusionBackend>(inputs: AttentionInputs<Fusion<B>>) -> Vec<Input<B>> {
+    vec![
+        Input::Float(inputs.query),
+        Input::Float(inputs.key),
+        Input::Float(inputs.value),
+    ]
+}
+
+/// The attention op's inputs back from a deferred op's values (in [`attention_inputs`]' order).
+fn attention_values<B: FusionBackend>(values: Vec<Value<B>>, heads: usize) -> AttentionInputs<B> {
+    let [query, key, value] = array(values);
+    AttentionInputs {
+        query: query.float(),
+        key: key.float(),
+        value: value.float(),
+        heads,
     }
 }
 
