@@ -218,8 +218,7 @@ impl Loader {
     }
 
     fn load(&self, bytes: &[u8]) -> Result<BodyTemplate> {
-        let gltf::Gltf { document, blob } =
-            gltf::Gltf::from_slice(bytes).map_err(|e| self.err("glb", e.to_string()))?;
+        let (document, blob) = self.document(bytes)?;
         let buffers = self.buffers(&document, blob.as_deref())?;
         let extras = self.root_extras(&document)?;
 
@@ -320,6 +319,53 @@ impl Loader {
             },
             source: self.path.clone(),
         })
+    }
+
+    /// Parses and validates the glTF document, as `gltf::Gltf::from_slice` does, but first
+    /// checks what gltf 1.4.1 trusts before its own checks: the GLB header's total length
+    /// (`length - 12` unchecked, an overflow panic in debug builds) and each primitive's
+    /// `POSITION` accessor index (indexed before the index is validated, a panic in any build).
+    fn document(&self, bytes: &[u8]) -> Result<(Document, Option<Vec<u8>>)> {
+        if let Some(total) = bytes.strip_prefix(b"glTF").and_then(|b| b.get(4..8)) {
+            let total = u32::from_le_bytes([total[0], total[1], total[2], total[3]]);
+            if total < 12 {
+                return Err(self.err(
+                    "glb header",
+                    format!("total length {total} is shorter than the 12-byte header"),
+                ));
+            }
+        }
+        let gltf::Gltf { document, blob } = gltf::Gltf::from_slice_without_validation(bytes)
+            .map_err(|e| self.err("glb", e.to_string()))?;
+        let json = document.as_json();
+        for (m, mesh) in json.meshes.iter().enumerate() {
+            for (p, primitive) in mesh.primitives.iter().enumerate() {
+                let position = gltf::json::validation::Checked::Valid(Semantic::Positions);
+                if let Some(index) = primitive.attributes.get(&position)
+                    && index.value() >= json.accessors.len()
+                {
+                    return Err(self.err(
+                        format!("meshes[{m}].primitives[{p}].attributes.POSITION"),
+                        format!(
+                            "accessor {} does not exist ({} accessors)",
+                            index.value(),
+                            json.accessors.len()
+                        ),
+                    ));
+                }
+            }
+        }
+        let mut errors = Vec::new();
+        gltf::json::validation::Validate::validate(
+            json,
+            json,
+            gltf::json::Path::new,
+            &mut |path, error| errors.push((path(), error)),
+        );
+        if !errors.is_empty() {
+            return Err(self.err("glb", gltf::Error::Validation(errors).to_string()));
+        }
+        Ok((document, blob))
     }
 
     /// The bytes of every buffer. Only the GLB `BIN` chunk is supported as a source.
@@ -639,6 +685,17 @@ impl Loader {
     fn weld_map(&self, ids: &[u32], count: Option<usize>, raw: &RawVertices) -> Result<Weld> {
         let field = "extras.anny_vertex_id_accessor";
         let count = count.unwrap_or_else(|| ids.iter().map(|&i| i as usize + 1).max().unwrap_or(0));
+        // Every mesh vertex needs a glTF vertex, so a larger count is damage; checked before
+        // the table of `count` slots is allocated.
+        if count > ids.len() {
+            return Err(self.err(
+                "extras.anny_vertex_count",
+                format!(
+                    "{count} mesh vertices, but only {} glTF vertices",
+                    ids.len()
+                ),
+            ));
+        }
         let mut representative: Vec<Option<usize>> = vec![None; count];
         for (g, &id) in ids.iter().enumerate() {
             let Some(slot) = representative.get_mut(id as usize) else {
@@ -981,6 +1038,60 @@ mod tests {
             err.to_string().contains("empty.gltf") && err.to_string().contains("extras"),
             "{err}"
         );
+    }
+
+    /// The low-res template with its JSON changed by `edit`, in a valid GLB container.
+    fn with_json(edit: impl FnOnce(&mut Value)) -> Vec<u8> {
+        let bytes = std::fs::read(lowres_template_path()).unwrap();
+        let json_len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+        let mut json: Value = serde_json::from_slice(&bytes[20..20 + json_len]).unwrap();
+        edit(&mut json);
+        let mut text = serde_json::to_vec(&json).unwrap();
+        text.resize(text.len().next_multiple_of(4), b' ');
+        let bin = &bytes[20 + json_len..];
+        let mut out = b"glTF".to_vec();
+        out.extend(2u32.to_le_bytes());
+        out.extend(((20 + text.len() + bin.len()) as u32).to_le_bytes());
+        out.extend((text.len() as u32).to_le_bytes());
+        out.extend(b"JSON");
+        out.extend(text);
+        out.extend(bin);
+        out
+    }
+
+    /// Found by the structure-aware fuzzer (tests/tests/fuzz_readers.rs): a GLB total length
+    /// under 12 and a `POSITION` index past the accessors panicked inside gltf 1.4.1, and a
+    /// huge `extras.anny_vertex_count` asked for a table of that many slots (32 GiB for 2^31).
+    #[test]
+    fn damaged_header_position_index_and_vertex_count_are_errors() {
+        let expect = |bytes: &[u8], field: &str| {
+            let err = BodyTemplate::from_slice(bytes, "damaged.glb").unwrap_err();
+            let msg = err.to_string();
+            assert!(
+                matches!(err, RenderError::Template { .. })
+                    && msg.contains("damaged.glb")
+                    && msg.contains(field),
+                "{msg}"
+            );
+        };
+        assert!(BodyTemplate::from_slice(&with_json(|_| {}), "rebuilt.glb").is_ok());
+        let mut bytes = std::fs::read(lowres_template_path()).unwrap();
+        for total in [0u32, 11] {
+            bytes[8..12].copy_from_slice(&total.to_le_bytes());
+            expect(&bytes, "glb header");
+        }
+        for index in [27u64, u64::from(u32::MAX)] {
+            let bytes = with_json(|j| {
+                j["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = index.into();
+            });
+            expect(&bytes, "attributes.POSITION");
+        }
+        let bytes = with_json(|j| j["accessors"] = serde_json::json!([]));
+        expect(&bytes, "attributes.POSITION");
+        for count in [1230u64, 1 << 31, u64::MAX] {
+            let bytes = with_json(|j| j["extras"]["anny_vertex_count"] = count.into());
+            expect(&bytes, "extras.anny_vertex_count");
+        }
     }
 
     #[test]

@@ -39,7 +39,9 @@
 //!
 //! Every length read from the stream is checked against the bytes left before anything is
 //! allocated, so a truncated or hostile file fails with the byte offset of the opcode, never a
-//! panic or a huge allocation.
+//! panic or a huge allocation. Converting to owned [`Value`]s copies a memoized object once per
+//! reference, so that copying is bounded by the file's length (`expansion_budget`): a short file
+//! of nested shared references is an error, not an endless conversion.
 
 use std::collections::HashMap;
 
@@ -47,6 +49,16 @@ use super::value::{DType, Elements, NdArray, Value};
 
 /// Deepest nesting converted to a [`Value`]; deeper (or cyclic) structures are an error.
 pub const MAX_DEPTH: usize = 256;
+
+/// How much a pickle of `len` bytes may expand to when converted to a [`Value`], in units of
+/// one value or one payload element (character, byte, array element). Without shared
+/// references every unit needs at least one byte of the file; a memo `GET` is two bytes that
+/// copy a whole object, so `a = [x, x]; b = [a, a]; ...` doubles per level and a few hundred
+/// bytes would describe more values than memory holds (an endless conversion, not a cycle the
+/// depth limit sees). Sixteen copies of everything leave room for real sharing (dtypes, keys).
+fn expansion_budget(len: usize) -> usize {
+    len.saturating_mul(16).saturating_add(1 << 20)
+}
 
 /// A pickle failure: the byte offset of the opcode at fault and the reason.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -294,7 +306,8 @@ impl<'a> Vm<'a> {
                 }
                 b'.' => {
                     let root = self.pop()?;
-                    return self.to_value(root, 0);
+                    let budget = std::cell::Cell::new(expansion_budget(self.bytes.len()));
+                    return self.to_value(root, 0, &budget);
                 }
                 b'(' => self.marks.push(self.stack.len()),
                 b'}' => self.push(Obj::Dict(Vec::new())),
@@ -781,14 +794,34 @@ impl<'a> Vm<'a> {
         decode_array(raw, dtype, order, shape, fortran).or_else(|reason| self.err(reason))
     }
 
-    fn to_value(&self, id: usize, depth: usize) -> R<Value> {
+    /// The owned value of `id`. Each value takes one unit from `budget`, plus one per payload
+    /// element (character, byte, array element), so a shared object copied out many times is
+    /// paid for each time ([`expansion_budget`]).
+    fn to_value(&self, id: usize, depth: usize, budget: &std::cell::Cell<usize>) -> R<Value> {
         if depth > MAX_DEPTH {
             return self.err(format!(
                 "structure nested deeper than {MAX_DEPTH} levels (or self-referencing)"
             ));
         }
+        let cost = 1 + match &self.arena[id] {
+            Obj::Str(s) => s.len(),
+            Obj::Bytes(b) => b.len(),
+            Obj::Array(a) => a.elements.len(),
+            _ => 0,
+        };
+        match budget.get().checked_sub(cost) {
+            Some(left) => budget.set(left),
+            None => {
+                return self.err(
+                    "shared references (memo GETs) expand to far more values than the file holds",
+                );
+            }
+        }
         let list = |items: &[usize]| -> R<Vec<Value>> {
-            items.iter().map(|&i| self.to_value(i, depth + 1)).collect()
+            items
+                .iter()
+                .map(|&i| self.to_value(i, depth + 1, budget))
+                .collect()
         };
         Ok(match &self.arena[id] {
             Obj::None => Value::None,
@@ -802,7 +835,12 @@ impl<'a> Vm<'a> {
             Obj::Dict(entries) => Value::Dict(
                 entries
                     .iter()
-                    .map(|&(k, v)| Ok((self.to_value(k, depth + 1)?, self.to_value(v, depth + 1)?)))
+                    .map(|&(k, v)| {
+                        Ok((
+                            self.to_value(k, depth + 1, budget)?,
+                            self.to_value(v, depth + 1, budget)?,
+                        ))
+                    })
                     .collect::<R<_>>()?,
             ),
             Obj::Global { module, name, .. } => Value::Global {
@@ -1042,6 +1080,16 @@ mod tests {
         // A self-referencing list (l.append(l)) is an error, not a stack overflow.
         let cyclic = b"\x80\x02]q\x00h\x00a.";
         assert!(from_slice(cyclic).is_err());
+        // Shared references doubling per level: [[[..., ...], ...], ...], 2^64 values once
+        // copied out. Found while writing the structure-aware fuzzer (tests/tests/
+        // fuzz_readers.rs): an error, where it used to run (and allocate) without end.
+        let mut doubling = b"\x80\x02K\x00q\x00".to_vec();
+        for level in 0..64u8 {
+            doubling.extend([b'h', level, b'h', level, 0x86, b'q', level + 1]);
+        }
+        doubling.push(b'.');
+        let e = from_slice(&doubling).unwrap_err();
+        assert!(e.reason.contains("expand"), "{e}");
         let mut rng = lifegom_render::rng::Rng::new(12345);
         for _ in 0..2000 {
             let len = rng.below(40);
