@@ -65,8 +65,8 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let base = DeviceChoice::Wgpu.device();
     let device = base.clone().autodiff();
-    let template = BodyTemplate::load(&lowres_template_path())
-        .context("the low-res template (assets/body)")?;
+    let template =
+        BodyTemplate::load(lowres_template_path()).context("the low-res template (assets/body)")?;
     let v = template.num_vertices();
     let cfg = ReconstructorConfig::tiny(args.views);
     let model = cfg.init(v, &device)?;

@@ -31,6 +31,7 @@ use lifegom_model::inputs::ModelInputs;
 use lifegom_model::reconstructor::{Reconstructor, ReconstructorConfig, render_views};
 use lifegom_model::trained::{self, TrainedError};
 use lifegom_render::device::on_pool_thread;
+use lifegom_render::device::runs_on_host;
 use lifegom_render::gom::GomMesh;
 use lifegom_render::rng::Rng;
 use serde::{Deserialize, Serialize};
@@ -551,15 +552,17 @@ impl Trainer {
         };
         let mut applied = false;
         if let Some(grads) = averaged {
-            // Handles, not copies: what a step with a non-finite gradient is undone to. On a
-            // GPU the gradients are only seen by the step's kernels (`crate::adam`).
-            let before = (self.model.clone(), self.optim.clone());
+            // On a GPU the gradients are only seen by the step's kernels (`crate::adam`): keep
+            // what a step with a non-finite one is undone to (handles, not copies). Not on the
+            // host backends, whose gradients were checked above and whose optimizer updates
+            // in place only while nothing else holds the weights.
+            let before = (!runs_on_host(&device)).then(|| (self.model.clone(), self.optim.clone()));
             self.watch.arm(&device);
             on_pool_thread(&device, |parent| {
                 let _span = tracing::debug_span!(parent: parent, "optimizer").entered();
                 self.model = self.optim.step(self.lr.clone(), self.model.clone(), grads);
             });
-            if self.watch.tripped()? {
+            if let (true, Some(before)) = (self.watch.tripped()?, before) {
                 (self.model, self.optim) = before;
             } else {
                 self.step += 1;

@@ -8,9 +8,10 @@
 //!   passes where its input is positive, as Burn's does), `∂rel = ∂h_pre·W₀ᵀ`, and the row's
 //!   hidden activations and `∂h_pre` into a scratch buffer `[m, 6]` for the weights' sums.
 //! - The weights' gradients are sums over all `m` rows: `position_partial_sums_kernel` sums
-//!   [`ROWS_PER_CHUNK`] rows for every output element (`W₃`, `b₃`, `W₀`, `b₀` in that order, `4c
-//!   + 12` in all), one thread per chunk and element; `position_chunk_totals_kernel` adds the
-//!   chunks up in chunk order, one thread per element. Fixed orders: the sums are deterministic.
+//!   [`ROWS_PER_CHUNK`] rows for every output element (`W₃`, `b₃`, `W₀`, `b₀` in that order,
+//!   `4c + 12` in all), one thread per chunk and element; `position_chunk_totals_kernel` adds
+//!   the chunks up in chunk order, one thread per element. Fixed orders: the sums are
+//!   deterministic.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
