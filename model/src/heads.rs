@@ -22,6 +22,7 @@ use burn::tensor::module::linear;
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor};
 
 use crate::linear_op;
+use crate::norm_folds::NormFolds;
 use lifegom_render::gom::GomParams;
 use lifegom_render::select::select_rows;
 
@@ -157,18 +158,28 @@ impl UpdateHeads {
     /// checkpoints and their import are unchanged; the result equals four separate heads on the
     /// concatenated input up to float summation order (tested below).
     pub fn faces(&self, inputs: FaceInputs) -> GomParams {
+        self.faces_folded(&NormFolds::new(), inputs)
+    }
+
+    /// [`Self::faces`] with the stacked first layers and the block-diagonal second layers made
+    /// once per `folds` (a reconstruction's feedback steps share them; on a GPU each is a few
+    /// concatenation launches, and their backward as many slices).
+    pub fn faces_folded<'a>(&'a self, folds: &NormFolds<'a>, inputs: FaceInputs) -> GomParams {
         let FaceInputs { corners, images } = inputs;
         let [f, corner_width] = corners.dims();
         let device = corners.device();
         let init = GomParams::init(f, &device);
         let heads = [&self.so3, &self.scale, &self.offset, &self.rgb];
-        let weight = Tensor::cat(heads.iter().map(|m| m.l0.weight.val()).collect(), 1);
+        let (weight, bias) = folds.derived(&self.so3.l0, "heads: first layers", || {
+            let weight = Tensor::cat(heads.iter().map(|m| m.l0.weight.val()).collect(), 1);
+            let bias = heads
+                .iter()
+                .map(|m| m.l0.bias.as_ref().map(|b| b.val()))
+                .collect::<Option<Vec<_>>>()
+                .map(|b| Tensor::cat(b, 0));
+            (weight, bias)
+        });
         let [g, _] = weight.dims();
-        let bias = heads
-            .iter()
-            .map(|m| m.l0.bias.as_ref().map(|b| b.val()))
-            .collect::<Option<Vec<_>>>()
-            .map(|b| Tensor::cat(b, 0));
         let w_corners = weight.clone().narrow(0, 0, corner_width);
         let w_images = weight.narrow(0, corner_width, g - corner_width);
         let first = match images {
@@ -185,12 +196,15 @@ impl UpdateHeads {
         // whose output is split by head: slicing `hidden` by head instead costs, in the
         // backward, one zeroed `[F, 4·hidden]` gradient per head and three sums of them, far
         // more than the product's zero blocks.
-        let second = block_diagonal(heads.iter().map(|m| m.l2.weight.val()).collect());
-        let second_bias = heads
-            .iter()
-            .map(|m| m.l2.bias.as_ref().map(|b| b.val()))
-            .collect::<Option<Vec<_>>>()
-            .map(|b| Tensor::cat(b, 0));
+        let (second, second_bias) = folds.derived(&self.so3.l2, "heads: second layers", || {
+            let second = block_diagonal(heads.iter().map(|m| m.l2.weight.val()).collect());
+            let second_bias = heads
+                .iter()
+                .map(|m| m.l2.bias.as_ref().map(|b| b.val()))
+                .collect::<Option<Vec<_>>>()
+                .map(|b| Tensor::cat(b, 0));
+            (second, second_bias)
+        });
         let outputs = linear_op::affine(hidden, second, second_bias);
         let mut start = 0;
         let mut out = heads.iter().map(|m| {
@@ -711,4 +725,71 @@ mod tests {
     lifegom_render::cpu_backend_tests!(visible_rows => visible_rows_equal_dense_images);
     lifegom_render::cpu_backend_tests!(blocked_faces => blocked_faces_equal_one_block);
     lifegom_render::cpu_backend_tests!(fused_heads => fused_faces_equal_separate_heads);
+
+    /// Two feedback steps' face heads with one [`NormFolds`] (the stacked weights made once, as
+    /// a reconstruction on a GPU makes them) against fresh weights each step: the same outputs,
+    /// and the same gradients of the inputs and of every parameter up to float order.
+    fn kept_weights_equal_fresh_ones(device: &Device) {
+        let ad = device.clone().autodiff();
+        let heads = UpdateHeadsConfig::new(16, 3)
+            .with_point_dim(5)
+            .with_hidden(7)
+            .init(&ad);
+        let inputs: Vec<(Tensor<2>, Tensor<2>)> = (0..2)
+            .map(|_| {
+                let c = Tensor::<2>::random([11, 15], Distribution::Normal(0.0, 1.0), &ad);
+                let m = Tensor::<2>::random([11, 48], Distribution::Normal(0.0, 1.0), &ad);
+                (c.require_grad(), m.require_grad())
+            })
+            .collect();
+        let run = |kept: bool| {
+            let folds = NormFolds::new();
+            let mut loss = None;
+            for (k, (c, m)) in inputs.iter().enumerate() {
+                let face = FaceInputs {
+                    corners: c.clone(),
+                    images: FaceImages::Dense(m.clone()),
+                };
+                let p = if kept {
+                    heads.faces_folded(&folds, face)
+                } else {
+                    heads.faces(face)
+                };
+                let term = (p.so3 + p.scales.mul_scalar(2.0) + p.offsets.mul_scalar(3.0)
+                    - p.colors.mul_scalar(k as f32 + 0.5))
+                .sum();
+                loss = Some(match loss {
+                    Some(l) => l + term,
+                    None => term,
+                });
+            }
+            let loss = loss.expect("two steps");
+            let grads = loss.clone().backward();
+            let mut all = read(loss);
+            for (c, m) in &inputs {
+                all.extend(read(c.grad(&grads).expect("corner gradient")));
+                all.extend(read(m.grad(&grads).expect("image gradient")));
+            }
+            for mlp in [&heads.so3, &heads.scale, &heads.offset, &heads.rgb] {
+                for layer in [&mlp.l0, &mlp.l2] {
+                    all.extend(read(
+                        layer.weight.val().grad(&grads).expect("weight gradient"),
+                    ));
+                    let bias = layer.bias.as_ref().expect("bias").val();
+                    all.extend(read(bias.grad(&grads).expect("bias gradient")));
+                }
+            }
+            all
+        };
+        assert_close(&run(true), &run(false), "kept against fresh weights");
+    }
+
+    lifegom_render::cpu_backend_tests!(kept_head_weights => kept_weights_equal_fresh_ones);
+
+    #[test]
+    fn kept_head_weights_wgpu() {
+        if let Some(device) = lifegom_render::testing::wgpu_test_device() {
+            kept_weights_equal_fresh_ones(&device);
+        }
+    }
 }

@@ -33,6 +33,8 @@ pub struct NormFolds<'a> {
     linear: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
     /// By the first layer's address: layers side by side, `(weight [in, Σ out], bias [Σ out])`.
     stacked: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
+    /// By a layer's address and a name: other weights made from parameters alone.
+    derived: RefCell<HashMap<(usize, &'static str), (Tensor<2>, Option<Tensor<1>>)>>,
     layers: PhantomData<&'a ()>,
 }
 
@@ -67,6 +69,24 @@ impl<'a> NormFolds<'a> {
             .borrow_mut()
             .insert(key, (weight.clone(), bias.clone()));
         (weight, bias)
+    }
+
+    /// A weight and bias made from parameters alone by `make` (the update heads' stacked and
+    /// block-diagonal layers), kept under `anchor`'s address and `name`: a reconstruction's T
+    /// feedback steps then share one, as they share the folds (module docs).
+    pub(crate) fn derived(
+        &self,
+        anchor: &'a Linear,
+        name: &'static str,
+        make: impl FnOnce() -> (Tensor<2>, Option<Tensor<1>>),
+    ) -> (Tensor<2>, Option<Tensor<1>>) {
+        let key = (std::ptr::from_ref(anchor) as usize, name);
+        if let Some(found) = self.derived.borrow().get(&key) {
+            return found.clone();
+        }
+        let made = make();
+        self.derived.borrow_mut().insert(key, made.clone());
+        made
     }
 
     /// How many BN and `Linear` folds are kept.

@@ -762,7 +762,14 @@ impl Reconstructor {
                 corners: face_corners(h_hr, corners),
                 images: face_feats,
             };
-            blocks.push(self.heads.faces(inputs));
+            // On a GPU the heads' stacked weights are made once per reconstruction; the CPU
+            // backends make them per step as before, so their training gradients keep their
+            // summation order to the bit.
+            blocks.push(if runs_on_host(&state.xyz.device()) {
+                self.heads.faces(inputs)
+            } else {
+                self.heads.faces_folded(folds, inputs)
+            });
         }
         let faces = GomParams::cat(blocks, &state.xyz.device());
         Ok(GomState {
