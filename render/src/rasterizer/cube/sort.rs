@@ -21,6 +21,13 @@
 //!   and the whole sort is stable: equal keys keep their input order. The rasterizer relies on
 //!   that twice (ties in depth break by index; the tile sort keeps each tile's depth order).
 //!
+//!   A sort of at most `BLOCK_SORT_MAX` pairs (a training-size render's depth and tile sorts)
+//!   runs every pass in one cube and one launch instead (`radix_sort_block`): the same chunks,
+//!   digit-major counts and scatter, with the counts in shared memory, scanned by the cube, and a
+//!   storage barrier between passes. The order of every write is the same as the multi-launch
+//!   path's, so both give the same result; a training step's 15 renders sort with 2 launches
+//!   each instead of 30.
+//!
 //! Keys above `bits` are assumed zero: a pass is only run for digits that can be non-zero.
 
 use burn_cubecl::cubecl;
@@ -45,6 +52,13 @@ const RADIX_DIGITS: u32 = 1 << RADIX_BITS;
 const HIST_LEN: usize = RADIX_DIGITS as usize;
 /// Masks one digit out of a shifted key.
 const DIGIT_MASK: u32 = RADIX_DIGITS - 1;
+/// Threads of the one cube that sorts a short array (`radix_sort_block`): its shared counts are
+/// `RADIX_DIGITS` per thread, 8 KiB, within every device's 16 KiB of shared memory.
+const BLOCK_SORT_THREADS: u32 = 128;
+/// The most pairs one cube sorts: each thread walks at most 512 per pass.
+const BLOCK_SORT_MAX: usize = 1 << 16;
+/// `RADIX_DIGITS · BLOCK_SORT_THREADS`: the digit-major counts of one cube.
+const BLOCK_SORT_COUNTS: usize = (RADIX_DIGITS * BLOCK_SORT_THREADS) as usize;
 
 #[cube(launch)]
 fn scan_chunks(data: &mut [u32], totals: &mut [u32], n: u32) {
@@ -194,6 +208,125 @@ fn radix_scatter(
     }
 }
 
+/// One pass of the one-cube sort: thread `unit` counts the digits of its chunk `start..end`, the
+/// cube scans the digit-major counts in `counts` (`BLOCK_SORT_COUNTS`, each thread a run of
+/// `RADIX_DIGITS` of them), and the thread scatters its chunk from `keys_in` to `keys_out`.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn block_sort_pass(
+    // Read only; `&mut` because the kernel's buffers swap roles from pass to pass.
+    keys_in: &mut [u32],
+    values_in: &mut [u32],
+    keys_out: &mut [u32],
+    values_out: &mut [u32],
+    counts: &mut Shared<[u32]>,
+    totals: &mut Shared<[u32]>,
+    start: u32,
+    end: u32,
+    shift: u32,
+) {
+    let unit = UNIT_POS;
+    let mut hist = Array::<u32>::new(HIST_LEN);
+    for d in 0..RADIX_DIGITS {
+        hist[d as usize] = 0u32;
+    }
+    for i in start..end {
+        let digit = (keys_in[i as usize] >> shift) & DIGIT_MASK;
+        hist[digit as usize] += 1u32;
+    }
+    for d in 0..RADIX_DIGITS {
+        counts[(d * BLOCK_SORT_THREADS + unit) as usize] = hist[d as usize];
+    }
+    sync_cube();
+    // Exclusive scan of the digit-major counts: each thread its run, one thread the runs'
+    // totals, then each thread adds its run's offset.
+    let run = unit * RADIX_DIGITS;
+    let mut running = 0u32;
+    for r in 0..RADIX_DIGITS {
+        let value = counts[(run + r) as usize];
+        counts[(run + r) as usize] = running;
+        running += value;
+    }
+    totals[unit as usize] = running;
+    sync_cube();
+    if unit == 0 {
+        let mut sum = 0u32;
+        for t in 0..BLOCK_SORT_THREADS {
+            let total = totals[t as usize];
+            totals[t as usize] = sum;
+            sum += total;
+        }
+    }
+    sync_cube();
+    let offset = totals[unit as usize];
+    for r in 0..RADIX_DIGITS {
+        counts[(run + r) as usize] += offset;
+    }
+    sync_cube();
+    let mut next = Array::<u32>::new(HIST_LEN);
+    for d in 0..RADIX_DIGITS {
+        next[d as usize] = counts[(d * BLOCK_SORT_THREADS + unit) as usize];
+    }
+    for i in start..end {
+        let key = keys_in[i as usize];
+        let digit = (key >> shift) & DIGIT_MASK;
+        let at = next[digit as usize];
+        keys_out[at as usize] = key;
+        values_out[at as usize] = values_in[i as usize];
+        next[digit as usize] = at + 1u32;
+    }
+    // The next pass reads what every thread of the cube wrote, and reuses `counts`.
+    sync_storage();
+    sync_cube();
+}
+
+/// Every pass of the sort of `n ≤ BLOCK_SORT_MAX` pairs in one cube of `BLOCK_SORT_THREADS`
+/// threads (module docs): even passes read `keys`/`values` and write the `_alt` buffers, odd
+/// passes the other way round.
+#[cube(launch)]
+fn radix_sort_block(
+    keys: &mut [u32],
+    values: &mut [u32],
+    keys_alt: &mut [u32],
+    values_alt: &mut [u32],
+    n: u32,
+    passes: u32,
+) {
+    let mut counts = Shared::<[u32]>::new_slice(BLOCK_SORT_COUNTS);
+    let mut totals = Shared::<[u32]>::new_slice(BLOCK_SORT_THREADS as usize);
+    let per = n.div_ceil(BLOCK_SORT_THREADS);
+    let start = min(UNIT_POS * per, n);
+    let end = min(start + per, n);
+    for pass in 0..passes {
+        let shift = RADIX_BITS * pass;
+        if pass % 2 == 0 {
+            block_sort_pass(
+                keys,
+                values,
+                keys_alt,
+                values_alt,
+                &mut counts,
+                &mut totals,
+                start,
+                end,
+                shift,
+            );
+        } else {
+            block_sort_pass(
+                keys_alt,
+                values_alt,
+                keys,
+                values,
+                &mut counts,
+                &mut totals,
+                start,
+                end,
+                shift,
+            );
+        }
+    }
+}
+
 /// Stably sorts the first `n` `(key, value)` pairs by the low `bits` bits of the key. Returns
 /// the handles holding the sorted keys and values (the inputs, or fresh buffers).
 pub(crate) fn radix_sort_pairs(
@@ -206,12 +339,32 @@ pub(crate) fn radix_sort_pairs(
     if n <= 1 || bits == 0 {
         return (keys, values);
     }
+    let passes = bits.div_ceil(RADIX_BITS);
+    if n <= BLOCK_SORT_MAX {
+        let (keys_alt, values_alt) = (empty_u32(client, n), empty_u32(client, n));
+        radix_sort_block::launch(
+            client,
+            CubeCount::Static(1, 1, 1),
+            CubeDim::new_1d(BLOCK_SORT_THREADS),
+            arg(&keys, n),
+            arg(&values, n),
+            arg(&keys_alt, n),
+            arg(&values_alt, n),
+            n as u32,
+            passes,
+        );
+        return if passes % 2 == 0 {
+            (keys, values)
+        } else {
+            (keys_alt, values_alt)
+        };
+    }
     let num_chunks = n.div_ceil(SORT_CHUNK as usize);
     let counts_len = RADIX_DIGITS as usize * num_chunks;
     let counts = empty_u32(client, counts_len);
     let (mut keys, mut values) = (keys, values);
     let (mut keys_alt, mut values_alt) = (empty_u32(client, n), empty_u32(client, n));
-    for pass in 0..bits.div_ceil(RADIX_BITS) {
+    for pass in 0..passes {
         let shift = RADIX_BITS * pass;
         radix_count::launch(
             client,
@@ -299,12 +452,23 @@ mod tests {
         }
     }
 
-    /// The radix sort is a stable sort on the low `bits` bits, as the rasterizer needs.
+    /// The radix sort is a stable sort on the low `bits` bits, as the rasterizer needs, on both
+    /// paths: one cube (up to `BLOCK_SORT_MAX` pairs; an even and an odd number of passes;
+    /// fewer pairs than threads) and the multi-launch one.
     #[test]
     fn radix_sort_is_stable() {
         let Some(client) = client() else { return };
         let mut rng = Rng::new(9);
-        for (n, bits) in [(1000, 32), (100_003, 32), (70_000, 6)] {
+        for (n, bits) in [
+            (1000, 32),
+            (100_003, 32),
+            (70_000, 6),
+            (BLOCK_SORT_MAX, 32),
+            (BLOCK_SORT_MAX + 1, 32),
+            (BLOCK_SORT_MAX - 1, 5),
+            (130, 8),
+            (3, 32),
+        ] {
             let keys: Vec<u32> = (0..n)
                 .map(|_| {
                     (rng.next_u64() as u32)
