@@ -21,13 +21,19 @@ use super::op::{VectorAttentionKernels, VectorAttentionOps};
 
 /// The maximum over the neighbours of logit channel `j` of point `i`, and the softmax's sum.
 #[derive(CubeType, Clone, Copy)]
-struct SoftmaxScale {
-    max: f32,
-    sum: f32,
+pub(super) struct SoftmaxScale {
+    pub(super) max: f32,
+    pub(super) sum: f32,
 }
 
 #[cube]
-fn softmax_scale(logits: &[f32], i: usize, j: usize, k: usize, cs: usize) -> SoftmaxScale {
+pub(super) fn softmax_scale(
+    logits: &[f32],
+    i: usize,
+    j: usize,
+    k: usize,
+    cs: usize,
+) -> SoftmaxScale {
     let base = i * k * cs + j;
     let mut max = logits[base];
     for kk in 1..k {
@@ -42,7 +48,7 @@ fn softmax_scale(logits: &[f32], i: usize, j: usize, k: usize, cs: usize) -> Sof
 
 /// `softmax_κ(w[i, ·, j])[κ]` given the neighbours' `scale`.
 #[cube]
-fn probability(
+pub(super) fn probability(
     logits: &[f32],
     scale: &SoftmaxScale,
     i: usize,

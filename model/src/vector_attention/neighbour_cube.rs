@@ -37,6 +37,7 @@ use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32,
 };
 
+use super::cube::{probability, softmax_scale};
 use super::neighbour_op::{NeighbourAttentionKernels, NeighbourAttentionOps};
 
 /// The sizes every kernel indexes with.
@@ -136,27 +137,6 @@ fn relation_backward_rows_kernel(
     }
 }
 
-/// The maximum over the neighbours of logit channel `j` of point `i`, and the softmax's sum.
-#[derive(CubeType, Clone, Copy)]
-struct SoftmaxScale {
-    max: f32,
-    sum: f32,
-}
-
-#[cube]
-fn softmax_scale(logits: &[f32], i: usize, j: usize, k: usize, cs: usize) -> SoftmaxScale {
-    let base = i * k * cs + j;
-    let mut max = logits[base];
-    for kk in 1..k {
-        max = f32::max(max, logits[base + kk * cs]);
-    }
-    let mut sum = 0.0f32;
-    for kk in 0..k {
-        sum += f32::exp(logits[base + kk * cs] - max);
-    }
-    SoftmaxScale { max, sum }
-}
-
 /// `v[nbr, ch] + δ[i, κ, ch]` for the flat `ik = i·k + κ`.
 #[cube]
 fn gathered_value(
@@ -194,7 +174,7 @@ fn aggregate_gathered_forward_kernel(
             let mut acc = 0.0f32;
             for kk in 0..k {
                 let ik = i * k + kk;
-                let p = f32::exp(logits[ik * cs + j] - scale.max) / scale.sum;
+                let p = probability(logits, &scale, i, kk, j, k, cs);
                 acc += p * gathered_value(qkv, neighbours, delta, ik, ch, sizes);
             }
             out[i * sizes.c + ch] = acc;
@@ -229,7 +209,7 @@ fn aggregate_gathered_backward_rows_kernel(
         let mut dot = 0.0f32;
         for kk in 0..k {
             let ik = i * k + kk;
-            let p = f32::exp(logits[ik * cs + j] - scale.max) / scale.sum;
+            let p = probability(logits, &scale, i, kk, j, k, cs);
             let mut a = 0.0f32;
             for si in 0..s {
                 let ch = si * cs + j;
@@ -243,7 +223,7 @@ fn aggregate_gathered_backward_rows_kernel(
         }
         for kk in 0..k {
             let ik = i * k + kk;
-            let p = f32::exp(logits[ik * cs + j] - scale.max) / scale.sum;
+            let p = probability(logits, &scale, i, kk, j, k, cs);
             logits_grad[ik * cs + j] = p * (logits_grad[ik * cs + j] - dot);
         }
         let row = i * 3 * c;
