@@ -19,6 +19,9 @@ use std::marker::PhantomData;
 use burn::nn::{BatchNorm, Linear};
 use burn::tensor::{Device, Tensor};
 
+/// A weight and an optional bias made from parameters alone ([`NormFolds::derived`]).
+type DerivedWeight = (Tensor<2>, Option<Tensor<1>>);
+
 /// BatchNorms on running statistics as per-channel `(scale, shift)`, and the `Linear` layers
 /// they follow folded with them, each computed on first use and then reused (module docs).
 ///
@@ -34,7 +37,7 @@ pub struct NormFolds<'a> {
     /// By the first layer's address: layers side by side, `(weight [in, Σ out], bias [Σ out])`.
     stacked: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
     /// By a layer's address and a name: other weights made from parameters alone.
-    derived: RefCell<HashMap<(usize, &'static str), (Tensor<2>, Option<Tensor<1>>)>>,
+    derived: RefCell<HashMap<(usize, &'static str), DerivedWeight>>,
     layers: PhantomData<&'a ()>,
 }
 
@@ -78,8 +81,8 @@ impl<'a> NormFolds<'a> {
         &self,
         anchor: &'a Linear,
         name: &'static str,
-        make: impl FnOnce() -> (Tensor<2>, Option<Tensor<1>>),
-    ) -> (Tensor<2>, Option<Tensor<1>>) {
+        make: impl FnOnce() -> DerivedWeight,
+    ) -> DerivedWeight {
         let key = (std::ptr::from_ref(anchor) as usize, name);
         if let Some(found) = self.derived.borrow().get(&key) {
             return found.clone();

@@ -353,7 +353,7 @@ pub(crate) fn radix_sort_pairs(
             n as u32,
             passes,
         );
-        return if passes % 2 == 0 {
+        return if passes.is_multiple_of(2) {
             (keys, values)
         } else {
             (keys_alt, values_alt)
