@@ -591,6 +591,11 @@ fn read_tensors(path: &Path) -> Result<(CheckpointFormat, bool, Vec<PackTensor>)
         return Ok((format, false, tensors.values().cloned().collect()));
     }
     let format = CheckpointFormat::PyTorch;
+    check_zip_entries(path).map_err(|reason| CheckpointError::Format {
+        path: path.to_path_buf(),
+        format,
+        reason,
+    })?;
     let read = |top: Option<&str>| {
         let mut store = PytorchStore::from_file(path).map_indices_contiguous(false);
         if let Some(k) = top {
@@ -613,6 +618,34 @@ fn read_tensors(path: &Path) -> Result<(CheckpointFormat, bool, Vec<PackTensor>)
             }),
         },
     }
+}
+
+/// For a `torch.save` zip (the legacy format is a bare pickle and is left to the reader): every
+/// entry is opened through the central directory and read to its end, which checks its local
+/// header, its compression method and its CRC-32. burn-store's reader takes the headers on
+/// trust, so a damaged archive could otherwise load wrong weights without a word (found by the
+/// structure-aware fuzzer, `tests/tests/fuzz_readers.rs`). A stored entry is read in place, so
+/// the cost is one pass over the file.
+fn check_zip_entries(path: &Path) -> Result<(), String> {
+    let mut file = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    let mut magic = [0u8; 4];
+    if std::io::Read::read_exact(&mut file, &mut magic).is_err() || &magic != b"PK\x03\x04" {
+        return Ok(());
+    }
+    let mut archive =
+        zip::ZipArchive::new(file).map_err(|e| format!("not a readable zip archive: {e}"))?;
+    for i in 0..archive.len() {
+        let mut entry = archive
+            .by_index(i)
+            .map_err(|e| format!("zip entry {i}: {e}"))?;
+        let name = entry
+            .name()
+            .map(|n| n.to_string())
+            .unwrap_or_else(|_| "?".into());
+        std::io::copy(&mut entry, &mut std::io::sink())
+            .map_err(|e| format!("zip entry {i} (`{name}`): {e}"))?;
+    }
+    Ok(())
 }
 
 /// A file's state dict, keyed by official key (wrapper prefixes stripped).
@@ -852,6 +885,52 @@ mod tests {
 
     /// Low-res vertex count of the small test models.
     const V: usize = 40;
+
+    /// A `torch.save` zip whose stored bytes or headers were damaged is one error naming the
+    /// file, not weights read from the wrong bytes: one flipped byte inside the largest tensor's
+    /// data (its CRC-32 no longer matches) and an unknown compression method in that entry's
+    /// central-directory record. The untouched fixture reads.
+    #[test]
+    fn damaged_torch_zips_are_errors() {
+        let fixture =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/official/demo-v2.pth");
+        let bytes = std::fs::read(&fixture).unwrap();
+        assert!(read_official_shapes(&fixture).is_ok());
+        let (data_start, header_start, size) = {
+            let mut archive = zip::ZipArchive::new(std::io::Cursor::new(&bytes)).unwrap();
+            let largest = (0..archive.len())
+                .max_by_key(|&i| archive.by_index(i).unwrap().size())
+                .unwrap();
+            let entry = archive.by_index(largest).unwrap();
+            (
+                entry.data_start().unwrap() as usize,
+                entry.header_start() as usize,
+                entry.size() as usize,
+            )
+        };
+        let dir = TempDir::new("zip");
+        let mut flipped = bytes.clone();
+        flipped[data_start + size / 2] ^= 0x10;
+        // The entry's central-directory record: its local header offset (at +42) is the entry's.
+        let central = (0..bytes.len() - 46)
+            .find(|&at| {
+                bytes[at..at + 4] == *b"PK\x01\x02"
+                    && u32::from_le_bytes(bytes[at + 42..at + 46].try_into().unwrap()) as usize
+                        == header_start
+            })
+            .expect("the entry's central-directory record");
+        let mut method = bytes.clone();
+        method[central + 10] = 99;
+        for (name, damaged) in [("flipped.pth", flipped), ("method.pth", method)] {
+            let path = dir.path(name);
+            std::fs::write(&path, damaged).unwrap();
+            let err = match read_official_shapes(&path) {
+                Ok(_) => panic!("{name} read without an error"),
+                Err(e) => e.to_string(),
+            };
+            assert!(err.contains(name) && err.contains("zip entry"), "{err}");
+        }
+    }
 
     struct TempDir(PathBuf);
     impl TempDir {
