@@ -34,9 +34,8 @@ pub struct NormFolds<'a> {
     affine: RefCell<HashMap<usize, (Tensor<1>, Tensor<1>)>>,
     /// By `Linear` address: the folded `(weight [in, out], bias [out])` of `linear_bn`.
     linear: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
-    /// By the first layer's address: layers side by side, `(weight [in, Σ out], bias [Σ out])`.
-    stacked: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
-    /// By a layer's address and a name: other weights made from parameters alone.
+    /// By a layer's address and a name: weights made from parameters alone (stacked layers, the
+    /// heads' block-diagonal layer).
     derived: RefCell<HashMap<(usize, &'static str), DerivedWeight>>,
     layers: PhantomData<&'a ()>,
 }
@@ -55,23 +54,18 @@ impl<'a> NormFolds<'a> {
     ///
     /// If `layers` is empty or a layer has no bias.
     pub(crate) fn stacked(&self, layers: &[&'a Linear], device: &Device) -> (Tensor<2>, Tensor<1>) {
-        let key = std::ptr::from_ref(layers[0]) as usize;
-        if let Some(found) = self.stacked.borrow().get(&key) {
-            return found.clone();
-        }
-        let weight = Tensor::cat(layers.iter().map(|l| l.weight.val()).collect(), 1);
-        let bias = Tensor::cat(
-            layers
-                .iter()
-                .map(|l| l.bias.as_ref().expect("stacked layers have biases").val())
-                .collect(),
-            0,
-        );
-        let (weight, bias) = (weight.to_device(device), bias.to_device(device));
-        self.stacked
-            .borrow_mut()
-            .insert(key, (weight.clone(), bias.clone()));
-        (weight, bias)
+        let (weight, bias) = self.derived(layers[0], "stacked layers", || {
+            let weight = Tensor::cat(layers.iter().map(|l| l.weight.val()).collect(), 1);
+            let bias = Tensor::cat(
+                layers
+                    .iter()
+                    .map(|l| l.bias.as_ref().expect("stacked layers have biases").val())
+                    .collect(),
+                0,
+            );
+            (weight.to_device(device), Some(bias.to_device(device)))
+        });
+        (weight, bias.expect("made with a bias"))
     }
 
     /// A weight and bias made from parameters alone by `make` (the update heads' stacked and

@@ -170,6 +170,13 @@ fn schedule_v1() -> u32 {
     1
 }
 
+/// A fresh Adam (`crate::adam`) and the watch its GPU kernels report non-finite gradients to.
+fn fresh_optimizer() -> (ModuleOptimizer, GradientWatch) {
+    let watch = GradientWatch::default();
+    let optim = ModuleOptimizer::from(FusedAdamConfig::default().init_watched(watch.clone()));
+    (optim, watch)
+}
+
 /// The model, its optimiser and the step counter.
 pub struct Trainer {
     /// The network, on an autodiff device.
@@ -286,16 +293,8 @@ impl Trainer {
         // (a first forward re-seeds the RNG for its dropout; the ranks of a data-parallel job
         // each start with a different sample).
         model.visit(&mut DrawParameters);
-        let watch = GradientWatch::default();
-        Self::assemble(
-            model,
-            config,
-            ModuleOptimizer::from(FusedAdamConfig::default().init_watched(watch.clone())),
-            watch,
-            (0, 0),
-            train,
-            device,
-        )
+        let (optim, watch) = fresh_optimizer();
+        Self::assemble(model, config, optim, watch, (0, 0), train, device)
     }
 
     /// Fine-tuning: the weights of `path` (a `.lgck`, or an official checkpoint loaded into
@@ -337,16 +336,8 @@ impl Trainer {
             path.display(),
             loaded.provenance()
         );
-        let watch = GradientWatch::default();
-        let trainer = Self::assemble(
-            loaded.model,
-            config,
-            ModuleOptimizer::from(FusedAdamConfig::default().init_watched(watch.clone())),
-            watch,
-            (0, 0),
-            train,
-            device,
-        )?;
+        let (optim, watch) = fresh_optimizer();
+        let trainer = Self::assemble(loaded.model, config, optim, watch, (0, 0), train, device)?;
         Ok((trainer, line))
     }
 
@@ -408,8 +399,8 @@ impl Trainer {
                 meta.schedule_version
             )));
         }
-        let watch = GradientWatch::default();
-        let optim = ModuleOptimizer::from(FusedAdamConfig::default().init_watched(watch.clone()))
+        let (optim, watch) = fresh_optimizer();
+        let optim = optim
             .from_bytes(Bytes::from_bytes_vec(payload[8 + n..].to_vec()))
             .map_err(|e| bad(format!("optimizer state: {e}")))?;
         let train = TrainSection {

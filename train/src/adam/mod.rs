@@ -130,7 +130,9 @@ impl Optimizer for FusedAdam {
             .flag
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
-        // Unwatched, the kernel still needs a flag to write: a fresh one, never read.
+        // An armed watch holds its flag here. Unwatched, the kernel still needs a flag to write:
+        // a fresh one, never read.
+        let armed = slot.is_some();
         let watch = match slot.take() {
             Some(flag) => flag,
             None => Tensor::<1>::from_data(TensorData::from([0.0f32]), &tensor.device()),
@@ -145,7 +147,7 @@ impl Optimizer for FusedAdam {
                 inputs,
                 scalars,
             );
-        if self.watch.armed.load(std::sync::atomic::Ordering::Relaxed) {
+        if armed {
             *slot = Some(Tensor::from_dispatch(watch));
         }
         drop(slot);
@@ -164,8 +166,8 @@ impl Optimizer for FusedAdam {
 /// `ModuleOptimizer`. Clones share one flag.
 #[derive(Debug, Clone, Default)]
 pub struct GradientWatch {
+    /// The flag while the watch is armed, `None` otherwise.
     flag: Arc<Mutex<Option<Tensor<1>>>>,
-    armed: Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl GradientWatch {
@@ -179,14 +181,11 @@ impl GradientWatch {
         let device = device.clone().inner();
         *self.flag.lock().unwrap_or_else(PoisonError::into_inner) =
             Some(Tensor::from_data(TensorData::from([0.0f32]), &device));
-        self.armed.store(true, std::sync::atomic::Ordering::Relaxed);
     }
 
     /// Whether a gradient of the watched step was not finite: one read-back of the flag, which
     /// waits for the step's kernels. Disarms the watch. `false` when nothing was watched.
     pub fn tripped(&self) -> Result<bool, ReadbackError> {
-        self.armed
-            .store(false, std::sync::atomic::Ordering::Relaxed);
         let flag = self
             .flag
             .lock()
