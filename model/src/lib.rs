@@ -41,6 +41,7 @@
 //! | [`dropout`] | the fusion layers' dropout, with masks drawn on the host on CPU backends |
 //! | [`fusion`] | multi-source fusion: self-attention over views, cross-attention with a per-vertex query |
 //! | [`knn`], [`point_transformer`] | farthest point sampling, kNN, the Point Transformer encoder–decoder |
+//! | [`shared_linear`] | a layer the feedback passes share: one weight gradient for all passes on devices |
 //! | [`heads`] | update heads: residual vertex update, new embedding, per-face Gaussian parameters |
 //! | [`reconstructor`] | the reconstructor: T steps of render → encode → fuse → update |
 //! | [`avatar`] | the result: render in any pose and view, save/load, 3DGS `.ply` export |
@@ -71,6 +72,7 @@ pub mod point_transformer;
 pub mod reconstructor;
 pub mod rig_export;
 pub mod sampling;
+pub mod shared_linear;
 pub mod trained;
 pub mod vector_attention;
 pub mod weights_file;

@@ -19,6 +19,8 @@ use std::marker::PhantomData;
 use burn::nn::{BatchNorm, Linear};
 use burn::tensor::{Device, Tensor};
 
+use crate::shared_linear::SharedLinear;
+
 /// A weight and an optional bias made from parameters alone ([`NormFolds::derived`]).
 type DerivedWeight = (Tensor<2>, Option<Tensor<1>>);
 
@@ -37,6 +39,9 @@ pub struct NormFolds<'a> {
     /// By a layer's address and a name: weights made from parameters alone (stacked layers, the
     /// heads' block-diagonal layer).
     derived: RefCell<HashMap<(usize, &'static str), DerivedWeight>>,
+    /// By a layer's address and a name: layers every pass runs, with one parameter gradient for
+    /// all passes on devices ([`SharedLinear`]).
+    shared: RefCell<HashMap<(usize, &'static str), SharedLinear>>,
     layers: PhantomData<&'a ()>,
 }
 
@@ -84,6 +89,47 @@ impl<'a> NormFolds<'a> {
         let made = make();
         self.derived.borrow_mut().insert(key, made.clone());
         made
+    }
+
+    /// The layer `(weight, bias)` made by `make`, kept under `anchor`'s address and `name` as a
+    /// [`SharedLinear`]: every pass that runs it through these folds shares its parameter
+    /// gradient (one product for all passes on devices).
+    pub(crate) fn shared(
+        &self,
+        anchor: &'a Linear,
+        name: &'static str,
+        make: impl FnOnce() -> (Tensor<2>, Tensor<1>),
+    ) -> SharedLinear {
+        let key = (std::ptr::from_ref(anchor) as usize, name);
+        if let Some(found) = self.shared.borrow().get(&key) {
+            return found.clone();
+        }
+        let (weight, bias) = make();
+        let made = SharedLinear::new(weight, bias);
+        self.shared.borrow_mut().insert(key, made.clone());
+        made
+    }
+
+    /// `BN(Linear(·))` folded ([`Self::linear`]) as a shared layer.
+    pub(crate) fn shared_fold(
+        &self,
+        linear: &'a Linear,
+        bn: &'a BatchNorm,
+        device: &Device,
+    ) -> SharedLinear {
+        self.shared(linear, "folded", || self.linear(linear, bn, device))
+    }
+
+    /// A `Linear` with a bias as a shared layer.
+    ///
+    /// # Panics
+    ///
+    /// If the layer has no bias.
+    pub(crate) fn shared_layer(&self, linear: &'a Linear) -> SharedLinear {
+        self.shared(linear, "layer", || {
+            let bias = linear.bias.as_ref().expect("a shared layer has a bias");
+            (linear.weight.val(), bias.val())
+        })
     }
 
     /// How many BN and `Linear` folds are kept.

@@ -278,8 +278,7 @@ fn linear_bn<'a, const D: usize>(
     bn: &'a BatchNorm,
     x: Tensor<D>,
 ) -> Tensor<D> {
-    let (weight, bias) = folds.linear(linear, bn, &x.device());
-    linear_op::affine(x, weight, Some(bias))
+    folds.shared_fold(linear, bn, &x.device()).forward(x)
 }
 
 /// The Point Transformer encoder–decoder (module docs). Build with [`PointTransformerConfig`].
@@ -491,8 +490,11 @@ impl TransitionDown {
         );
         // The BN folded into the layer as in `linear_bn`; the feature block carries the bias.
         let (w, bias) = folds.linear(&self.linear, &self.bn, &features.device());
-        let w_features = w.clone().slice([3..d_in, 0..d_out]);
-        let from_features = linear_op::affine(features, w_features, Some(bias));
+        let from_features = folds
+            .shared(&self.linear, "feature rows", || {
+                (w.clone().slice([3..d_in, 0..d_out]), bias)
+            })
+            .forward(features);
         relu(positions.matmul(w.slice([0..3, 0..d_out])) + from_features)
     }
 
@@ -688,9 +690,11 @@ impl PointTransformerLayer {
         nbr: Tensor<1, Int>,
     ) -> Tensor<2> {
         let device = x.device();
-        let (w_qkv, b_qkv) =
-            folds.stacked(&[&self.linear_q, &self.linear_k, &self.linear_v], &device);
-        let qkv = linear_op::affine(x, w_qkv, Some(b_qkv));
+        let qkv = folds
+            .shared(&self.linear_q, "query, key, value", || {
+                folds.stacked(&[&self.linear_q, &self.linear_k, &self.linear_v], &device)
+            })
+            .forward(x);
 
         let mp = &self.linear_p;
         let (w0, b0) = folds.linear(&mp.fc0, &mp.bn1, &device);
@@ -701,7 +705,7 @@ impl PointTransformerLayer {
         let (scale, shift) = folds.affine(&mw.bn0, &device);
         let w = vector_attention::relation(qkv.clone(), nbr.clone(), delta.clone(), scale, shift);
         let w = relu(linear_bn(folds, &mw.fc2, &mw.bn3, w));
-        let w = linear_op::forward(&mw.fc5, w); // [n, k, c/s]
+        let w = folds.shared_layer(&mw.fc5).forward(w); // [n, k, c/s]
         vector_attention::aggregate_gathered(qkv, nbr, delta, w)
     }
 }
@@ -761,7 +765,12 @@ impl TransitionUp {
     /// Head (coarsest level, global context): `[n, c] → [n, c]`.
     pub fn forward_head<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
         let [n, c] = x.dims();
-        let global = relu(linear_op::forward(&self.linear2, x.clone().mean_dim(0))).expand([n, c]);
+        let global = relu(
+            folds
+                .shared_layer(&self.linear2)
+                .forward(x.clone().mean_dim(0)),
+        )
+        .expand([n, c]);
         relu(linear_bn(
             folds,
             &self.linear1,
@@ -782,7 +791,7 @@ impl TransitionUp {
         let fine = relu(linear_bn(folds, &self.linear1, &self.bn1, skip));
         let up = match &self.bn2 {
             Some(bn) => linear_bn(folds, &self.linear2, bn, coarse),
-            None => linear_op::forward(&self.linear2, coarse),
+            None => folds.shared_layer(&self.linear2).forward(coarse),
         };
         fine + interp.apply(relu(up))
     }
@@ -1212,10 +1221,12 @@ mod tests {
 
     lifegom_render::cpu_backend_tests!(point_transformer_gradients => check_gradients);
 
-    /// The tiny network on wgpu (stacked query/key/value product and the neighbourhood ops of
-    /// `vector_attention`) against the tensor-op composition on Flex, with the same weights and
-    /// inputs: the output and the gradients of the positions, the features and every trainable
-    /// parameter, each within 1e-4 of its largest magnitude plus 1e-6. The logit biases' true
+    /// The tiny network on wgpu (stacked query/key/value product, the neighbourhood ops of
+    /// `vector_attention`, layers shared by the passes) against the tensor-op composition on
+    /// Flex, with the same weights and inputs, run twice with one set of folds as two feedback
+    /// passes (the second pass's features depend on the first's output): the output and the
+    /// gradients of the positions, the features and every trainable parameter, each within 1e-4
+    /// of its largest magnitude plus 1e-6. The logit biases' true
     /// gradient is zero (a softmax ignores a shift shared by all neighbours): theirs must be
     /// rounding noise on both devices.
     #[test]
@@ -1235,7 +1246,10 @@ mod tests {
             let p = random_tensor(&mut rng, [600, 3], &device).require_grad();
             let x = random_tensor(&mut rng, [600, 5], &device).require_grad();
             let probe = random_tensor(&mut rng, [600, 8], &device);
-            let out = net.forward(p.clone(), x.clone()).unwrap();
+            let folds = NormFolds::new();
+            let first = net.forward_folded(&folds, p.clone(), x.clone()).unwrap();
+            let fed_back = x.clone() + first.clone().slice([0..600, 0..5]).tanh();
+            let out = first + net.forward_folded(&folds, p.clone(), fed_back).unwrap();
             let grads = (out.clone() * probe).sum().backward();
             let mut collect = CollectGrads {
                 grads: &grads,

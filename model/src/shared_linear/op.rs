@@ -1,0 +1,341 @@
+//! The shared layer's two ops as a Burn backend extension, and the autodiff nodes that defer the
+//! parameters' gradients to one product (see [`super`]).
+//!
+//! Listed for `Cube`, `Fusion` and `Autodiff`. Without autodiff both ops are their default
+//! bodies: [`SharedLinearOps::shared_parameter`] hands its input back and
+//! [`SharedLinearOps::shared_linear`] is Burn's product and broadcast bias add, which Burn's
+//! fusion sees as it sees `Linear::forward`. The autodiff implementation is where the layer
+//! differs from Burn's:
+//!
+//! - a **product node** per pass (`shared_linear`) computes `∂x = g·Wᵀ` and files `(x, g)` in
+//!   the layer's [`Ledger`] instead of registering `∂W` and `∂b`. So that the parameter nodes
+//!   are reached, the first product node to run registers a placeholder for each of them: the
+//!   parameter's own handle, which has the right shape and costs no copy and no launch;
+//! - a **parameter node** (`shared_parameter`), one for the weight and one for the bias, between
+//!   the parameter (a folded weight, a stacked one or a `Param`) and every pass's product. It
+//!   runs after all of them, since Burn's autodiff runs nodes deepest first and each product
+//!   node is deeper than the parameter nodes it reads. It drops the placeholder and registers
+//!   `∂W = Xᵀ·G` or `∂b = Σ_rows G` from the ledger's rows, stacked once for both by one
+//!   launch (`stack_pass_rows`, the `cube` module).
+
+use std::any::Any;
+use std::sync::{Arc, Mutex, PoisonError};
+
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::fusion::{Fusion, FusionBackend};
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
+use burn::tensor::Shape;
+use lifegom_render::cube::deferred::float_like;
+use lifegom_render::cube::deferred::{Input, Value, array, deferred};
+use lifegom_render::op_backward::record;
+
+/// Which parameter of the layer a [`SharedLinearOps::shared_parameter`] node stands for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    /// The weight `[in, out]`: its gradient is `Xᵀ·G`.
+    Weight,
+    /// The bias `[out]`: its gradient is `Σ_rows G`.
+    Bias,
+}
+
+/// One layer's record of its passes' backward: the inputs and output gradients of every
+/// product node that has run, and which parameter nodes still wait for them (module docs).
+/// Clones share one record.
+#[derive(Clone, Default)]
+pub struct Ledger(Arc<Mutex<LedgerState>>);
+
+impl std::fmt::Debug for Ledger {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Ledger")
+    }
+}
+
+#[derive(Default)]
+struct LedgerState {
+    /// `Rows<B>` of the backend that runs the backward; typed on first use.
+    rows: Option<Box<dyn Any + Send>>,
+    /// Whether a placeholder was registered for the weight / bias node.
+    seeded: [bool; 2],
+    /// Parameter nodes that have taken their gradient; the rows are freed when every seeded
+    /// one has.
+    delivered: [bool; 2],
+}
+
+/// The rows filed by the product nodes, and their stacks once made.
+struct Rows<B: Backend> {
+    /// `[rows, in]` per pass, when the weight takes a gradient.
+    inputs: Vec<FloatTensor<B>>,
+    /// `[rows, out]` per pass.
+    grads: Vec<FloatTensor<B>>,
+    /// `(X, G)`: every pass's rows, one after the other.
+    stacked: Option<(Option<FloatTensor<B>>, FloatTensor<B>)>,
+}
+
+impl Ledger {
+    fn lock(&self) -> std::sync::MutexGuard<'_, LedgerState> {
+        self.0.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+}
+
+impl LedgerState {
+    fn rows<B: Backend>(&mut self) -> &mut Rows<B> {
+        self.rows
+            .get_or_insert_with(|| {
+                Box::new(Rows::<B> {
+                    inputs: Vec::new(),
+                    grads: Vec::new(),
+                    stacked: None,
+                })
+            })
+            .downcast_mut::<Rows<B>>()
+            .expect("one layer's passes run on one backend")
+    }
+}
+
+/// `t` `[.., c]` as `[rows, c]` (a view).
+fn flatten<B: Backend>(t: FloatTensor<B>) -> FloatTensor<B> {
+    let shape = t.shape();
+    let c = shape[shape.num_dims() - 1];
+    if shape.num_dims() == 2 {
+        return t;
+    }
+    B::float_reshape(t, Shape::new([shape.num_elements() / c, c]))
+}
+
+/// Passes stacked by one launch of [`StackKernels::stack_pass_rows`].
+pub const STACK_PARTS: usize = 4;
+
+/// `(X, G)`: the passes' rows one after the other (module docs). A lone pass is handed back;
+/// more than [`STACK_PARTS`] are stacked that many at a time, each stack then being one part of
+/// the next launch.
+fn stack<B: StackKernels>(
+    mut inputs: Vec<FloatTensor<B>>,
+    mut grads: Vec<FloatTensor<B>>,
+) -> (Option<FloatTensor<B>>, FloatTensor<B>) {
+    // Without a weight gradient the gradients stand in for the inputs; their stack is dropped.
+    let with_inputs = !inputs.is_empty();
+    if !with_inputs {
+        inputs = grads.clone();
+    }
+    while grads.len() > 1 {
+        let take = grads.len().min(STACK_PARTS);
+        let (x, g) = B::stack_pass_rows(
+            inputs.drain(..take).collect(),
+            grads.drain(..take).collect(),
+        );
+        inputs.insert(0, x);
+        grads.insert(0, g);
+    }
+    let g = grads.pop().expect("a pass filed its rows");
+    (inputs.pop().filter(|_| with_inputs), g)
+}
+
+/// What a backend implements so that `Autodiff<B>` can stack the passes' rows.
+#[doc(hidden)]
+pub trait StackKernels: Backend {
+    /// `(X, G)`: the rows of `xs` `[rows_t, in]` one after the other, and those of `gs`
+    /// `[rows_t, out]`, in one launch; 1 to [`STACK_PARTS`] passes, pass `t` of both with the
+    /// same rows.
+    fn stack_pass_rows(
+        xs: Vec<FloatTensor<Self>>,
+        gs: Vec<FloatTensor<Self>>,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>);
+}
+
+impl<B: FusionBackend + StackKernels> StackKernels for Fusion<B> {
+    fn stack_pass_rows(
+        xs: Vec<FloatTensor<Self>>,
+        gs: Vec<FloatTensor<Self>>,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let passes = gs.len();
+        let rows: usize = gs.iter().map(|g| g.shape()[0]).sum();
+        let specs = vec![
+            float_like::<B>(&xs[0], Shape::new([rows, xs[0].shape()[1]])),
+            float_like::<B>(&gs[0], Shape::new([rows, gs[0].shape()[1]])),
+        ];
+        let inputs = xs.into_iter().chain(gs).map(Input::Float).collect();
+        let [x, g] = array(deferred::<B, _>(
+            "stack_pass_rows",
+            inputs,
+            specs,
+            move |mut v| {
+                let gs = v.split_off(passes).into_iter().map(Value::float).collect();
+                let xs = v.into_iter().map(Value::float).collect();
+                let (x, g) = B::stack_pass_rows(xs, gs);
+                vec![Value::Float(x), Value::Float(g)]
+            },
+        ));
+        (x, g)
+    }
+}
+
+/// `x·W + b` for `x` `[.., in]`, `W` `[in, out]`, `b` `[out]`, with the parameters' gradient
+/// summed over every pass that reads them (see [`super`]).
+#[backend_extension(Cube, Fusion, Autodiff)]
+pub trait SharedLinearOps: Backend {
+    /// The parameter every pass's product reads: the same values (module docs).
+    #[fusion(default)]
+    fn shared_parameter(value: FloatTensor<Self>, ledger: Ledger, role: Role) -> FloatTensor<Self> {
+        let _ = (ledger, role);
+        value
+    }
+
+    /// One pass's product.
+    #[fusion(default)]
+    fn shared_linear(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        ledger: Ledger,
+    ) -> FloatTensor<Self> {
+        let _ = ledger;
+        Self::linear(x, weight, Some(bias))
+    }
+}
+
+/// A product node's state.
+#[derive(Debug, Clone)]
+pub struct ProductInputs<B: Backend> {
+    x: FloatTensor<B>,
+    weight: FloatTensor<B>,
+    bias: FloatTensor<B>,
+    ledger: Ledger,
+}
+
+/// A parameter node's state.
+#[derive(Debug, Clone)]
+pub struct ParameterRole {
+    ledger: Ledger,
+    role: Role,
+}
+
+#[derive(Debug)]
+struct ProductBackward;
+
+impl<B: Backend> Backward<B, 3> for ProductBackward {
+    type State = ProductInputs<B>;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 3>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let [x_node, weight_node, bias_node] = ops.parents;
+        let s = ops.state;
+        if let Some(node) = x_node {
+            let dx = B::linear_x_backward(s.weight.clone(), grad.clone());
+            grads.register::<B>(node.id, dx);
+        }
+        if weight_node.is_none() && bias_node.is_none() {
+            return;
+        }
+        let mut ledger = s.ledger.lock();
+        for (slot, node, placeholder) in [(0, &weight_node, &s.weight), (1, &bias_node, &s.bias)] {
+            if let Some(node) = node
+                && !ledger.seeded[slot]
+            {
+                grads.register::<B>(node.id, placeholder.clone());
+                ledger.seeded[slot] = true;
+            }
+        }
+        let rows = ledger.rows::<B>();
+        if weight_node.is_some() {
+            rows.inputs.push(flatten::<B>(s.x));
+        }
+        rows.grads.push(flatten::<B>(grad));
+    }
+}
+
+#[derive(Debug)]
+struct ParameterBackward;
+
+impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
+    type State = ParameterRole;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        // The placeholder a product node registered.
+        let _ = grads.consume::<B>(&ops.node);
+        let [Some(parent)] = ops.parents else {
+            return;
+        };
+        let ParameterRole { ledger, role } = ops.state;
+        let mut ledger = ledger.lock();
+        let slot = match role {
+            Role::Weight => 0,
+            Role::Bias => 1,
+        };
+        ledger.delivered[slot] = true;
+        let done = (0..2).all(|i| !ledger.seeded[i] || ledger.delivered[i]);
+        let rows = ledger.rows::<B>();
+        let (x, g) = rows.stacked.get_or_insert_with(|| {
+            stack::<B>(
+                std::mem::take(&mut rows.inputs),
+                std::mem::take(&mut rows.grads),
+            )
+        });
+        let grad = match role {
+            Role::Weight => B::float_matmul(
+                B::float_transpose(x.clone().expect("the weight's rows were filed")),
+                g.clone(),
+            ),
+            Role::Bias => {
+                let out = g.shape()[1];
+                B::float_reshape(B::float_sum_dim(g.clone(), 0), Shape::new([out]))
+            }
+        };
+        if done {
+            ledger.rows = None;
+        }
+        drop(ledger);
+        grads.register::<B>(parent.id, grad);
+    }
+}
+
+impl<B: StackKernels, C: CheckpointStrategy> SharedLinearOps for Autodiff<B, C> {
+    fn shared_parameter(value: FloatTensor<Self>, ledger: Ledger, role: Role) -> FloatTensor<Self> {
+        let (value, node) = value.into_parts();
+        match ParameterBackward
+            .prepare::<C>([node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(ParameterRole { ledger, role }, value),
+            OpsKind::UnTracked(prep) => prep.finish(value),
+        }
+    }
+
+    fn shared_linear(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        ledger: Ledger,
+    ) -> FloatTensor<Self> {
+        let (x, x_node) = x.into_parts();
+        let (weight, weight_node) = weight.into_parts();
+        let (bias, bias_node) = bias.into_parts();
+        record::<B, C, _, _, 3>(
+            ProductBackward,
+            [x_node, weight_node, bias_node],
+            ProductInputs {
+                x,
+                weight,
+                bias,
+                ledger,
+            },
+            |s| B::linear(s.x, s.weight, Some(s.bias)),
+        )
+    }
+}
+
+impl SharedLinearOps for burn_cubecl::CubeBackend {}
