@@ -69,7 +69,13 @@ impl Mlp {
 
     /// `[.., input] → [.., output]`.
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        linear_op::forward(&self.l2, relu(linear_op::forward(&self.l0, x)))
+        self.forward_folded(&NormFolds::new(), x)
+    }
+
+    /// [`Self::forward`] with both layers shared through `folds` (a reconstruction's feedback
+    /// steps run it once each).
+    pub fn forward_folded<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
+        folds.apply(&self.l2, relu(folds.apply(&self.l0, x)))
     }
 }
 
@@ -138,9 +144,15 @@ pub struct VertexUpdate {
 impl UpdateHeads {
     /// Vertex update from the per-vertex features `h` `[V↓, point_dim]`.
     pub fn vertices(&self, h: Tensor<2>) -> VertexUpdate {
+        self.vertices_folded(&NormFolds::new(), h)
+    }
+
+    /// [`Self::vertices`] with the layers shared through `folds` (one gradient product per
+    /// layer for all of a reconstruction's feedback steps on devices).
+    pub fn vertices_folded<'a>(&'a self, folds: &NormFolds<'a>, h: Tensor<2>) -> VertexUpdate {
         VertexUpdate {
-            delta_xyz: self.xyz.forward(h.clone()),
-            embed: linear_op::forward(&self.embed, h),
+            delta_xyz: self.xyz.forward_folded(folds, h.clone()),
+            embed: folds.apply(&self.embed, h),
         }
     }
 
@@ -205,7 +217,12 @@ impl UpdateHeads {
                 .map(|b| Tensor::cat(b, 0));
             (second, second_bias)
         });
-        let outputs = linear_op::affine(hidden, second, second_bias);
+        let outputs = match second_bias {
+            Some(bias) => folds
+                .shared(&self.so3.l2, "heads: second layers", || (second, bias))
+                .forward(hidden),
+            None => linear_op::affine(hidden, second, None),
+        };
         let mut start = 0;
         let mut out = heads.iter().map(|m| {
             let width = m.l2.weight.dims()[1];

@@ -132,6 +132,15 @@ impl<'a> NormFolds<'a> {
         })
     }
 
+    /// `linear` applied to `x`: as a shared layer when it has a bias ([`Self::shared_layer`]),
+    /// else Burn's `Linear`.
+    pub(crate) fn apply<const D: usize>(&self, linear: &'a Linear, x: Tensor<D>) -> Tensor<D> {
+        match linear.bias {
+            Some(_) => self.shared_layer(linear).forward(x),
+            None => crate::linear_op::forward(linear, x),
+        }
+    }
+
     /// How many BN and `Linear` folds are kept.
     pub fn kept(&self) -> (usize, usize) {
         (self.affine.borrow().len(), self.linear.borrow().len())

@@ -544,8 +544,9 @@ impl Reconstructor {
     /// `src_repeats`, where given, lists the source tokens that are the visibility embedding
     /// (a vertex hidden in a view), whose first-layer projections are then computed once
     /// ([`Fusion::forward_repeated`]).
-    fn fuse_branches(
-        &self,
+    fn fuse_branches<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
         src: Tensor<3>,
         ren: Tensor<3>,
         embed: &Tensor<2>,
@@ -567,11 +568,13 @@ impl Reconstructor {
         let Some((src_masks, ren_masks)) = masks else {
             let fused_src = {
                 let _span = tracing::debug_span!("source").entered();
-                self.fusion.forward(src, embed.clone())
+                self.fusion.forward_folded(folds, src, embed.clone())
             };
             let fused_ren = {
                 let _span = tracing::debug_span!("rendered").entered();
-                self.fusion.forward(ren, embed.clone()).detach()
+                self.fusion
+                    .forward_folded(folds, ren, embed.clone())
+                    .detach()
             };
             return (fused_src, fused_ren);
         };
@@ -686,7 +689,7 @@ impl Reconstructor {
 
         let span = tracing::debug_span!("fusion").entered();
         let (fused_src, fused_ren) =
-            self.fuse_branches(src, ren, &state.embed, src_repeats.as_ref());
+            self.fuse_branches(folds, src, ren, &state.embed, src_repeats.as_ref());
         drop(span);
         let h_pt = {
             let _span = tracing::debug_span!("point_transformer").entered();
@@ -697,7 +700,7 @@ impl Reconstructor {
             )?
         };
         let span = tracing::debug_span!("vertex_heads").entered();
-        let vertex = self.heads.vertices(h_pt.clone());
+        let vertex = self.heads.vertices_folded(folds, h_pt.clone());
         drop(span);
 
         // Faces: source features at the projected centroid of each high-res face of the current

@@ -14,6 +14,7 @@
 //! process, on the same weights and inputs: the VM's speed drifts by ±15 % between runs, more
 //! than the differences measured here. Prints one JSON line of medians.
 
+use lifegom_model::norm_folds::NormFolds;
 use std::time::Instant;
 
 use anyhow::Context;
@@ -82,7 +83,9 @@ fn main() -> anyhow::Result<()> {
     ];
     let call = |(kernel, masks): (FusionKernel, [MaskSeed; 4])| -> anyhow::Result<f64> {
         let start = Instant::now();
+        let folds = NormFolds::new();
         let views = fusion.views.forward_with(
+            &folds,
             features.clone(),
             features.clone(),
             kernel,
@@ -90,7 +93,7 @@ fn main() -> anyhow::Result<()> {
         );
         let out = fusion
             .query
-            .forward_with(embed.clone(), views, kernel, [masks[2], masks[3]]);
+            .forward_with(&folds, embed.clone(), views, kernel, [masks[2], masks[3]]);
         let grads = (out * weights.clone()).sum().backward();
         let grad = features.grad(&grads).context("the features take part")?;
         readback::read::<f32, 3, _>("feature gradient", grad)?;

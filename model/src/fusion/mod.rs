@@ -33,7 +33,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::select::select_rows;
 
 use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with, drops_nothing};
-use crate::linear_op;
+use crate::norm_folds::NormFolds;
 use lifegom_render::device::runs_on_host;
 use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
 
@@ -128,28 +128,31 @@ impl AttentionLayer {
     /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`; returns `[B, Lq, D]`.
     pub fn forward(&self, query: Tensor<3>, context: Tensor<3>) -> Tensor<3> {
         let kernel = FusionKernel::for_device(&query.device());
-        self.forward_with(query, context, kernel, [MaskSeed::Device; 2])
+        self.forward_with(&NormFolds::new(), query, context, kernel, [MaskSeed::Device; 2])
     }
 
     /// [`Self::forward`] with the kernel chosen by the caller (tests compare the two) and the
     /// seeds of its two dropout masks (after attention, after the feed-forward block).
-    pub fn forward_with(
-        &self,
+    /// Its layers are shared through `folds` with every other call on them (design.md §7.4).
+    pub fn forward_with<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
         query: Tensor<3>,
         context: Tensor<3>,
         kernel: FusionKernel,
         masks: [MaskSeed; 2],
     ) -> Tensor<3> {
-        let attn = self.attention_output(query.clone(), context, kernel);
-        self.feed(query, attn, kernel, masks)
+        let attn = self.attention_output(folds, query.clone(), context, kernel);
+        self.feed(folds, query, attn, kernel, masks)
     }
 
     /// Self-attention over `tokens` `[B, L, D]` (query = context), where the rows of
     /// `repeats` that repeat one value have their `W_q`, `W_k`, `W_v` projections computed
     /// once. The same values as [`Self::forward_with`]`(tokens, tokens, …)`, and the same
     /// gradients up to the order of their sums.
-    pub fn self_attention_repeated(
-        &self,
+    pub fn self_attention_repeated<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
         tokens: Tensor<3>,
         repeats: &RepeatedTokens,
         kernel: FusionKernel,
@@ -161,37 +164,39 @@ impl AttentionLayer {
             0,
             repeats.computed.clone(),
         );
-        let project = |layer: &Linear| {
+        let project = |layer: &'a Linear| {
             select_rows(
-                linear_op::forward(layer, rows.clone()),
+                folds.apply(layer, rows.clone()),
                 0,
                 repeats.token_from_computed.clone(),
             )
             .reshape([b, l, d])
         };
         let (q, k, v) = (project(&self.w_q), project(&self.w_k), project(&self.w_v));
-        let attn = linear_op::forward(&self.w_o, self.attend(q, k, v, kernel));
-        self.feed(tokens, attn, kernel, masks)
+        let attn = folds.apply(&self.w_o, self.attend(q, k, v, kernel));
+        self.feed(folds, tokens, attn, kernel, masks)
     }
 
     /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`: the attention's output after
     /// `W_o`, before the residual (what [`Self::feed`] takes).
-    fn attention_output(
-        &self,
+    fn attention_output<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
         query: Tensor<3>,
         context: Tensor<3>,
         kernel: FusionKernel,
     ) -> Tensor<3> {
-        let q = linear_op::forward(&self.w_q, query);
-        let k = linear_op::forward(&self.w_k, context.clone());
-        let v = linear_op::forward(&self.w_v, context);
-        linear_op::forward(&self.w_o, self.attend(q, k, v, kernel))
+        let q = folds.apply(&self.w_q, query);
+        let k = folds.apply(&self.w_k, context.clone());
+        let v = folds.apply(&self.w_v, context);
+        folds.apply(&self.w_o, self.attend(q, k, v, kernel))
     }
 
     /// The layer after its attention: `x = LN₁(query + Dropout(attn))`, then
     /// `LN₂(x + Dropout(FFN(x)))`.
-    fn feed(
-        &self,
+    fn feed<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
         query: Tensor<3>,
         attn: Tensor<3>,
         kernel: FusionKernel,
@@ -203,7 +208,7 @@ impl AttentionLayer {
             dropout_with(&self.dropout, attn, masks[0]),
             kernel,
         );
-        let ff = linear_op::forward(&self.fc2, relu(linear_op::forward(&self.fc1, x.clone())));
+        let ff = folds.apply(&self.fc2, relu(folds.apply(&self.fc1, x.clone())));
         self.add_norm(
             &self.norm2,
             x,
@@ -310,6 +315,17 @@ impl Fusion {
         self.forward_with(features, embed, FusionMasks::Device)
     }
 
+    /// [`Self::forward`] with its layers shared through `folds`: a reconstruction's feedback
+    /// steps then take one gradient product per layer on devices (design.md §7.4).
+    pub fn forward_folded<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        features: Tensor<3>,
+        embed: Tensor<2>,
+    ) -> Tensor<2> {
+        self.forward_shared(folds, features, embed, FusionMasks::Device, None)
+    }
+
     /// [`Self::forward`] with its four dropout masks' seeds chosen by the caller.
     pub fn forward_with(
         &self,
@@ -317,7 +333,7 @@ impl Fusion {
         embed: Tensor<2>,
         masks: FusionMasks,
     ) -> Tensor<2> {
-        self.forward_repeated(features, embed, masks, None)
+        self.forward_shared(&NormFolds::new(), features, embed, masks, None)
     }
 
     /// [`Self::forward_with`] where the view tokens listed in `repeats`, if any, are known to
@@ -325,6 +341,18 @@ impl Fusion {
     /// there): their first-layer `q`, `k`, `v` projections are computed once (design.md §7.4).
     pub fn forward_repeated(
         &self,
+        features: Tensor<3>,
+        embed: Tensor<2>,
+        masks: FusionMasks,
+        repeats: Option<&RepeatedTokens>,
+    ) -> Tensor<2> {
+        self.forward_shared(&NormFolds::new(), features, embed, masks, repeats)
+    }
+
+    /// [`Self::forward_repeated`] with its layers shared through `folds`.
+    pub fn forward_shared<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
         features: Tensor<3>,
         embed: Tensor<2>,
         masks: FusionMasks,
@@ -339,20 +367,22 @@ impl Fusion {
         if let Some(whole) = repeats.and_then(|r| r.whole.as_ref())
             && self.masks_are_identity(&seeds)
         {
-            return self.fuse_whole_vertices(features, embed, masks, whole, kernel);
+            return self.fuse_whole_vertices(folds, features, embed, masks, whole, kernel);
         }
         let layer_masks = [seeds[0], seeds[1]];
         let across_views = match repeats {
             Some(repeats) => {
                 self.views
-                    .self_attention_repeated(features, repeats, kernel, layer_masks)
+                    .self_attention_repeated(folds, features, repeats, kernel, layer_masks)
             }
-            None => self
-                .views
-                .forward_with(features.clone(), features, kernel, layer_masks),
+            None => {
+                self.views
+                    .forward_with(folds, features.clone(), features, kernel, layer_masks)
+            }
         };
         self.query
             .forward_with(
+                folds,
                 embed.reshape([v, 1, d]),
                 across_views,
                 kernel,
@@ -382,8 +412,9 @@ impl Fusion {
     /// the layer pair's 28·D² multiply-adds per vertex. The other vertices take the full path
     /// (their repeated tokens still projected once). Same values as the plain call up to the
     /// order of float sums: the constant comes from one vertex's rows instead of every one's.
-    fn fuse_whole_vertices(
-        &self,
+    fn fuse_whole_vertices<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
         features: Tensor<3>,
         embed: Tensor<2>,
         masks: FusionMasks,
@@ -396,20 +427,23 @@ impl Fusion {
         // One wholly repeated vertex stands for all: its views, then the constant attention.
         let first = whole.repeated.clone().slice(0..1);
         let tokens = select_rows(features.clone(), 0, first.clone());
-        let across = self.views.forward_with(tokens.clone(), tokens, kernel, off);
+        let across = self
+            .views
+            .forward_with(folds, tokens.clone(), tokens, kernel, off);
         let query = select_rows(embed.clone(), 0, first).reshape([1, 1, d]);
-        let constant = self.query.attention_output(query, across, kernel);
+        let constant = self.query.attention_output(folds, query, across, kernel);
         let repeated_embed =
             select_rows(embed.clone(), 0, whole.repeated.clone()).reshape([h, 1, d]);
         let repeated_out = self
             .query
-            .feed(repeated_embed, constant.repeat_dim(0, h), kernel, off)
+            .feed(folds, repeated_embed, constant.repeat_dim(0, h), kernel, off)
             .reshape([h, d]);
         let Some(kept) = &whole.kept else {
             return repeated_out;
         };
         let kept_count = kept.vertices.dims()[0];
-        let kept_out = self.forward_repeated(
+        let kept_out = self.forward_shared(
+            folds,
             select_rows(features, 0, kept.vertices.clone()),
             select_rows(embed, 0, kept.vertices.clone()),
             masks,
@@ -673,7 +707,13 @@ mod tests {
                 Tensor::<3>::random([b, lk, d], Distribution::Normal(0.0, 1.0), &ad).require_grad();
             let w = Tensor::<3>::random([b, lq, d], Distribution::Normal(0.0, 1.0), &ad);
             let run = |kernel| {
-                let out = layer.forward_with(q.clone(), c.clone(), kernel, [MaskSeed::Device; 2]);
+                let out = layer.forward_with(
+                    &NormFolds::new(),
+                    q.clone(),
+                    c.clone(),
+                    kernel,
+                    [MaskSeed::Device; 2],
+                );
                 let grads = (out.clone() * w.clone()).sum().backward();
                 (out, grads)
             };
