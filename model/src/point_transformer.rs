@@ -312,10 +312,13 @@ pub struct DecoderStage {
 struct Level {
     /// Points at this level.
     n: usize,
-    /// Their positions on the device (in the autodiff graph: an FPS gather of the input).
-    p: Tensor<2>,
-    /// The same, read back.
+    /// Their positions on the device (in the autodiff graph: an FPS gather of the input), on
+    /// the CPU backends; `None` on devices, where the offsets read the input positions.
+    p: Option<Tensor<2>>,
+    /// Their positions, read back.
     host: Vec<[f32; 3]>,
+    /// Their rows in the input points.
+    input_rows: Vec<u32>,
     /// Self-kNN: flattened neighbour indices `[n·k]` and relative positions `[n, k, 3]`.
     nbr: Tensor<1, Int>,
     rel: Tensor<3>,
@@ -419,32 +422,74 @@ impl PointTransformer {
     }
 
     /// FPS levels and every kNN of one forward.
+    ///
+    /// On the CPU backends each level's positions are gathered from the previous level's and
+    /// the offsets from them. On devices every level's points are kept as rows of the input
+    /// points, and each offset table is one op over the input positions
+    /// ([`crate::grouping::relative_positions`]): the same values, in fewer launches.
     fn hierarchy(&self, positions: Tensor<2>) -> Result<Vec<Level>, ReadbackError> {
         let device = positions.device();
         let host: Vec<f32> = readback::read("Point Transformer positions", positions.clone())?;
         let host: Vec<[f32; 3]> = host.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let on_host = runs_on_host(&device);
+        // Offsets of the neighbours `nb` (rows of the level `reference`) from the points of
+        // `query`, each level given as its positions (CPU backends) and its input rows.
+        type Points<'l> = (&'l Option<Tensor<2>>, &'l [u32]);
+        let offsets = |nb: &Neighbours, reference: Points<'_>, query: Points<'_>| match (
+            reference.0,
+            query.0,
+        ) {
+            (Some(p_ref), Some(p_query)) if on_host => group_positions(nb, p_ref, p_query),
+            _ => {
+                let input = |rows: &[u32]| -> Vec<u32> {
+                    rows.iter().map(|&r| reference.1[r as usize]).collect()
+                };
+                let rel = crate::grouping::relative_positions(
+                    positions.clone(),
+                    index_tensor(&input(&nb.indices), &device),
+                    index_tensor(query.1, &device),
+                );
+                (index_tensor(&nb.indices, &device), rel)
+            }
+        };
         let mut levels: Vec<Level> = Vec::with_capacity(self.enc.len());
         for stage in &self.enc {
             let k = stage.down.nsample;
-            let (p, host, down) = match levels.last() {
-                None => (positions.clone(), host.clone(), None),
-                Some(prev) if stage.down.stride == 1 => (prev.p.clone(), prev.host.clone(), None),
+            let (p, host, input_rows, down) = match levels.last() {
+                None => (
+                    on_host.then(|| positions.clone()),
+                    host.clone(),
+                    (0..host.len() as u32).collect(),
+                    None,
+                ),
+                Some(prev) if stage.down.stride == 1 => (
+                    prev.p.clone(),
+                    prev.host.clone(),
+                    prev.input_rows.clone(),
+                    None,
+                ),
                 Some(prev) => {
                     let m = (prev.n / stage.down.stride).max(1);
                     let sel = farthest_point_sampling(&prev.host, m);
-                    let p = select_rows(prev.p.clone(), 0, index_tensor(&sel, &device));
+                    let p = prev
+                        .p
+                        .as_ref()
+                        .map(|p| select_rows(p.clone(), 0, index_tensor(&sel, &device)));
                     let host: Vec<[f32; 3]> = sel.iter().map(|&i| prev.host[i as usize]).collect();
+                    let input_rows: Vec<u32> =
+                        sel.iter().map(|&i| prev.input_rows[i as usize]).collect();
                     let nb = knn(&prev.host, &host, k);
-                    let down = group_positions(&nb, &prev.p, &p);
-                    (p, host, Some(down))
+                    let down = offsets(&nb, (&prev.p, &prev.input_rows), (&p, &input_rows));
+                    (p, host, input_rows, Some(down))
                 }
             };
             let nb = knn(&host, &host, k);
-            let (nbr, rel) = group_positions(&nb, &p, &p);
+            let (nbr, rel) = offsets(&nb, (&p, &input_rows), (&p, &input_rows));
             levels.push(Level {
                 n: host.len(),
                 p,
                 host,
+                input_rows,
                 nbr,
                 rel,
                 down,
@@ -720,7 +765,7 @@ struct Interpolation {
 
 impl Interpolation {
     fn new(fine: &Level, coarse: &Level) -> Self {
-        let device = fine.p.device();
+        let device = fine.nbr.device();
         let nb = knn(&coarse.host, &fine.host, INTERP_K);
         let mut w: Vec<f32> = nb
             .dist2

@@ -91,9 +91,10 @@ fn main() -> anyhow::Result<()> {
             kernel,
             [masks[0], masks[1]],
         );
-        let out = fusion
-            .query
-            .forward_with(&folds, embed.clone(), views, kernel, [masks[2], masks[3]]);
+        let out =
+            fusion
+                .query
+                .forward_with(&folds, embed.clone(), views, kernel, [masks[2], masks[3]]);
         let grads = (out * weights.clone()).sum().backward();
         let grad = features.grad(&grads).context("the features take part")?;
         readback::read::<f32, 3, _>("feature gradient", grad)?;

@@ -128,7 +128,13 @@ impl AttentionLayer {
     /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`; returns `[B, Lq, D]`.
     pub fn forward(&self, query: Tensor<3>, context: Tensor<3>) -> Tensor<3> {
         let kernel = FusionKernel::for_device(&query.device());
-        self.forward_with(&NormFolds::new(), query, context, kernel, [MaskSeed::Device; 2])
+        self.forward_with(
+            &NormFolds::new(),
+            query,
+            context,
+            kernel,
+            [MaskSeed::Device; 2],
+        )
     }
 
     /// [`Self::forward`] with the kernel chosen by the caller (tests compare the two) and the
@@ -375,10 +381,9 @@ impl Fusion {
                 self.views
                     .self_attention_repeated(folds, features, repeats, kernel, layer_masks)
             }
-            None => {
-                self.views
-                    .forward_with(folds, features.clone(), features, kernel, layer_masks)
-            }
+            None => self
+                .views
+                .forward_with(folds, features.clone(), features, kernel, layer_masks),
         };
         self.query
             .forward_with(
@@ -436,7 +441,13 @@ impl Fusion {
             select_rows(embed.clone(), 0, whole.repeated.clone()).reshape([h, 1, d]);
         let repeated_out = self
             .query
-            .feed(folds, repeated_embed, constant.repeat_dim(0, h), kernel, off)
+            .feed(
+                folds,
+                repeated_embed,
+                constant.repeat_dim(0, h),
+                kernel,
+                off,
+            )
             .reshape([h, d]);
         let Some(kept) = &whole.kept else {
             return repeated_out;
