@@ -940,6 +940,101 @@ mod tests {
         );
     }
 
+    /// Every trainable parameter's gradient, by path.
+    struct GradValues<'a> {
+        grads: &'a burn::tensor::Gradients,
+        path: Vec<String>,
+        out: Vec<(String, Vec<f32>)>,
+    }
+
+    impl burn::module::ModuleVisitor for GradValues<'_> {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if let Some(g) = param.val().grad(self.grads) {
+                self.out.push((self.path.join("."), read(g)));
+            }
+        }
+    }
+
+    /// The whole reconstruction's backward on wgpu (every custom op, the layers the feedback
+    /// steps share, Burn's fusion) against Flex with the same weights and images: two views,
+    /// two feedback steps, no dropout. Every trainable parameter's gradient agrees within 1e-3
+    /// of its largest magnitude plus 1e-6 of the largest gradient (float summation order,
+    /// through two steps of rendering and feedback; measured: within 3e-5 of each tensor's
+    /// scale), and the last renders within 1e-4.
+    #[test]
+    fn gradients_on_wgpu_match_flex() {
+        let Some(wgpu) = lifegom_render::testing::wgpu_test_device() else {
+            return;
+        };
+        let flex = Device::flex().autodiff();
+        flex.seed(3);
+        let fx_flex = fixture(&flex, 32);
+        let model_flex = ReconstructorConfig::tiny(2)
+            .with_iterations(2)
+            .with_dropout(0.0)
+            .init(fx_flex.vertices, &flex)
+            .unwrap();
+        let wgpu = wgpu.autodiff();
+        // `fork` keeps which parameters require a gradient; `to_device` does not.
+        let model_wgpu = model_flex.clone().fork(&wgpu);
+        let mut fx_wgpu = fixture(&wgpu, 32);
+        fx_wgpu.sources.images = fx_flex.sources.images.clone().to_device(&wgpu);
+        let run = |model: &Reconstructor, fx: &Fixture| {
+            let rec = model.forward(&fx.subject, &fx.mesh, &fx.sources).unwrap();
+            let renders = read(rec.renders[1].rgb.clone());
+            let loss = rec
+                .renders
+                .iter()
+                .map(|r| r.rgb.clone().mean())
+                .reduce(|a, b| a + b)
+                .unwrap()
+                + rec.last().xyz.clone().powi_scalar(2).mean();
+            let grads = loss.backward();
+            let mut values = GradValues {
+                grads: &grads,
+                path: Vec::new(),
+                out: Vec::new(),
+            };
+            model.visit(&mut values);
+            (renders, values.out)
+        };
+        let (want_renders, want) = run(&model_flex, &fx_flex);
+        let (got_renders, got) = run(&model_wgpu, &fx_wgpu);
+        let magnitude = |v: &[f32]| v.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+        let max_diff = |a: &[f32], b: &[f32]| {
+            a.iter()
+                .zip(b)
+                .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()))
+        };
+        assert!(max_diff(&got_renders, &want_renders) <= 1e-4);
+        assert_eq!(got.len(), want.len());
+        assert!(want.len() > 50, "{} gradients compared", want.len());
+        // Gradients that are zero in exact arithmetic (a softmax's bias, shifted alike for all
+        // its inputs: the Point Transformer's logit biases, the fusion's key biases) are
+        // rounding noise on both devices: they are held to the largest gradient's scale.
+        let largest = want.iter().fold(0.0f32, |m, (_, v)| m.max(magnitude(v)));
+        let mut worst = (0.0f32, String::new());
+        for ((name, a), (name_b, b)) in got.iter().zip(&want) {
+            assert_eq!(name, name_b);
+            let excess = max_diff(a, b) / (1e-3 * magnitude(b) + 1e-6 * largest);
+            if excess > worst.0 {
+                worst = (excess, name.clone());
+            }
+        }
+        assert!(
+            worst.0 <= 1.0,
+            "{}: {:.2}× the tolerance (largest gradient {largest:.2e})",
+            worst.1,
+            worst.0
+        );
+    }
+
     /// Records every trainable parameter that got no (finite, non-zero) gradient.
     struct GradCheck<'a> {
         grads: &'a burn::tensor::Gradients,
