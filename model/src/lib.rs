@@ -41,6 +41,7 @@
 //! | [`dropout`] | the fusion layers' dropout, with masks drawn on the host on CPU backends |
 //! | [`fusion`] | multi-source fusion: self-attention over views, cross-attention with a per-vertex query |
 //! | [`grouping`] | the Point Transformer's offsets `p_j − p_i`, one op on devices |
+//! | [`interpolation`] | the Point Transformer's transition-up interpolation, one op on devices |
 //! | [`knn`], [`point_transformer`] | farthest point sampling, kNN, the Point Transformer encoder–decoder |
 //! | [`shared_linear`] | a layer the feedback passes share: one weight gradient for all passes on devices |
 //! | [`heads`] | update heads: residual vertex update, new embedding, per-face Gaussian parameters |
@@ -66,6 +67,7 @@ pub mod fusion;
 pub mod grouping;
 pub mod heads;
 pub mod inputs;
+pub mod interpolation;
 pub mod knn;
 mod lanes;
 pub mod linear_op;

@@ -759,8 +759,8 @@ impl PointTransformerLayer {
 struct Interpolation {
     /// `[n_fine·3]` indices into the coarse level.
     idx: Tensor<1, Int>,
-    /// `[n_fine, 3, 1]` normalised weights (no gradient, like the reference's).
-    weights: Tensor<3>,
+    /// `[n_fine, 3]` normalised weights (no gradient, like the reference's).
+    weights: Tensor<2>,
 }
 
 impl Interpolation {
@@ -778,17 +778,13 @@ impl Interpolation {
         }
         Self {
             idx: index_tensor(&nb.indices, &device),
-            weights: Tensor::from_data(TensorData::new(w, [fine.n, INTERP_K, 1]), &device),
+            weights: Tensor::from_data(TensorData::new(w, [fine.n, INTERP_K]), &device),
         }
     }
 
-    /// `[n_coarse, c] → [n_fine, c]`.
+    /// `[n_coarse, c] → [n_fine, c]` ([`crate::interpolation::interpolate`]).
     fn apply(&self, x: Tensor<2>) -> Tensor<2> {
-        let [n, kk, _] = self.weights.dims();
-        let c = x.dims()[1];
-        (select_rows(x, 0, self.idx.clone()).reshape([n, kk, c]) * self.weights.clone())
-            .sum_dim(1)
-            .reshape([n, c])
+        crate::interpolation::interpolate(x, self.idx.clone(), self.weights.clone())
     }
 }
 

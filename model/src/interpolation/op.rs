@@ -1,0 +1,133 @@
+//! [`super::interpolate`] as a Burn backend extension for CubeCL devices.
+//!
+//! Listed for `Cube`, `Fusion` and `Autodiff` only: the CPU backends keep the gather, product
+//! and sum, and the public function never routes them here. The index table and the weights take
+//! no gradient (the reference's `pointops` interpolation gives them none); the autodiff node
+//! keeps them and the number of coarse points.
+
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops};
+use burn::backend::fusion::{Fusion, FusionBackend};
+use burn::backend::tensor::{FloatTensor, IntTensor};
+use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
+use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
+use lifegom_render::op_backward::{gradient_per_input, record};
+
+/// `Σ_j weights[i, j]·x[neighbours[i·K + j]]` as `[m, c]`, for `x` `[n, c]`, `neighbours`
+/// `[m·K]` (int) and `weights` `[m, K]`. Callers check shapes and ranges.
+#[backend_extension(Cube, Fusion, Autodiff)]
+pub trait InterpolationOps: Backend {
+    /// The interpolated rows.
+    #[fusion(dtype = x, shape = burn::tensor::Shape::new([weights[0], x[1]]))]
+    fn point_interpolation(
+        x: FloatTensor<Self>,
+        neighbours: IntTensor<Self>,
+        weights: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
+}
+
+/// What a backend implements so that `Autodiff<B>` can differentiate the op.
+#[doc(hidden)]
+pub trait InterpolationKernels: Backend {
+    /// `∂x` `[points, c]`: each output row's gradient, weighted, added at its neighbours.
+    fn point_interpolation_backward(
+        neighbours: IntTensor<Self>,
+        weights: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        points: usize,
+    ) -> FloatTensor<Self>;
+}
+
+/// The node's state: the table, the weights and the number of coarse points.
+#[derive(Debug, Clone)]
+pub struct InterpolationTable<B: Backend> {
+    neighbours: IntTensor<B>,
+    weights: FloatTensor<B>,
+    points: usize,
+}
+
+#[derive(Debug)]
+struct InterpolationBackward;
+
+impl<B: InterpolationKernels> Backward<B, 1> for InterpolationBackward {
+    type State = InterpolationTable<B>;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        gradient_per_input::<B, _, 1>(ops, grads, |s, grad| {
+            [B::point_interpolation_backward(
+                s.neighbours,
+                s.weights,
+                grad,
+                s.points,
+            )]
+        });
+    }
+}
+
+impl<B: InterpolationOps + InterpolationKernels, C: CheckpointStrategy> InterpolationOps
+    for Autodiff<B, C>
+{
+    fn point_interpolation(
+        x: FloatTensor<Self>,
+        neighbours: IntTensor<Self>,
+        weights: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let points = x.shape()[0];
+        let (x, x_node) = x.into_parts();
+        // Constant weights (module docs): their node is dropped.
+        let (weights, _) = weights.into_parts();
+        let table = InterpolationTable {
+            neighbours,
+            weights,
+            points,
+        };
+        // The forward needs `x`, the backward only the table: `x` goes in through the closure.
+        let forward = {
+            let x = x.clone();
+            move |s: InterpolationTable<B>| B::point_interpolation(x, s.neighbours, s.weights)
+        };
+        record::<B, C, _, _, 1>(InterpolationBackward, [x_node], table, forward)
+    }
+}
+
+impl<B: FusionBackend + InterpolationKernels> InterpolationKernels for Fusion<B> {
+    fn point_interpolation_backward(
+        neighbours: IntTensor<Self>,
+        weights: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        points: usize,
+    ) -> FloatTensor<Self> {
+        let c = grad.shape()[1];
+        let specs = vec![float_like::<B>(
+            &grad,
+            burn::tensor::Shape::new([points, c]),
+        )];
+        let inputs = vec![
+            Input::Int(neighbours),
+            Input::Float(weights),
+            Input::Float(grad),
+        ];
+        let [x] = array(deferred::<B, _>(
+            "point_interpolation_backward",
+            inputs,
+            specs,
+            move |v| {
+                let [neighbours, weights, grad] = array(v);
+                vec![Value::Float(B::point_interpolation_backward(
+                    neighbours.int(),
+                    weights.float(),
+                    grad.float(),
+                    points,
+                ))]
+            },
+        ));
+        x
+    }
+}
