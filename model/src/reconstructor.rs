@@ -883,6 +883,17 @@ mod tests {
         }
     }
 
+    /// A loss that reaches every trainable parameter: every step's renders and the last
+    /// state's vertices.
+    fn test_loss(rec: &Reconstruction) -> Tensor<1> {
+        rec.renders
+            .iter()
+            .map(|r| r.rgb.clone().mean())
+            .reduce(|a, b| a + b)
+            .expect("at least one step")
+            + rec.last().xyz.clone().powi_scalar(2).mean()
+    }
+
     fn end_to_end(device: &Device) {
         let ad = device.clone().autodiff();
         // A fixed seed for the random weights and images: at some draws the tiny network's
@@ -905,14 +916,7 @@ mod tests {
             "the body is rendered"
         );
 
-        let loss = rec
-            .renders
-            .iter()
-            .map(|r| r.rgb.clone().mean())
-            .reduce(|a, b| a + b)
-            .unwrap()
-            + rec.last().xyz.clone().powi_scalar(2).mean();
-        let grads = loss.backward();
+        let grads = test_loss(&rec).backward();
         let mut check = GradCheck {
             grads: &grads,
             path: Vec::new(),
@@ -988,14 +992,7 @@ mod tests {
         let run = |model: &Reconstructor, fx: &Fixture| {
             let rec = model.forward(&fx.subject, &fx.mesh, &fx.sources).unwrap();
             let renders = read(rec.renders[1].rgb.clone());
-            let loss = rec
-                .renders
-                .iter()
-                .map(|r| r.rgb.clone().mean())
-                .reduce(|a, b| a + b)
-                .unwrap()
-                + rec.last().xyz.clone().powi_scalar(2).mean();
-            let grads = loss.backward();
+            let grads = test_loss(&rec).backward();
             let mut values = GradValues {
                 grads: &grads,
                 path: Vec::new(),

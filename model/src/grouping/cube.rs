@@ -68,8 +68,9 @@ fn relative_backward_kernel<A: AtomicAddF32>(
         if row >= 0 && (row as usize) < n {
             A::atomic_add_f32(&p_grad[row as usize * 3 + axis], grad[unit]);
         }
-        if slot % k == 0 {
-            let group = slot / k;
+        // The group's first slot (CubeCL kernels have no `is_multiple_of`).
+        let group = slot / k;
+        if slot == group * k {
             let centre = centres[group];
             if centre >= 0 && (centre as usize) < n {
                 let mut total = 0.0f32;
