@@ -36,7 +36,7 @@ pub struct NormFolds<'a> {
     affine: RefCell<HashMap<usize, (Tensor<1>, Tensor<1>)>>,
     /// By `Linear` address: the folded `(weight [in, out], bias [out])` of `linear_bn`.
     linear: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
-    /// By a layer's address and a name: weights made from parameters alone (stacked layers, the
+    /// By a layer's address and a name: weights made from parameters alone (the
     /// heads' block-diagonal layer).
     derived: RefCell<HashMap<(usize, &'static str), DerivedWeight>>,
     /// By a layer's address and a name: layers every pass runs, with one parameter gradient for
@@ -49,28 +49,6 @@ impl<'a> NormFolds<'a> {
     /// No folds yet.
     pub fn new() -> Self {
         Self::default()
-    }
-
-    /// Layers with biases that read the same input, as one layer whose outputs are theirs side
-    /// by side: `(cat(W₁, W₂, …) [in, Σ out], cat(b₁, b₂, …))`. One product then replaces
-    /// several, forward and backward (the Point Transformer's query, key and value).
-    ///
-    /// # Panics
-    ///
-    /// If `layers` is empty or a layer has no bias.
-    pub(crate) fn stacked(&self, layers: &[&'a Linear], device: &Device) -> (Tensor<2>, Tensor<1>) {
-        let (weight, bias) = self.derived(layers[0], "stacked layers", || {
-            let weight = Tensor::cat(layers.iter().map(|l| l.weight.val()).collect(), 1);
-            let bias = Tensor::cat(
-                layers
-                    .iter()
-                    .map(|l| l.bias.as_ref().expect("stacked layers have biases").val())
-                    .collect(),
-                0,
-            );
-            (weight.to_device(device), Some(bias.to_device(device)))
-        });
-        (weight, bias.expect("made with a bias"))
     }
 
     /// A weight and bias made from parameters alone by `make` (the update heads' stacked and
@@ -186,4 +164,24 @@ impl<'a> NormFolds<'a> {
             .insert(key, (weight.clone(), bias.clone()));
         (weight, bias)
     }
+}
+
+/// Layers with biases that read the same input, as one layer whose outputs are theirs side by
+/// side: `(cat(W₁, W₂, …) [in, Σ out], cat(b₁, b₂, …))` on `device`. One product then replaces
+/// several, forward and backward (the Point Transformer's query, key and value); keep it for a
+/// reconstruction through [`NormFolds::shared`].
+///
+/// # Panics
+///
+/// If `layers` is empty or a layer has no bias.
+pub(crate) fn stacked(layers: &[&Linear], device: &Device) -> (Tensor<2>, Tensor<1>) {
+    let weight = Tensor::cat(layers.iter().map(|l| l.weight.val()).collect(), 1);
+    let bias = Tensor::cat(
+        layers
+            .iter()
+            .map(|l| l.bias.as_ref().expect("stacked layers have biases").val())
+            .collect(),
+        0,
+    );
+    (weight.to_device(device), bias.to_device(device))
 }

@@ -737,7 +737,10 @@ impl PointTransformerLayer {
         let device = x.device();
         let qkv = folds
             .shared(&self.linear_q, "query, key, value", || {
-                folds.stacked(&[&self.linear_q, &self.linear_k, &self.linear_v], &device)
+                crate::norm_folds::stacked(
+                    &[&self.linear_q, &self.linear_k, &self.linear_v],
+                    &device,
+                )
             })
             .forward(x);
 
