@@ -19,6 +19,8 @@ use std::marker::PhantomData;
 use burn::nn::{BatchNorm, Linear};
 use burn::tensor::{Device, Tensor};
 
+use lifegom_render::device::runs_on_host;
+
 use crate::shared_linear::SharedLinear;
 
 /// A weight and an optional bias made from parameters alone ([`NormFolds::derived`]).
@@ -78,24 +80,46 @@ impl<'a> NormFolds<'a> {
         name: &'static str,
         make: impl FnOnce() -> (Tensor<2>, Tensor<1>),
     ) -> SharedLinear {
+        self.shared_made(anchor, name, || {
+            let (weight, bias) = make();
+            SharedLinear::new(weight, bias)
+        })
+    }
+
+    /// The shared layer `make` builds, kept as [`Self::shared`] keeps its own.
+    fn shared_made(
+        &self,
+        anchor: &'a Linear,
+        name: &'static str,
+        make: impl FnOnce() -> SharedLinear,
+    ) -> SharedLinear {
         let key = (std::ptr::from_ref(anchor) as usize, name);
         if let Some(found) = self.shared.borrow().get(&key) {
             return found.clone();
         }
-        let (weight, bias) = make();
-        let made = SharedLinear::new(weight, bias);
+        let made = make();
         self.shared.borrow_mut().insert(key, made.clone());
         made
     }
 
-    /// `BN(Linear(·))` folded ([`Self::linear`]) as a shared layer.
+    /// `BN(Linear(·))` folded as a shared layer: on a CubeCL device with a frozen BN by
+    /// [`SharedLinear::folded`] (one launch, no backward of its own), else with the tensor ops
+    /// of [`Self::linear`].
     pub(crate) fn shared_fold(
         &self,
         linear: &'a Linear,
         bn: &'a BatchNorm,
         device: &Device,
     ) -> SharedLinear {
-        self.shared(linear, "folded", || self.linear(linear, bn, device))
+        self.shared_made(linear, "folded", || {
+            let frozen = !bn.gamma.val().is_require_grad() && !bn.beta.val().is_require_grad();
+            if frozen && !runs_on_host(device) {
+                SharedLinear::folded(linear, bn, device)
+            } else {
+                let (weight, bias) = self.linear(linear, bn, device);
+                SharedLinear::new(weight, bias)
+            }
+        })
     }
 
     /// A `Linear` with a bias as a shared layer.

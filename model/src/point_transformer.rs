@@ -983,6 +983,15 @@ mod tests {
 
     lifegom_render::cpu_backend_tests!(linear_bn_fold_equals_linear_then_bn => check_linear_bn_fold);
 
+    /// The same on lavapipe, where the fold is one kernel and its backward is the shared layer's
+    /// (`crate::shared_linear`).
+    #[test]
+    fn linear_bn_fold_equals_linear_then_bn_wgpu() {
+        if let Some(device) = lifegom_render::testing::wgpu_test_device() {
+            check_linear_bn_fold(&device);
+        }
+    }
+
     lifegom_render::cpu_backend_tests!(point_transformer_layer_shapes => check_layer_shapes);
 
     /// A hand-computed PT layer output: with unit BN and identity-like weights the layer must

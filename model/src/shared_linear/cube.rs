@@ -1,7 +1,7 @@
 //! The stacking of a shared layer's rows on Burn's CubeCL backend: one launch writes `X` and
 //! `G` (see [`super`]). One thread per element of the wider of the two: it finds its row's
 //! pass by comparing the row with the passes' end rows, and copies one element of `X` and one
-//! of `G` where they exist.
+//! of `G` where they exist, the latter times its column's scale for a folded layer.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -55,8 +55,10 @@ fn stack_rows_kernel(
     g1: &[f32],
     g2: &[f32],
     g3: &[f32],
+    scale: &[f32],
     x_out: &mut [f32],
     g_out: &mut [f32],
+    scaled: u32,
     rows: usize,
     x_width: usize,
     g_width: usize,
@@ -69,7 +71,11 @@ fn stack_rows_kernel(
         x_out[e] = stacked_element(x0, x1, x2, x3, e, x_width, end0, end1, end2);
     }
     if e < rows * g_width {
-        g_out[e] = stacked_element(g0, g1, g2, g3, e, g_width, end0, end1, end2);
+        let mut g = stacked_element(g0, g1, g2, g3, e, g_width, end0, end1, end2);
+        if scaled != 0 {
+            g *= scale[e % g_width];
+        }
+        g_out[e] = g;
     }
 }
 
@@ -77,6 +83,7 @@ impl StackKernels for CubeBackend {
     fn stack_pass_rows(
         xs: Vec<FloatTensor<Self>>,
         gs: Vec<FloatTensor<Self>>,
+        scale: Option<FloatTensor<Self>>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         assert!(
             !gs.is_empty() && gs.len() <= STACK_PARTS && xs.len() == gs.len(),
@@ -96,6 +103,9 @@ impl StackKernels for CubeBackend {
         }
         let xs: Vec<_> = xs.into_iter().map(prepare).collect();
         let gs: Vec<_> = gs.into_iter().map(prepare).collect();
+        // Without a scale the kernel reads none: the first gradient is bound in its place.
+        let scaled = u32::from(scale.is_some());
+        let scale = scale.map_or_else(|| gs[0].clone(), prepare);
         // Unused parts are bound to the first one and never read.
         let part = |parts: &[burn_cubecl::tensor::CubeTensor], i: usize| {
             tensor_arg(parts.get(i).unwrap_or(&parts[0]))
@@ -116,8 +126,10 @@ impl StackKernels for CubeBackend {
                 part(&gs, 1),
                 part(&gs, 2),
                 part(&gs, 3),
+                tensor_arg(&scale),
                 arg(&x_out, rows * x_width),
                 arg(&g_out, rows * g_width),
+                scaled,
                 rows,
                 x_width,
                 g_width,

@@ -17,18 +17,25 @@
 //! The result is the same gradient up to float summation order. Cost: each pass's `gₜ` is held
 //! until the layer's parameters are differentiated, instead of being freed after its products.
 //!
+//! A layer that a frozen BatchNorm follows is folded with it in the same place
+//! ([`SharedLinear::folded`]): one launch makes the folded weight and bias, and the BN's scale
+//! enters the parameters' gradient where the rows are stacked, so the fold adds no launch to the
+//! backward (the `fold` module, [`op::SharedLinearOps::shared_fold`]).
+//!
 //! On the CPU backends a shared layer is the layer it wraps ([`crate::linear_op::affine`]): their
 //! gradients stay the same to the bit.
 
 mod cube;
+mod fold;
 pub mod op;
 
 use burn::backend::Dispatch;
-use burn::tensor::Tensor;
+use burn::nn::{BatchNorm, Linear};
+use burn::tensor::{Device, Tensor};
 use lifegom_render::device::runs_on_host;
 
 use crate::linear_op;
-use op::{Ledger, Role, SharedLinearOps};
+use op::{FoldBias, Ledger, Role, SharedLinearOps};
 
 /// `x·W + b` over the last axis, with `W` `[in, out]` and `b` `[out]` read by several passes
 /// (module docs). Make one per layer and reconstruction, and use it for every pass.
@@ -70,6 +77,49 @@ impl SharedLinear {
         }
     }
 
+    /// `BN(linear(·))` for a BatchNorm on its running statistics whose `γ`, `β` take no
+    /// gradient, as one shared layer on a CubeCL device: `x·(W·diag(s)) + (b·s + t)` with
+    /// `s = γ/√(σ²+ε)`, `t = β − μ·s` (`b = 0` without a bias). The fold is one launch, and its
+    /// backward is folded into the stacking of the passes' rows (module docs).
+    ///
+    /// The CPU backends fold with tensor ops and use [`Self::new`]
+    /// ([`crate::norm_folds::NormFolds::shared_fold`]).
+    ///
+    /// # Panics
+    ///
+    /// On a CPU backend, or if the BN's width is not the layer's output width.
+    pub(crate) fn folded(linear: &Linear, bn: &BatchNorm, device: &Device) -> Self {
+        assert!(
+            !runs_on_host(device),
+            "the CPU backends fold with tensor ops"
+        );
+        let weight = linear.weight.val();
+        let d_out = weight.dims()[1];
+        assert_eq!(bn.gamma.dims()[0], d_out, "one BN channel per output");
+        let beta = bn.beta.val();
+        let (bias, kind) = match &linear.bias {
+            Some(b) => (b.val(), FoldBias::Given),
+            None => (beta.clone(), FoldBias::Absent),
+        };
+        let ledger = Ledger::default();
+        let (weight, bias, _scale) = <Dispatch as SharedLinearOps>::shared_fold(
+            weight.into_dispatch(),
+            bias.into_dispatch(),
+            bn.gamma.val().into_dispatch(),
+            beta.into_dispatch(),
+            bn.running_mean.value().to_device(device).into_dispatch(),
+            bn.running_var.value().to_device(device).into_dispatch(),
+            kind,
+            bn.epsilon as f32,
+            ledger.clone(),
+        );
+        Self {
+            weight: Tensor::from_dispatch(weight),
+            bias: Tensor::from_dispatch(bias),
+            ledger: Some(ledger),
+        }
+    }
+
     /// `x` `[.., in]` → `[.., out]`.
     ///
     /// # Panics
@@ -96,33 +146,79 @@ impl SharedLinear {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use burn::tensor::{Device, TensorData};
+    use burn::module::{Param, RunningState};
+    use burn::nn::BatchNormConfig;
+    use burn::tensor::TensorData;
     use lifegom_render::device::DeviceChoice;
     use lifegom_render::testing::{Rng, read, wgpu_test_device};
 
-    /// `passes` passes through one layer, each pass's input the previous pass's output (as the
-    /// feedback loop chains them), on `device` with autodiff: the output and the gradients of
-    /// the first input, the weight and the bias. `shared` picks [`SharedLinear`] or Burn's
-    /// `linear` (the CPU op on the CPU backends) on the same values.
-    fn run_passes(device: &Device, passes: usize, shared: bool) -> [Vec<f32>; 4] {
+    use crate::norm_folds::NormFolds;
+
+    /// How the passes run the layer.
+    #[derive(Debug, Clone, Copy, PartialEq)]
+    enum Layer {
+        /// [`SharedLinear`] (through [`NormFolds::shared_fold`] for a folded layer).
+        Shared,
+        /// Burn's `linear` (the CPU op on the CPU backends), folded with tensor ops.
+        Composed,
+    }
+
+    /// Whether a frozen BatchNorm follows the layer, and if so whether the layer has a bias.
+    #[derive(Debug, Clone, Copy, PartialEq)]
+    enum Norm {
+        None,
+        Folded(FoldBias),
+    }
+
+    /// `passes` passes through one 6 → 6 layer, each pass's input the previous pass's output (as
+    /// the feedback loop chains them), on `device` with autodiff: the output and the gradients of
+    /// the first input, the weight and the bias (when it has one and takes a gradient). The same
+    /// values whatever the device and the way the layer runs.
+    fn run_passes(device: &Device, passes: usize, layer: Layer, norm: Norm) -> Vec<Vec<f32>> {
         let mut rng = Rng::new(7);
-        let mut draw = |shape: [usize; 2]| {
+        let mut draw = |shape: [usize; 2], lo: f32, hi: f32| {
             let values: Vec<f32> = (0..shape[0] * shape[1])
-                .map(|_| rng.range_f32(-1.0, 1.0))
+                .map(|_| rng.range_f32(lo, hi))
                 .collect();
             Tensor::<2>::from_data(TensorData::new(values, shape), device)
         };
-        let x0 = draw([37, 6]).require_grad();
-        let weight = draw([6, 6]).require_grad();
-        let bias = draw([1, 6]).reshape([6]).require_grad();
-        let layer = SharedLinear::new(weight.clone(), bias.clone());
+        let x0 = draw([37, 6], -1.0, 1.0).require_grad();
+        let weight = draw([6, 6], -1.0, 1.0).require_grad();
+        let bias = draw([1, 6], -1.0, 1.0).reshape([6]).require_grad();
+        let mut stat = |lo: f32, hi: f32| draw([1, 6], lo, hi).reshape([6]);
+        let (gamma, beta, mean, var) = (
+            stat(-1.5, 1.5),
+            stat(-0.5, 0.5),
+            stat(-0.5, 0.5),
+            stat(0.2, 2.0),
+        );
+        let linear = Linear {
+            weight: Param::from_tensor(weight.clone()),
+            bias: match norm {
+                Norm::Folded(FoldBias::Absent) => None,
+                _ => Some(Param::from_tensor(bias.clone())),
+            },
+        };
+        let mut bn = BatchNormConfig::new(6).init(device);
+        bn.gamma = Param::from_tensor(gamma).set_require_grad(false);
+        bn.beta = Param::from_tensor(beta).set_require_grad(false);
+        bn.running_mean = RunningState::new(mean);
+        bn.running_var = RunningState::new(var);
+        let folds = NormFolds::new();
+        let shared = match norm {
+            Norm::None => SharedLinear::new(weight.clone(), bias.clone()),
+            Norm::Folded(_) => folds.shared_fold(&linear, &bn, device),
+        };
+        let (w, b) = match norm {
+            Norm::None => (weight.clone(), bias.clone()),
+            Norm::Folded(_) => folds.linear(&linear, &bn, device),
+        };
         let mut x = x0.clone();
         let mut total = None;
         for pass in 0..passes {
-            let y = if shared {
-                layer.forward(x.clone())
-            } else {
-                linear_op::affine(x.clone(), weight.clone(), Some(bias.clone()))
+            let y = match layer {
+                Layer::Shared => shared.forward(x.clone()),
+                Layer::Composed => linear_op::affine(x.clone(), w.clone(), Some(b.clone())),
             };
             // A different use per pass, so that no two passes' gradients are equal.
             let out = (y.clone() * (0.5 + pass as f32 / 4.0)).tanh();
@@ -134,16 +230,19 @@ mod tests {
         }
         let total = total.expect("at least one pass");
         let grads = total.backward();
-        let grad = |t: &Tensor<2>| read(t.grad(&grads).expect("a gradient"));
-        [
+        let mut parts = vec![
             read(x),
-            grad(&x0),
-            grad(&weight),
-            read(bias.grad(&grads).expect("a gradient")),
-        ]
+            read(x0.grad(&grads).expect("an input gradient")),
+            read(weight.grad(&grads).expect("a weight gradient")),
+        ];
+        if norm != Norm::Folded(FoldBias::Absent) {
+            parts.push(read(bias.grad(&grads).expect("a bias gradient")));
+        }
+        parts
     }
 
     fn close(a: &[f32], b: &[f32], what: &str) {
+        assert_eq!(a.len(), b.len(), "{what}: lengths");
         let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
         for (i, (u, v)) in a.iter().zip(b).enumerate() {
             assert!(
@@ -155,36 +254,49 @@ mod tests {
 
     /// On lavapipe the shared layer's output and every gradient equal Burn's `linear` used as
     /// many times, within float summation order, and Flex's results: for one pass (nothing
-    /// stacked), three (one launch) and six (stacked four at a time, then the rest).
+    /// stacked, or only the fold's scale applied), three (one launch) and six (stacked four at
+    /// a time, then the rest); plain, and folded with a frozen BN with and without a bias of
+    /// its own.
     #[test]
     fn one_gradient_for_all_passes_wgpu() {
         let Some(device) = wgpu_test_device() else {
             return;
         };
         let ad = device.autodiff();
-        for passes in [1, 3, 6] {
-            let flex = run_passes(&DeviceChoice::Flex.device().autodiff(), passes, false);
-            let shared = run_passes(&ad, passes, true);
-            let composed = run_passes(&ad, passes, false);
-            for (i, what) in ["output", "∂x", "∂W", "∂b"].iter().enumerate() {
-                close(
-                    &shared[i],
-                    &composed[i],
-                    &format!("{passes} passes: {what}"),
-                );
-                close(&shared[i], &flex[i], &format!("{passes} passes: {what}"));
+        let flex = DeviceChoice::Flex.device().autodiff();
+        for norm in [
+            Norm::None,
+            Norm::Folded(FoldBias::Given),
+            Norm::Folded(FoldBias::Absent),
+        ] {
+            for passes in [1, 3, 6] {
+                let reference = run_passes(&flex, passes, Layer::Composed, norm);
+                let shared = run_passes(&ad, passes, Layer::Shared, norm);
+                let composed = run_passes(&ad, passes, Layer::Composed, norm);
+                for (i, what) in ["output", "∂x", "∂W", "∂b"]
+                    .iter()
+                    .enumerate()
+                    .take(shared.len())
+                {
+                    let what = format!("{norm:?}, {passes} passes: {what}");
+                    close(&shared[i], &composed[i], &what);
+                    close(&shared[i], &reference[i], &what);
+                }
             }
         }
     }
 
-    /// On the CPU backends the shared layer is the wrapped layer: equal to the bit.
+    /// On the CPU backends the shared layer is the wrapped layer, folded with the same tensor
+    /// ops: equal to the bit.
     #[test]
     fn host_layers_are_the_layer() {
         for choice in DeviceChoice::CPU {
             let device = choice.device().autodiff();
-            let a = run_passes(&device, 3, true);
-            let b = run_passes(&device, 3, false);
-            assert_eq!(a, b);
+            for norm in [Norm::None, Norm::Folded(FoldBias::Given)] {
+                let a = run_passes(&device, 3, Layer::Shared, norm);
+                let b = run_passes(&device, 3, Layer::Composed, norm);
+                assert_eq!(a, b, "{norm:?}");
+            }
         }
     }
 }

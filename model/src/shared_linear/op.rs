@@ -17,6 +17,13 @@
 //!   node is deeper than the parameter nodes it reads. It drops the placeholder and registers
 //!   `∂W = Xᵀ·G` or `∂b = Σ_rows G` from the ledger's rows, stacked once for both by one
 //!   launch (`stack_pass_rows`, the `cube` module).
+//!
+//! A layer that a frozen BatchNorm follows is folded with it by [`SharedLinearOps::shared_fold`]:
+//! one launch makes `W·diag(s)` and `b·s + t` (`s = γ/√(σ²+ε)`, `t = β − μ·s`) from the
+//! parameters and the statistics (the `fold` module), and its two parameter nodes stand between
+//! `W`, `b` and the folded values. The BN's columns scale enter the gradient where the rows are
+//! stacked, `∂W = Xᵀ·(G·diag(s))` and `∂b = Σ_rows G·diag(s)`: the fold's backward costs no
+//! launch of its own.
 
 use std::any::Any;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -27,7 +34,7 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
+use burn::backend::{Autodiff, AutodiffBackend, Backend, TensorMetadata, backend_extension};
 use burn::tensor::Shape;
 use lifegom_render::cube::deferred::float_like;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred};
@@ -40,6 +47,16 @@ pub enum Role {
     Weight,
     /// The bias `[out]`: its gradient is `Σ_rows G`.
     Bias,
+}
+
+/// Whether a folded layer has a bias of its own ([`SharedLinearOps::shared_fold`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FoldBias {
+    /// The bias argument is the layer's bias `b`: the folded bias is `b·s + t`.
+    Given,
+    /// The layer has none and the bias argument is not read (pass any `[out]` tensor, e.g. the
+    /// BN's `β`): the folded bias is `t`.
+    Absent,
 }
 
 /// One layer's record of its passes' backward: the inputs and output gradients of every
@@ -109,23 +126,28 @@ fn flatten<B: Backend>(t: FloatTensor<B>) -> FloatTensor<B> {
 /// Passes stacked by one launch of [`StackKernels::stack_pass_rows`].
 pub const STACK_PARTS: usize = 4;
 
-/// `(X, G)`: the passes' rows one after the other (module docs). A lone pass is handed back;
-/// more than [`STACK_PARTS`] are stacked that many at a time, each stack then being one part of
-/// the next launch.
+/// `(X, G)`: the passes' rows one after the other (module docs), `G`'s columns times `scale`
+/// for a folded layer. A lone pass without a scale is handed back; more than [`STACK_PARTS`]
+/// are stacked that many at a time, each stack then being one part of the next launch (the
+/// scale applied by the last).
 fn stack<B: StackKernels>(
     mut inputs: Vec<FloatTensor<B>>,
     mut grads: Vec<FloatTensor<B>>,
+    scale: Option<FloatTensor<B>>,
 ) -> (Option<FloatTensor<B>>, FloatTensor<B>) {
     // Without a weight gradient the gradients stand in for the inputs; their stack is dropped.
     let with_inputs = !inputs.is_empty();
     if !with_inputs {
         inputs = grads.clone();
     }
-    while grads.len() > 1 {
+    let mut scale = scale;
+    while grads.len() > 1 || (grads.len() == 1 && scale.is_some()) {
         let take = grads.len().min(STACK_PARTS);
+        let last = take == grads.len();
         let (x, g) = B::stack_pass_rows(
             inputs.drain(..take).collect(),
             grads.drain(..take).collect(),
+            if last { scale.take() } else { None },
         );
         inputs.insert(0, x);
         grads.insert(0, g);
@@ -138,11 +160,12 @@ fn stack<B: StackKernels>(
 #[doc(hidden)]
 pub trait StackKernels: Backend {
     /// `(X, G)`: the rows of `xs` `[rows_t, in]` one after the other, and those of `gs`
-    /// `[rows_t, out]`, in one launch; 1 to [`STACK_PARTS`] passes, pass `t` of both with the
-    /// same rows.
+    /// `[rows_t, out]` times `scale` `[out]` per column when given, in one launch; 1 to
+    /// [`STACK_PARTS`] passes, pass `t` of both with the same rows.
     fn stack_pass_rows(
         xs: Vec<FloatTensor<Self>>,
         gs: Vec<FloatTensor<Self>>,
+        scale: Option<FloatTensor<Self>>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 }
 
@@ -150,22 +173,34 @@ impl<B: FusionBackend + StackKernels> StackKernels for Fusion<B> {
     fn stack_pass_rows(
         xs: Vec<FloatTensor<Self>>,
         gs: Vec<FloatTensor<Self>>,
+        scale: Option<FloatTensor<Self>>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let passes = gs.len();
+        let scaled = scale.is_some();
         let rows: usize = gs.iter().map(|g| g.shape()[0]).sum();
         let specs = vec![
             float_like::<B>(&xs[0], Shape::new([rows, xs[0].shape()[1]])),
             float_like::<B>(&gs[0], Shape::new([rows, gs[0].shape()[1]])),
         ];
-        let inputs = xs.into_iter().chain(gs).map(Input::Float).collect();
+        let inputs = xs
+            .into_iter()
+            .chain(gs)
+            .chain(scale)
+            .map(Input::Float)
+            .collect();
         let [x, g] = array(deferred::<B, _>(
             "stack_pass_rows",
             inputs,
             specs,
             move |mut v| {
+                let scale = if scaled {
+                    v.pop().map(Value::float)
+                } else {
+                    None
+                };
                 let gs = v.split_off(passes).into_iter().map(Value::float).collect();
                 let xs = v.into_iter().map(Value::float).collect();
-                let (x, g) = B::stack_pass_rows(xs, gs);
+                let (x, g) = B::stack_pass_rows(xs, gs, scale);
                 vec![Value::Float(x), Value::Float(g)]
             },
         ));
@@ -183,6 +218,27 @@ pub trait SharedLinearOps: Backend {
         let _ = (ledger, role);
         value
     }
+
+    /// The weight `[in, out]` and bias `[out]` of a layer folded with the frozen BatchNorm that
+    /// follows it, as the parameters every pass's product reads (module docs): `W·diag(s)`,
+    /// `b·s + t` (or `t`, see [`FoldBias`]) and `s` itself, with `s = γ/√(σ²+ε)` and
+    /// `t = β − μ·s` from the BN's `γ`, `β`, running mean `μ` and variance `σ²`, each `[out]`.
+    /// The statistics and `γ`, `β` take no gradient.
+    #[allow(clippy::too_many_arguments)]
+    #[fusion(meta = |weight, bias, _gamma, _beta, _mean, _var, _kind, _epsilon, _ledger| {
+        (weight.clone(), bias.clone(), bias.clone())
+    })]
+    fn shared_fold(
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        kind: FoldBias,
+        epsilon: f32,
+        ledger: Ledger,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
 
     /// One pass's product.
     #[fusion(default)]
@@ -206,11 +262,13 @@ pub struct ProductInputs<B: Backend> {
     ledger: Ledger,
 }
 
-/// A parameter node's state.
+/// A parameter node's state: its layer, its role, and the folded BN's scale `s` for a folded
+/// layer.
 #[derive(Debug, Clone)]
-pub struct ParameterRole {
+pub struct ParameterRole<B: Backend> {
     ledger: Ledger,
     role: Role,
+    scale: Option<FloatTensor<B>>,
 }
 
 #[derive(Debug)]
@@ -256,7 +314,7 @@ impl<B: Backend> Backward<B, 3> for ProductBackward {
 struct ParameterBackward;
 
 impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
-    type State = ParameterRole;
+    type State = ParameterRole<B>;
 
     fn backward(
         self,
@@ -269,7 +327,11 @@ impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
         let [Some(parent)] = ops.parents else {
             return;
         };
-        let ParameterRole { ledger, role } = ops.state;
+        let ParameterRole {
+            ledger,
+            role,
+            scale,
+        } = ops.state;
         let mut ledger = ledger.lock();
         let slot = match role {
             Role::Weight => 0,
@@ -282,6 +344,7 @@ impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
             stack::<B>(
                 std::mem::take(&mut rows.inputs),
                 std::mem::take(&mut rows.grads),
+                scale,
             )
         });
         let grad = match role {
@@ -302,7 +365,7 @@ impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
     }
 }
 
-impl<B: StackKernels, C: CheckpointStrategy> SharedLinearOps for Autodiff<B, C> {
+impl<B: StackKernels + SharedLinearOps, C: CheckpointStrategy> SharedLinearOps for Autodiff<B, C> {
     fn shared_parameter(value: FloatTensor<Self>, ledger: Ledger, role: Role) -> FloatTensor<Self> {
         let (value, node) = value.into_parts();
         match ParameterBackward
@@ -310,9 +373,63 @@ impl<B: StackKernels, C: CheckpointStrategy> SharedLinearOps for Autodiff<B, C> 
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish(ParameterRole { ledger, role }, value),
+            OpsKind::Tracked(prep) => prep.finish(
+                ParameterRole {
+                    ledger,
+                    role,
+                    scale: None,
+                },
+                value,
+            ),
             OpsKind::UnTracked(prep) => prep.finish(value),
         }
+    }
+
+    fn shared_fold(
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        kind: FoldBias,
+        epsilon: f32,
+        ledger: Ledger,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        let (weight, weight_node) = weight.into_parts();
+        let (bias, bias_node) = bias.into_parts();
+        // Without a bias of its own the argument is `β`, which takes no gradient: the folded
+        // bias's node is then untracked.
+        let [gamma, beta, mean, var] = [gamma, beta, mean, var].map(|t| t.into_primitive());
+        let (w, b, scale) = B::shared_fold(
+            weight,
+            bias,
+            gamma,
+            beta,
+            mean,
+            var,
+            kind,
+            epsilon,
+            ledger.clone(),
+        );
+        let node = |value: FloatTensor<B>, node, role| match ParameterBackward
+            .prepare::<C>([node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(
+                ParameterRole {
+                    ledger: ledger.clone(),
+                    role,
+                    scale: Some(scale.clone()),
+                },
+                value,
+            ),
+            OpsKind::UnTracked(prep) => prep.finish(value),
+        };
+        let w = node(w, weight_node, Role::Weight);
+        let b = node(b, bias_node, Role::Bias);
+        (w, b, Self::from_inner(scale))
     }
 
     fn shared_linear(
@@ -337,5 +454,3 @@ impl<B: StackKernels, C: CheckpointStrategy> SharedLinearOps for Autodiff<B, C> 
         )
     }
 }
-
-impl SharedLinearOps for burn_cubecl::CubeBackend {}
