@@ -223,12 +223,10 @@ impl UpdateHeads {
                 .forward(hidden),
             None => linear_op::affine(hidden, second, None),
         };
-        let mut start = 0;
-        let mut out = heads.iter().map(|m| {
-            let width = m.l2.weight.dims()[1];
-            start += width;
-            outputs.clone().narrow(1, start - width, width)
-        });
+        // One split for the four heads' columns: on a GPU one launch each way, where a slice
+        // per head costs a copy forward and a zero fill, a slice-assign and a sum backward.
+        let widths: Vec<usize> = heads.iter().map(|m| m.l2.weight.dims()[1]).collect();
+        let mut out = lifegom_render::split::split_columns(outputs, &widths).into_iter();
         let mut next = || out.next().expect("four heads");
         GomParams {
             so3: init.so3 + next(),

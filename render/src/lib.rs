@@ -68,6 +68,7 @@ pub mod rng;
 pub mod select;
 pub mod skeleton;
 pub mod skinning;
+pub mod split;
 pub mod steiner;
 pub mod subdivision;
 pub mod template;

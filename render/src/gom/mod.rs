@@ -312,9 +312,11 @@ impl GomMesh {
                 self.corner_from_vertex_order.clone().into_dispatch(),
             ),
         );
+        let mut blocks = crate::split::split_columns(out, &[3, 6]).into_iter();
+        let (means, covariances) = (blocks.next(), blocks.next());
         Gaussians {
-            means: out.clone().narrow(1, 0, 3),
-            covariances: out.narrow(1, 3, 6),
+            means: means.expect("a means block"),
+            covariances: covariances.expect("a covariances block"),
             colors: params.colors.clone(),
             opacities: params.opacities.clone(),
         }

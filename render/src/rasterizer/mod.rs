@@ -18,7 +18,9 @@ pub mod cpu;
 pub(crate) mod cube;
 pub mod op;
 
-use burn::tensor::{Tensor, s};
+use std::sync::OnceLock;
+
+use burn::tensor::Tensor;
 
 pub use crate::camera::ViewParams;
 pub use cpu::{AlphaCutoff, Channels, RasterConfig};
@@ -26,6 +28,7 @@ pub use cpu::{AlphaCutoff, Channels, RasterConfig};
 use crate::camera::Camera;
 use crate::error::{RenderError, Result, check_finite};
 use crate::readback;
+use crate::split::split_columns;
 
 /// A set of 3D Gaussians in world space, ready to render.
 #[derive(Debug, Clone)]
@@ -173,23 +176,36 @@ pub struct Rendered {
     pub image: Tensor<3>,
     /// Which channels `image` holds.
     pub channels: Channels,
+    /// `image`'s colour, alpha (and depth) as tensors of their own, made on first use by one
+    /// split ([`crate::split`]): every reader of a channel then shares one node, and on a GPU
+    /// the split and its backward are one launch each instead of a slice per read.
+    blocks: OnceLock<Vec<Tensor<3>>>,
 }
 
 impl Rendered {
+    fn blocks(&self) -> &[Tensor<3>] {
+        self.blocks.get_or_init(|| {
+            let widths: &[usize] = match self.channels {
+                Channels::RgbAlpha => &[3, 1],
+                Channels::RgbAlphaDepth => &[3, 1, 1],
+            };
+            split_columns(self.image.clone(), widths)
+        })
+    }
+
     /// Premultiplied RGB (over black), `[H, W, 3]`.
     pub fn rgb(&self) -> Tensor<3> {
-        self.image.clone().slice(s![.., .., 0..3])
+        self.blocks()[0].clone()
     }
 
     /// Accumulated alpha `1 − T`, `[H, W]`.
     pub fn alpha(&self) -> Tensor<2> {
-        self.image.clone().slice(s![.., .., 3..4]).squeeze_dim(2)
+        self.blocks()[1].clone().squeeze_dim(2)
     }
 
     /// Expected depth `Σ zᵢαᵢTᵢ` (not divided by alpha), `[H, W]`, if rendered.
     pub fn depth(&self) -> Option<Tensor<2>> {
-        (self.channels == Channels::RgbAlphaDepth)
-            .then(|| self.image.clone().slice(s![.., .., 4..5]).squeeze_dim(2))
+        (self.channels == Channels::RgbAlphaDepth).then(|| self.blocks()[2].clone().squeeze_dim(2))
     }
 
     /// Standard "over" compositing onto a constant background: `rgb + bg·(1 − α)`.
@@ -233,6 +249,7 @@ pub fn rasterize(gaussians: &Gaussians, settings: &RasterSettings) -> Result<Ren
     Ok(Rendered {
         image,
         channels: settings.channels,
+        blocks: OnceLock::new(),
     })
 }
 

@@ -1,0 +1,125 @@
+//! A tensor's last axis as consecutive blocks of columns, each its own tensor: the rasterizer's
+//! `[H, W, 4]` image as colour and alpha, the Gaussians-on-Mesh rows as means and covariances
+//! (design.md §5.7).
+//!
+//! Burn splits with one slice per block. On a GPU that is a copy kernel per block forward, and
+//! backward, per block, a zero-filled tensor of the whole width and a slice-assign into it, then
+//! an addition per further block: about four launches a block where one in all suffices each
+//! way. [`split_columns`] writes every block in one launch, and its backward writes every
+//! block's gradient into its columns in one launch, zeros for the blocks that took none.
+//!
+//! The blocks are several autodiff nodes, and Burn runs each alone. As for the shared layers
+//! of the model crate, a node between the source and the blocks collects them: each block's
+//! node files its gradient with it and, the first time, registers a placeholder for it (the
+//! source's own handle: the right shape, no copy), so that Burn reaches it; Burn then runs it
+//! after every block's node, since it is shallower, and it makes the source's gradient from
+//! what was filed (the `op` module).
+//!
+//! On the CPU backends the blocks are Burn's `narrow`, which costs nothing there.
+
+mod cube;
+pub mod op;
+
+use burn::backend::Dispatch;
+use burn::tensor::Tensor;
+
+use crate::device::runs_on_host;
+use op::{ColumnBlocks, MAX_BLOCKS, SplitOps};
+
+/// `t` `[.., C]` as blocks `[.., widths[0]]`, `[.., widths[1]]`, … of consecutive columns (module
+/// docs). The widths are positive and sum to `C`.
+///
+/// # Panics
+///
+/// If the widths are not positive or do not sum to `C`.
+pub fn split_columns<const D: usize>(t: Tensor<D>, widths: &[usize]) -> Vec<Tensor<D>> {
+    let dims = t.dims();
+    let width = dims[D - 1];
+    assert!(
+        widths.iter().all(|&w| w > 0) && widths.iter().sum::<usize>() == width,
+        "blocks of widths {widths:?} must tile {width} columns"
+    );
+    if runs_on_host(&t.device()) || widths.len() > MAX_BLOCKS || widths.len() < 2 {
+        let mut start = 0;
+        return widths
+            .iter()
+            .map(|&w| {
+                start += w;
+                t.clone().narrow(D - 1, start - w, w)
+            })
+            .collect();
+    }
+    let rows = dims[..D - 1].iter().product();
+    let blocks = ColumnBlocks::new(widths);
+    let (b0, b1, b2, b3) =
+        <Dispatch as SplitOps>::split_columns(t.reshape([rows, width]).into_dispatch(), blocks);
+    [b0, b1, b2, b3]
+        .into_iter()
+        .zip(widths)
+        .map(|(block, &w)| {
+            let mut shape = dims;
+            shape[D - 1] = w;
+            Tensor::<2>::from_dispatch(block).reshape(shape)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::{Device, TensorData};
+
+    use crate::device::DeviceChoice;
+    use crate::testing::{Rng, read, wgpu_test_device};
+
+    /// Splits a `[5, 4, 9]` tensor into blocks of `widths` on `device`, uses each block in a
+    /// different way (some not at all, as a loss may leave the depth unused), and returns the
+    /// blocks and the source's gradient.
+    fn run(device: &Device, widths: &[usize], used: &[bool]) -> Vec<Vec<f32>> {
+        let mut rng = Rng::new(5);
+        let values: Vec<f32> = (0..5 * 4 * 9).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let t = Tensor::<3>::from_data(TensorData::new(values, [5, 4, 9]), device).require_grad();
+        let blocks = split_columns(t.clone(), widths);
+        let mut loss = Tensor::<1>::zeros([1], device);
+        for (i, (block, &use_it)) in blocks.iter().zip(used).enumerate() {
+            if use_it {
+                loss = loss + (block.clone() * (i as f32 + 1.0)).tanh().sum();
+            }
+        }
+        let grads = loss.backward();
+        let mut out: Vec<Vec<f32>> = blocks.into_iter().map(read).collect();
+        out.push(read(t.grad(&grads).expect("the source's gradient")));
+        out
+    }
+
+    /// On lavapipe the blocks and the source's gradient equal Burn's slices on Flex exactly
+    /// (copies, and one addend per element), for two to four blocks, with blocks that take no
+    /// gradient.
+    #[test]
+    fn split_matches_slices_wgpu() {
+        let Some(device) = wgpu_test_device() else {
+            return;
+        };
+        let ad = device.autodiff();
+        let flex = DeviceChoice::Flex.device().autodiff();
+        for (widths, used) in [
+            (&[3, 6][..], &[true, true][..]),
+            (&[3, 1, 5], &[true, false, true]),
+            (&[2, 2, 2, 3], &[false, true, true, true]),
+            (&[8, 1], &[false, true]),
+        ] {
+            let gpu = run(&ad, widths, used);
+            let cpu = run(&flex, widths, used);
+            assert_eq!(gpu.len(), cpu.len());
+            for (i, (a, b)) in gpu.iter().zip(&cpu).enumerate() {
+                assert_eq!(a.len(), b.len(), "{widths:?}: part {i}");
+                for (j, (u, v)) in a.iter().zip(b).enumerate() {
+                    assert!(
+                        (u - v).abs() <= 1e-6 * (1.0 + v.abs()),
+                        "{widths:?}, part {i}[{j}]: {u} against {v}"
+                    );
+                }
+            }
+        }
+    }
+}
