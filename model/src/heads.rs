@@ -183,12 +183,14 @@ impl UpdateHeads {
         let init = GomParams::init(f, &device);
         let heads = [&self.so3, &self.scale, &self.offset, &self.rgb];
         let (weight, bias) = folds.derived(&self.so3.l0, "heads: first layers", || {
-            let weight = Tensor::cat(heads.iter().map(|m| m.l0.weight.val()).collect(), 1);
+            let weight = lifegom_render::split::join_columns(
+                heads.iter().map(|m| m.l0.weight.val()).collect(),
+            );
             let bias = heads
                 .iter()
                 .map(|m| m.l0.bias.as_ref().map(|b| b.val()))
                 .collect::<Option<Vec<_>>>()
-                .map(|b| Tensor::cat(b, 0));
+                .map(lifegom_render::split::join_columns);
             (weight, bias)
         });
         let [g, _] = weight.dims();
@@ -214,7 +216,7 @@ impl UpdateHeads {
                 .iter()
                 .map(|m| m.l2.bias.as_ref().map(|b| b.val()))
                 .collect::<Option<Vec<_>>>()
-                .map(|b| Tensor::cat(b, 0));
+                .map(lifegom_render::split::join_columns);
             (second, second_bias)
         });
         let outputs = match second_bias {

@@ -20,6 +20,7 @@ use burn::nn::{BatchNorm, Linear};
 use burn::tensor::{Device, Tensor};
 
 use lifegom_render::device::runs_on_host;
+use lifegom_render::split::join_columns;
 
 use crate::shared_linear::SharedLinear;
 
@@ -199,13 +200,14 @@ impl<'a> NormFolds<'a> {
 ///
 /// If `layers` is empty or a layer has no bias.
 pub(crate) fn stacked(layers: &[&Linear], device: &Device) -> (Tensor<2>, Tensor<1>) {
-    let weight = Tensor::cat(layers.iter().map(|l| l.weight.val()).collect(), 1);
-    let bias = Tensor::cat(
+    // One launch each way per stack on a GPU, where `cat` takes one per layer forward and a
+    // slice per layer backward.
+    let weight = join_columns(layers.iter().map(|l| l.weight.val()).collect());
+    let bias = join_columns(
         layers
             .iter()
             .map(|l| l.bias.as_ref().expect("stacked layers have biases").val())
             .collect(),
-        0,
     );
     (weight.to_device(device), bias.to_device(device))
 }

@@ -559,7 +559,7 @@ impl TransitionDown {
             folds,
             &self.linear,
             &self.bn,
-            Tensor::cat(vec![rel, grouped], 2),
+            lifegom_render::split::join_columns(vec![rel, grouped]),
         ));
         let c = h.dims()[2];
         h.max_dim(1).reshape([m, c])
@@ -819,7 +819,7 @@ impl TransitionUp {
             folds,
             &self.linear1,
             &self.bn1,
-            Tensor::cat(vec![x, global], 1),
+            lifegom_render::split::join_columns(vec![x, global]),
         ))
     }
 

@@ -696,7 +696,7 @@ impl Reconstructor {
             self.point_transformer.forward_folded(
                 folds,
                 state.xyz.clone(),
-                Tensor::cat(vec![fused_src, fused_ren], 1),
+                lifegom_render::split::join_columns(vec![fused_src, fused_ren]),
             )?
         };
         let span = tracing::debug_span!("vertex_heads").entered();

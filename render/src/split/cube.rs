@@ -126,10 +126,26 @@ impl SplitOps for CubeBackend {
         let (b0, b1, b2, b3) = (next(), next(), next(), next());
         (b0, b1, b2, b3)
     }
+
+    fn join_columns(
+        b0: FloatTensor<Self>,
+        b1: FloatTensor<Self>,
+        b2: FloatTensor<Self>,
+        b3: FloatTensor<Self>,
+        blocks: ColumnBlocks,
+    ) -> FloatTensor<Self> {
+        let rows = b0.shape()[0];
+        let given = [b0, b1, b2, b3]
+            .into_iter()
+            .take(blocks.count())
+            .map(Some)
+            .collect();
+        <Self as JoinKernels>::join_given_columns(given, blocks, rows)
+    }
 }
 
 impl JoinKernels for CubeBackend {
-    fn join_columns(
+    fn join_given_columns(
         blocks: Vec<Option<FloatTensor<Self>>>,
         widths: ColumnBlocks,
         rows: usize,

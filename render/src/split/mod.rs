@@ -15,7 +15,12 @@
 //! after every block's node, since it is shallower, and it makes the source's gradient from
 //! what was filed (the `op` module).
 //!
-//! On the CPU backends the blocks are Burn's `narrow`, which costs nothing there.
+//! [`join_columns`] is the inverse, Burn's `cat` on the last axis: on a GPU one launch
+//! forward, where `cat` takes one per block, and one backward (the split), where `cat`'s
+//! backward is a slice per block.
+//!
+//! On the CPU backends the blocks are Burn's `narrow` and the join its `cat`, which cost
+//! nothing there.
 
 mod cube;
 pub mod op;
@@ -64,6 +69,44 @@ pub fn split_columns<const D: usize>(t: Tensor<D>, widths: &[usize]) -> Vec<Tens
         .collect()
 }
 
+/// `parts` `[.., w_i]` side by side, `[.., Σ w_i]`: `Tensor::cat(parts, D − 1)` (module docs).
+///
+/// # Panics
+///
+/// If `parts` is empty or their leading axes differ.
+pub fn join_columns<const D: usize>(parts: Vec<Tensor<D>>) -> Tensor<D> {
+    assert!(!parts.is_empty(), "nothing to join");
+    let dims = parts[0].dims();
+    assert!(
+        parts.iter().all(|p| p.dims()[..D - 1] == dims[..D - 1]),
+        "joined blocks have the same leading axes"
+    );
+    if runs_on_host(&parts[0].device()) || parts.len() > MAX_BLOCKS || parts.len() < 2 {
+        return Tensor::cat(parts, D - 1);
+    }
+    let widths: Vec<usize> = parts.iter().map(|p| p.dims()[D - 1]).collect();
+    let rows = dims[..D - 1].iter().product();
+    let mut flat: Vec<_> = parts
+        .into_iter()
+        .zip(&widths)
+        .map(|(p, &w)| p.reshape([rows, w]).into_dispatch())
+        .collect();
+    while flat.len() < MAX_BLOCKS {
+        flat.push(flat[0].clone());
+    }
+    let [b0, b1, b2, b3]: [_; MAX_BLOCKS] = flat.try_into().expect("four slots");
+    let joined = Tensor::<2>::from_dispatch(<Dispatch as SplitOps>::join_columns(
+        b0,
+        b1,
+        b2,
+        b3,
+        ColumnBlocks::new(&widths),
+    ));
+    let mut shape = dims;
+    shape[D - 1] = widths.iter().sum();
+    joined.reshape(shape)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -90,6 +133,57 @@ mod tests {
         let mut out: Vec<Vec<f32>> = blocks.into_iter().map(read).collect();
         out.push(read(t.grad(&grads).expect("the source's gradient")));
         out
+    }
+
+    /// Joins blocks of `widths` (made from one generator, `[5, 4, w]` each) on `device`, weighs
+    /// the join, and returns it and every block's gradient.
+    fn run_join(device: &Device, widths: &[usize]) -> Vec<Vec<f32>> {
+        let mut rng = Rng::new(6);
+        let total: usize = widths.iter().sum();
+        let parts: Vec<Tensor<3>> = widths
+            .iter()
+            .map(|&w| {
+                let values: Vec<f32> = (0..5 * 4 * w).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+                Tensor::<3>::from_data(TensorData::new(values, [5, 4, w]), device).require_grad()
+            })
+            .collect();
+        let weights: Vec<f32> = (0..5 * 4 * total)
+            .map(|_| rng.range_f32(-1.0, 1.0))
+            .collect();
+        let weights = Tensor::<3>::from_data(TensorData::new(weights, [5, 4, total]), device);
+        let joined = join_columns(parts.clone());
+        let grads = (joined.clone().tanh() * weights).sum().backward();
+        let mut out = vec![read(joined)];
+        out.extend(
+            parts
+                .iter()
+                .map(|p| read(p.grad(&grads).expect("a block's gradient"))),
+        );
+        out
+    }
+
+    /// On lavapipe the join and its blocks' gradients equal Burn's `cat` on Flex, for two to
+    /// four blocks.
+    #[test]
+    fn join_matches_cat_wgpu() {
+        let Some(device) = wgpu_test_device() else {
+            return;
+        };
+        let ad = device.autodiff();
+        let flex = DeviceChoice::Flex.device().autodiff();
+        for widths in [&[3, 6][..], &[1, 5, 2], &[2, 2, 2, 3]] {
+            let gpu = run_join(&ad, widths);
+            let cpu = run_join(&flex, widths);
+            for (i, (a, b)) in gpu.iter().zip(&cpu).enumerate() {
+                assert_eq!(a.len(), b.len(), "{widths:?}: part {i}");
+                for (j, (u, v)) in a.iter().zip(b).enumerate() {
+                    assert!(
+                        (u - v).abs() <= 1e-6 * (1.0 + v.abs()),
+                        "{widths:?}, part {i}[{j}]: {u} against {v}"
+                    );
+                }
+            }
+        }
     }
 
     /// On lavapipe the blocks and the source's gradient equal Burn's slices on Flex exactly

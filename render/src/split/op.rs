@@ -9,7 +9,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::ops::{Backward, NodeGuard, Ops, OpsKind};
 use burn::backend::fusion::custom::TensorSpec;
 use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
@@ -17,6 +17,7 @@ use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
 use burn::tensor::Shape;
 
 use crate::cube::deferred::{Input, Value, array, deferred, float_like};
+use crate::op_backward::{gradient_per_input, record};
 
 /// Blocks per launch.
 pub const MAX_BLOCKS: usize = 4;
@@ -61,6 +62,11 @@ impl ColumnBlocks {
         ends.map(|e| e.min(total))
     }
 
+    /// Blocks in use.
+    pub fn count(&self) -> usize {
+        self.widths.iter().filter(|&&w| w > 0).count()
+    }
+
     /// All blocks' width.
     pub fn total(&self) -> usize {
         self.widths.iter().sum()
@@ -94,6 +100,19 @@ pub trait SplitOps: Backend {
         FloatTensor<Self>,
         FloatTensor<Self>,
     );
+
+    /// The blocks `b_i` `[rows, w_i]` side by side, `[rows, Σ w]`: the split's inverse. Slots
+    /// past the last block take any tensor (e.g. `b0` again) and are not read.
+    #[fusion(meta = |b0, _b1, _b2, _b3, blocks| {
+        TensorSpec::new(Shape::new([b0.shape[0], blocks.total()]), b0.dtype)
+    })]
+    fn join_columns(
+        b0: FloatTensor<Self>,
+        b1: FloatTensor<Self>,
+        b2: FloatTensor<Self>,
+        b3: FloatTensor<Self>,
+        blocks: ColumnBlocks,
+    ) -> FloatTensor<Self>;
 }
 
 /// What a backend implements so that `Autodiff<B>` can join the blocks' gradients.
@@ -101,7 +120,7 @@ pub trait SplitOps: Backend {
 pub trait JoinKernels: Backend {
     /// `[rows, Σ w]`: each given block `[rows, w_i]` in its columns, zeros in the columns of the
     /// blocks that are `None`; at least one is given.
-    fn join_columns(
+    fn join_given_columns(
         blocks: Vec<Option<FloatTensor<Self>>>,
         widths: ColumnBlocks,
         rows: usize,
@@ -109,7 +128,7 @@ pub trait JoinKernels: Backend {
 }
 
 impl<B: FusionBackend + JoinKernels> JoinKernels for Fusion<B> {
-    fn join_columns(
+    fn join_given_columns(
         blocks: Vec<Option<FloatTensor<Self>>>,
         widths: ColumnBlocks,
         rows: usize,
@@ -118,14 +137,19 @@ impl<B: FusionBackend + JoinKernels> JoinKernels for Fusion<B> {
         let first = blocks.iter().flatten().next().expect("a block's gradient");
         let specs = vec![float_like::<B>(first, Shape::new([rows, widths.total()]))];
         let inputs = blocks.into_iter().flatten().map(Input::Float).collect();
-        let [joined] = array(deferred::<B, _>("join_columns", inputs, specs, move |v| {
-            let mut v = v.into_iter().map(Value::float);
-            let blocks = given
-                .iter()
-                .map(|&g| if g { v.next() } else { None })
-                .collect();
-            vec![Value::Float(B::join_columns(blocks, widths, rows))]
-        }));
+        let [joined] = array(deferred::<B, _>(
+            "join_given_columns",
+            inputs,
+            specs,
+            move |v| {
+                let mut v = v.into_iter().map(Value::float);
+                let blocks = given
+                    .iter()
+                    .map(|&g| if g { v.next() } else { None })
+                    .collect();
+                vec![Value::Float(B::join_given_columns(blocks, widths, rows))]
+            },
+        ));
         joined
     }
 }
@@ -226,7 +250,7 @@ impl<B: JoinKernels> Backward<B, 1> for SourceBackward {
         };
         let s = ops.state;
         let filed = std::mem::take(s.ledger.lock().grads::<B>());
-        let joined = B::join_columns(filed.into_iter().collect(), s.widths, s.rows);
+        let joined = B::join_given_columns(filed.into_iter().collect(), s.widths, s.rows);
         grads.register::<B>(parent.id, joined);
     }
 }
@@ -277,5 +301,57 @@ impl<B: SplitOps + JoinKernels, C: CheckpointStrategy> SplitOps for Autodiff<B, 
             OpsKind::UnTracked(prep) => prep.finish(value),
         };
         (block(b0, 0), block(b1, 1), block(b2, 2), block(b3, 3))
+    }
+
+    fn join_columns(
+        b0: FloatTensor<Self>,
+        b1: FloatTensor<Self>,
+        b2: FloatTensor<Self>,
+        b3: FloatTensor<Self>,
+        blocks: ColumnBlocks,
+    ) -> FloatTensor<Self> {
+        let [p0, p1, p2, p3] = [b0, b1, b2, b3].map(|t| t.into_parts());
+        match blocks.count() {
+            2 => join_node::<B, C, 2>([p0, p1], blocks),
+            3 => join_node::<B, C, 3>([p0, p1, p2], blocks),
+            _ => join_node::<B, C, 4>([p0, p1, p2, p3], blocks),
+        }
+    }
+}
+
+/// The join of `N` blocks as one node with `N` parents; its backward is the split.
+fn join_node<B: SplitOps + JoinKernels, C: CheckpointStrategy, const N: usize>(
+    parts: [(FloatTensor<B>, NodeGuard); N],
+    blocks: ColumnBlocks,
+) -> FloatTensor<Autodiff<B, C>> {
+    let mut values = Vec::with_capacity(N);
+    let nodes = parts.map(|(value, node)| {
+        values.push(value);
+        node
+    });
+    let rows = values[0].shape()[0];
+    let forward = move |_: ColumnBlocks| {
+        B::join_given_columns(values.into_iter().map(Some).collect(), blocks, rows)
+    };
+    record::<B, C, _, _, N>(JoinBackward::<N>, nodes, blocks, forward)
+}
+
+#[derive(Debug)]
+struct JoinBackward<const N: usize>;
+
+impl<B: SplitOps, const N: usize> Backward<B, N> for JoinBackward<N> {
+    type State = ColumnBlocks;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, N>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        gradient_per_input::<B, _, N>(ops, grads, |blocks, grad| {
+            let (g0, g1, g2, g3) = B::split_columns(grad, blocks);
+            let mut all = [g0, g1, g2, g3].into_iter();
+            std::array::from_fn(|_| all.next().expect("at most four blocks"))
+        });
     }
 }
