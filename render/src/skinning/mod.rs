@@ -22,12 +22,23 @@
 //!   matrices are applied to `[x, 1]` with elementwise ops. Blending the matrices first is one
 //!   matmul and never builds the `[V, J, 3]` tensor of every joint's transform of every vertex.
 //!
+//!   On CubeCL devices [`skin_vertices`] is one op instead (the `op` and `cube` modules): one
+//!   thread per vertex sums its joints' transforms of it, and the backward recomputes them for
+//!   the weights' gradient. The tensor ops are five to six launches forward and as many
+//!   backward (the matmul, a ones tensor and its concatenation, the broadcast product and its
+//!   sum, and their gradients); the op is one each way. The CPU backends keep the tensor ops.
+//!
 //! Weights are stored sparse, 4 per vertex as in the glTF (`JOINTS_0`/`WEIGHTS_0`), and made
 //! dense (`[V, J]`, row-major) for the tensor path.
 
+mod cube;
+pub mod op;
+
+use burn::backend::Dispatch;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{Affine3A, Vec3};
 
+use crate::device::runs_on_host;
 use crate::error::{RenderError, Result};
 
 /// Sparse skinning weights: 4 (joint, weight) pairs per vertex, as `JOINTS_0`/`WEIGHTS_0`.
@@ -187,6 +198,13 @@ pub fn skin_vertices(
         });
     }
     let device = vertices.device();
+    if !runs_on_host(&device) {
+        return Ok(Tensor::from_dispatch(<Dispatch as op::SkinningOps>::skin(
+            vertices.into_dispatch(),
+            weights.into_dispatch(),
+            transforms_tensor(transforms, &device).into_dispatch(),
+        )));
+    }
     // Σ_j w_j M_j per vertex: [V, J]·[J, 12] → [V, 12] → [V, 3, 4].
     let blended = weights
         .matmul(transforms_tensor(transforms, &device))
@@ -336,6 +354,14 @@ mod tests {
 
     crate::cpu_backend_tests!(tensor_lbs_matches_cpu_on => check_tensor_matches_cpu);
 
+    /// The same on lavapipe, where the skinning is one op.
+    #[test]
+    fn tensor_lbs_matches_cpu_on_wgpu() {
+        if let Some(device) = crate::testing::wgpu_test_device() {
+            check_tensor_matches_cpu(&device);
+        }
+    }
+
     #[test]
     fn no_normalisation_by_the_weight_sum() {
         // One vertex, weights 0.5 + 0.25 on two translations: x' = 0.5(x+a) + 0.25(x+b).
@@ -353,10 +379,24 @@ mod tests {
 
     #[test]
     fn gradient_matches_central_differences() {
+        check_gradient(&Device::ndarray());
+    }
+
+    /// The same on lavapipe, where the backward is one kernel (central differences on ndarray).
+    #[test]
+    fn gradient_matches_central_differences_wgpu() {
+        if let Some(device) = crate::testing::wgpu_test_device() {
+            check_gradient(&device);
+        }
+    }
+
+    /// The gradients of `device`'s skinning against central differences of the loss on
+    /// ndarray.
+    fn check_gradient(device: &Device) {
         // A small random instance: 5 vertices, 3 joints, dense random weights; the loss
         // Σ (x' − target)² is quadratic in the vertices and in the weights, so central
         // differences are exact up to f32 rounding.
-        let device = Device::ndarray().autodiff();
+        let device = device.clone().autodiff();
         let mut rng = Lcg(crate::rng::Rng::new(11));
         let (v, j) = (5usize, 3usize);
         let transforms: Vec<Affine3A> = (0..j)
