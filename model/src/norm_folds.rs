@@ -12,6 +12,7 @@
 //! several times, so its parameters' gradient is summed before the fold's product rather than
 //! after: the same gradient up to float order.
 
+use std::any::Any;
 use std::cell::RefCell;
 use std::collections::HashMap;
 use std::marker::PhantomData;
@@ -45,6 +46,9 @@ pub struct NormFolds<'a> {
     /// By a layer's address and a name: layers every pass runs, with one parameter gradient for
     /// all passes on devices ([`SharedLinear`]).
     shared: RefCell<HashMap<(usize, &'static str), SharedLinear>>,
+    /// By a layer's address and a name: anything else a reconstruction's passes share (the
+    /// Point Transformer's positional-encoding weights).
+    kept: RefCell<HashMap<(usize, &'static str), Box<dyn Any>>>,
     layers: PhantomData<&'a ()>,
 }
 
@@ -69,6 +73,30 @@ impl<'a> NormFolds<'a> {
         }
         let made = make();
         self.derived.borrow_mut().insert(key, made.clone());
+        made
+    }
+
+    /// What `make` builds, kept under `anchor`'s address and `name` for every later pass (module
+    /// docs).
+    ///
+    /// # Panics
+    ///
+    /// If a value of another type was kept under the same key.
+    pub(crate) fn keep<T: Clone + 'static>(
+        &self,
+        anchor: &'a Linear,
+        name: &'static str,
+        make: impl FnOnce() -> T,
+    ) -> T {
+        let key = (std::ptr::from_ref(anchor) as usize, name);
+        if let Some(found) = self.kept.borrow().get(&key) {
+            return found
+                .downcast_ref::<T>()
+                .expect("one type per kept name")
+                .clone();
+        }
+        let made = make();
+        self.kept.borrow_mut().insert(key, Box::new(made.clone()));
         made
     }
 

@@ -745,9 +745,12 @@ impl PointTransformerLayer {
             .forward(x);
 
         let mp = &self.linear_p;
-        let (w0, b0) = folds.linear(&mp.fc0, &mp.bn1, &device);
-        let b3 = mp.fc3.bias.as_ref().expect("MLP_p's last layer has a bias");
-        let delta = vector_attention::position_encoding(rel, w0, b0, mp.fc3.weight.val(), b3.val());
+        let position = folds.keep(&mp.fc3, "position weights", || {
+            let (w0, b0) = folds.linear(&mp.fc0, &mp.bn1, &device);
+            let b3 = mp.fc3.bias.as_ref().expect("MLP_p's last layer has a bias");
+            vector_attention::PositionWeights::new(w0, b0, mp.fc3.weight.val(), b3.val())
+        });
+        let delta = position.apply(rel);
 
         let mw = &self.linear_w;
         let (scale, shift) = folds.affine(&mw.bn0, &device);

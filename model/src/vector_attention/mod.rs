@@ -23,7 +23,8 @@
 //! - [`aggregate_gathered`]: [`aggregate`] with the values `v_j + δ_ij` gathered inside.
 //!
 //! - [`position_encoding`]: `MLP_p`'s two layers, `δ = relu(rel·W₀ + b₀)·W₃ + b₃` (three hidden
-//!   units), as one forward and three backward launches ([`position_op`]).
+//!   units), as one forward and two backward launches per pass, plus one for the weights'
+//!   gradient of all the passes that share a [`PositionWeights`] ([`position_op`]).
 //!
 //! The first two each replace two gathers, their scatter-add backwards and zero-fills, and the broadcast
 //! arithmetic between them (about twenty launches per layer and pass in all) with one forward and
@@ -164,32 +165,79 @@ pub fn position_encoding(
     w3: Tensor<2>,
     b3: Tensor<1>,
 ) -> Tensor<3> {
-    let c = w3.dims()[1];
-    assert!(
-        rel.dims()[2] == 3
-            && w0.dims() == [3, 3]
-            && b0.dims() == [3]
-            && w3.dims() == [3, c]
-            && b3.dims() == [c],
-        "position encoding: rel {:?}, W0 {:?}, b0 {:?}, W3 {:?}, b3 {:?} must be [n, k, 3], [3, 3], [3], [3, c], [c]",
-        rel.dims(),
-        w0.dims(),
-        b0.dims(),
-        w3.dims(),
-        b3.dims()
-    );
-    if runs_on_host(&rel.device()) {
-        return position_encoding_reference(rel, w0, b0, w3, b3);
+    PositionWeights::new(w0, b0, w3, b3).apply(rel)
+}
+
+/// `MLP_p`'s weights ([`position_encoding`]), kept for every pass of a reconstruction: on
+/// CubeCL devices as one parameter vector whose gradient is summed over all the passes that
+/// apply it in one launch ([`position_op`]).
+#[derive(Debug, Clone)]
+pub struct PositionWeights(Kept);
+
+#[derive(Debug, Clone)]
+enum Kept {
+    /// `(W₀, b₀, W₃, b₃)`, run as two affine layers.
+    Host(Tensor<2>, Tensor<1>, Tensor<2>, Tensor<1>),
+    /// `[W₃, b₃, W₀, b₀]` after its parameter node, and the ledger its passes file with.
+    Device(Tensor<1>, position_op::PositionLedger),
+}
+
+impl PositionWeights {
+    /// The weights `W₀` `[3, 3]`, `b₀` `[3]`, `W₃` `[3, c]`, `b₃` `[c]` (Burn's `[in, out]`).
+    ///
+    /// # Panics
+    ///
+    /// If the shapes do not match as above.
+    pub fn new(w0: Tensor<2>, b0: Tensor<1>, w3: Tensor<2>, b3: Tensor<1>) -> Self {
+        let c = w3.dims()[1];
+        assert!(
+            w0.dims() == [3, 3] && b0.dims() == [3] && w3.dims() == [3, c] && b3.dims() == [c],
+            "position encoding: W0 {:?}, b0 {:?}, W3 {:?}, b3 {:?} must be [3, 3], [3], [3, c], [c]",
+            w0.dims(),
+            b0.dims(),
+            w3.dims(),
+            b3.dims()
+        );
+        if runs_on_host(&w0.device()) {
+            return Self(Kept::Host(w0, b0, w3, b3));
+        }
+        let vector =
+            lifegom_render::split::join_columns(vec![w3.reshape([3 * c]), b3, w0.reshape([9]), b0]);
+        let ledger = position_op::PositionLedger::default();
+        let vector = Tensor::from_dispatch(
+            <burn::backend::Dispatch as position_op::PositionEncodingOps>::position_weights(
+                vector.into_dispatch(),
+                ledger.clone(),
+            ),
+        );
+        Self(Kept::Device(vector, ledger))
     }
-    Tensor::from_dispatch(
-        <burn::backend::Dispatch as position_op::PositionEncodingOps>::position_encoding(
-            rel.into_dispatch(),
-            w0.into_dispatch(),
-            b0.into_dispatch(),
-            w3.into_dispatch(),
-            b3.into_dispatch(),
-        ),
-    )
+
+    /// The encoding of `rel` `[n, k, 3]`, `[n, k, c]`.
+    ///
+    /// # Panics
+    ///
+    /// If `rel`'s last axis is not 3.
+    pub fn apply(&self, rel: Tensor<3>) -> Tensor<3> {
+        assert_eq!(
+            rel.dims()[2],
+            3,
+            "position encoding: rel {:?} must be [n, k, 3]",
+            rel.dims()
+        );
+        match &self.0 {
+            Kept::Host(w0, b0, w3, b3) => {
+                position_encoding_reference(rel, w0.clone(), b0.clone(), w3.clone(), b3.clone())
+            }
+            Kept::Device(vector, ledger) => Tensor::from_dispatch(
+                <burn::backend::Dispatch as position_op::PositionEncodingOps>::position_encoding(
+                    rel.into_dispatch(),
+                    vector.clone().into_dispatch(),
+                    ledger.clone(),
+                ),
+            ),
+        }
+    }
 }
 
 /// [`position_encoding`] as the two affine layers the network runs on the CPU backends.
@@ -404,7 +452,8 @@ mod tests {
         );
     }
 
-    /// [`position_encoding`] against its reference on Flex: values and the gradients of every
+    /// [`PositionWeights`] applied by 1, 3 and 6 passes (six: more than one launch adds the
+    /// passes' partial sums) against the reference on Flex: values and the gradients of every
     /// input, over more rows than one partial sum covers (the backward's two-stage sums), with
     /// about half of the hidden units cut by the ReLU.
     fn check_position_encoding_matches_reference(device: &Device) {
@@ -419,7 +468,7 @@ mod tests {
         let w3 = uniform(3 * c, -1.0, 1.0);
         let b3 = uniform(c, -1.0, 1.0);
         let probe = uniform(n * k * c, -1.0, 1.0);
-        let run = |device: &Device, op: bool| {
+        let run = |device: &Device, op: bool, passes: usize| {
             let ad = device.clone().autodiff();
             fn t<const D: usize>(v: &[f32], shape: [usize; D], device: &Device) -> Tensor<D> {
                 Tensor::from_data(TensorData::new(v.to_vec(), shape), device).require_grad()
@@ -427,12 +476,22 @@ mod tests {
             let rel = t(&rel, [n, k, 3], &ad);
             let (w0, b0) = (t(&w0, [3, 3], &ad), t(&b0, [3], &ad));
             let (w3, b3) = (t(&w3, [3, c], &ad), t(&b3, [c], &ad));
-            let f = if op {
-                position_encoding
-            } else {
-                position_encoding_reference
-            };
-            let out = f(rel.clone(), w0.clone(), b0.clone(), w3.clone(), b3.clone());
+            let kept = PositionWeights::new(w0.clone(), b0.clone(), w3.clone(), b3.clone());
+            let mut out = None;
+            for pass in 0..passes {
+                // Each pass reads other offsets, as the feedback passes' meshes differ.
+                let rel = rel.clone() * (1.0 - 0.2 * pass as f32);
+                let y = if op {
+                    kept.apply(rel)
+                } else {
+                    position_encoding_reference(rel, w0.clone(), b0.clone(), w3.clone(), b3.clone())
+                };
+                out = Some(match out {
+                    None => y,
+                    Some(o) => o + y.tanh(),
+                });
+            }
+            let out = out.expect("a pass");
             let grads = (out.clone() * t(&probe, [n, k, c], &ad)).sum().backward();
             let g = |name: &str, t: Option<Tensor<1>>| read(t.unwrap_or_else(|| panic!("{name}")));
             [
@@ -444,20 +503,22 @@ mod tests {
                 g("b3 gradient", b3.grad(&grads)),
             ]
         };
-        let want = run(&Device::flex(), false);
-        let got = run(device, true);
-        let names = ["encoding", "rel", "W0", "b0", "W3", "b3"];
-        for (name, (a, b)) in names.iter().zip(got.iter().zip(&want)) {
-            assert_eq!(a.len(), b.len(), "{name}");
-            let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1.0);
-            let diff = a
-                .iter()
-                .zip(b)
-                .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
-            assert!(
-                diff <= 1e-5 * scale,
-                "{name} on {device:?}: max diff {diff:.2e}"
-            );
+        for passes in [1, 3, 6] {
+            let want = run(&Device::flex(), false, passes);
+            let got = run(device, true, passes);
+            let names = ["encoding", "rel", "W0", "b0", "W3", "b3"];
+            for (name, (a, b)) in names.iter().zip(got.iter().zip(&want)) {
+                assert_eq!(a.len(), b.len(), "{name}");
+                let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1.0);
+                let diff = a
+                    .iter()
+                    .zip(b)
+                    .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+                assert!(
+                    diff <= 1e-5 * scale,
+                    "{name} on {device:?}, {passes} passes: max diff {diff:.2e}"
+                );
+            }
         }
     }
 

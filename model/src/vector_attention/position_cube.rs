@@ -1,7 +1,9 @@
 //! The positional encoding `δ = relu(rel·W₀ + b₀)·W₃ + b₃` ([`super::position_encoding`]) on
 //! Burn's CubeCL backend, for `rel` `[m, 3]` (the `m = n·k` neighbour offsets), `W₀` `[3, 3]`,
-//! `W₃` `[3, c]` (Burn's `[in, out]` layout). The hidden layer is three wide, so each thread
-//! recomputes it from its row's offset instead of reading it from memory.
+//! `W₃` `[3, c]` (Burn's `[in, out]` layout), all four read from one parameter vector
+//! `p = [W₃, b₃, W₀, b₀]` (`4c + 12`, the order of the weights' gradient sums below). The
+//! hidden layer is three wide, so each thread recomputes it from its row's offset instead of
+//! reading it from memory.
 //!
 //! - `position_forward_kernel`, one thread per `(row, ch)`.
 //! - `position_backward_rows_kernel`, one thread per row: `∂h = g·W₃ᵀ` through the ReLU (which
@@ -9,9 +11,10 @@
 //!   hidden activations and `∂h_pre` into a scratch buffer `[m, 6]` for the weights' sums.
 //! - The weights' gradients are sums over all `m` rows: `position_partial_sums_kernel` sums
 //!   [`ROWS_PER_CHUNK`] rows for every output element (`W₃`, `b₃`, `W₀`, `b₀` in that order,
-//!   `4c + 12` in all), one thread per chunk and element; `position_chunk_totals_kernel` adds
-//!   the chunks up in chunk order, one thread per element. Fixed orders: the sums are
-//!   deterministic.
+//!   `4c + 12` in all), one thread per chunk and element, for each pass;
+//!   `position_chunk_totals_kernel` adds the chunks of up to four passes up in pass and chunk
+//!   order, one thread per element, once for all passes (`super::position_op`). Fixed orders:
+//!   the sums are deterministic.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -22,36 +25,33 @@ use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
 };
 
-use super::position_op::{PositionEncodingKernels, PositionEncodingOps};
+use super::position_op::{
+    PositionEncodingKernels, PositionEncodingOps, PositionLedger, TOTAL_PARTS,
+};
 
 /// Rows each partial sum covers.
-const ROWS_PER_CHUNK: usize = 256;
+pub(super) const ROWS_PER_CHUNK: usize = 256;
 
-/// `relu(rel[row]·W₀[·, r] + b₀[r])` and its pre-activation.
+/// The pre-activation `rel[row]·W₀[·, r] + b₀[r]` of hidden unit `r`, from `p`.
 #[cube]
-fn hidden(rel: &[f32], w0: &[f32], b0: &[f32], row: usize, r: usize) -> f32 {
-    rel[row * 3] * w0[r] + rel[row * 3 + 1] * w0[3 + r] + rel[row * 3 + 2] * w0[6 + r] + b0[r]
+fn hidden(rel: &[f32], p: &[f32], row: usize, r: usize, c: usize) -> f32 {
+    let w0 = 4 * c;
+    rel[row * 3] * p[w0 + r]
+        + rel[row * 3 + 1] * p[w0 + 3 + r]
+        + rel[row * 3 + 2] * p[w0 + 6 + r]
+        + p[w0 + 9 + r]
 }
 
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn position_forward_kernel(
-    rel: &[f32],
-    w0: &[f32],
-    b0: &[f32],
-    w3: &[f32],
-    b3: &[f32],
-    out: &mut [f32],
-    units: usize,
-    c: usize,
-) {
+fn position_forward_kernel(rel: &[f32], p: &[f32], out: &mut [f32], units: usize, c: usize) {
     let unit = ABSOLUTE_POS;
     if unit < units {
         let ch = unit % c;
         let row = unit / c;
-        let mut acc = b3[ch];
+        let mut acc = p[3 * c + ch];
         for r in 0..3usize {
-            acc += f32::max(hidden(rel, w0, b0, row, r), 0.0) * w3[r * c + ch];
+            acc += f32::max(hidden(rel, p, row, r, c), 0.0) * p[r * c + ch];
         }
         out[unit] = acc;
     }
@@ -61,9 +61,7 @@ fn position_forward_kernel(
 #[allow(clippy::too_many_arguments)]
 fn position_backward_rows_kernel(
     rel: &[f32],
-    w0: &[f32],
-    b0: &[f32],
-    w3: &[f32],
+    p: &[f32],
     grad: &[f32],
     rel_grad: &mut [f32],
     scratch: &mut [f32],
@@ -74,11 +72,11 @@ fn position_backward_rows_kernel(
     if row < rows {
         // ∂h_pre for the three hidden units, kept in the scratch row's last three slots.
         for r in 0..3usize {
-            let pre = hidden(rel, w0, b0, row, r);
+            let pre = hidden(rel, p, row, r, c);
             let mut gh = 0.0f32;
             if pre > 0.0 {
                 for ch in 0..c {
-                    gh += grad[row * c + ch] * w3[r * c + ch];
+                    gh += grad[row * c + ch] * p[r * c + ch];
                 }
             }
             scratch[row * 6 + r] = f32::max(pre, 0.0);
@@ -87,7 +85,7 @@ fn position_backward_rows_kernel(
         for a in 0..3usize {
             let mut g = 0.0f32;
             for r in 0..3usize {
-                g += scratch[row * 6 + 3 + r] * w0[a * 3 + r];
+                g += scratch[row * 6 + 3 + r] * p[4 * c + a * 3 + r];
             }
             rel_grad[row * 3 + a] = g;
         }
@@ -138,52 +136,54 @@ fn position_partial_sums_kernel(
     }
 }
 
+/// The chunks `part[0..chunks)` of one element `o` added in order onto `acc`.
+#[cube]
+fn add_chunks(part: &[f32], chunks: usize, outputs: usize, o: usize, acc: f32) -> f32 {
+    let mut total = acc;
+    for chunk in 0..chunks {
+        total += part[chunk * outputs + o];
+    }
+    total
+}
+
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 fn position_chunk_totals_kernel(
-    partial: &[f32],
-    w3_grad: &mut [f32],
-    b3_grad: &mut [f32],
-    w0_grad: &mut [f32],
-    b0_grad: &mut [f32],
-    chunks: usize,
+    part0: &[f32],
+    part1: &[f32],
+    part2: &[f32],
+    part3: &[f32],
+    totals: &mut [f32],
+    chunks0: usize,
+    chunks1: usize,
+    chunks2: usize,
+    chunks3: usize,
     outputs: usize,
-    c: usize,
 ) {
     let o = ABSOLUTE_POS;
     if o < outputs {
-        let mut acc = 0.0f32;
-        for chunk in 0..chunks {
-            acc += partial[chunk * outputs + o];
-        }
-        if o < 3 * c {
-            w3_grad[o] = acc;
-        } else if o < 4 * c {
-            b3_grad[o - 3 * c] = acc;
-        } else if o < 4 * c + 9 {
-            w0_grad[o - 4 * c] = acc;
-        } else {
-            b0_grad[o - 4 * c - 9] = acc;
-        }
+        let mut acc = add_chunks(part0, chunks0, outputs, o, 0.0f32);
+        acc = add_chunks(part1, chunks1, outputs, o, acc);
+        acc = add_chunks(part2, chunks2, outputs, o, acc);
+        acc = add_chunks(part3, chunks3, outputs, o, acc);
+        totals[o] = acc;
     }
 }
 
 impl PositionEncodingOps for CubeBackend {
     fn position_encoding(
         rel: FloatTensor<Self>,
-        w0: FloatTensor<Self>,
-        b0: FloatTensor<Self>,
-        w3: FloatTensor<Self>,
-        b3: FloatTensor<Self>,
+        weights: FloatTensor<Self>,
+        _ledger: PositionLedger,
     ) -> FloatTensor<Self> {
         let _span = tracing::trace_span!("cube_position_encoding").entered();
         let dtype = rel.dtype();
         let mut shape = rel.shape().to_vec();
-        let c = w3.shape()[1];
+        let c = channels(&weights);
         let rows: usize = shape[..shape.len() - 1].iter().product();
         *shape.last_mut().expect("rel has a last axis") = c;
         let (client, device) = (rel.client.clone(), rel.device.clone());
-        let [rel, w0, b0, w3, b3] = [rel, w0, b0, w3, b3].map(prepare);
+        let [rel, p] = [rel, weights].map(prepare);
         let units = rows * c;
         let out = client.empty(4 * units.max(1));
         if units > 0 {
@@ -192,10 +192,7 @@ impl PositionEncodingOps for CubeBackend {
                 count_1d(units),
                 CubeDim::new_1d(THREADS_1D),
                 tensor_arg(&rel),
-                tensor_arg(&w0),
-                tensor_arg(&b0),
-                tensor_arg(&w3),
-                tensor_arg(&b3),
+                tensor_arg(&p),
                 arg(&out, units),
                 units,
                 c,
@@ -205,36 +202,36 @@ impl PositionEncodingOps for CubeBackend {
     }
 }
 
+/// `c` of a parameter vector `[4c + 12]`.
+fn channels(weights: &FloatTensor<CubeBackend>) -> usize {
+    (weights.shape()[0] - 12) / 4
+}
+
 impl PositionEncodingKernels for CubeBackend {
     fn position_encoding_backward(
         rel: FloatTensor<Self>,
-        w0: FloatTensor<Self>,
-        b0: FloatTensor<Self>,
-        w3: FloatTensor<Self>,
+        weights: FloatTensor<Self>,
         grad: FloatTensor<Self>,
-    ) -> [FloatTensor<Self>; 5] {
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let _span = tracing::trace_span!("cube_position_encoding_backward").entered();
-        let dtypes = [&rel, &w0, &b0, &w3].map(|t| t.dtype());
+        let dtype = rel.dtype();
         let rel_shape = rel.shape().to_vec();
-        let c = w3.shape()[1];
+        let c = channels(&weights);
         let rows: usize = rel_shape[..rel_shape.len() - 1].iter().product();
         let (client, device) = (rel.client.clone(), rel.device.clone());
-        let [rel, w0, b0, w3, grad] = [rel, w0, b0, w3, grad].map(prepare);
+        let [rel, p, grad] = [rel, weights, grad].map(prepare);
         let rel_grad = client.empty(4 * (rows * 3).max(1));
         let scratch = client.empty(4 * (rows * 6).max(1));
         let outputs = 4 * c + 12;
         let chunks = rows.div_ceil(ROWS_PER_CHUNK).max(1);
         let partial = client.empty(4 * chunks * outputs);
-        let grads = [3 * c, c, 9, 3].map(|len| client.empty(4 * len.max(1)));
         if rows > 0 {
             position_backward_rows_kernel::launch(
                 &client,
                 count_1d(rows),
                 CubeDim::new_1d(THREADS_1D),
                 tensor_arg(&rel),
-                tensor_arg(&w0),
-                tensor_arg(&b0),
-                tensor_arg(&w3),
+                tensor_arg(&p),
                 tensor_arg(&grad),
                 arg(&rel_grad, rows * 3),
                 arg(&scratch, rows * 6),
@@ -242,7 +239,7 @@ impl PositionEncodingKernels for CubeBackend {
                 c,
             );
         }
-        // With no rows the partial sums are all empty: the first kernel writes zeros.
+        // With no rows the partial sums are all empty: the kernel writes zeros.
         position_partial_sums_kernel::launch(
             &client,
             count_1d(chunks * outputs),
@@ -257,29 +254,43 @@ impl PositionEncodingKernels for CubeBackend {
             outputs,
             c,
         );
+        (
+            cast_to(tensor_f32(&client, &device, rel_grad, &rel_shape), dtype),
+            tensor_f32(&client, &device, partial, &[chunks * outputs]),
+        )
+    }
+
+    fn position_weight_totals(
+        partials: Vec<FloatTensor<Self>>,
+        outputs: usize,
+    ) -> FloatTensor<Self> {
+        assert!(
+            !partials.is_empty() && partials.len() <= TOTAL_PARTS,
+            "1 to {TOTAL_PARTS} passes' partial sums"
+        );
+        let (client, device) = (partials[0].client.clone(), partials[0].device.clone());
+        let parts: Vec<_> = partials.into_iter().map(prepare).collect();
+        let chunks: Vec<usize> = (0..TOTAL_PARTS)
+            .map(|i| parts.get(i).map_or(0, |p| p.shape()[0] / outputs))
+            .collect();
+        // Unused parts are bound to the first one and read zero chunks of it.
+        let part = |i: usize| tensor_arg(parts.get(i).unwrap_or(&parts[0]));
+        let totals = client.empty(4 * outputs.max(1));
         position_chunk_totals_kernel::launch(
             &client,
             count_1d(outputs),
             CubeDim::new_1d(THREADS_1D),
-            arg(&partial, chunks * outputs),
-            arg(&grads[0], 3 * c),
-            arg(&grads[1], c),
-            arg(&grads[2], 9),
-            arg(&grads[3], 3),
-            chunks,
+            part(0),
+            part(1),
+            part(2),
+            part(3),
+            arg(&totals, outputs),
+            chunks[0],
+            chunks[1],
+            chunks[2],
+            chunks[3],
             outputs,
-            c,
         );
-        let [w3_grad, b3_grad, w0_grad, b0_grad] = grads;
-        [
-            cast_to(
-                tensor_f32(&client, &device, rel_grad, &rel_shape),
-                dtypes[0],
-            ),
-            cast_to(tensor_f32(&client, &device, w0_grad, &[3, 3]), dtypes[1]),
-            cast_to(tensor_f32(&client, &device, b0_grad, &[3]), dtypes[2]),
-            cast_to(tensor_f32(&client, &device, w3_grad, &[3, c]), dtypes[3]),
-            cast_to(tensor_f32(&client, &device, b3_grad, &[c]), dtypes[3]),
-        ]
+        tensor_f32(&client, &device, totals, &[outputs])
     }
 }

@@ -2,150 +2,271 @@
 //! backend extension for CubeCL devices (design.md §7.5).
 //!
 //! Listed for `Cube`, `Fusion` and `Autodiff` only: the CPU backends keep the two Linear layers,
-//! and the public function never routes them here. The autodiff node keeps the inputs (handles)
-//! and its backward recomputes the hidden layer; every input takes a gradient.
+//! and the public functions never route them here. The four weights travel as one parameter
+//! vector `p = [W₃, b₃, W₀, b₀]` (`4c + 12`), whose gradient is a sum over every row of every
+//! pass that reads it. As for the shared layers (`crate::shared_linear`), two kinds of node split
+//! that sum:
+//!
+//! - a **product node** per pass (`position_encoding`) keeps `rel` and `p` (handles) and, in its
+//!   backward, recomputes the hidden layer, registers `∂rel`, and files the pass's partial sums
+//!   of the weights' gradient (one per [`ROWS_PER_CHUNK`](super::position_cube) rows) with the
+//!   vector's [`PositionLedger`]; the first one registers a placeholder for the vector's node
+//!   (`p`'s own handle: the right shape, no copy) so that Burn reaches it;
+//! - a **parameter node** (`position_weights`) between the vector and every pass. Burn runs it
+//!   after every pass's node (it is shallower); it adds all filed partial sums up in one launch
+//!   (four passes a launch) and registers `∂p`.
+//!
+//! Per layer and step that is two launches per pass and one in all, where one op per pass cost
+//! three per pass and Burn's sums of the four weights' per-pass gradients four per further pass.
+
+use std::sync::{Arc, Mutex, PoisonError};
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops};
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
+use burn::tensor::Shape;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
-use lifegom_render::op_backward::{gradient_per_input, record};
+use lifegom_render::op_backward::record;
 
-/// `relu(rel·W₀ + b₀)·W₃ + b₃` over the last axis of `rel` (`[.., 3]`), with `W₀` `[3, 3]`,
-/// `b₀` `[3]`, `W₃` `[3, c]`, `b₃` `[c]`; the output is `rel`'s shape with `c` last, in `rel`'s
-/// float dtype. Callers check shapes.
+/// Passes' partial sums added by one launch of
+/// [`PositionEncodingKernels::position_weight_totals`].
+pub const TOTAL_PARTS: usize = 4;
+
+/// The partial sums the passes' product nodes filed for one parameter vector, and whether its
+/// node was reached (module docs). Clones share one record.
+#[derive(Clone, Default)]
+pub struct PositionLedger(Arc<Mutex<LedgerState>>);
+
+impl std::fmt::Debug for PositionLedger {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("PositionLedger")
+    }
+}
+
+#[derive(Default)]
+struct LedgerState {
+    /// `Vec<FloatTensor<B>>` of the backend that runs the backward; typed on first use.
+    partials: Option<Box<dyn std::any::Any + Send>>,
+    /// Whether a placeholder was registered for the vector's node.
+    seeded: bool,
+}
+
+impl PositionLedger {
+    fn lock(&self) -> std::sync::MutexGuard<'_, LedgerState> {
+        self.0.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+}
+
+impl LedgerState {
+    fn partials<B: Backend>(&mut self) -> &mut Vec<FloatTensor<B>> {
+        self.partials
+            .get_or_insert_with(|| Box::new(Vec::<FloatTensor<B>>::new()))
+            .downcast_mut()
+            .expect("one vector's passes run on one backend")
+    }
+}
+
+/// `relu(rel·W₀ + b₀)·W₃ + b₃` over the last axis of `rel` (`[.., 3]`), with the weights in one
+/// vector `p = [W₃ (3·c, row-major [3, c]), b₃ (c), W₀ (9, row-major [3, 3]), b₀ (3)]`; the
+/// output is `rel`'s shape with `c` last, in `rel`'s float dtype. Callers check shapes.
 #[backend_extension(Cube, Fusion, Autodiff)]
 pub trait PositionEncodingOps: Backend {
-    /// The encoding.
+    /// The parameter vector every pass reads: the same values (module docs).
+    #[fusion(default)]
+    fn position_weights(weights: FloatTensor<Self>, ledger: PositionLedger) -> FloatTensor<Self> {
+        let _ = ledger;
+        weights
+    }
+
+    /// One pass's encoding.
     #[fusion(dtype = rel, shape = {
         let mut shape = rel.clone();
         let last = shape.num_dims() - 1;
-        shape[last] = w3[1];
+        shape[last] = (weights[0] - 12) / 4;
         shape
     })]
     fn position_encoding(
         rel: FloatTensor<Self>,
-        w0: FloatTensor<Self>,
-        b0: FloatTensor<Self>,
-        w3: FloatTensor<Self>,
-        b3: FloatTensor<Self>,
+        weights: FloatTensor<Self>,
+        ledger: PositionLedger,
     ) -> FloatTensor<Self>;
 }
 
 /// What a backend implements so that `Autodiff<B>` can differentiate the op.
 #[doc(hidden)]
 pub trait PositionEncodingKernels: Backend {
-    /// `[∂rel, ∂W₀, ∂b₀, ∂W₃, ∂b₃]` given the output's gradient (`b₃` does not enter them).
+    /// One pass's `(∂rel, partial sums)` for the output's gradient: the partial sums are
+    /// `[chunks · (4c + 12)]` (`f32`), the weights' gradient over each chunk of rows.
     fn position_encoding_backward(
         rel: FloatTensor<Self>,
-        w0: FloatTensor<Self>,
-        b0: FloatTensor<Self>,
-        w3: FloatTensor<Self>,
+        weights: FloatTensor<Self>,
         grad: FloatTensor<Self>,
-    ) -> [FloatTensor<Self>; 5];
+    ) -> (FloatTensor<Self>, FloatTensor<Self>);
+
+    /// `∂p` `[outputs]`: 1 to [`TOTAL_PARTS`] passes' partial sums added up.
+    fn position_weight_totals(
+        partials: Vec<FloatTensor<Self>>,
+        outputs: usize,
+    ) -> FloatTensor<Self>;
 }
 
-/// The autodiff node's state: the inputs the backward reads.
+impl<B: FusionBackend + PositionEncodingKernels> PositionEncodingKernels for Fusion<B> {
+    fn position_encoding_backward(
+        rel: FloatTensor<Self>,
+        weights: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let outputs = weights.shape()[0];
+        let rows = rel.shape().num_elements() / 3;
+        let chunks = rows.div_ceil(super::position_cube::ROWS_PER_CHUNK).max(1);
+        let specs = vec![
+            float_like::<B>(&rel, rel.shape()),
+            float_like::<B>(&weights, Shape::new([chunks * outputs])),
+        ];
+        let inputs = vec![Input::Float(rel), Input::Float(weights), Input::Float(grad)];
+        let [rel_grad, partial] = array(deferred::<B, _>(
+            "position_encoding_backward",
+            inputs,
+            specs,
+            |v| {
+                let [rel, weights, grad] = array(v);
+                let (rel_grad, partial) =
+                    B::position_encoding_backward(rel.float(), weights.float(), grad.float());
+                vec![Value::Float(rel_grad), Value::Float(partial)]
+            },
+        ));
+        (rel_grad, partial)
+    }
+
+    fn position_weight_totals(
+        partials: Vec<FloatTensor<Self>>,
+        outputs: usize,
+    ) -> FloatTensor<Self> {
+        let specs = vec![float_like::<B>(&partials[0], Shape::new([outputs]))];
+        let inputs = partials.into_iter().map(Input::Float).collect();
+        let [totals] = array(deferred::<B, _>(
+            "position_weight_totals",
+            inputs,
+            specs,
+            move |v| {
+                let partials = v.into_iter().map(Value::float).collect();
+                vec![Value::Float(B::position_weight_totals(partials, outputs))]
+            },
+        ));
+        totals
+    }
+}
+
+/// A product node's state.
 #[derive(Debug, Clone)]
 pub struct PositionInputs<B: Backend> {
     rel: FloatTensor<B>,
-    w0: FloatTensor<B>,
-    b0: FloatTensor<B>,
-    w3: FloatTensor<B>,
-    b3: FloatTensor<B>,
+    weights: FloatTensor<B>,
+    ledger: PositionLedger,
 }
 
 #[derive(Debug)]
 struct PositionBackward;
 
-impl<B: PositionEncodingKernels> Backward<B, 5> for PositionBackward {
+impl<B: PositionEncodingKernels> Backward<B, 2> for PositionBackward {
     type State = PositionInputs<B>;
 
     fn backward(
         self,
-        ops: Ops<Self::State, 5>,
+        ops: Ops<Self::State, 2>,
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
-        gradient_per_input::<B, _, 5>(ops, grads, |s, grad| {
-            B::position_encoding_backward(s.rel, s.w0, s.b0, s.w3, grad)
-        });
+        let grad = grads.consume::<B>(&ops.node);
+        let [rel_node, weights_node] = ops.parents;
+        let s = ops.state;
+        let (rel_grad, partial) = B::position_encoding_backward(s.rel, s.weights.clone(), grad);
+        if let Some(node) = rel_node {
+            grads.register::<B>(node.id, rel_grad);
+        }
+        if let Some(node) = weights_node {
+            let mut ledger = s.ledger.lock();
+            if !ledger.seeded {
+                grads.register::<B>(node.id, s.weights);
+                ledger.seeded = true;
+            }
+            ledger.partials::<B>().push(partial);
+        }
+    }
+}
+
+#[derive(Debug)]
+struct WeightsBackward;
+
+impl<B: PositionEncodingKernels> Backward<B, 1> for WeightsBackward {
+    type State = (PositionLedger, usize);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        // The placeholder a product node registered.
+        let _ = grads.consume::<B>(&ops.node);
+        let [Some(parent)] = ops.parents else {
+            return;
+        };
+        let (ledger, outputs) = ops.state;
+        let mut partials = std::mem::take(ledger.lock().partials::<B>());
+        while partials.len() > 1 {
+            let take = partials.len().min(TOTAL_PARTS);
+            let sum = B::position_weight_totals(partials.drain(..take).collect(), outputs);
+            partials.insert(0, sum);
+        }
+        let Some(partial) = partials.pop() else {
+            return;
+        };
+        let total = if partial.shape()[0] == outputs {
+            partial
+        } else {
+            B::position_weight_totals(vec![partial], outputs)
+        };
+        grads.register::<B>(parent.id, total);
     }
 }
 
 impl<B: PositionEncodingOps + PositionEncodingKernels, C: CheckpointStrategy> PositionEncodingOps
     for Autodiff<B, C>
 {
+    fn position_weights(weights: FloatTensor<Self>, ledger: PositionLedger) -> FloatTensor<Self> {
+        let outputs = weights.shape()[0];
+        let (weights, node) = weights.into_parts();
+        match WeightsBackward
+            .prepare::<C>([node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish((ledger, outputs), weights),
+            OpsKind::UnTracked(prep) => prep.finish(weights),
+        }
+    }
+
     fn position_encoding(
         rel: FloatTensor<Self>,
-        w0: FloatTensor<Self>,
-        b0: FloatTensor<Self>,
-        w3: FloatTensor<Self>,
-        b3: FloatTensor<Self>,
+        weights: FloatTensor<Self>,
+        ledger: PositionLedger,
     ) -> FloatTensor<Self> {
         let (rel, rel_node) = rel.into_parts();
-        let (w0, w0_node) = w0.into_parts();
-        let (b0, b0_node) = b0.into_parts();
-        let (w3, w3_node) = w3.into_parts();
-        let (b3, b3_node) = b3.into_parts();
-        record::<B, C, _, _, 5>(
+        let (weights, weights_node) = weights.into_parts();
+        record::<B, C, _, _, 2>(
             PositionBackward,
-            [rel_node, w0_node, b0_node, w3_node, b3_node],
+            [rel_node, weights_node],
             PositionInputs {
                 rel,
-                w0,
-                b0,
-                w3,
-                b3,
+                weights,
+                ledger,
             },
-            |s| B::position_encoding(s.rel, s.w0, s.b0, s.w3, s.b3),
+            |s| B::position_encoding(s.rel, s.weights, s.ledger),
         )
-    }
-}
-
-impl<B: FusionBackend + PositionEncodingKernels> PositionEncodingKernels for Fusion<B> {
-    fn position_encoding_backward(
-        rel: FloatTensor<Self>,
-        w0: FloatTensor<Self>,
-        b0: FloatTensor<Self>,
-        w3: FloatTensor<Self>,
-        grad: FloatTensor<Self>,
-    ) -> [FloatTensor<Self>; 5] {
-        let c = w3.shape()[1];
-        let specs = vec![
-            float_like::<B>(&rel, rel.shape()),
-            float_like::<B>(&w0, w0.shape()),
-            float_like::<B>(&b0, b0.shape()),
-            float_like::<B>(&w3, w3.shape()),
-            float_like::<B>(&w3, burn::tensor::Shape::new([c])),
-        ];
-        let inputs = vec![
-            Input::Float(rel),
-            Input::Float(w0),
-            Input::Float(b0),
-            Input::Float(w3),
-            Input::Float(grad),
-        ];
-        array(deferred::<B, _>(
-            "position_encoding_backward",
-            inputs,
-            specs,
-            |v| {
-                let [rel, w0, b0, w3, grad] = array(v);
-                B::position_encoding_backward(
-                    rel.float(),
-                    w0.float(),
-                    b0.float(),
-                    w3.float(),
-                    grad.float(),
-                )
-                .map(Value::Float)
-                .into()
-            },
-        ))
     }
 }
