@@ -754,10 +754,10 @@ impl PointTransformerLayer {
 
         let mw = &self.linear_w;
         let (scale, shift) = folds.affine(&mw.bn0, &device);
-        let w = vector_attention::relation(qkv.clone(), nbr.clone(), delta.clone(), scale, shift);
-        let w = relu(linear_bn(folds, &mw.fc2, &mw.bn3, w));
-        let w = folds.shared_layer(&mw.fc5).forward(w); // [n, k, c/s]
-        vector_attention::aggregate_gathered(qkv, nbr, delta, w)
+        vector_attention::attend(qkv, nbr, delta, scale, shift, |related| {
+            let w = relu(linear_bn(folds, &mw.fc2, &mw.bn3, related));
+            folds.shared_layer(&mw.fc5).forward(w) // [n, k, c/s]
+        })
     }
 }
 

@@ -98,6 +98,53 @@ pub fn relation(
     scale: Tensor<1>,
     shift: Tensor<1>,
 ) -> Tensor<3> {
+    relation_paired(
+        qkv,
+        neighbours,
+        delta,
+        scale,
+        shift,
+        neighbour_op::AttentionPair::unpaired(),
+    )
+}
+
+/// The whole neighbourhood part of the layer: [`relation`], then `mlp` (the rest of `MLP_w`) on
+/// it for the logits, then [`aggregate_gathered`]; `[n, c]`. On CubeCL devices the two ops are
+/// paired ([`neighbour_op::AttentionPair`]): their gradients for `qkv` and `δ` are added inside
+/// the relation's backward instead of by two more launches. `mlp` must use its input (the
+/// pairing relies on the relation's backward running).
+///
+/// # Panics
+///
+/// As [`relation`] and [`aggregate_gathered`].
+pub fn attend(
+    qkv: Tensor<2>,
+    neighbours: Tensor<1, Int>,
+    delta: Tensor<3>,
+    scale: Tensor<1>,
+    shift: Tensor<1>,
+    mlp: impl FnOnce(Tensor<3>) -> Tensor<3>,
+) -> Tensor<2> {
+    let pair = neighbour_op::AttentionPair::new();
+    let related = relation_paired(
+        qkv.clone(),
+        neighbours.clone(),
+        delta.clone(),
+        scale,
+        shift,
+        pair.clone(),
+    );
+    aggregate_gathered_paired(qkv, neighbours, delta, mlp(related), pair)
+}
+
+fn relation_paired(
+    qkv: Tensor<2>,
+    neighbours: Tensor<1, Int>,
+    delta: Tensor<3>,
+    scale: Tensor<1>,
+    shift: Tensor<1>,
+    pair: neighbour_op::AttentionPair,
+) -> Tensor<3> {
     check_gathered_shapes(&qkv, &neighbours, &delta);
     let c = delta.dims()[2];
     assert_eq!(scale.dims(), [c], "relation: scale must be [c]");
@@ -112,6 +159,7 @@ pub fn relation(
             delta.into_dispatch(),
             scale.into_dispatch(),
             shift.into_dispatch(),
+            pair,
         ),
     )
 }
@@ -127,6 +175,22 @@ pub fn aggregate_gathered(
     neighbours: Tensor<1, Int>,
     delta: Tensor<3>,
     logits: Tensor<3>,
+) -> Tensor<2> {
+    aggregate_gathered_paired(
+        qkv,
+        neighbours,
+        delta,
+        logits,
+        neighbour_op::AttentionPair::unpaired(),
+    )
+}
+
+fn aggregate_gathered_paired(
+    qkv: Tensor<2>,
+    neighbours: Tensor<1, Int>,
+    delta: Tensor<3>,
+    logits: Tensor<3>,
+    pair: neighbour_op::AttentionPair,
 ) -> Tensor<2> {
     check_gathered_shapes(&qkv, &neighbours, &delta);
     let [n, k, c] = delta.dims();
@@ -146,6 +210,7 @@ pub fn aggregate_gathered(
             neighbours.into_dispatch(),
             delta.into_dispatch(),
             logits.into_dispatch(),
+            pair,
         ),
     )
 }
@@ -528,6 +593,88 @@ mod tests {
     fn position_encoding_matches_reference_wgpu() {
         if let Some(device) = lifegom_render::testing::wgpu_test_device() {
             check_position_encoding_matches_reference(&device);
+        }
+    }
+
+    /// [`attend`] (on CubeCL devices the paired ops, whose `qkv` and `δ` gradients add up in
+    /// the relation's backward) against the reference composition on Flex: the output and the
+    /// gradients of `qkv`, `δ` and a tensor the logits also read, with an MLP that mixes the
+    /// relation's channels into the logits.
+    fn check_attend_matches_reference(device: &Device) {
+        let (n, k, c, cs) = (37usize, 5usize, 12usize, 4usize);
+        let mut rng = Rng::new(29);
+        let mut uniform = |len: usize, lo: f32, hi: f32| -> Vec<f32> {
+            (0..len).map(|_| rng.range_f32(lo, hi)).collect()
+        };
+        let qkv = uniform(n * 3 * c, -1.0, 1.0);
+        let delta = uniform(n * k * c, -1.0, 1.0);
+        let bias = uniform(n * k * cs, -2.0, 2.0);
+        let scale = uniform(c, -1.5, 1.5);
+        let shift = uniform(c, -0.3, 0.3);
+        let out_weight = uniform(n * c, -1.0, 1.0);
+        let neighbours: Vec<i64> = (0..n * k)
+            .map(|ik| ((ik / k) * 5 + (ik % k) * 11) as i64 % n as i64)
+            .collect();
+        let run = |device: &Device, paired: bool| {
+            let ad = device.clone().autodiff();
+            fn t<const D: usize>(v: &[f32], shape: [usize; D], device: &Device) -> Tensor<D> {
+                Tensor::from_data(TensorData::new(v.to_vec(), shape), device)
+            }
+            let qkv = t(&qkv, [n, 3 * c], &ad).require_grad();
+            let delta = t(&delta, [n, k, c], &ad).require_grad();
+            let bias = t(&bias, [n, k, cs], &ad).require_grad();
+            let nbr = Tensor::<1, burn::tensor::Int>::from_data(
+                TensorData::new(neighbours.clone(), [n * k]),
+                &ad,
+            );
+            let (scale, shift) = (t(&scale, [c], &ad), t(&shift, [c], &ad));
+            let mlp = |related: Tensor<3>| {
+                related
+                    .reshape([n, k, c / cs, cs])
+                    .sum_dim(2)
+                    .reshape([n, k, cs])
+                    * 0.7
+                    + bias.clone()
+            };
+            let out = if paired {
+                attend(qkv.clone(), nbr, delta.clone(), scale, shift, mlp)
+            } else {
+                let related =
+                    relation_reference(qkv.clone(), nbr.clone(), delta.clone(), scale, shift);
+                aggregate_gathered_reference(qkv.clone(), nbr, delta.clone(), mlp(related))
+            };
+            let grads = (out.clone() * t(&out_weight, [n, c], &ad)).sum().backward();
+            [
+                read(out),
+                read(qkv.grad(&grads).expect("qkv gradient")),
+                read(delta.grad(&grads).expect("delta gradient")),
+                read(bias.grad(&grads).expect("logit bias gradient")),
+            ]
+        };
+        let want = run(&Device::flex(), false);
+        let got = run(device, true);
+        let names = [
+            "output",
+            "qkv gradient",
+            "delta gradient",
+            "logit bias gradient",
+        ];
+        for (name, (a, b)) in names.iter().zip(got.iter().zip(&want)) {
+            assert_eq!(a.len(), b.len(), "{name}");
+            let diff = a
+                .iter()
+                .zip(b)
+                .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+            assert!(diff <= 1e-5, "{name} on {device:?}: max diff {diff:.2e}");
+        }
+    }
+
+    lifegom_render::cpu_backend_tests!(attend_matches_reference => check_attend_matches_reference);
+
+    #[test]
+    fn attend_matches_reference_wgpu() {
+        if let Some(device) = lifegom_render::testing::wgpu_test_device() {
+            check_attend_matches_reference(&device);
         }
     }
 

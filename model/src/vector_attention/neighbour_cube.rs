@@ -38,7 +38,7 @@ use lifegom_render::cube::host::{
 };
 
 use super::cube::{probability, softmax_scale};
-use super::neighbour_op::{NeighbourAttentionKernels, NeighbourAttentionOps};
+use super::neighbour_op::{AttentionPair, NeighbourAttentionKernels, NeighbourAttentionOps};
 
 /// The sizes every kernel indexes with.
 #[derive(CubeType, CubeLaunch)]
@@ -110,9 +110,11 @@ fn relation_backward_rows_kernel(
     scale: &[f32],
     shift: &[f32],
     grad: &[f32],
+    qkv_addend: &[f32],
     qkv_grad: &mut [f32],
     delta_grad: &mut [f32],
     units: usize,
+    added: u32,
     sizes: &Sizes,
 ) {
     let unit = ABSOLUTE_POS;
@@ -131,9 +133,16 @@ fn relation_backward_rows_kernel(
             query -= g;
         }
         let row = i * 3 * sizes.c;
+        let mut key = 0.0f32;
+        let mut value = 0.0f32;
+        if added != 0 {
+            query += qkv_addend[row + ch];
+            key = qkv_addend[row + sizes.c + ch];
+            value = qkv_addend[row + 2 * sizes.c + ch];
+        }
         qkv_grad[row + ch] = query;
-        qkv_grad[row + sizes.c + ch] = 0.0;
-        qkv_grad[row + 2 * sizes.c + ch] = 0.0;
+        qkv_grad[row + sizes.c + ch] = key;
+        qkv_grad[row + 2 * sizes.c + ch] = value;
     }
 }
 
@@ -236,18 +245,27 @@ fn aggregate_gathered_backward_rows_kernel(
     }
 }
 
-/// `qkv_grad[nbr, offset + ch] += delta_grad[i, κ, ch]` for every `(i, κ, ch)`.
+/// `qkv_grad[nbr, offset + ch] += delta_grad[i, κ, ch]` for every `(i, κ, ch)`; with `added`,
+/// also `delta_out = delta_grad + delta_addend` (the relation's `∂δ` and the paired
+/// aggregation's, `super::neighbour_op`).
 #[cube(launch)]
+#[allow(clippy::too_many_arguments)]
 fn scatter_columns_kernel<A: AtomicAddF32>(
     neighbours: &[i32],
     delta_grad: &[f32],
+    delta_addend: &[f32],
+    delta_out: &mut [f32],
     qkv_grad: &[Atomic<A>],
     units: usize,
     offset: usize,
+    added: u32,
     sizes: &Sizes,
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
+        if added != 0 {
+            delta_out[unit] = delta_grad[unit] + delta_addend[unit];
+        }
         let ch = unit % sizes.c;
         let ik = unit / sizes.c;
         let row = neighbours[ik];
@@ -266,7 +284,8 @@ fn sizes_of(qkv: &CubeTensor, delta: &CubeTensor) -> (usize, usize, usize) {
     (q[0], d[1], d[2])
 }
 
-/// Adds `delta_grad` into the columns `offset..offset + c` of `qkv_grad` at each neighbour's row.
+/// Adds `delta_grad` into the columns `offset..offset + c` of `qkv_grad` at each neighbour's row;
+/// with `sum = Some((addend, out))` also writes `delta_grad + addend` into `out`.
 fn scatter_columns(
     client: &lifegom_render::cube::host::ComputeClient,
     neighbours: &CubeTensor,
@@ -274,22 +293,34 @@ fn scatter_columns(
     qkv_grad: &cubecl::server::Handle,
     offset: usize,
     (n, k, c): (usize, usize, usize),
+    sum: Option<(&CubeTensor, &cubecl::server::Handle)>,
 ) {
     let units = n * k * c;
+    // Without a sum the kernel writes nothing more: a word of its own stands in for the output
+    // (a buffer bound twice, once writable, is not allowed).
+    let spare = client.empty(4);
+    let sum_args = || match sum {
+        Some((addend, out)) => (tensor_arg(addend), arg(out, units), 1u32),
+        None => (arg(delta_grad, units), arg(&spare, 1), 0u32),
+    };
     macro_rules! launch {
-        ($slot:ty) => {
+        ($slot:ty) => {{
+            let (addend, out, added) = sum_args();
             scatter_columns_kernel::launch::<$slot>(
                 client,
                 count_1d(units),
                 CubeDim::new_1d(THREADS_1D),
                 tensor_arg(neighbours),
                 arg(delta_grad, units),
+                addend,
+                out,
                 arg(qkv_grad, n * 3 * c),
                 units,
                 offset,
+                added,
                 SizesLaunch::new(n, k, c),
             )
-        };
+        }};
     }
     if use_native_float_atomics(client) {
         launch!(f32);
@@ -305,6 +336,7 @@ impl NeighbourAttentionOps for CubeBackend {
         delta: FloatTensor<Self>,
         scale: FloatTensor<Self>,
         shift: FloatTensor<Self>,
+        _pair: AttentionPair,
     ) -> FloatTensor<Self> {
         let _span = tracing::trace_span!("cube_attention_relation").entered();
         let dtype = delta.dtype();
@@ -338,6 +370,7 @@ impl NeighbourAttentionOps for CubeBackend {
         neighbours: IntTensor<Self>,
         delta: FloatTensor<Self>,
         logits: FloatTensor<Self>,
+        _pair: AttentionPair,
     ) -> FloatTensor<Self> {
         let _span = tracing::trace_span!("cube_attention_aggregate_gathered").entered();
         let dtype = delta.dtype();
@@ -375,6 +408,7 @@ impl NeighbourAttentionKernels for CubeBackend {
         scale: FloatTensor<Self>,
         shift: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        addends: Option<(FloatTensor<Self>, FloatTensor<Self>)>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let _span = tracing::trace_span!("cube_attention_relation_backward").entered();
         let (qkv_dtype, delta_dtype) = (qkv.dtype(), delta.dtype());
@@ -385,6 +419,12 @@ impl NeighbourAttentionKernels for CubeBackend {
         let neighbours = prepare_i32(neighbours);
         let qkv_grad = client.empty(4 * (n * 3 * c).max(1));
         let delta_grad = client.empty(4 * (n * k * c).max(1));
+        let addends = addends.map(|(q, d)| (prepare(q), prepare(d)));
+        // With the paired aggregation's gradients the sum of both `∂δ` goes to a buffer of its
+        // own: the scatter still reads the relation's alone for the keys.
+        let delta_total = addends
+            .as_ref()
+            .map(|_| client.empty(4 * (n * k * c).max(1)));
         let units = n * c;
         if units > 0 {
             relation_backward_rows_kernel::launch(
@@ -397,15 +437,32 @@ impl NeighbourAttentionKernels for CubeBackend {
                 tensor_arg(&scale),
                 tensor_arg(&shift),
                 tensor_arg(&grad),
+                addends
+                    .as_ref()
+                    .map_or_else(|| tensor_arg(&grad), |(q, _)| tensor_arg(q)),
                 arg(&qkv_grad, n * 3 * c),
                 arg(&delta_grad, n * k * c),
                 units,
+                u32::from(addends.is_some()),
                 SizesLaunch::new(n, k, c),
             );
             if k > 0 {
-                scatter_columns(&client, &neighbours, &delta_grad, &qkv_grad, c, (n, k, c));
+                let sum = addends
+                    .as_ref()
+                    .zip(delta_total.as_ref())
+                    .map(|((_, d), out)| (d, out));
+                scatter_columns(
+                    &client,
+                    &neighbours,
+                    &delta_grad,
+                    &qkv_grad,
+                    c,
+                    (n, k, c),
+                    sum,
+                );
             }
         }
+        let delta_grad = delta_total.unwrap_or(delta_grad);
         (
             cast_to(
                 tensor_f32(&client, &device, qkv_grad, &[n, 3 * c]),
@@ -461,6 +518,7 @@ impl NeighbourAttentionKernels for CubeBackend {
                 &qkv_grad,
                 2 * c,
                 (n, k, c),
+                None,
             );
         }
         (

@@ -7,6 +7,18 @@
 //! inputs (handles, no copies) and recompute what the backward needs. `scale` and `shift` of the
 //! relation are the frozen BatchNorm's and take no gradient (design.md §7.5); the neighbour
 //! table is an int tensor and takes none either.
+//!
+//! **Paired ops.** In a layer both ops read the same `qkv` and `δ`, so Burn adds their
+//! gradients: two more launches per layer and pass. A relation and the aggregation whose logits
+//! come from it can share an [`AttentionPair`]: the aggregation's node, which Burn runs first
+//! (it is deeper), files its `∂qkv` and `∂δ` with the pair instead of registering them, and the
+//! relation's backward kernels add them to their own as they write them. A pair must join
+//! exactly one relation to one aggregation whose logits depend on the relation's output;
+//! otherwise the filed gradients are never taken (the public functions pair nothing; the Point
+//! Transformer layer pairs its own two ops).
+
+use std::any::Any;
+use std::sync::{Arc, Mutex, PoisonError};
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -17,6 +29,53 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
 use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
 use lifegom_render::op_backward::{gradient_per_input, record};
+
+/// A relation and an aggregation whose gradients for `qkv` and `δ` are added inside the
+/// relation's backward (module docs), or no pairing. Clones share one record.
+#[derive(Clone, Default)]
+pub struct AttentionPair(Option<Arc<Mutex<Option<Box<dyn Any + Send>>>>>);
+
+impl std::fmt::Debug for AttentionPair {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(if self.0.is_some() {
+            "AttentionPair"
+        } else {
+            "AttentionPair(unpaired)"
+        })
+    }
+}
+
+impl AttentionPair {
+    /// A pair for one relation and one aggregation.
+    pub fn new() -> Self {
+        Self(Some(Arc::default()))
+    }
+
+    /// No pairing: each op registers its own gradients.
+    pub fn unpaired() -> Self {
+        Self(None)
+    }
+
+    /// Files the aggregation's `(∂qkv, ∂δ)`; `false` when unpaired.
+    fn file<B: Backend>(&self, grads: (FloatTensor<B>, FloatTensor<B>)) -> bool {
+        let Some(slot) = &self.0 else {
+            return false;
+        };
+        *slot.lock().unwrap_or_else(PoisonError::into_inner) = Some(Box::new(grads));
+        true
+    }
+
+    /// The aggregation's filed `(∂qkv, ∂δ)`, if any.
+    fn take<B: Backend>(&self) -> Option<(FloatTensor<B>, FloatTensor<B>)> {
+        let slot = self.0.as_ref()?;
+        let filed = slot.lock().unwrap_or_else(PoisonError::into_inner).take()?;
+        Some(
+            *filed
+                .downcast::<(FloatTensor<B>, FloatTensor<B>)>()
+                .expect("a pair's ops run on one backend"),
+        )
+    }
+}
 
 /// The neighbourhood half of vector attention (see [`super`]).
 ///
@@ -32,6 +91,7 @@ pub trait NeighbourAttentionOps: Backend {
         delta: FloatTensor<Self>,
         scale: FloatTensor<Self>,
         shift: FloatTensor<Self>,
+        pair: AttentionPair,
     ) -> FloatTensor<Self>;
 
     /// `Σ_κ softmax_κ(logits)·(v[nbr] + δ)`, `[n, c]`, with `logits` `[n, k, C/S]`.
@@ -41,6 +101,7 @@ pub trait NeighbourAttentionOps: Backend {
         neighbours: IntTensor<Self>,
         delta: FloatTensor<Self>,
         logits: FloatTensor<Self>,
+        pair: AttentionPair,
     ) -> FloatTensor<Self>;
 }
 
@@ -48,7 +109,8 @@ pub trait NeighbourAttentionOps: Backend {
 #[doc(hidden)]
 pub trait NeighbourAttentionKernels: Backend {
     /// `(∂qkv, ∂δ)` of [`NeighbourAttentionOps::attention_relation`] given its output's
-    /// gradient.
+    /// gradient, plus `addends` (the paired aggregation's `(∂qkv, ∂δ)`) when given.
+    #[allow(clippy::too_many_arguments)]
     fn attention_relation_backward(
         qkv: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
@@ -56,6 +118,7 @@ pub trait NeighbourAttentionKernels: Backend {
         scale: FloatTensor<Self>,
         shift: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        addends: Option<(FloatTensor<Self>, FloatTensor<Self>)>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
     /// `(∂qkv, ∂δ, ∂logits)` of [`NeighbourAttentionOps::attention_aggregate_gathered`].
@@ -76,6 +139,7 @@ pub struct RelationInputs<B: Backend> {
     delta: FloatTensor<B>,
     scale: FloatTensor<B>,
     shift: FloatTensor<B>,
+    pair: AttentionPair,
 }
 
 /// The aggregation node's state: every input.
@@ -85,6 +149,7 @@ pub struct GatheredInputs<B: Backend> {
     neighbours: IntTensor<B>,
     delta: FloatTensor<B>,
     logits: FloatTensor<B>,
+    pair: AttentionPair,
 }
 
 #[derive(Debug)]
@@ -100,6 +165,7 @@ impl<B: NeighbourAttentionKernels> Backward<B, 2> for RelationBackward {
         _checkpointer: &mut Checkpointer,
     ) {
         gradient_per_input::<B, _, 2>(ops, grads, |s, grad| {
+            let addends = s.pair.take::<B>();
             let (qkv, delta) = B::attention_relation_backward(
                 s.qkv,
                 s.neighbours,
@@ -107,6 +173,7 @@ impl<B: NeighbourAttentionKernels> Backward<B, 2> for RelationBackward {
                 s.scale,
                 s.shift,
                 grad,
+                addends,
             );
             [qkv, delta]
         });
@@ -125,16 +192,22 @@ impl<B: NeighbourAttentionKernels> Backward<B, 3> for GatheredBackward {
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
-        gradient_per_input::<B, _, 3>(ops, grads, |s, grad| {
-            let (qkv, delta, logits) = B::attention_aggregate_gathered_backward(
-                s.qkv,
-                s.neighbours,
-                s.delta,
-                s.logits,
-                grad,
-            );
-            [qkv, delta, logits]
-        });
+        let grad = grads.consume::<B>(&ops.node);
+        let [qkv_node, delta_node, logits_node] = ops.parents;
+        let s = ops.state;
+        let (qkv, delta, logits) =
+            B::attention_aggregate_gathered_backward(s.qkv, s.neighbours, s.delta, s.logits, grad);
+        if let Some(node) = logits_node {
+            grads.register::<B>(node.id, logits);
+        }
+        if s.pair.file::<B>((qkv.clone(), delta.clone())) {
+            return;
+        }
+        for (node, grad) in [(qkv_node, qkv), (delta_node, delta)] {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, grad);
+            }
+        }
     }
 }
 
@@ -147,6 +220,7 @@ impl<B: NeighbourAttentionOps + NeighbourAttentionKernels, C: CheckpointStrategy
         delta: FloatTensor<Self>,
         scale: FloatTensor<Self>,
         shift: FloatTensor<Self>,
+        pair: AttentionPair,
     ) -> FloatTensor<Self> {
         let (qkv, qkv_node) = qkv.into_parts();
         let (delta, delta_node) = delta.into_parts();
@@ -162,8 +236,9 @@ impl<B: NeighbourAttentionOps + NeighbourAttentionKernels, C: CheckpointStrategy
                 delta,
                 scale,
                 shift,
+                pair,
             },
-            |s| B::attention_relation(s.qkv, s.neighbours, s.delta, s.scale, s.shift),
+            |s| B::attention_relation(s.qkv, s.neighbours, s.delta, s.scale, s.shift, s.pair),
         )
     }
 
@@ -172,6 +247,7 @@ impl<B: NeighbourAttentionOps + NeighbourAttentionKernels, C: CheckpointStrategy
         neighbours: IntTensor<Self>,
         delta: FloatTensor<Self>,
         logits: FloatTensor<Self>,
+        pair: AttentionPair,
     ) -> FloatTensor<Self> {
         let (qkv, qkv_node) = qkv.into_parts();
         let (delta, delta_node) = delta.into_parts();
@@ -184,8 +260,9 @@ impl<B: NeighbourAttentionOps + NeighbourAttentionKernels, C: CheckpointStrategy
                 neighbours,
                 delta,
                 logits,
+                pair,
             },
-            |s| B::attention_aggregate_gathered(s.qkv, s.neighbours, s.delta, s.logits),
+            |s| B::attention_aggregate_gathered(s.qkv, s.neighbours, s.delta, s.logits, s.pair),
         )
     }
 }
@@ -198,12 +275,14 @@ impl<B: FusionBackend + NeighbourAttentionKernels> NeighbourAttentionKernels for
         scale: FloatTensor<Self>,
         shift: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        addends: Option<(FloatTensor<Self>, FloatTensor<Self>)>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let specs = vec![
             float_like::<B>(&qkv, qkv.shape()),
             float_like::<B>(&delta, delta.shape()),
         ];
-        let inputs = vec![
+        let added = addends.is_some();
+        let mut inputs = vec![
             Input::Float(qkv),
             Input::Int(neighbours),
             Input::Float(delta),
@@ -211,11 +290,21 @@ impl<B: FusionBackend + NeighbourAttentionKernels> NeighbourAttentionKernels for
             Input::Float(shift),
             Input::Float(grad),
         ];
+        if let Some((q, d)) = addends {
+            inputs.extend([Input::Float(q), Input::Float(d)]);
+        }
         let [qkv, delta] = array(deferred::<B, _>(
             "attention_relation_backward",
             inputs,
             specs,
-            |v| {
+            move |mut v| {
+                let addends = if added {
+                    let d = v.pop().map(Value::float);
+                    let q = v.pop().map(Value::float);
+                    q.zip(d)
+                } else {
+                    None
+                };
                 let [qkv, neighbours, delta, scale, shift, grad] = array(v);
                 let (qkv, delta) = B::attention_relation_backward(
                     qkv.float(),
@@ -224,6 +313,7 @@ impl<B: FusionBackend + NeighbourAttentionKernels> NeighbourAttentionKernels for
                     scale.float(),
                     shift.float(),
                     grad.float(),
+                    addends,
                 );
                 vec![Value::Float(qkv), Value::Float(delta)]
             },
