@@ -31,6 +31,7 @@ use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, Linea
 use burn::tensor::activation::softmax;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::select::select_rows;
+use lifegom_render::split::split_columns;
 
 use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with, drops_nothing};
 use crate::norm_folds::NormFolds;
@@ -170,17 +171,70 @@ impl AttentionLayer {
             0,
             repeats.computed.clone(),
         );
-        let project = |layer: &'a Linear| {
-            select_rows(
-                folds.apply(layer, rows.clone()),
-                0,
-                repeats.token_from_computed.clone(),
-            )
-            .reshape([b, l, d])
+        let (q, k, v) = match self.stacked(folds, &[&self.w_q, &self.w_k, &self.w_v], &rows) {
+            // One product, one gather back to the tokens, one split (`Self::stacked`).
+            Some(layer) => {
+                let qkv = select_rows(layer.forward(rows), 0, repeats.token_from_computed.clone())
+                    .reshape([b, l, 3 * d]);
+                let [q, k, v] = split3(qkv, d);
+                (q, k, v)
+            }
+            None => {
+                let project = |layer: &'a Linear| {
+                    select_rows(
+                        folds.apply(layer, rows.clone()),
+                        0,
+                        repeats.token_from_computed.clone(),
+                    )
+                    .reshape([b, l, d])
+                };
+                (project(&self.w_q), project(&self.w_k), project(&self.w_v))
+            }
         };
-        let (q, k, v) = (project(&self.w_q), project(&self.w_k), project(&self.w_v));
         let attn = folds.apply(&self.w_o, self.attend(q, k, v, kernel));
         self.feed(folds, tokens, attn, kernel, masks)
+    }
+
+    /// Self-attention over `tokens` `[B, L, D]`: [`Self::forward_with`]`(tokens, tokens, …)`,
+    /// with the query, key and value as one product on CubeCL devices ([`Self::stacked`]).
+    pub fn self_attention<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        tokens: Tensor<3>,
+        kernel: FusionKernel,
+        masks: [MaskSeed; 2],
+    ) -> Tensor<3> {
+        let d = tokens.dims()[2];
+        let Some(layer) = self.stacked(folds, &[&self.w_q, &self.w_k, &self.w_v], &tokens) else {
+            return self.forward_with(folds, tokens.clone(), tokens, kernel, masks);
+        };
+        let [q, k, v] = split3(layer.forward(tokens.clone()), d);
+        let attn = folds.apply(&self.w_o, self.attend(q, k, v, kernel));
+        self.feed(folds, tokens, attn, kernel, masks)
+    }
+
+    /// `layers` (which read the same input, like `x`'s) as one shared layer with their weights
+    /// side by side, on CubeCL devices: one product and one split of its output replace a product
+    /// per layer, forward and backward, and the input's gradient is summed inside the product
+    /// instead of by an addition per further layer. `None` on the CPU backends, whose products
+    /// stay apart (their float order is the network's), and for layers without biases.
+    fn stacked<'a, const D: usize>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        layers: &[&'a Linear],
+        x: &Tensor<D>,
+    ) -> Option<crate::shared_linear::SharedLinear> {
+        let device = x.device();
+        if runs_on_host(&device) || layers.iter().any(|l| l.bias.is_none()) {
+            return None;
+        }
+        let name = match layers.len() {
+            3 => "query, key, value",
+            _ => "key, value",
+        };
+        Some(folds.shared(layers[0], name, || {
+            crate::norm_folds::stacked(layers, &device)
+        }))
     }
 
     /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`: the attention's output after
@@ -193,8 +247,18 @@ impl AttentionLayer {
         kernel: FusionKernel,
     ) -> Tensor<3> {
         let q = folds.apply(&self.w_q, query);
-        let k = folds.apply(&self.w_k, context.clone());
-        let v = folds.apply(&self.w_v, context);
+        let (k, v) = match self.stacked(folds, &[&self.w_k, &self.w_v], &context) {
+            Some(layer) => {
+                let d = context.dims()[2];
+                let mut kv = split_columns(layer.forward(context), &[d, d]).into_iter();
+                let mut next = || kv.next().expect("two blocks");
+                (next(), next())
+            }
+            None => (
+                folds.apply(&self.w_k, context.clone()),
+                folds.apply(&self.w_v, context),
+            ),
+        };
         folds.apply(&self.w_o, self.attend(q, k, v, kernel))
     }
 
@@ -383,7 +447,7 @@ impl Fusion {
             }
             None => self
                 .views
-                .forward_with(folds, features.clone(), features, kernel, layer_masks),
+                .self_attention(folds, features, kernel, layer_masks),
         };
         self.query
             .forward_with(
@@ -432,9 +496,7 @@ impl Fusion {
         // One wholly repeated vertex stands for all: its views, then the constant attention.
         let first = whole.repeated.clone().slice(0..1);
         let tokens = select_rows(features.clone(), 0, first.clone());
-        let across = self
-            .views
-            .forward_with(folds, tokens.clone(), tokens, kernel, off);
+        let across = self.views.self_attention(folds, tokens, kernel, off);
         let query = select_rows(embed.clone(), 0, first).reshape([1, 1, d]);
         let constant = self.query.attention_output(folds, query, across, kernel);
         let repeated_embed =
@@ -618,6 +680,13 @@ impl RepeatedTokens {
     }
 }
 
+/// `t` `[.., 3d]` as its three `[.., d]` column blocks.
+fn split3(t: Tensor<3>, d: usize) -> [Tensor<3>; 3] {
+    let mut blocks = split_columns(t, &[d, d, d]).into_iter();
+    let mut next = || blocks.next().expect("three blocks");
+    [next(), next(), next()]
+}
+
 fn index_tensor(values: Vec<i64>, device: &Device) -> Tensor<1, Int> {
     let n = values.len();
     Tensor::<1, Int>::from_data(TensorData::new(values, [n]), device)
@@ -630,6 +699,87 @@ mod tests {
     use burn::tensor::Distribution;
 
     use lifegom_render::testing::read;
+
+    /// Every parameter's gradient of `fusion` in `grads`, by path.
+    struct GradValues<'a> {
+        grads: &'a burn::tensor::Gradients,
+        path: Vec<String>,
+        out: Vec<(String, Vec<f32>)>,
+    }
+
+    impl burn::module::ModuleVisitor for GradValues<'_> {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+            if let Some(g) = param.val().grad(self.grads) {
+                self.out.push((self.path.join("."), read(g)));
+            }
+        }
+    }
+
+    /// Two passes of the block through one set of folds (as the feedback steps run it), without
+    /// dropout: the output of the second and every parameter's gradient, on `device`.
+    fn two_folded_passes(fusion: &Fusion, device: &Device) -> Vec<(String, Vec<f32>)> {
+        let mut rng = lifegom_render::rng::Rng::new(17);
+        let mut draw = |shape: [usize; 3]| {
+            let values: Vec<f32> = (0..shape.iter().product::<usize>())
+                .map(|_| rng.range_f32(-1.0, 1.0))
+                .collect();
+            Tensor::<3>::from_data(TensorData::new(values, shape), device)
+        };
+        let feats = draw([7, 3, 24]);
+        let embed = draw([1, 7, 24]).reshape([7, 24]);
+        let folds = NormFolds::new();
+        let first = fusion.forward_folded(&folds, feats.clone(), embed.clone());
+        let again = feats * 0.5 + first.clone().unsqueeze_dim::<3>(1);
+        let out = fusion.forward_folded(&folds, again, embed);
+        let grads = (out.clone() * out.clone().sin()).sum().backward();
+        let mut visitor = GradValues {
+            grads: &grads,
+            path: Vec::new(),
+            out: vec![("output".into(), read(out))],
+        };
+        fusion.visit(&mut visitor);
+        visitor.out
+    }
+
+    /// On lavapipe, where the query, key and value (and the second layer's key and value) are
+    /// one stacked product split in one launch, two folded passes equal Flex's separate
+    /// products: the output and every parameter's gradient.
+    #[test]
+    fn stacked_projections_match_flex_wgpu() {
+        let Some(device) = lifegom_render::testing::wgpu_test_device() else {
+            return;
+        };
+        let flex = Device::flex().autodiff();
+        let fusion = FusionConfig::new(24)
+            .with_n_heads(3)
+            .with_dropout(0.0)
+            .init(&flex);
+        let device = device.autodiff();
+        let on_wgpu = fusion.clone().fork(&device);
+        let want = two_folded_passes(&fusion, &flex);
+        let got = two_folded_passes(&on_wgpu, &device);
+        assert_eq!(want.len(), got.len());
+        assert!(want.len() > 10, "every projection takes a gradient");
+        let largest = |v: &[f32]| v.iter().fold(0f32, |m, x| m.max(x.abs()));
+        // Gradients that are zero in exact arithmetic (the key biases: a shift of every key
+        // leaves each softmax as it was) are rounding noise on both devices: a floor of a
+        // millionth of the largest gradient holds them.
+        let floor = 1e-6 * want.iter().map(|(_, v)| largest(v)).fold(0f32, f32::max);
+        for ((name, b), (_, a)) in want.iter().zip(&got) {
+            let diff = a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+            let tolerance = 1e-4 * largest(b) + floor;
+            assert!(
+                diff <= tolerance,
+                "{name}: max diff {diff:.2e}, tolerance {tolerance:.2e}"
+            );
+        }
+    }
 
     fn shapes_and_view_permutation(device: &Device) {
         let fusion = FusionConfig::new(24).with_n_heads(3).init(device);
