@@ -60,9 +60,12 @@ use burn::nn::{BatchNorm, BatchNormConfig, Initializer, PaddingConfig2d};
 use burn::store::{ApplyResult, KeyRemapper, ModuleSnapshot, PytorchStore, SafetensorsStore};
 use burn::tensor::{Device, Tensor, TensorData, s};
 
+use crate::channel_norm::ChannelActivation::{self, Identity, Relu};
+use crate::channel_norm::ChannelNorm;
 use crate::norm_folds::NormFolds;
 use crate::sampling::{PreparedMaps, SamplingError};
 use crate::weights_file::WeightsFormat;
+use lifegom_render::device::runs_on_host;
 
 /// ImageNet normalisation used by torchvision's ResNet weights.
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -268,10 +271,29 @@ fn batch_norm(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
 /// per channel, the fold kept in `folds` for the reconstruction's other encoder passes
 /// ([`crate::norm_folds`]). Two ops on the activations instead of Burn's six-op inference
 /// `batch_norm`.
-fn frozen_bn<'a>(folds: &NormFolds<'a>, bn: &'a BatchNorm, x: Tensor<4>) -> Tensor<4> {
+///
+/// On CubeCL devices it is one [`ChannelNorm`] op per pass, `activation` included, with one
+/// `[γ; β]` per reconstruction whose gradient is summed over every pass in one launch
+/// ([`crate::channel_norm`]).
+fn frozen_bn<'a>(
+    folds: &NormFolds<'a>,
+    bn: &'a BatchNorm,
+    x: Tensor<4>,
+    activation: ChannelActivation,
+) -> Tensor<4> {
+    let device = x.device();
+    if !runs_on_host(&device) {
+        return folds
+            .keep(bn, "channel norm", || ChannelNorm::new(bn, &device))
+            .apply(x, activation);
+    }
     let c = x.dims()[1];
-    let (scale, shift) = folds.affine(bn, &x.device());
-    x * scale.reshape([1, c, 1, 1]) + shift.reshape([1, c, 1, 1])
+    let (scale, shift) = folds.affine(bn, &device);
+    let y = x * scale.reshape([1, c, 1, 1]) + shift.reshape([1, c, 1, 1]);
+    match activation {
+        ChannelActivation::Identity => y,
+        ChannelActivation::Relu => relu(y),
+    }
 }
 
 impl BasicBlock {
@@ -291,11 +313,11 @@ impl BasicBlock {
 
     fn forward<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<4>) -> Tensor<4> {
         let shortcut = match &self.downsample {
-            Some(d) => frozen_bn(folds, &d.bn, d.conv.forward(x.clone())),
+            Some(d) => frozen_bn(folds, &d.bn, d.conv.forward(x.clone()), Identity),
             None => x.clone(),
         };
-        let y = relu(frozen_bn(folds, &self.bn1, self.conv1.forward(x)));
-        let y = frozen_bn(folds, &self.bn2, self.conv2.forward(y));
+        let y = frozen_bn(folds, &self.bn1, self.conv1.forward(x), Relu);
+        let y = frozen_bn(folds, &self.bn2, self.conv2.forward(y), Identity);
         relu(y + shortcut)
     }
 
@@ -415,7 +437,7 @@ impl ImageEncoder {
         );
         let x = Self::normalize(images);
         let rgb = self.rgb_embed.forward(x.clone());
-        let f0 = relu(frozen_bn(&folds, &self.bn1, self.conv1.forward(x)));
+        let f0 = frozen_bn(&folds, &self.bn1, self.conv1.forward(x), Relu);
         let run = |blocks: &[BasicBlock], x: Tensor<4>| {
             blocks.iter().fold(x, |x, b| b.forward(&folds, x))
         };
@@ -445,7 +467,7 @@ impl ImageEncoder {
             "ImageEncoder::encode: images must be [N, 3, H, W], got {dims:?}"
         );
         let x = Self::normalize(images);
-        let f0 = relu(frozen_bn(folds, &self.bn1, self.conv1.forward(x.clone())));
+        let f0 = frozen_bn(folds, &self.bn1, self.conv1.forward(x.clone()), Relu);
         let run =
             |blocks: &[BasicBlock], x: Tensor<4>| blocks.iter().fold(x, |x, b| b.forward(folds, x));
         let f1 = run(&self.layer1, self.maxpool.forward(f0.clone()));

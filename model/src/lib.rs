@@ -59,6 +59,7 @@
 
 pub mod activation;
 pub mod avatar;
+pub mod channel_norm;
 pub mod checkpoint;
 pub mod dropout;
 pub mod encoder;

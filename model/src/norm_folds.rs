@@ -82,9 +82,9 @@ impl<'a> NormFolds<'a> {
     /// # Panics
     ///
     /// If a value of another type was kept under the same key.
-    pub(crate) fn keep<T: Clone + 'static>(
+    pub(crate) fn keep<T: Clone + 'static, A>(
         &self,
-        anchor: &'a Linear,
+        anchor: &'a A,
         name: &'static str,
         make: impl FnOnce() -> T,
     ) -> T {

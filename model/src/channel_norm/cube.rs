@@ -1,0 +1,413 @@
+//! The channel norm's kernels on Burn's CubeCL backend (see [`super`]), for `[N, C, H, W]`
+//! images and the vector `p = [γ; β]`. The images are read in the layout they come in when it
+//! is a permutation of a contiguous one (Burn's convolutions hand channels-last images back),
+//! and the outputs are written in that layout: copying them to the row-major order and back
+//! would cost two launches per pass each way. Each thread computes its channel's
+//! `s = γ/√(σ²+ε)` and `t = β − μ·s` itself, in the order of the composed ops (`γ` divided by
+//! the root, then `β − μ·s`, then `x·s + t`), so both give the same values.
+//!
+//! - `channel_norm_forward_kernel`, one thread per element.
+//! - `channel_norm_partials_kernel`, one thread per image, channel and chunk of
+//!   [`PIXELS_PER_CHUNK`] pixels: it writes `∂x = g'·s` for its pixels (`g'` is `g` where the
+//!   activation passes it) and its sums of `g'·x` and `g'`.
+//! - `channel_norm_totals_kernel`, one thread per channel: the partial sums of up to four passes
+//!   added in pass and row order (deterministic), then `∂β = Σg'` and
+//!   `∂γ = (Σg'·x − μ·Σg')/√(σ²+ε)` (`t` depends on `s` too).
+
+use burn::backend::TensorMetadata;
+use burn::backend::tensor::FloatTensor;
+use burn::tensor::{DType, Shape};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::cubecl;
+use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::tensor::CubeTensor;
+use lifegom_render::cube::host::{
+    THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
+};
+
+use super::op::{ChannelActivation, ChannelNormKernels, ChannelNormOps, NormLedger, TOTAL_PARTS};
+
+/// Pixels of one image and channel each partial sum covers.
+const PIXELS_PER_CHUNK: usize = 256;
+
+/// Length of one pass's partial sums for images of `shape` `[N, C, H, W]`.
+pub(super) fn partial_len(shape: &Shape) -> usize {
+    let (n, c, hw) = (shape[0], shape[1], shape[2] * shape[3]);
+    n * hw.div_ceil(PIXELS_PER_CHUNK).max(1) * c * 2
+}
+
+/// Where element `(n, c, h, w)` of an image tensor is: its strides.
+#[derive(CubeType, CubeLaunch)]
+struct Layout {
+    n: usize,
+    c: usize,
+    h: usize,
+    w: usize,
+}
+
+/// The offset of `(n, c, pixel)` for images `width` wide.
+#[cube]
+fn offset(layout: &Layout, n: usize, c: usize, pixel: usize, width: usize) -> usize {
+    n * layout.n + c * layout.c + (pixel / width) * layout.h + (pixel % width) * layout.w
+}
+
+/// Channel `c`'s `s = γ/√(σ²+ε)`.
+#[cube]
+fn scale_of(p: &[f32], var: &[f32], c: usize, eps: f32) -> f32 {
+    p[c] / f32::sqrt(var[c] + eps)
+}
+
+/// Channel `c`'s `t = β − μ·s`.
+#[cube]
+fn shift_of(p: &[f32], mean: &[f32], c: usize, channels: usize, s: f32) -> f32 {
+    p[channels + c] - mean[c] * s
+}
+
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn channel_norm_forward_kernel(
+    x: &[f32],
+    p: &[f32],
+    mean: &[f32],
+    var: &[f32],
+    out: &mut [f32],
+    units: usize,
+    channels: usize,
+    channel_stride: usize,
+    eps: f32,
+    relu: u32,
+) {
+    // `e` walks the buffer: in a permuted contiguous layout the channel of offset `e` is
+    // `(e / stride_c) mod C`, and the output keeps the input's layout.
+    let e = ABSOLUTE_POS;
+    if e < units {
+        let c = (e / channel_stride) % channels;
+        let s = scale_of(p, var, c, eps);
+        let t = shift_of(p, mean, c, channels, s);
+        let mut y = x[e] * s + t;
+        if relu != 0 {
+            y = f32::max(y, 0.0);
+        }
+        out[e] = y;
+    }
+}
+
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn channel_norm_partials_kernel(
+    x: &[f32],
+    p: &[f32],
+    mean: &[f32],
+    var: &[f32],
+    grad: &[f32],
+    dx: &mut [f32],
+    partial: &mut [f32],
+    units: usize,
+    channels: usize,
+    pixels: usize,
+    width: usize,
+    chunks: usize,
+    chunk_len: usize,
+    eps: f32,
+    relu: u32,
+    x_layout: &Layout,
+    grad_layout: &Layout,
+) {
+    let unit = ABSOLUTE_POS;
+    if unit < units {
+        let c = unit % channels;
+        let row = unit / channels;
+        let n = row / chunks;
+        let chunk = row % chunks;
+        let s = scale_of(p, var, c, eps);
+        let t = shift_of(p, mean, c, channels, s);
+        let start = chunk * chunk_len;
+        let end = usize::min(start + chunk_len, pixels);
+        let mut gx = 0.0f32;
+        let mut g_sum = 0.0f32;
+        for i in start..end {
+            let at = offset(x_layout, n, c, i, width);
+            let xi = x[at];
+            let mut g = grad[offset(grad_layout, n, c, i, width)];
+            if relu != 0 && xi * s + t <= 0.0 {
+                g = 0.0;
+            }
+            dx[at] = g * s;
+            gx += g * xi;
+            g_sum += g;
+        }
+        partial[unit * 2] = gx;
+        partial[unit * 2 + 1] = g_sum;
+    }
+}
+
+/// Sum `j` (0: `g'·x`, 1: `g'`) of rows `0..rows` of one pass's partial sums for channel `c`,
+/// added onto `acc`.
+#[cube]
+fn add_rows(part: &[f32], rows: usize, channels: usize, c: usize, j: usize, acc: f32) -> f32 {
+    let mut total = acc;
+    for row in 0..rows {
+        total += part[(row * channels + c) * 2 + j];
+    }
+    total
+}
+
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn channel_norm_totals_kernel(
+    part0: &[f32],
+    part1: &[f32],
+    part2: &[f32],
+    part3: &[f32],
+    mean: &[f32],
+    var: &[f32],
+    sums: &mut [f32],
+    dgamma: &mut [f32],
+    dbeta: &mut [f32],
+    rows0: usize,
+    rows1: usize,
+    rows2: usize,
+    rows3: usize,
+    channels: usize,
+    eps: f32,
+) {
+    let c = ABSOLUTE_POS;
+    if c < channels {
+        let mut gx = add_rows(part0, rows0, channels, c, 0, 0.0f32);
+        gx = add_rows(part1, rows1, channels, c, 0, gx);
+        gx = add_rows(part2, rows2, channels, c, 0, gx);
+        gx = add_rows(part3, rows3, channels, c, 0, gx);
+        let mut g = add_rows(part0, rows0, channels, c, 1, 0.0f32);
+        g = add_rows(part1, rows1, channels, c, 1, g);
+        g = add_rows(part2, rows2, channels, c, 1, g);
+        g = add_rows(part3, rows3, channels, c, 1, g);
+        sums[c * 2] = gx;
+        sums[c * 2 + 1] = g;
+        dbeta[c] = g;
+        dgamma[c] = (gx - mean[c] * g) / f32::sqrt(var[c] + eps);
+    }
+}
+
+#[cube(launch)]
+fn join_parameters_kernel(gamma: &[f32], beta: &[f32], out: &mut [f32], channels: usize) {
+    let e = ABSOLUTE_POS;
+    if e < channels {
+        out[e] = gamma[e];
+    } else if e < 2 * channels {
+        out[e] = beta[e - channels];
+    }
+}
+
+/// `t` as it is when it is `f32` and its layout a permutation of a contiguous one over a buffer
+/// of its own, else a row-major copy.
+fn dense(t: FloatTensor<CubeBackend>) -> CubeTensor {
+    let shape = t.meta.shape().to_vec();
+    let strides = t.meta.strides().to_vec();
+    let mut axes: Vec<usize> = (0..shape.len()).filter(|&a| shape[a] > 1).collect();
+    axes.sort_by_key(|&a| strides[a]);
+    let mut expected = 1;
+    let permuted = axes.iter().all(|&a| {
+        let ok = strides[a] == expected;
+        expected *= shape[a];
+        ok
+    });
+    if permuted && t.dtype() == DType::F32 && t.is_contiguous_buffer() {
+        t
+    } else {
+        prepare(t)
+    }
+}
+
+/// `t`'s strides as a kernel [`Layout`].
+fn layout(t: &CubeTensor) -> LayoutLaunch {
+    let s = t.meta.strides();
+    LayoutLaunch::new(s[0], s[1], s[2], s[3])
+}
+
+/// A tensor over `handle` laid out as `like`.
+fn laid_out_as(like: &CubeTensor, handle: cubecl::server::Handle) -> CubeTensor {
+    CubeTensor::new(
+        like.client.clone(),
+        handle,
+        (*like.meta).clone(),
+        like.device.clone(),
+        DType::F32,
+    )
+}
+
+/// `[N, C, H·W]` of an image tensor.
+fn image_sizes(x: &FloatTensor<CubeBackend>) -> (usize, usize, usize) {
+    let shape = x.shape();
+    assert_eq!(shape.num_dims(), 4, "channel norm over [N, C, H, W] images");
+    (shape[0], shape[1], shape[2] * shape[3])
+}
+
+impl ChannelNormOps for CubeBackend {
+    fn channel_norm_parameters(
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        _mean: FloatTensor<Self>,
+        _var: FloatTensor<Self>,
+        _epsilon: f32,
+        _ledger: NormLedger,
+    ) -> FloatTensor<Self> {
+        let dtype = gamma.dtype();
+        let c = gamma.shape()[0];
+        let (client, device) = (gamma.client.clone(), gamma.device.clone());
+        let [gamma, beta] = [gamma, beta].map(prepare);
+        let out = client.empty(4 * (2 * c).max(1));
+        if c > 0 {
+            join_parameters_kernel::launch(
+                &client,
+                count_1d(2 * c),
+                CubeDim::new_1d(THREADS_1D),
+                tensor_arg(&gamma),
+                tensor_arg(&beta),
+                arg(&out, 2 * c),
+                c,
+            );
+        }
+        cast_to(tensor_f32(&client, &device, out, &[2 * c]), dtype)
+    }
+
+    fn channel_norm(
+        x: FloatTensor<Self>,
+        params: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        epsilon: f32,
+        activation: ChannelActivation,
+        _ledger: NormLedger,
+    ) -> FloatTensor<Self> {
+        let dtype = x.dtype();
+        let (n, c, hw) = image_sizes(&x);
+        let client = x.client.clone();
+        let x = dense(x);
+        let [p, mean, var] = [params, mean, var].map(prepare);
+        let units = n * c * hw;
+        let channel_stride = x.meta.strides()[1].max(1);
+        let out = client.empty(4 * units.max(1));
+        if units > 0 {
+            channel_norm_forward_kernel::launch(
+                &client,
+                count_1d(units),
+                CubeDim::new_1d(THREADS_1D),
+                tensor_arg(&x),
+                tensor_arg(&p),
+                tensor_arg(&mean),
+                tensor_arg(&var),
+                arg(&out, units),
+                units,
+                c,
+                channel_stride,
+                epsilon,
+                u32::from(activation == ChannelActivation::Relu),
+            );
+        }
+        cast_to(laid_out_as(&x, out), dtype)
+    }
+}
+
+impl ChannelNormKernels for CubeBackend {
+    fn channel_norm_backward(
+        x: FloatTensor<Self>,
+        params: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        epsilon: f32,
+        activation: ChannelActivation,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let dtype = x.dtype();
+        let shape = x.shape();
+        let width = shape[3];
+        let (n, c, hw) = image_sizes(&x);
+        let (client, device) = (x.client.clone(), x.device.clone());
+        let (x, grad) = (dense(x), dense(grad));
+        let [p, mean, var] = [params, mean, var].map(prepare);
+        let chunks = hw.div_ceil(PIXELS_PER_CHUNK).max(1);
+        let units = n * chunks * c;
+        let dx = client.empty(4 * (n * c * hw).max(1));
+        let len = partial_len(&shape);
+        let partial = client.empty(4 * len.max(1));
+        if units > 0 {
+            channel_norm_partials_kernel::launch(
+                &client,
+                count_1d(units),
+                CubeDim::new_1d(THREADS_1D),
+                tensor_arg(&x),
+                tensor_arg(&p),
+                tensor_arg(&mean),
+                tensor_arg(&var),
+                tensor_arg(&grad),
+                arg(&dx, (n * c * hw).max(1)),
+                arg(&partial, len.max(1)),
+                units,
+                c,
+                hw,
+                width,
+                chunks,
+                PIXELS_PER_CHUNK,
+                epsilon,
+                u32::from(activation == ChannelActivation::Relu),
+                layout(&x),
+                layout(&grad),
+            );
+        }
+        (
+            cast_to(laid_out_as(&x, dx), dtype),
+            tensor_f32(&client, &device, partial, &[len]),
+        )
+    }
+
+    fn channel_norm_totals(
+        partials: Vec<FloatTensor<Self>>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        epsilon: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        assert!(
+            !partials.is_empty() && partials.len() <= TOTAL_PARTS,
+            "1 to {TOTAL_PARTS} passes' partial sums"
+        );
+        let dtype = mean.dtype();
+        let c = mean.shape()[0];
+        let (client, device) = (mean.client.clone(), mean.device.clone());
+        let [mean, var] = [mean, var].map(prepare);
+        let parts: Vec<_> = partials.into_iter().map(prepare).collect();
+        let rows: Vec<usize> = (0..TOTAL_PARTS)
+            .map(|i| parts.get(i).map_or(0, |p| p.shape()[0] / (2 * c).max(1)))
+            .collect();
+        // Unused parts are bound to the first one and read zero rows of it.
+        let part = |i: usize| tensor_arg(parts.get(i).unwrap_or(&parts[0]));
+        let sums = client.empty(4 * (2 * c).max(1));
+        let [dgamma, dbeta] = [(); 2].map(|()| client.empty(4 * c.max(1)));
+        if c > 0 {
+            channel_norm_totals_kernel::launch(
+                &client,
+                count_1d(c),
+                CubeDim::new_1d(THREADS_1D),
+                part(0),
+                part(1),
+                part(2),
+                part(3),
+                tensor_arg(&mean),
+                tensor_arg(&var),
+                arg(&sums, 2 * c),
+                arg(&dgamma, c),
+                arg(&dbeta, c),
+                rows[0],
+                rows[1],
+                rows[2],
+                rows[3],
+                c,
+                epsilon,
+            );
+        }
+        (
+            tensor_f32(&client, &device, sums, &[2 * c]),
+            cast_to(tensor_f32(&client, &device, dgamma, &[c]), dtype),
+            cast_to(tensor_f32(&client, &device, dbeta, &[c]), dtype),
+        )
+    }
+}
