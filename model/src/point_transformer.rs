@@ -746,9 +746,28 @@ impl PointTransformerLayer {
 
         let mp = &self.linear_p;
         let position = folds.keep(&mp.fc3, "position weights", || {
-            let (w0, b0) = folds.linear(&mp.fc0, &mp.bn1, &device);
             let b3 = mp.fc3.bias.as_ref().expect("MLP_p's last layer has a bias");
-            vector_attention::PositionWeights::new(w0, b0, mp.fc3.weight.val(), b3.val())
+            let (w3, b3) = (mp.fc3.weight.val(), b3.val());
+            let frozen =
+                !mp.bn1.gamma.val().is_require_grad() && !mp.bn1.beta.val().is_require_grad();
+            match (&mp.fc0.bias, frozen) {
+                // The fold inside the weights' own launches (`PositionWeights::folded`).
+                (Some(b0), true) => {
+                    let (scale, shift) = folds.affine(&mp.bn1, &device);
+                    vector_attention::PositionWeights::folded(
+                        mp.fc0.weight.val(),
+                        b0.val(),
+                        scale,
+                        shift,
+                        w3,
+                        b3,
+                    )
+                }
+                _ => {
+                    let (w0, b0) = folds.linear(&mp.fc0, &mp.bn1, &device);
+                    vector_attention::PositionWeights::new(w0, b0, w3, b3)
+                }
+            }
         });
         let delta = position.apply(rel);
 

@@ -39,7 +39,7 @@ mod position_cube;
 pub mod position_op;
 
 use burn::tensor::activation::softmax;
-use burn::tensor::{Int, Tensor};
+use burn::tensor::{Int, Tensor, TensorData};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::select::select_rows;
 
@@ -233,6 +233,19 @@ pub fn position_encoding(
     PositionWeights::new(w0, b0, w3, b3).apply(rel)
 }
 
+/// `W₀` `[3, 3]`, `b₀` `[3]`, `W₃` `[3, c]`, `b₃` `[c]`.
+fn check_position_weights(w0: &Tensor<2>, b0: &Tensor<1>, w3: &Tensor<2>, b3: &Tensor<1>) {
+    let c = w3.dims()[1];
+    assert!(
+        w0.dims() == [3, 3] && b0.dims() == [3] && w3.dims() == [3, c] && b3.dims() == [c],
+        "position encoding: W0 {:?}, b0 {:?}, W3 {:?}, b3 {:?} must be [3, 3], [3], [3, c], [c]",
+        w0.dims(),
+        b0.dims(),
+        w3.dims(),
+        b3.dims()
+    );
+}
+
 /// `MLP_p`'s weights ([`position_encoding`]), kept for every pass of a reconstruction: on
 /// CubeCL devices as one parameter vector whose gradient is summed over all the passes that
 /// apply it in one launch ([`position_op`]).
@@ -254,24 +267,52 @@ impl PositionWeights {
     ///
     /// If the shapes do not match as above.
     pub fn new(w0: Tensor<2>, b0: Tensor<1>, w3: Tensor<2>, b3: Tensor<1>) -> Self {
-        let c = w3.dims()[1];
-        assert!(
-            w0.dims() == [3, 3] && b0.dims() == [3] && w3.dims() == [3, c] && b3.dims() == [c],
-            "position encoding: W0 {:?}, b0 {:?}, W3 {:?}, b3 {:?} must be [3, 3], [3], [3, c], [c]",
-            w0.dims(),
-            b0.dims(),
-            w3.dims(),
-            b3.dims()
-        );
         if runs_on_host(&w0.device()) {
+            check_position_weights(&w0, &b0, &w3, &b3);
             return Self(Kept::Host(w0, b0, w3, b3));
         }
-        let vector =
-            lifegom_render::split::join_columns(vec![w3.reshape([3 * c]), b3, w0.reshape([9]), b0]);
+        let device = w0.device();
+        let ones = Tensor::<1>::from_data(TensorData::from([1.0f32; 3]), &device);
+        let zeros = Tensor::<1>::from_data(TensorData::from([0.0f32; 3]), &device);
+        Self::folded(w0, b0, ones, zeros, w3, b3)
+    }
+
+    /// The weights with `MLP_p`'s BatchNorm folded into the first layer: `W₀·diag(scale)`,
+    /// `b₀·scale + shift`, for a frozen BatchNorm's `scale`, `shift` `[3]` (constants: no
+    /// gradient reaches them on CubeCL devices). On a device the fold is part of the one launch
+    /// that makes the parameter vector, and its backward part of the one that sums the passes'
+    /// gradients ([`position_op`]).
+    ///
+    /// # Panics
+    ///
+    /// If the shapes do not match as in [`Self::new`].
+    pub fn folded(
+        w0: Tensor<2>,
+        b0: Tensor<1>,
+        scale: Tensor<1>,
+        shift: Tensor<1>,
+        w3: Tensor<2>,
+        b3: Tensor<1>,
+    ) -> Self {
+        check_position_weights(&w0, &b0, &w3, &b3);
+        assert!(
+            scale.dims() == [3] && shift.dims() == [3],
+            "position encoding: the fold's scale and shift must be [3]"
+        );
+        if runs_on_host(&w0.device()) {
+            let w0 = w0 * scale.clone().unsqueeze_dim(0);
+            let b0 = b0 * scale + shift;
+            return Self(Kept::Host(w0, b0, w3, b3));
+        }
         let ledger = position_op::PositionLedger::default();
         let vector = Tensor::from_dispatch(
             <burn::backend::Dispatch as position_op::PositionEncodingOps>::position_weights(
-                vector.into_dispatch(),
+                w3.into_dispatch(),
+                b3.into_dispatch(),
+                w0.into_dispatch(),
+                b0.into_dispatch(),
+                scale.into_dispatch(),
+                shift.into_dispatch(),
                 ledger.clone(),
             ),
         );
@@ -533,7 +574,8 @@ mod tests {
         let w3 = uniform(3 * c, -1.0, 1.0);
         let b3 = uniform(c, -1.0, 1.0);
         let probe = uniform(n * k * c, -1.0, 1.0);
-        let run = |device: &Device, op: bool, passes: usize| {
+        let (fold_scale, fold_shift) = (uniform(3, -1.5, 1.5), uniform(3, -0.3, 0.3));
+        let run = |device: &Device, op: bool, passes: usize, fold: bool| {
             let ad = device.clone().autodiff();
             fn t<const D: usize>(v: &[f32], shape: [usize; D], device: &Device) -> Tensor<D> {
                 Tensor::from_data(TensorData::new(v.to_vec(), shape), device).require_grad()
@@ -541,7 +583,30 @@ mod tests {
             let rel = t(&rel, [n, k, 3], &ad);
             let (w0, b0) = (t(&w0, [3, 3], &ad), t(&b0, [3], &ad));
             let (w3, b3) = (t(&w3, [3, c], &ad), t(&b3, [c], &ad));
-            let kept = PositionWeights::new(w0.clone(), b0.clone(), w3.clone(), b3.clone());
+            // With `fold`, a frozen BatchNorm's scale and shift folded into the first layer.
+            let (scale, shift) = if fold {
+                (
+                    Tensor::<1>::from_data(TensorData::new(fold_scale.clone(), [3]), &ad),
+                    Tensor::<1>::from_data(TensorData::new(fold_shift.clone(), [3]), &ad),
+                )
+            } else {
+                (Tensor::<1>::ones([3], &ad), Tensor::<1>::zeros([3], &ad))
+            };
+            let kept = match fold {
+                true => PositionWeights::folded(
+                    w0.clone(),
+                    b0.clone(),
+                    scale.clone(),
+                    shift.clone(),
+                    w3.clone(),
+                    b3.clone(),
+                ),
+                false => PositionWeights::new(w0.clone(), b0.clone(), w3.clone(), b3.clone()),
+            };
+            let (w0f, b0f) = (
+                w0.clone() * scale.clone().unsqueeze_dim(0),
+                b0.clone() * scale + shift,
+            );
             let mut out = None;
             for pass in 0..passes {
                 // Each pass reads other offsets, as the feedback passes' meshes differ.
@@ -549,7 +614,13 @@ mod tests {
                 let y = if op {
                     kept.apply(rel)
                 } else {
-                    position_encoding_reference(rel, w0.clone(), b0.clone(), w3.clone(), b3.clone())
+                    position_encoding_reference(
+                        rel,
+                        w0f.clone(),
+                        b0f.clone(),
+                        w3.clone(),
+                        b3.clone(),
+                    )
                 };
                 out = Some(match out {
                     None => y,
@@ -568,9 +639,9 @@ mod tests {
                 g("b3 gradient", b3.grad(&grads)),
             ]
         };
-        for passes in [1, 3, 6] {
-            let want = run(&Device::flex(), false, passes);
-            let got = run(device, true, passes);
+        for (passes, fold) in [(1, false), (3, false), (6, false), (1, true), (3, true)] {
+            let want = run(&Device::flex(), false, passes, fold);
+            let got = run(device, true, passes, fold);
             let names = ["encoding", "rel", "W0", "b0", "W3", "b3"];
             for (name, (a, b)) in names.iter().zip(got.iter().zip(&want)) {
                 assert_eq!(a.len(), b.len(), "{name}");
@@ -581,7 +652,7 @@ mod tests {
                     .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
                 assert!(
                     diff <= 1e-5 * scale,
-                    "{name} on {device:?}, {passes} passes: max diff {diff:.2e}"
+                    "{name} on {device:?}, {passes} passes, fold {fold}: max diff {diff:.2e}"
                 );
             }
         }

@@ -153,13 +153,19 @@ fn position_chunk_totals_kernel(
     part1: &[f32],
     part2: &[f32],
     part3: &[f32],
+    scale: &[f32],
     totals: &mut [f32],
+    w3_grad: &mut [f32],
+    b3_grad: &mut [f32],
+    w0_grad: &mut [f32],
+    b0_grad: &mut [f32],
     chunks0: usize,
     chunks1: usize,
     chunks2: usize,
     chunks3: usize,
-    outputs: usize,
+    c: usize,
 ) {
+    let outputs = 4 * c + 12;
     let o = ABSOLUTE_POS;
     if o < outputs {
         let mut acc = add_chunks(part0, chunks0, outputs, o, 0.0f32);
@@ -167,10 +173,82 @@ fn position_chunk_totals_kernel(
         acc = add_chunks(part2, chunks2, outputs, o, acc);
         acc = add_chunks(part3, chunks3, outputs, o, acc);
         totals[o] = acc;
+        // The folded W₀ and b₀ carry the BatchNorm's scale per output column: ∂W₀ = ∂W₀'·s.
+        if o < 3 * c {
+            w3_grad[o] = acc;
+        } else if o < 4 * c {
+            b3_grad[o - 3 * c] = acc;
+        } else if o < 4 * c + 9 {
+            let j = o - 4 * c;
+            w0_grad[j] = acc * scale[j % 3];
+        } else {
+            let r = o - 4 * c - 9;
+            b0_grad[r] = acc * scale[r];
+        }
+    }
+}
+
+/// `p = [W₃, b₃, W₀·diag(s), b₀·s + t]`, one thread per element.
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn position_weights_kernel(
+    w3: &[f32],
+    b3: &[f32],
+    w0: &[f32],
+    b0: &[f32],
+    scale: &[f32],
+    shift: &[f32],
+    p: &mut [f32],
+    c: usize,
+) {
+    let o = ABSOLUTE_POS;
+    if o < 4 * c + 12 {
+        if o < 3 * c {
+            p[o] = w3[o];
+        } else if o < 4 * c {
+            p[o] = b3[o - 3 * c];
+        } else if o < 4 * c + 9 {
+            let j = o - 4 * c;
+            p[o] = w0[j] * scale[j % 3];
+        } else {
+            let r = o - 4 * c - 9;
+            p[o] = b0[r] * scale[r] + shift[r];
+        }
     }
 }
 
 impl PositionEncodingOps for CubeBackend {
+    fn position_weights(
+        w3: FloatTensor<Self>,
+        b3: FloatTensor<Self>,
+        w0: FloatTensor<Self>,
+        b0: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        shift: FloatTensor<Self>,
+        _ledger: PositionLedger,
+    ) -> FloatTensor<Self> {
+        let dtype = w3.dtype();
+        let c = w3.shape()[1];
+        let outputs = 4 * c + 12;
+        let (client, device) = (w3.client.clone(), w3.device.clone());
+        let [w3, b3, w0, b0, scale, shift] = [w3, b3, w0, b0, scale, shift].map(prepare);
+        let p = client.empty(4 * outputs);
+        position_weights_kernel::launch(
+            &client,
+            count_1d(outputs),
+            CubeDim::new_1d(THREADS_1D),
+            tensor_arg(&w3),
+            tensor_arg(&b3),
+            tensor_arg(&w0),
+            tensor_arg(&b0),
+            tensor_arg(&scale),
+            tensor_arg(&shift),
+            arg(&p, outputs),
+            c,
+        );
+        cast_to(tensor_f32(&client, &device, p, &[outputs]), dtype)
+    }
+
     fn position_encoding(
         rel: FloatTensor<Self>,
         weights: FloatTensor<Self>,
@@ -262,20 +340,26 @@ impl PositionEncodingKernels for CubeBackend {
 
     fn position_weight_totals(
         partials: Vec<FloatTensor<Self>>,
-        outputs: usize,
-    ) -> FloatTensor<Self> {
+        scale: FloatTensor<Self>,
+        c: usize,
+    ) -> (FloatTensor<Self>, [FloatTensor<Self>; 4]) {
         assert!(
             !partials.is_empty() && partials.len() <= TOTAL_PARTS,
             "1 to {TOTAL_PARTS} passes' partial sums"
         );
+        let outputs = 4 * c + 12;
+        let dtype = scale.dtype();
         let (client, device) = (partials[0].client.clone(), partials[0].device.clone());
         let parts: Vec<_> = partials.into_iter().map(prepare).collect();
+        let scale = prepare(scale);
         let chunks: Vec<usize> = (0..TOTAL_PARTS)
             .map(|i| parts.get(i).map_or(0, |p| p.shape()[0] / outputs))
             .collect();
         // Unused parts are bound to the first one and read zero chunks of it.
         let part = |i: usize| tensor_arg(parts.get(i).unwrap_or(&parts[0]));
-        let totals = client.empty(4 * outputs.max(1));
+        let totals = client.empty(4 * outputs);
+        let lens = [3 * c, c, 9, 3];
+        let grads = lens.map(|len| client.empty(4 * len.max(1)));
         position_chunk_totals_kernel::launch(
             &client,
             count_1d(outputs),
@@ -284,13 +368,25 @@ impl PositionEncodingKernels for CubeBackend {
             part(1),
             part(2),
             part(3),
+            tensor_arg(&scale),
             arg(&totals, outputs),
+            arg(&grads[0], lens[0].max(1)),
+            arg(&grads[1], lens[1].max(1)),
+            arg(&grads[2], 9),
+            arg(&grads[3], 3),
             chunks[0],
             chunks[1],
             chunks[2],
             chunks[3],
-            outputs,
+            c,
         );
-        tensor_f32(&client, &device, totals, &[outputs])
+        let shapes: [&[usize]; 4] = [&[3, c], &[c], &[3, 3], &[3]];
+        let mut i = 0;
+        let grads = grads.map(|h| {
+            let t = cast_to(tensor_f32(&client, &device, h, shapes[i]), dtype);
+            i += 1;
+            t
+        });
+        (tensor_f32(&client, &device, totals, &[outputs]), grads)
     }
 }

@@ -12,12 +12,15 @@
 //!   of the weights' gradient (one per [`ROWS_PER_CHUNK`](super::position_cube) rows) with the
 //!   vector's [`PositionLedger`]; the first one registers a placeholder for the vector's node
 //!   (`p`'s own handle: the right shape, no copy) so that Burn reaches it;
-//! - a **parameter node** (`position_weights`) between the vector and every pass. Burn runs it
-//!   after every pass's node (it is shallower); it adds all filed partial sums up in one launch
-//!   (four passes a launch) and registers `∂p`.
+//! - a **parameter node** (`position_weights`) that makes the vector from the four weights in
+//!   one launch, `W₀` and `b₀` folded with the frozen BatchNorm after them on the way
+//!   (`W₀·diag(s)`, `b₀·s + t`; `s = 1`, `t = 0` without one). Burn runs it after every pass's
+//!   node (it is shallower); it adds all filed partial sums up in one launch (four passes a
+//!   launch), scales `W₀`'s and `b₀`'s columns by `s`, and registers the four gradients.
 //!
-//! Per layer and step that is two launches per pass and one in all, where one op per pass cost
-//! three per pass and Burn's sums of the four weights' per-pass gradients four per further pass.
+//! Per layer and step that is two launches per pass and two in all, where one op per pass cost
+//! three per pass, Burn's sums of the four weights' per-pass gradients four per further pass,
+//! and the fold three forward and two backward.
 
 use std::sync::{Arc, Mutex, PoisonError};
 
@@ -75,12 +78,25 @@ impl LedgerState {
 /// output is `rel`'s shape with `c` last, in `rel`'s float dtype. Callers check shapes.
 #[backend_extension(Cube, Fusion, Autodiff)]
 pub trait PositionEncodingOps: Backend {
-    /// The parameter vector every pass reads: the same values (module docs).
-    #[fusion(default)]
-    fn position_weights(weights: FloatTensor<Self>, ledger: PositionLedger) -> FloatTensor<Self> {
-        let _ = ledger;
-        weights
-    }
+    /// The parameter vector every pass reads (module docs): `[W₃, b₃, W₀·diag(s), b₀·s + t]`
+    /// from `w3` `[3, c]`, `b3` `[c]`, `w0` `[3, 3]`, `b0` `[3]` and the constants `scale` =
+    /// `s`, `shift` = `t` `[3]`, which take no gradient.
+    #[allow(clippy::too_many_arguments)]
+    #[fusion(meta = |w3, _b3, _w0, _b0, _scale, _shift, _ledger| {
+        burn::backend::fusion::custom::TensorSpec::new(
+            Shape::new([4 * w3.shape[1] + 12]),
+            w3.dtype,
+        )
+    })]
+    fn position_weights(
+        w3: FloatTensor<Self>,
+        b3: FloatTensor<Self>,
+        w0: FloatTensor<Self>,
+        b0: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        shift: FloatTensor<Self>,
+        ledger: PositionLedger,
+    ) -> FloatTensor<Self>;
 
     /// One pass's encoding.
     #[fusion(dtype = rel, shape = {
@@ -107,11 +123,14 @@ pub trait PositionEncodingKernels: Backend {
         grad: FloatTensor<Self>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
-    /// `∂p` `[outputs]`: 1 to [`TOTAL_PARTS`] passes' partial sums added up.
+    /// 1 to [`TOTAL_PARTS`] passes' partial sums added up: `(sums [4c + 12], [∂W₃, ∂b₃, ∂W₀,
+    /// ∂b₀])`, `sums` in the partial sums' layout (one chunk) for a further launch, the
+    /// gradients with `W₀`'s and `b₀`'s columns times `scale`.
     fn position_weight_totals(
         partials: Vec<FloatTensor<Self>>,
-        outputs: usize,
-    ) -> FloatTensor<Self>;
+        scale: FloatTensor<Self>,
+        c: usize,
+    ) -> (FloatTensor<Self>, [FloatTensor<Self>; 4]);
 }
 
 impl<B: FusionBackend + PositionEncodingKernels> PositionEncodingKernels for Fusion<B> {
@@ -144,20 +163,37 @@ impl<B: FusionBackend + PositionEncodingKernels> PositionEncodingKernels for Fus
 
     fn position_weight_totals(
         partials: Vec<FloatTensor<Self>>,
-        outputs: usize,
-    ) -> FloatTensor<Self> {
-        let specs = vec![float_like::<B>(&partials[0], Shape::new([outputs]))];
-        let inputs = partials.into_iter().map(Input::Float).collect();
-        let [totals] = array(deferred::<B, _>(
+        scale: FloatTensor<Self>,
+        c: usize,
+    ) -> (FloatTensor<Self>, [FloatTensor<Self>; 4]) {
+        let outputs = 4 * c + 12;
+        let specs = vec![
+            float_like::<B>(&partials[0], Shape::new([outputs])),
+            float_like::<B>(&scale, Shape::new([3, c])),
+            float_like::<B>(&scale, Shape::new([c])),
+            float_like::<B>(&scale, Shape::new([3, 3])),
+            float_like::<B>(&scale, Shape::new([3])),
+        ];
+        let inputs = partials
+            .into_iter()
+            .chain([scale])
+            .map(Input::Float)
+            .collect();
+        let [sums, w3, b3, w0, b0] = array(deferred::<B, _>(
             "position_weight_totals",
             inputs,
             specs,
-            move |v| {
+            move |mut v| {
+                let scale = v.pop().map(Value::float).expect("the scale");
                 let partials = v.into_iter().map(Value::float).collect();
-                vec![Value::Float(B::position_weight_totals(partials, outputs))]
+                let (sums, grads) = B::position_weight_totals(partials, scale, c);
+                std::iter::once(sums)
+                    .chain(grads)
+                    .map(Value::Float)
+                    .collect()
             },
         ));
-        totals
+        (sums, [w3, b3, w0, b0])
     }
 }
 
@@ -199,55 +235,75 @@ impl<B: PositionEncodingKernels> Backward<B, 2> for PositionBackward {
     }
 }
 
+/// The parameter node's state: its ledger, the width `c`, and the fold's scale `s`.
+#[derive(Debug, Clone)]
+pub struct WeightsState<B: Backend> {
+    ledger: PositionLedger,
+    c: usize,
+    scale: FloatTensor<B>,
+}
+
 #[derive(Debug)]
 struct WeightsBackward;
 
-impl<B: PositionEncodingKernels> Backward<B, 1> for WeightsBackward {
-    type State = (PositionLedger, usize);
+impl<B: PositionEncodingKernels> Backward<B, 4> for WeightsBackward {
+    type State = WeightsState<B>;
 
     fn backward(
         self,
-        ops: Ops<Self::State, 1>,
+        ops: Ops<Self::State, 4>,
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
         // The placeholder a product node registered.
         let _ = grads.consume::<B>(&ops.node);
-        let [Some(parent)] = ops.parents else {
+        let s = ops.state;
+        let mut partials = std::mem::take(s.ledger.lock().partials::<B>());
+        if partials.is_empty() {
             return;
-        };
-        let (ledger, outputs) = ops.state;
-        let mut partials = std::mem::take(ledger.lock().partials::<B>());
-        while partials.len() > 1 {
-            let take = partials.len().min(TOTAL_PARTS);
-            let sum = B::position_weight_totals(partials.drain(..take).collect(), outputs);
-            partials.insert(0, sum);
         }
-        let Some(partial) = partials.pop() else {
-            return;
+        let weight_grads = loop {
+            let take = partials.len().min(TOTAL_PARTS);
+            let (sums, weight_grads) =
+                B::position_weight_totals(partials.drain(..take).collect(), s.scale.clone(), s.c);
+            if partials.is_empty() {
+                break weight_grads;
+            }
+            partials.insert(0, sums);
         };
-        let total = if partial.shape()[0] == outputs {
-            partial
-        } else {
-            B::position_weight_totals(vec![partial], outputs)
-        };
-        grads.register::<B>(parent.id, total);
+        for (parent, grad) in ops.parents.into_iter().zip(weight_grads) {
+            if let Some(parent) = parent {
+                grads.register::<B>(parent.id, grad);
+            }
+        }
     }
 }
 
 impl<B: PositionEncodingOps + PositionEncodingKernels, C: CheckpointStrategy> PositionEncodingOps
     for Autodiff<B, C>
 {
-    fn position_weights(weights: FloatTensor<Self>, ledger: PositionLedger) -> FloatTensor<Self> {
-        let outputs = weights.shape()[0];
-        let (weights, node) = weights.into_parts();
+    fn position_weights(
+        w3: FloatTensor<Self>,
+        b3: FloatTensor<Self>,
+        w0: FloatTensor<Self>,
+        b0: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        shift: FloatTensor<Self>,
+        ledger: PositionLedger,
+    ) -> FloatTensor<Self> {
+        let c = w3.shape()[1];
+        let [(w3, w3_node), (b3, b3_node), (w0, w0_node), (b0, b0_node)] =
+            [w3, b3, w0, b0].map(|t| t.into_parts());
+        // The frozen BatchNorm's constants: their nodes are dropped.
+        let [scale, shift] = [scale, shift].map(|t| t.into_primitive());
+        let value = B::position_weights(w3, b3, w0, b0, scale.clone(), shift, ledger.clone());
         match WeightsBackward
-            .prepare::<C>([node])
+            .prepare::<C>([w3_node, b3_node, w0_node, b0_node])
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish((ledger, outputs), weights),
-            OpsKind::UnTracked(prep) => prep.finish(weights),
+            OpsKind::Tracked(prep) => prep.finish(WeightsState { ledger, c, scale }, value),
+            OpsKind::UnTracked(prep) => prep.finish(value),
         }
     }
 
