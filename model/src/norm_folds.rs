@@ -25,6 +25,9 @@ use lifegom_render::split::join_columns;
 
 use crate::shared_linear::SharedLinear;
 
+/// Anything a reconstruction keeps under a layer's address and a name ([`NormFolds::keep`]).
+type KeptValue = Box<dyn Any>;
+
 /// A weight and an optional bias made from parameters alone ([`NormFolds::derived`]).
 type DerivedWeight = (Tensor<2>, Option<Tensor<1>>);
 
@@ -48,7 +51,7 @@ pub struct NormFolds<'a> {
     shared: RefCell<HashMap<(usize, &'static str), SharedLinear>>,
     /// By a layer's address and a name: anything else a reconstruction's passes share (the
     /// Point Transformer's positional-encoding weights).
-    kept: RefCell<HashMap<(usize, &'static str), Box<dyn Any>>>,
+    kept: RefCell<HashMap<(usize, &'static str), KeptValue>>,
     layers: PhantomData<&'a ()>,
 }
 

@@ -196,7 +196,7 @@ impl AttentionLayer {
     }
 
     /// Self-attention over `tokens` `[B, L, D]`: [`Self::forward_with`]`(tokens, tokens, …)`,
-    /// with the query, key and value as one product on CubeCL devices ([`Self::stacked`]).
+    /// with the query, key and value as one product on CubeCL devices (`Self::stacked`).
     pub fn self_attention<'a>(
         &'a self,
         folds: &NormFolds<'a>,

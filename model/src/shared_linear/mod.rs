@@ -18,7 +18,7 @@
 //! until the layer's parameters are differentiated, instead of being freed after its products.
 //!
 //! A layer that a frozen BatchNorm follows is folded with it in the same place
-//! ([`SharedLinear::folded`]): one launch makes the folded weight and bias, and the BN's scale
+//! (`SharedLinear::folded`): one launch makes the folded weight and bias, and the BN's scale
 //! enters the parameters' gradient where the rows are stacked, so the fold adds no launch to the
 //! backward (the `fold` module, [`op::SharedLinearOps::shared_fold`]).
 //!

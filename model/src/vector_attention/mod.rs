@@ -255,9 +255,9 @@ pub struct PositionWeights(Kept);
 #[derive(Debug, Clone)]
 enum Kept {
     /// `(W₀, b₀, W₃, b₃)`, run as two affine layers.
-    Host(Tensor<2>, Tensor<1>, Tensor<2>, Tensor<1>),
+    Host(Box<(Tensor<2>, Tensor<1>, Tensor<2>, Tensor<1>)>),
     /// `[W₃, b₃, W₀, b₀]` after its parameter node, and the ledger its passes file with.
-    Device(Tensor<1>, position_op::PositionLedger),
+    Device(Box<(Tensor<1>, position_op::PositionLedger)>),
 }
 
 impl PositionWeights {
@@ -269,7 +269,7 @@ impl PositionWeights {
     pub fn new(w0: Tensor<2>, b0: Tensor<1>, w3: Tensor<2>, b3: Tensor<1>) -> Self {
         if runs_on_host(&w0.device()) {
             check_position_weights(&w0, &b0, &w3, &b3);
-            return Self(Kept::Host(w0, b0, w3, b3));
+            return Self(Kept::Host(Box::new((w0, b0, w3, b3))));
         }
         let device = w0.device();
         let ones = Tensor::<1>::from_data(TensorData::from([1.0f32; 3]), &device);
@@ -302,7 +302,7 @@ impl PositionWeights {
         if runs_on_host(&w0.device()) {
             let w0 = w0 * scale.clone().unsqueeze_dim(0);
             let b0 = b0 * scale + shift;
-            return Self(Kept::Host(w0, b0, w3, b3));
+            return Self(Kept::Host(Box::new((w0, b0, w3, b3))));
         }
         let ledger = position_op::PositionLedger::default();
         let vector = Tensor::from_dispatch(
@@ -316,7 +316,7 @@ impl PositionWeights {
                 ledger.clone(),
             ),
         );
-        Self(Kept::Device(vector, ledger))
+        Self(Kept::Device(Box::new((vector, ledger))))
     }
 
     /// The encoding of `rel` `[n, k, 3]`, `[n, k, c]`.
@@ -332,16 +332,20 @@ impl PositionWeights {
             rel.dims()
         );
         match &self.0 {
-            Kept::Host(w0, b0, w3, b3) => {
-                position_encoding_reference(rel, w0.clone(), b0.clone(), w3.clone(), b3.clone())
+            Kept::Host(weights) => {
+                let (w0, b0, w3, b3) = weights.as_ref().clone();
+                position_encoding_reference(rel, w0, b0, w3, b3)
             }
-            Kept::Device(vector, ledger) => Tensor::from_dispatch(
-                <burn::backend::Dispatch as position_op::PositionEncodingOps>::position_encoding(
-                    rel.into_dispatch(),
-                    vector.clone().into_dispatch(),
-                    ledger.clone(),
-                ),
-            ),
+            Kept::Device(kept) => {
+                let (vector, ledger) = kept.as_ref();
+                Tensor::from_dispatch(
+                    <burn::backend::Dispatch as position_op::PositionEncodingOps>::position_encoding(
+                        rel.into_dispatch(),
+                        vector.clone().into_dispatch(),
+                        ledger.clone(),
+                    ),
+                )
+            }
         }
     }
 }

@@ -33,7 +33,10 @@ use lifegom_render::op_backward::{gradient_per_input, record};
 /// A relation and an aggregation whose gradients for `qkv` and `δ` are added inside the
 /// relation's backward (module docs), or no pairing. Clones share one record.
 #[derive(Clone, Default)]
-pub struct AttentionPair(Option<Arc<Mutex<Option<Box<dyn Any + Send>>>>>);
+pub struct AttentionPair(Option<FiledGradients>);
+
+/// The aggregation's `(∂qkv, ∂δ)` of the backend that runs the backward, once filed.
+type FiledGradients = Arc<Mutex<Option<Box<dyn Any + Send>>>>;
 
 impl std::fmt::Debug for AttentionPair {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {

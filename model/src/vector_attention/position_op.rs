@@ -9,7 +9,7 @@
 //!
 //! - a **product node** per pass (`position_encoding`) keeps `rel` and `p` (handles) and, in its
 //!   backward, recomputes the hidden layer, registers `∂rel`, and files the pass's partial sums
-//!   of the weights' gradient (one per [`ROWS_PER_CHUNK`](super::position_cube) rows) with the
+//!   of the weights' gradient (one per `ROWS_PER_CHUNK` rows, the `position_cube` module) with the
 //!   vector's [`PositionLedger`]; the first one registers a placeholder for the vector's node
 //!   (`p`'s own handle: the right shape, no copy) so that Burn reaches it;
 //! - a **parameter node** (`position_weights`) that makes the vector from the four weights in
