@@ -78,6 +78,8 @@ pub mod reconstructor;
 pub mod rig_export;
 pub mod sampling;
 pub mod shared_linear;
+#[cfg(test)]
+mod test_grads;
 pub mod trained;
 pub mod vector_attention;
 pub mod weights_file;

@@ -944,27 +944,6 @@ mod tests {
         );
     }
 
-    /// Every trainable parameter's gradient, by path.
-    struct GradValues<'a> {
-        grads: &'a burn::tensor::Gradients,
-        path: Vec<String>,
-        out: Vec<(String, Vec<f32>)>,
-    }
-
-    impl burn::module::ModuleVisitor for GradValues<'_> {
-        fn enter_module(&mut self, name: &str, _: &str) {
-            self.path.push(name.to_string());
-        }
-        fn exit_module(&mut self, _: &str, _: &str) {
-            self.path.pop();
-        }
-        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-            if let Some(g) = param.val().grad(self.grads) {
-                self.out.push((self.path.join("."), read(g)));
-            }
-        }
-    }
-
     /// The whole reconstruction's backward on wgpu (every custom op, the layers the feedback
     /// steps share, Burn's fusion) against Flex with the same weights and images: two views,
     /// two feedback steps, no dropout. Every trainable parameter's gradient agrees within 1e-3
@@ -993,13 +972,7 @@ mod tests {
             let rec = model.forward(&fx.subject, &fx.mesh, &fx.sources).unwrap();
             let renders = read(rec.renders[1].rgb.clone());
             let grads = test_loss(&rec).backward();
-            let mut values = GradValues {
-                grads: &grads,
-                path: Vec::new(),
-                out: Vec::new(),
-            };
-            model.visit(&mut values);
-            (renders, values.out)
+            (renders, crate::test_grads::parameter_grads(model, &grads))
         };
         let (want_renders, want) = run(&model_flex, &fx_flex);
         let (got_renders, got) = run(&model_wgpu, &fx_wgpu);

@@ -54,3 +54,64 @@ where
         OpsKind::UnTracked(prep) => prep.finish(forward(inputs)),
     }
 }
+
+/// What the nodes of several passes file for one node that runs after all of them: the scheme of
+/// the ops whose parameters every feedback pass reads (the model crate's positional weights and
+/// encoder norms). Each pass's node files its partial result; the first to file also registers a
+/// placeholder for the shared node (its own value's handle: the right shape, no copy), so that
+/// Burn reaches it; Burn runs the shared node after every pass's, since it is shallower, and it
+/// takes everything filed. Clones share one record.
+#[derive(Clone, Default)]
+pub struct PassLedger(std::sync::Arc<std::sync::Mutex<PassLedgerState>>);
+
+impl std::fmt::Debug for PassLedger {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("PassLedger")
+    }
+}
+
+#[derive(Default)]
+struct PassLedgerState {
+    /// `Vec<FloatTensor<B>>` of the backend that runs the backward; typed on first use.
+    filed: Option<Box<dyn std::any::Any + Send>>,
+    /// Whether a pass has filed (and so registered the placeholder).
+    seeded: bool,
+}
+
+impl PassLedger {
+    fn lock(&self) -> std::sync::MutexGuard<'_, PassLedgerState> {
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Files one pass's `partial`; on the first filing also registers `placeholder` for the
+    /// shared node `shared` in `grads`.
+    pub fn file<B: Backend>(
+        &self,
+        grads: &mut Gradients,
+        shared: burn::backend::autodiff::NodeId,
+        placeholder: FloatTensor<B>,
+        partial: FloatTensor<B>,
+    ) {
+        let mut state = self.lock();
+        if !state.seeded {
+            grads.register::<B>(shared, placeholder);
+            state.seeded = true;
+        }
+        filed::<B>(&mut state).push(partial);
+    }
+
+    /// Everything filed so far, in filing order.
+    pub fn take<B: Backend>(&self) -> Vec<FloatTensor<B>> {
+        std::mem::take(filed::<B>(&mut self.lock()))
+    }
+}
+
+fn filed<B: Backend>(state: &mut PassLedgerState) -> &mut Vec<FloatTensor<B>> {
+    state
+        .filed
+        .get_or_insert_with(|| Box::new(Vec::<FloatTensor<B>>::new()))
+        .downcast_mut()
+        .expect("one ledger's passes run on one backend")
+}

@@ -11,8 +11,6 @@
 //!   partial sums with the vector's [`NormLedger`] and, the first time, registers a placeholder
 //!   for the vector's node (the vector's own handle: the right shape, no copy).
 
-use std::sync::{Arc, Mutex, PoisonError};
-
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
@@ -23,7 +21,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
 use burn::tensor::Shape;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
-use lifegom_render::op_backward::record;
+use lifegom_render::op_backward::{PassLedger, record};
 
 /// Passes' partial sums added by one launch of [`ChannelNormKernels::channel_norm_totals`].
 pub const TOTAL_PARTS: usize = 4;
@@ -48,39 +46,8 @@ pub struct NormStatistics<B: Backend> {
     pub epsilon: f32,
 }
 
-/// The partial sums the passes filed for one parameter vector (module docs). Clones share one
-/// record.
-#[derive(Clone, Default)]
-pub struct NormLedger(Arc<Mutex<LedgerState>>);
-
-impl std::fmt::Debug for NormLedger {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("NormLedger")
-    }
-}
-
-#[derive(Default)]
-struct LedgerState {
-    /// `Vec<FloatTensor<B>>` of the backend that runs the backward; typed on first use.
-    partials: Option<Box<dyn std::any::Any + Send>>,
-    /// Whether a placeholder was registered for the vector's node.
-    seeded: bool,
-}
-
-impl NormLedger {
-    fn lock(&self) -> std::sync::MutexGuard<'_, LedgerState> {
-        self.0.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-}
-
-impl LedgerState {
-    fn partials<B: Backend>(&mut self) -> &mut Vec<FloatTensor<B>> {
-        self.partials
-            .get_or_insert_with(|| Box::new(Vec::<FloatTensor<B>>::new()))
-            .downcast_mut()
-            .expect("one vector's passes run on one backend")
-    }
-}
+/// The partial sums the passes filed for one parameter vector (module docs).
+pub type NormLedger = PassLedger;
 
 /// A BatchNorm on its running statistics over axis 1 of `[N, C, H, W]` images, with trainable
 /// `γ`, `β` read by several passes (see [`super`]).
@@ -260,12 +227,7 @@ impl<B: ChannelNormKernels> Backward<B, 2> for PassBackward {
             grads.register::<B>(node.id, dx);
         }
         if let Some(node) = params_node {
-            let mut ledger = s.ledger.lock();
-            if !ledger.seeded {
-                grads.register::<B>(node.id, s.params);
-                ledger.seeded = true;
-            }
-            ledger.partials::<B>().push(partial);
+            s.ledger.file::<B>(grads, node.id, s.params, partial);
         }
     }
 }
@@ -294,7 +256,7 @@ impl<B: ChannelNormKernels> Backward<B, 2> for ParameterBackward {
         // The placeholder a pass node registered.
         let _ = grads.consume::<B>(&ops.node);
         let s = ops.state;
-        let mut partials = std::mem::take(s.ledger.lock().partials::<B>());
+        let mut partials = s.ledger.take::<B>();
         if partials.is_empty() {
             return;
         }

@@ -700,27 +700,6 @@ mod tests {
 
     use lifegom_render::testing::read;
 
-    /// Every parameter's gradient of `fusion` in `grads`, by path.
-    struct GradValues<'a> {
-        grads: &'a burn::tensor::Gradients,
-        path: Vec<String>,
-        out: Vec<(String, Vec<f32>)>,
-    }
-
-    impl burn::module::ModuleVisitor for GradValues<'_> {
-        fn enter_module(&mut self, name: &str, _: &str) {
-            self.path.push(name.to_string());
-        }
-        fn exit_module(&mut self, _: &str, _: &str) {
-            self.path.pop();
-        }
-        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
-            if let Some(g) = param.val().grad(self.grads) {
-                self.out.push((self.path.join("."), read(g)));
-            }
-        }
-    }
-
     /// Two passes of the block through one set of folds (as the feedback steps run it), without
     /// dropout: the output of the second and every parameter's gradient, on `device`.
     fn two_folded_passes(fusion: &Fusion, device: &Device) -> Vec<(String, Vec<f32>)> {
@@ -738,13 +717,9 @@ mod tests {
         let again = feats * 0.5 + first.clone().unsqueeze_dim::<3>(1);
         let out = fusion.forward_folded(&folds, again, embed);
         let grads = (out.clone() * out.clone().sin()).sum().backward();
-        let mut visitor = GradValues {
-            grads: &grads,
-            path: Vec::new(),
-            out: vec![("output".into(), read(out))],
-        };
-        fusion.visit(&mut visitor);
-        visitor.out
+        let mut all = vec![("output".to_string(), read(out))];
+        all.extend(crate::test_grads::parameter_grads(fusion, &grads));
+        all
     }
 
     /// On lavapipe, where the query, key and value (and the second layer's key and value) are

@@ -22,8 +22,6 @@
 //! three per pass, Burn's sums of the four weights' per-pass gradients four per further pass,
 //! and the fold three forward and two backward.
 
-use std::sync::{Arc, Mutex, PoisonError};
-
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
@@ -33,45 +31,14 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
 use burn::tensor::Shape;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
-use lifegom_render::op_backward::record;
+use lifegom_render::op_backward::{PassLedger, record};
 
 /// Passes' partial sums added by one launch of
 /// [`PositionEncodingKernels::position_weight_totals`].
 pub const TOTAL_PARTS: usize = 4;
 
-/// The partial sums the passes' product nodes filed for one parameter vector, and whether its
-/// node was reached (module docs). Clones share one record.
-#[derive(Clone, Default)]
-pub struct PositionLedger(Arc<Mutex<LedgerState>>);
-
-impl std::fmt::Debug for PositionLedger {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("PositionLedger")
-    }
-}
-
-#[derive(Default)]
-struct LedgerState {
-    /// `Vec<FloatTensor<B>>` of the backend that runs the backward; typed on first use.
-    partials: Option<Box<dyn std::any::Any + Send>>,
-    /// Whether a placeholder was registered for the vector's node.
-    seeded: bool,
-}
-
-impl PositionLedger {
-    fn lock(&self) -> std::sync::MutexGuard<'_, LedgerState> {
-        self.0.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-}
-
-impl LedgerState {
-    fn partials<B: Backend>(&mut self) -> &mut Vec<FloatTensor<B>> {
-        self.partials
-            .get_or_insert_with(|| Box::new(Vec::<FloatTensor<B>>::new()))
-            .downcast_mut()
-            .expect("one vector's passes run on one backend")
-    }
-}
+/// The partial sums the passes' product nodes filed for one parameter vector (module docs).
+pub type PositionLedger = PassLedger;
 
 /// `relu(rel·W₀ + b₀)·W₃ + b₃` over the last axis of `rel` (`[.., 3]`), with the weights in one
 /// vector `p = [W₃ (3·c, row-major [3, c]), b₃ (c), W₀ (9, row-major [3, 3]), b₀ (3)]`; the
@@ -225,12 +192,7 @@ impl<B: PositionEncodingKernels> Backward<B, 2> for PositionBackward {
             grads.register::<B>(node.id, rel_grad);
         }
         if let Some(node) = weights_node {
-            let mut ledger = s.ledger.lock();
-            if !ledger.seeded {
-                grads.register::<B>(node.id, s.weights);
-                ledger.seeded = true;
-            }
-            ledger.partials::<B>().push(partial);
+            s.ledger.file::<B>(grads, node.id, s.weights, partial);
         }
     }
 }
@@ -258,7 +220,7 @@ impl<B: PositionEncodingKernels> Backward<B, 4> for WeightsBackward {
         // The placeholder a product node registered.
         let _ = grads.consume::<B>(&ops.node);
         let s = ops.state;
-        let mut partials = std::mem::take(s.ledger.lock().partials::<B>());
+        let mut partials = s.ledger.take::<B>();
         if partials.is_empty() {
             return;
         }
