@@ -182,7 +182,7 @@ impl UpdateHeads {
         let device = corners.device();
         let init = GomParams::init(f, &device);
         let heads = [&self.so3, &self.scale, &self.offset, &self.rgb];
-        let (weight, bias) = folds.derived(&self.so3.l0, "heads: first layers", || {
+        let (weight, bias) = folds.keep(&self.so3.l0, "heads: first layers", || {
             let weight = lifegom_render::split::join_columns(
                 heads.iter().map(|m| m.l0.weight.val()).collect(),
             );
@@ -210,7 +210,7 @@ impl UpdateHeads {
         // whose output is split by head: slicing `hidden` by head instead costs, in the
         // backward, one zeroed `[F, 4·hidden]` gradient per head and three sums of them, far
         // more than the product's zero blocks.
-        let (second, second_bias) = folds.derived(&self.so3.l2, "heads: second layers", || {
+        let (second, second_bias) = folds.keep(&self.so3.l2, "heads: second layers", || {
             let second = block_diagonal(heads.iter().map(|m| m.l2.weight.val()).collect());
             let second_bias = heads
                 .iter()

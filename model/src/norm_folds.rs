@@ -28,9 +28,6 @@ use crate::shared_linear::SharedLinear;
 /// Anything a reconstruction keeps under a layer's address and a name ([`NormFolds::keep`]).
 type KeptValue = Box<dyn Any>;
 
-/// A weight and an optional bias made from parameters alone ([`NormFolds::derived`]).
-type DerivedWeight = (Tensor<2>, Option<Tensor<1>>);
-
 /// BatchNorms on running statistics as per-channel `(scale, shift)`, and the `Linear` layers
 /// they follow folded with them, each computed on first use and then reused (module docs).
 ///
@@ -43,14 +40,12 @@ pub struct NormFolds<'a> {
     affine: RefCell<HashMap<usize, (Tensor<1>, Tensor<1>)>>,
     /// By `Linear` address: the folded `(weight [in, out], bias [out])` of `linear_bn`.
     linear: RefCell<HashMap<usize, (Tensor<2>, Tensor<1>)>>,
-    /// By a layer's address and a name: weights made from parameters alone (the
-    /// heads' block-diagonal layer).
-    derived: RefCell<HashMap<(usize, &'static str), DerivedWeight>>,
     /// By a layer's address and a name: layers every pass runs, with one parameter gradient for
     /// all passes on devices ([`SharedLinear`]).
     shared: RefCell<HashMap<(usize, &'static str), SharedLinear>>,
     /// By a layer's address and a name: anything else a reconstruction's passes share (the
-    /// Point Transformer's positional-encoding weights).
+    /// update heads' stacked and block-diagonal weights, the Point Transformer's
+    /// positional-encoding weights, the encoder's norms).
     kept: RefCell<HashMap<(usize, &'static str), KeptValue>>,
     layers: PhantomData<&'a ()>,
 }
@@ -59,24 +54,6 @@ impl<'a> NormFolds<'a> {
     /// No folds yet.
     pub fn new() -> Self {
         Self::default()
-    }
-
-    /// A weight and bias made from parameters alone by `make` (the update heads' stacked and
-    /// block-diagonal layers), kept under `anchor`'s address and `name`: a reconstruction's T
-    /// feedback steps then share one, as they share the folds (module docs).
-    pub(crate) fn derived(
-        &self,
-        anchor: &'a Linear,
-        name: &'static str,
-        make: impl FnOnce() -> DerivedWeight,
-    ) -> DerivedWeight {
-        let key = (std::ptr::from_ref(anchor) as usize, name);
-        if let Some(found) = self.derived.borrow().get(&key) {
-            return found.clone();
-        }
-        let made = make();
-        self.derived.borrow_mut().insert(key, made.clone());
-        made
     }
 
     /// What `make` builds, kept under `anchor`'s address and `name` for every later pass (module

@@ -55,12 +55,13 @@ where
     }
 }
 
-/// What the nodes of several passes file for one node that runs after all of them: the scheme of
-/// the ops whose parameters every feedback pass reads (the model crate's positional weights and
-/// encoder norms). Each pass's node files its partial result; the first to file also registers a
-/// placeholder for the shared node (its own value's handle: the right shape, no copy), so that
-/// Burn reaches it; Burn runs the shared node after every pass's, since it is shallower, and it
-/// takes everything filed. Clones share one record.
+/// What the nodes of several passes (or several outputs of one op) file for one node that runs
+/// after all of them: the scheme of the ops whose parameters every feedback pass reads (the model
+/// crate's positional weights and encoder norms) and of the column split's blocks. Each node files
+/// its item; the first to file also registers a placeholder for the shared node (that node's own
+/// value's handle: the right shape, no copy), so that Burn reaches it; Burn runs the shared node
+/// after every filing node, since it is shallower, and it takes everything filed. Clones share one
+/// record.
 #[derive(Clone, Default)]
 pub struct PassLedger(std::sync::Arc<std::sync::Mutex<PassLedgerState>>);
 
@@ -72,9 +73,9 @@ impl std::fmt::Debug for PassLedger {
 
 #[derive(Default)]
 struct PassLedgerState {
-    /// `Vec<FloatTensor<B>>` of the backend that runs the backward; typed on first use.
+    /// `Vec<T>` of the items the nodes file; typed on first use.
     filed: Option<Box<dyn std::any::Any + Send>>,
-    /// Whether a pass has filed (and so registered the placeholder).
+    /// Whether a node has filed (and so registered the placeholder).
     seeded: bool,
 }
 
@@ -85,33 +86,56 @@ impl PassLedger {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
-    /// Files one pass's `partial`; on the first filing also registers `placeholder` for the
-    /// shared node `shared` in `grads`.
-    pub fn file<B: Backend>(
+    /// Files one node's `item`; on the first filing also registers `placeholder` for the shared
+    /// node `shared` in `grads`.
+    pub fn file<B: Backend, T: Send + 'static>(
         &self,
         grads: &mut Gradients,
         shared: burn::backend::autodiff::NodeId,
         placeholder: FloatTensor<B>,
-        partial: FloatTensor<B>,
+        item: T,
     ) {
         let mut state = self.lock();
         if !state.seeded {
             grads.register::<B>(shared, placeholder);
             state.seeded = true;
         }
-        filed::<B>(&mut state).push(partial);
+        filed::<T>(&mut state).push(item);
     }
 
     /// Everything filed so far, in filing order.
-    pub fn take<B: Backend>(&self) -> Vec<FloatTensor<B>> {
-        std::mem::take(filed::<B>(&mut self.lock()))
+    pub fn take<T: Send + 'static>(&self) -> Vec<T> {
+        std::mem::take(filed::<T>(&mut self.lock()))
     }
 }
 
-fn filed<B: Backend>(state: &mut PassLedgerState) -> &mut Vec<FloatTensor<B>> {
+fn filed<T: Send + 'static>(state: &mut PassLedgerState) -> &mut Vec<T> {
     state
         .filed
-        .get_or_insert_with(|| Box::new(Vec::<FloatTensor<B>>::new()))
+        .get_or_insert_with(|| Box::new(Vec::<T>::new()))
         .downcast_mut()
-        .expect("one ledger's passes run on one backend")
+        .expect("one ledger's items have one type (its backward runs on one backend)")
+}
+
+/// Reduces `items` by launches of at most `per_launch` of them: each `launch` returns an item
+/// standing for those it took (placed first for the next launch) and a result; the last launch's
+/// result is returned (`None` without items). The passes' partial sums of the shared weights are
+/// added so, four passes a launch.
+pub fn reduce_in_launches<T, R>(
+    mut items: Vec<T>,
+    per_launch: usize,
+    mut launch: impl FnMut(Vec<T>) -> (T, R),
+) -> Option<R> {
+    assert!(per_launch >= 2, "a launch reduces at least two items");
+    loop {
+        if items.is_empty() {
+            return None;
+        }
+        let take = items.len().min(per_launch);
+        let (item, result) = launch(items.drain(..take).collect());
+        if items.is_empty() {
+            return Some(result);
+        }
+        items.insert(0, item);
+    }
 }

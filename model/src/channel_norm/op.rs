@@ -21,7 +21,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
 use burn::tensor::Shape;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
-use lifegom_render::op_backward::{PassLedger, record};
+use lifegom_render::op_backward::{PassLedger, record, reduce_in_launches};
 
 /// Passes' partial sums added by one launch of [`ChannelNormKernels::channel_norm_totals`].
 pub const TOTAL_PARTS: usize = 4;
@@ -227,7 +227,7 @@ impl<B: ChannelNormKernels> Backward<B, 2> for PassBackward {
             grads.register::<B>(node.id, dx);
         }
         if let Some(node) = params_node {
-            s.ledger.file::<B>(grads, node.id, s.params, partial);
+            s.ledger.file::<B, _>(grads, node.id, s.params, partial);
         }
     }
 }
@@ -256,22 +256,13 @@ impl<B: ChannelNormKernels> Backward<B, 2> for ParameterBackward {
         // The placeholder a pass node registered.
         let _ = grads.consume::<B>(&ops.node);
         let s = ops.state;
-        let mut partials = s.ledger.take::<B>();
-        if partials.is_empty() {
+        let partials = s.ledger.take::<FloatTensor<B>>();
+        let Some((dgamma, dbeta)) = reduce_in_launches(partials, TOTAL_PARTS, |parts| {
+            let (sums, dgamma, dbeta) =
+                B::channel_norm_totals(parts, s.mean.clone(), s.var.clone(), s.epsilon);
+            (sums, (dgamma, dbeta))
+        }) else {
             return;
-        }
-        let (dgamma, dbeta) = loop {
-            let take = partials.len().min(TOTAL_PARTS);
-            let (sums, dgamma, dbeta) = B::channel_norm_totals(
-                partials.drain(..take).collect(),
-                s.mean.clone(),
-                s.var.clone(),
-                s.epsilon,
-            );
-            if partials.is_empty() {
-                break (dgamma, dbeta);
-            }
-            partials.insert(0, sums);
         };
         let [gamma_node, beta_node] = ops.parents;
         for (node, grad) in [(gamma_node, dgamma), (beta_node, dbeta)] {

@@ -31,7 +31,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
 use burn::tensor::Shape;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
-use lifegom_render::op_backward::{PassLedger, record};
+use lifegom_render::op_backward::{PassLedger, record, reduce_in_launches};
 
 /// Passes' partial sums added by one launch of
 /// [`PositionEncodingKernels::position_weight_totals`].
@@ -192,7 +192,7 @@ impl<B: PositionEncodingKernels> Backward<B, 2> for PositionBackward {
             grads.register::<B>(node.id, rel_grad);
         }
         if let Some(node) = weights_node {
-            s.ledger.file::<B>(grads, node.id, s.weights, partial);
+            s.ledger.file::<B, _>(grads, node.id, s.weights, partial);
         }
     }
 }
@@ -220,18 +220,11 @@ impl<B: PositionEncodingKernels> Backward<B, 4> for WeightsBackward {
         // The placeholder a product node registered.
         let _ = grads.consume::<B>(&ops.node);
         let s = ops.state;
-        let mut partials = s.ledger.take::<B>();
-        if partials.is_empty() {
+        let partials = s.ledger.take::<FloatTensor<B>>();
+        let Some(weight_grads) = reduce_in_launches(partials, TOTAL_PARTS, |parts| {
+            B::position_weight_totals(parts, s.scale.clone(), s.c)
+        }) else {
             return;
-        }
-        let weight_grads = loop {
-            let take = partials.len().min(TOTAL_PARTS);
-            let (sums, weight_grads) =
-                B::position_weight_totals(partials.drain(..take).collect(), s.scale.clone(), s.c);
-            if partials.is_empty() {
-                break weight_grads;
-            }
-            partials.insert(0, sums);
         };
         for (parent, grad) in ops.parents.into_iter().zip(weight_grads) {
             if let Some(parent) = parent {

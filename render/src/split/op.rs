@@ -3,9 +3,6 @@
 //!
 //! Listed for `Cube`, `Fusion` and `Autodiff`; the CPU backends never reach it.
 
-use std::any::Any;
-use std::sync::{Arc, Mutex, PoisonError};
-
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
@@ -17,7 +14,7 @@ use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
 use burn::tensor::Shape;
 
 use crate::cube::deferred::{Input, Value, array, deferred, float_like};
-use crate::op_backward::{gradient_per_input, record};
+use crate::op_backward::{PassLedger, gradient_per_input, record};
 
 /// Blocks per launch.
 pub const MAX_BLOCKS: usize = 4;
@@ -154,45 +151,11 @@ impl<B: FusionBackend + JoinKernels> JoinKernels for Fusion<B> {
     }
 }
 
-/// The gradients the blocks' nodes have filed, and whether the source's node was reached.
-#[derive(Clone, Default)]
-pub struct Ledger(Arc<Mutex<LedgerState>>);
-
-impl std::fmt::Debug for Ledger {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("Ledger")
-    }
-}
-
-#[derive(Default)]
-struct LedgerState {
-    /// `[Option<FloatTensor<B>>; MAX_BLOCKS]` of the backend that runs the backward.
-    grads: Option<Box<dyn Any + Send>>,
-    /// Whether a placeholder was registered for the source's node.
-    seeded: bool,
-}
-
-impl LedgerState {
-    fn grads<B: Backend>(&mut self) -> &mut [Option<FloatTensor<B>>; MAX_BLOCKS] {
-        self.grads
-            .get_or_insert_with(|| {
-                Box::new(std::array::from_fn::<Option<FloatTensor<B>>, MAX_BLOCKS, _>(|_| None))
-            })
-            .downcast_mut()
-            .expect("one split's backward runs on one backend")
-    }
-}
-
-impl Ledger {
-    fn lock(&self) -> std::sync::MutexGuard<'_, LedgerState> {
-        self.0.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-}
-
 /// A block's node: which block, and the source's handle, its placeholder.
 #[derive(Debug, Clone)]
 pub struct BlockState<B: Backend> {
-    ledger: Ledger,
+    /// Files `(index, ∂block)` for the source's node.
+    ledger: PassLedger,
     index: usize,
     source: FloatTensor<B>,
 }
@@ -200,7 +163,7 @@ pub struct BlockState<B: Backend> {
 /// The source's node: the blocks' widths and rows.
 #[derive(Debug, Clone)]
 pub struct SourceState {
-    ledger: Ledger,
+    ledger: PassLedger,
     widths: ColumnBlocks,
     rows: usize,
 }
@@ -222,12 +185,8 @@ impl<B: Backend> Backward<B, 1> for BlockBackward {
             return;
         };
         let s = ops.state;
-        let mut ledger = s.ledger.lock();
-        if !ledger.seeded {
-            grads.register::<B>(parent.id, s.source);
-            ledger.seeded = true;
-        }
-        ledger.grads::<B>()[s.index] = Some(grad);
+        s.ledger
+            .file::<B, _>(grads, parent.id, s.source, (s.index, grad));
     }
 }
 
@@ -249,8 +208,11 @@ impl<B: JoinKernels> Backward<B, 1> for SourceBackward {
             return;
         };
         let s = ops.state;
-        let filed = std::mem::take(s.ledger.lock().grads::<B>());
-        let joined = B::join_given_columns(filed.into_iter().collect(), s.widths, s.rows);
+        let mut blocks: Vec<Option<FloatTensor<B>>> = (0..MAX_BLOCKS).map(|_| None).collect();
+        for (index, grad) in s.ledger.take::<(usize, FloatTensor<B>)>() {
+            blocks[index] = Some(grad);
+        }
+        let joined = B::join_given_columns(blocks, s.widths, s.rows);
         grads.register::<B>(parent.id, joined);
     }
 }
@@ -267,7 +229,7 @@ impl<B: SplitOps + JoinKernels, C: CheckpointStrategy> SplitOps for Autodiff<B, 
     ) {
         let rows = t.shape()[0];
         let (t, t_node) = t.into_parts();
-        let ledger = Ledger::default();
+        let ledger = PassLedger::default();
         // The source's node: the same values (module docs).
         let source: FloatTensor<Self> = match SourceBackward
             .prepare::<C>([t_node])
