@@ -22,9 +22,9 @@ use std::time::Instant;
 use burn::module::{Module, ModuleVisitor, Param, ParamGroup};
 use burn::optim::lr_scheduler::LrSchedulerConfig;
 use burn::optim::lr_scheduler::module_lr_scheduler::{ModuleLearningRate, ModuleLrSchedulerConfig};
-use burn::optim::{GradientsAccumulator, GradientsParams, ModuleOptimizer};
+use burn::optim::{GradientsAccumulator, GradientsParams};
 
-use crate::adam::{FusedAdamConfig, GradientWatch};
+use crate::adam::{AdamOptimizer, FusedAdamConfig, GradientWatch};
 use burn::tensor::{Bytes, Device, Tensor};
 use lifegom_data::dataset::Dataset;
 use lifegom_model::inputs::ModelInputs;
@@ -171,9 +171,9 @@ fn schedule_v1() -> u32 {
 }
 
 /// A fresh Adam (`crate::adam`) and the watch its GPU kernels report non-finite gradients to.
-fn fresh_optimizer() -> (ModuleOptimizer, GradientWatch) {
+fn fresh_optimizer() -> (AdamOptimizer, GradientWatch) {
     let watch = GradientWatch::default();
-    let optim = ModuleOptimizer::from(FusedAdamConfig::default().init_watched(watch.clone()));
+    let optim = AdamOptimizer::new(FusedAdamConfig::default(), watch.clone());
     (optim, watch)
 }
 
@@ -183,7 +183,7 @@ pub struct Trainer {
     pub model: Reconstructor,
     /// The config it was built from.
     pub config: ReconstructorConfig,
-    optim: ModuleOptimizer,
+    optim: AdamOptimizer,
     /// Reports a non-finite gradient from the optimizer's GPU kernels (`crate::adam`).
     watch: GradientWatch,
     lr: ModuleLearningRate,
@@ -344,7 +344,7 @@ impl Trainer {
     fn assemble(
         model: Reconstructor,
         config: ReconstructorConfig,
-        optim: ModuleOptimizer,
+        optim: AdamOptimizer,
         watch: GradientWatch,
         (step, samples): (u64, u64),
         train: &TrainSection,

@@ -4,17 +4,28 @@
 //! A thread whose gradient is NaN or infinite also stores 1 into the one-element `watch`
 //! buffer, which the op hands back as its fourth output: every writer stores the same value, so
 //! the race between them is harmless, and a finite gradient writes nothing.
+//!
+//! The batched step ([`AdamBatchOps`]) runs the same update for up to [`BATCH_SLOTS`]
+//! parameters a launch, each bound as a buffer of its own (a `Sequence` of buffers, unrolled in
+//! the kernel): parameter `s` owns the launch's cubes `first_cube[s]..first_cube[s + 1]`, and each
+//! thread writes its element at its own position in the flat outputs, where the parameters'
+//! segments lie in the order of [`segment_starts`].
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::cubecl::server::Handle;
+use burn_cubecl::tensor::CubeTensor;
 use lifegom_render::cube::host::{
-    THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
+    THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32, u32_bytes,
 };
 
-use super::op::{AdamScalars, AdamStepOps, MomentInputs};
+use super::op::{
+    AdamBatch, AdamBatchOps, AdamScalars, AdamStepOps, AdamStepped, MomentInputs, SEGMENT_ALIGN,
+    segment_starts,
+};
 
 /// One thread per element. With `first` (≠ 0) the moments' inputs are not read: they start at
 /// zero ([`MomentInputs::Zero`]).
@@ -112,5 +123,176 @@ impl AdamStepOps for CubeBackend {
         }
         let [p, m, v] = outputs.map(|h| cast_to(tensor_f32(&client, &device, h, &shape), dtype));
         (p, m, v, watch)
+    }
+}
+
+/// Most parameters one launch of the batched step binds: four buffers each (parameter, gradient,
+/// two moments) besides the five every launch binds. Above 32 the unrolled kernel grows while
+/// the launches saved are few.
+pub const BATCH_SLOTS: usize = 32;
+
+/// Buffers a batched launch binds besides its parameters' own: the cube table, three flat
+/// outputs and the watch flag.
+const SHARED_BINDINGS: usize = 5;
+
+/// The batched step, one thread per output element of this launch's segments (module docs).
+/// With `first` the moment sequences are empty and the moments start at zero.
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn adam_batch_kernel(
+    params: &Sequence<Box<[f32]>>,
+    grads: &Sequence<Box<[f32]>>,
+    moments_1: &Sequence<Box<[f32]>>,
+    moments_2: &Sequence<Box<[f32]>>,
+    first_cube: &[u32],
+    param_out: &mut [f32],
+    moment_1_out: &mut [f32],
+    moment_2_out: &mut [f32],
+    watch: &mut [f32],
+    out_offset: usize,
+    beta_1: f32,
+    one_minus_beta_1: f32,
+    beta_2: f32,
+    one_minus_beta_2: f32,
+    moment_factor: f32,
+    epsilon: f32,
+    lr: f32,
+    #[comptime] first: bool,
+) {
+    let cube = (ABSOLUTE_POS / SEGMENT_ALIGN) as u32;
+    #[unroll]
+    for s in 0..grads.len() {
+        if cube >= first_cube[s] && cube < first_cube[s + 1] {
+            let i = ABSOLUTE_POS - first_cube[s] as usize * SEGMENT_ALIGN;
+            let grad = &grads[s];
+            if i < grad.len() {
+                let g = grad[i];
+                if f32::is_nan(g) || f32::is_inf(g) {
+                    watch[0] = 1.0;
+                }
+                let mut m = g * one_minus_beta_1;
+                let mut v = (g * g) * one_minus_beta_2;
+                if !first {
+                    m += moments_1[s][i] * beta_1;
+                    v += moments_2[s][i] * beta_2;
+                }
+                let o = out_offset + ABSOLUTE_POS;
+                moment_1_out[o] = m;
+                moment_2_out[o] = v;
+                let update = (m * moment_factor) / (f32::sqrt(v) + epsilon);
+                param_out[o] = params[s][i] - update * lr;
+            }
+        }
+    }
+}
+
+/// Parameters per launch of the batched step on `client`'s device: as many as its binding
+/// limit allows, at most [`BATCH_SLOTS`], at least one.
+fn slots_per_launch(
+    client: &lifegom_render::cube::host::ComputeClient,
+    inputs: MomentInputs,
+) -> usize {
+    let per_slot = match inputs {
+        MomentInputs::Zero => 2,
+        MomentInputs::Given => 4,
+    };
+    let bindings = client.properties().hardware.max_bindings as usize;
+    (bindings.saturating_sub(SHARED_BINDINGS) / per_slot).clamp(1, BATCH_SLOTS)
+}
+
+impl AdamBatchOps for CubeBackend {
+    fn adam_step_batch(
+        batch: AdamBatch<Self>,
+        watch: FloatTensor<Self>,
+        inputs: MomentInputs,
+        s: AdamScalars,
+    ) -> (AdamStepped<Self>, FloatTensor<Self>) {
+        let first = &batch.params[0];
+        let (dtype, client, device) = (first.dtype(), first.client.clone(), first.device.clone());
+        let lens: Vec<usize> = batch
+            .params
+            .iter()
+            .map(|p| p.shape().num_elements())
+            .collect();
+        let (starts, total) = segment_starts(&lens);
+        let ready = |list: Vec<FloatTensor<Self>>| -> Vec<CubeTensor> {
+            list.into_iter().map(prepare).collect()
+        };
+        let params = ready(batch.params);
+        let grads = ready(batch.grads);
+        let moments_1 = ready(batch.moments_1);
+        let moments_2 = ready(batch.moments_2);
+        let watch = prepare(watch);
+        let outputs = [(); 3].map(|()| client.empty(4 * total));
+        let first = inputs == MomentInputs::Zero;
+        let slots = slots_per_launch(&client, inputs);
+        let buffers =
+            |ts: &[CubeTensor], range: std::ops::Range<usize>| -> SequenceArg<Box<[f32]>> {
+                ts[range].iter().map(tensor_arg).collect()
+            };
+        for begin in (0..lens.len()).step_by(slots) {
+            let range = begin..(begin + slots).min(lens.len());
+            let base = starts[begin];
+            let end = starts.get(range.end).copied().unwrap_or(total);
+            // Each parameter's cubes, counted from this launch's first cube.
+            let cubes: Vec<u32> = range
+                .clone()
+                .map(|i| ((starts[i] - base) / SEGMENT_ALIGN) as u32)
+                .chain([((end - base) / SEGMENT_ALIGN) as u32])
+                .collect();
+            let table = client.create_from_slice(&u32_bytes(&cubes));
+            let moments = |ts: &[CubeTensor]| {
+                if first {
+                    SequenceArg::new()
+                } else {
+                    buffers(ts, range.clone())
+                }
+            };
+            adam_batch_kernel::launch(
+                &client,
+                count_1d(end - base),
+                CubeDim::new_1d(SEGMENT_ALIGN as u32),
+                buffers(&params, range.clone()),
+                buffers(&grads, range.clone()),
+                moments(&moments_1),
+                moments(&moments_2),
+                arg(&table, cubes.len()),
+                arg(&outputs[0], total),
+                arg(&outputs[1], total),
+                arg(&outputs[2], total),
+                tensor_arg(&watch),
+                base,
+                s.beta_1,
+                s.one_minus_beta_1,
+                s.beta_2,
+                s.one_minus_beta_2,
+                s.moment_factor,
+                s.epsilon,
+                s.lr,
+                first,
+            );
+        }
+        // Each output a view of its segment: offsets at both ends, no copy. The segment starts
+        // 1 KiB-aligned, as a binding's offset must be; its end needs no alignment.
+        let views = |handle: &Handle| -> Vec<CubeTensor> {
+            starts
+                .iter()
+                .zip(&lens)
+                .map(|(&start, &len)| {
+                    let view = handle
+                        .clone()
+                        .offset_start(4 * start as u64)
+                        .offset_end(4 * (total - start - len) as u64);
+                    cast_to(tensor_f32(&client, &device, view, &[len]), dtype)
+                })
+                .collect()
+        };
+        let [params, moments_1, moments_2] = outputs.each_ref().map(views);
+        let stepped = AdamStepped {
+            params,
+            moments_1,
+            moments_2,
+        };
+        (stepped, watch)
     }
 }

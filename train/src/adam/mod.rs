@@ -22,16 +22,22 @@
 //! read-back, no extra launch) and, if it is set, puts back the weights and the optimiser state
 //! it kept from before the step: the step is not applied (design.md §1.6).
 
+pub mod batch;
 pub(crate) mod cube;
 pub mod op;
 
+pub use batch::AdamOptimizer;
+
 use std::sync::{Arc, Mutex, PoisonError};
 
+use burn::backend::Dispatch;
+use burn::backend::tensor::FloatTensor;
 use burn::optim::{Adam, AdamConfig, AdamState, AdaptiveMomentumState, LearningRate, Optimizer};
 use burn::tensor::{Device, Tensor, TensorData};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::readback::{self, ReadbackError};
 
+use batch::{Filed, Phase, StepBatch};
 use op::{AdamScalars, MomentInputs};
 
 /// Adam's hyper-parameters (Burn's defaults).
@@ -69,6 +75,7 @@ impl FusedAdamConfig {
     pub fn init(self) -> FusedAdam {
         FusedAdam {
             watch: GradientWatch::default(),
+            batch: StepBatch::default(),
             config: self,
             host: AdamConfig::new()
                 .with_beta_1(self.beta_1)
@@ -87,6 +94,8 @@ pub struct FusedAdam {
     watch: GradientWatch,
     /// Burn's Adam with the same hyper-parameters: the CPU path.
     host: Adam,
+    /// Whether a device step files, applies or runs alone ([`batch`]).
+    batch: StepBatch,
 }
 
 impl std::fmt::Debug for FusedAdam {
@@ -110,47 +119,59 @@ impl Optimizer for FusedAdam {
         if runs_on_host(&tensor.device()) {
             return self.host.step(lr, tensor, grad, state);
         }
-        let (time, moments) = match state {
+        let (time, moments) = match &state {
             Some(AdamState { momentum }) => (
                 momentum.time + 1,
-                Some((momentum.moment_1, momentum.moment_2)),
+                Some((momentum.moment_1.clone(), momentum.moment_2.clone())),
             ),
             None => (1, None),
         };
-        let scalars = AdamScalars::new(&self.config, time, lr);
         let shape = tensor.shape();
-        let flat = |t: Tensor<D>| t.reshape([shape.num_elements()]).into_dispatch();
-        let grad = flat(grad);
+        let flat = |t: Tensor<D>| t.reshape([shape.num_elements()]);
+        match &mut *self.batch.phase() {
+            Phase::Single => {}
+            Phase::Gather(filed) => {
+                filed.push(Filed {
+                    param: flat(tensor.clone()),
+                    grad: flat(grad),
+                    moments: moments.map(|(m, v)| (flat(m), flat(v))),
+                    time,
+                    lr,
+                    shape,
+                });
+                return (tensor, state);
+            }
+            Phase::Apply(stepped) => {
+                let next = stepped
+                    .pop_front()
+                    .expect("the apply walk visits no more parameters than the gather walk filed");
+                let (param, state) = next.into_step::<D>(&shape);
+                return (param, Some(state));
+            }
+        }
+        let scalars = AdamScalars::new(&self.config, time, lr);
+        let grad = flat(grad).into_dispatch();
         let (inputs, moment_1, moment_2) = match moments {
-            Some((m, v)) => (MomentInputs::Given, flat(m), flat(v)),
+            Some((m, v)) => (
+                MomentInputs::Given,
+                flat(m).into_dispatch(),
+                flat(v).into_dispatch(),
+            ),
             None => (MomentInputs::Zero, grad.clone(), grad.clone()),
         };
-        let mut slot = self
-            .watch
-            .flag
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner);
-        // An armed watch holds its flag here. Unwatched, the kernel still needs a flag to write:
-        // a fresh one, never read.
-        let armed = slot.is_some();
-        let watch = match slot.take() {
-            Some(flag) => flag,
-            None => Tensor::<1>::from_data(TensorData::from([0.0f32]), &tensor.device()),
-        };
-        let (param, moment_1, moment_2, watch) =
-            <burn::backend::Dispatch as op::AdamStepOps>::adam_step(
-                flat(tensor),
-                grad,
-                moment_1,
-                moment_2,
-                watch.into_dispatch(),
-                inputs,
-                scalars,
-            );
-        if armed {
-            *slot = Some(Tensor::from_dispatch(watch));
-        }
-        drop(slot);
+        let (param, moment_1, moment_2) = self.watch.with_flag(&tensor.device(), |watch| {
+            let (param, moment_1, moment_2, watch) =
+                <burn::backend::Dispatch as op::AdamStepOps>::adam_step(
+                    flat(tensor).into_dispatch(),
+                    grad,
+                    moment_1,
+                    moment_2,
+                    watch,
+                    inputs,
+                    scalars,
+                );
+            ((param, moment_1, moment_2), watch)
+        });
         let back = |t| Tensor::<1>::from_dispatch(t).reshape(shape.clone());
         let momentum = AdaptiveMomentumState::new(time, back(moment_1), back(moment_2));
         (back(param), Some(AdamState::new(momentum)))
@@ -181,6 +202,26 @@ impl GradientWatch {
         let device = device.clone().inner();
         *self.flag.lock().unwrap_or_else(PoisonError::into_inner) =
             Some(Tensor::from_data(TensorData::from([0.0f32]), &device));
+    }
+
+    /// Runs `launch` with the flag its kernels set for a non-finite gradient and takes the flag
+    /// it hands back: the armed flag, or a fresh one nobody reads when the watch is not armed.
+    fn with_flag<R>(
+        &self,
+        device: &Device,
+        launch: impl FnOnce(FloatTensor<Dispatch>) -> (R, FloatTensor<Dispatch>),
+    ) -> R {
+        let mut slot = self.flag.lock().unwrap_or_else(PoisonError::into_inner);
+        let armed = slot.is_some();
+        let flag = match slot.take() {
+            Some(flag) => flag,
+            None => Tensor::<1>::from_data(TensorData::from([0.0f32]), device),
+        };
+        let (result, flag) = launch(flag.into_dispatch());
+        if armed {
+            *slot = Some(Tensor::from_dispatch(flag));
+        }
+        result
     }
 
     /// Whether a gradient of the watched step was not finite: one read-back of the flag, which
@@ -260,56 +301,78 @@ mod tests {
         }
     }
 
+    /// How a watch test steps its layer: parameter by parameter through Burn's
+    /// `ModuleOptimizer`, or batched through the trainer's [`AdamOptimizer`].
+    #[derive(Clone, Copy, Debug)]
+    enum Walk {
+        PerParameter,
+        Batched,
+    }
+
     /// On wgpu an armed [`GradientWatch`] reports a gradient with one infinite or NaN element,
-    /// in any parameter of the step, through the `ModuleOptimizer` the trainer uses; it stays
-    /// clear for finite gradients, and a watch that was not armed reports nothing.
+    /// in any parameter of the step, both per parameter and batched; it stays clear for finite
+    /// gradients, and a watch that was not armed reports nothing.
     #[test]
     fn watch_reports_a_non_finite_gradient_wgpu() {
-        use burn::nn::{Linear, LinearConfig};
-        use burn::optim::{GradientsParams, ModuleOptimizer};
         let Some(device) = wgpu_test_device() else {
             return;
         };
+        for walk in [Walk::PerParameter, Walk::Batched] {
+            check_watch(&device, walk);
+        }
+    }
+
+    fn check_watch(device: &Device, walk: Walk) {
+        use burn::nn::{Linear, LinearConfig};
+        use burn::optim::{GradientsParams, ModuleOptimizer};
         let ad = device.clone().autodiff();
         let watch = GradientWatch::default();
-        let mut optim =
-            ModuleOptimizer::from(FusedAdamConfig::default().init_watched(watch.clone()));
+        let config = FusedAdamConfig::default();
+        let mut single = ModuleOptimizer::from(config.init_watched(watch.clone()));
+        let mut batched = AdamOptimizer::new(config, watch.clone());
         let mut layer: Linear = LinearConfig::new(2, 3).init(&ad);
         let mut step = |weight: [f32; 6], bias: [f32; 3], armed: bool| {
             let mut grads = GradientsParams::new();
-            grads.register(layer.weight.id, tensor(&weight, [2, 3], &device));
+            grads.register(layer.weight.id, tensor(&weight, [2, 3], device));
             let bias_id = layer.bias.as_ref().expect("a bias").id;
             grads.register(
                 bias_id,
-                Tensor::<1>::from_data(TensorData::from(bias), &device),
+                Tensor::<1>::from_data(TensorData::from(bias), device),
             );
             if armed {
                 watch.arm(&ad);
             }
             let before = read(layer.weight.val());
-            layer = optim.step(1e-3, layer.clone(), grads);
+            layer = match walk {
+                Walk::PerParameter => single.step(1e-3, layer.clone(), grads),
+                Walk::Batched => batched.step(1e-3, layer.clone(), grads),
+            };
             let moved = read(layer.weight.val()) != before;
             (watch.tripped().expect("the flag reads back"), moved)
         };
         let finite = [0.5, -1.0, 2.0, 0.25, 1e-3, -3.0];
-        assert_eq!(step(finite, [1.0, 2.0, 3.0], true), (false, true));
+        assert_eq!(
+            step(finite, [1.0, 2.0, 3.0], true),
+            (false, true),
+            "{walk:?}"
+        );
         let mut infinite = finite;
         infinite[4] = f32::INFINITY;
         assert!(
             step(infinite, [1.0, 2.0, 3.0], true).0,
-            "an infinite weight gradient"
+            "{walk:?}: an infinite weight gradient"
         );
         assert!(
             step(finite, [1.0, f32::NAN, 3.0], true).0,
-            "a NaN bias gradient"
+            "{walk:?}: a NaN bias gradient"
         );
         assert!(
             !step(finite, [1.0, 2.0, 3.0], true).0,
-            "the flag starts clear each step"
+            "{walk:?}: the flag starts clear each step"
         );
         assert!(
             !step(infinite, [1.0, 2.0, 3.0], false).0,
-            "an unarmed watch reported"
+            "{walk:?}: an unarmed watch reported"
         );
     }
 

@@ -3,9 +3,15 @@
 //! Listed for `Cube` only: [`super::FusedAdam`] never routes the CPU backends here, and the
 //! optimizer runs outside autodiff (Burn hands it the parameters' inner tensors).
 
+use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{Backend, backend_extension};
+use burn::backend::{
+    Backend, BackendTensor, Dispatch, DispatchAutodiffContext, DispatchTensor, DispatchTensorKind,
+    ExtensionType, TensorMetadata, backend_extension,
+};
 use burn::optim::LearningRate;
+use lifegom_render::cube::deferred::{Input, Value, deferred, float_like};
+use lifegom_render::cube::host::THREADS_1D;
 
 use super::FusedAdamConfig;
 
@@ -81,4 +87,280 @@ pub trait AdamStepOps: Backend {
         FloatTensor<Self>,
         FloatTensor<Self>,
     );
+}
+
+/// Threads per cube of the batched step; each parameter of a batch starts a fresh cube, so its
+/// segment of a batch's flat outputs starts at a multiple of this many elements.
+pub const SEGMENT_ALIGN: usize = THREADS_1D as usize;
+
+/// Where each of `lens` parameters (element counts) starts in a batch's flat outputs, and the
+/// outputs' length: one segment per parameter, each a whole number of [`SEGMENT_ALIGN`]-element
+/// cubes (at least one), so every segment starts 1 KiB-aligned and its slice is a view, not a
+/// copy.
+pub fn segment_starts(lens: &[usize]) -> (Vec<usize>, usize) {
+    let mut starts = Vec::with_capacity(lens.len());
+    let mut end = 0;
+    for &len in lens {
+        starts.push(end);
+        end += len.div_ceil(SEGMENT_ALIGN).max(1) * SEGMENT_ALIGN;
+    }
+    (starts, end)
+}
+
+/// The parameters of a batched step and what their update reads, one entry per parameter in
+/// every list (the moments' lists empty on a first step, [`MomentInputs::Zero`]).
+#[derive(Debug, Clone)]
+pub struct AdamBatch<B: Backend> {
+    /// The parameters, flat `[nᵢ]`; at least one.
+    pub params: Vec<FloatTensor<B>>,
+    /// Their gradients `[nᵢ]`.
+    pub grads: Vec<FloatTensor<B>>,
+    /// Their first moments `[nᵢ]`.
+    pub moments_1: Vec<FloatTensor<B>>,
+    /// Their second moments `[nᵢ]`.
+    pub moments_2: Vec<FloatTensor<B>>,
+}
+
+impl<B: Backend> AdamBatch<B> {
+    /// Every tensor, lists in field order.
+    fn into_tensors(self) -> impl Iterator<Item = FloatTensor<B>> {
+        self.params
+            .into_iter()
+            .chain(self.grads)
+            .chain(self.moments_1)
+            .chain(self.moments_2)
+    }
+
+    /// The inverse of [`Self::into_tensors`] for `count` parameters.
+    fn from_tensors(mut all: Vec<FloatTensor<B>>, count: usize, inputs: MomentInputs) -> Self {
+        let (moments_1, moments_2) = match inputs {
+            MomentInputs::Given => {
+                let moments_2 = all.split_off(3 * count);
+                (all.split_off(2 * count), moments_2)
+            }
+            MomentInputs::Zero => (Vec::new(), Vec::new()),
+        };
+        let grads = all.split_off(count);
+        Self {
+            params: all,
+            grads,
+            moments_1,
+            moments_2,
+        }
+    }
+}
+
+/// A batch's new values: per parameter, in the batch's order, the parameter and its moments
+/// `[nᵢ]`.
+#[derive(Debug, Clone)]
+pub struct AdamStepped<B: Backend> {
+    /// The updated parameters.
+    pub params: Vec<FloatTensor<B>>,
+    /// Their first moments.
+    pub moments_1: Vec<FloatTensor<B>>,
+    /// Their second moments.
+    pub moments_2: Vec<FloatTensor<B>>,
+}
+
+/// Lists of tensors across the dispatch boundary, element by element: the derive of
+/// [`ExtensionType`] takes single tensors, not lists, so the two list records are written out
+/// over these.
+fn lists_to_dispatch<B: Backend, const N: usize>(
+    lists: [Vec<FloatTensor<B>>; N],
+    map_kind: impl Fn(BackendTensor<B>) -> DispatchTensorKind,
+    autodiff: DispatchAutodiffContext,
+) -> [Vec<DispatchTensor>; N] {
+    lists.map(|list| {
+        list.into_iter()
+            .map(|t| DispatchTensor {
+                kind: map_kind(BackendTensor::Float(t)),
+                autodiff,
+            })
+            .collect()
+    })
+}
+
+/// The inverse of [`lists_to_dispatch`].
+fn lists_from_dispatch<B: Backend, const N: usize>(
+    lists: [Vec<DispatchTensor>; N],
+    unwrap_kind: impl Fn(DispatchTensor) -> BackendTensor<B>,
+) -> [Vec<FloatTensor<B>>; N] {
+    lists.map(|list| list.into_iter().map(|t| unwrap_kind(t).float()).collect())
+}
+
+/// Every list's autodiff context merged (the routing of a list record).
+fn lists_context(lists: &[&Vec<DispatchTensor>]) -> DispatchAutodiffContext {
+    lists
+        .iter()
+        .flat_map(|list| list.iter())
+        .fold(DispatchAutodiffContext::Disabled, |c, t| {
+            c.merge(t.autodiff)
+        })
+}
+
+impl<B: Backend> ExtensionType<B> for AdamBatch<B> {
+    type Target = AdamBatch<Dispatch>;
+
+    fn map_to_dispatch<F>(self, map_kind: F, autodiff: DispatchAutodiffContext) -> Self::Target
+    where
+        F: Fn(BackendTensor<B>) -> DispatchTensorKind,
+    {
+        let lists = [self.params, self.grads, self.moments_1, self.moments_2];
+        let [params, grads, moments_1, moments_2] = lists_to_dispatch(lists, map_kind, autodiff);
+        AdamBatch {
+            params,
+            grads,
+            moments_1,
+            moments_2,
+        }
+    }
+
+    fn map_from_dispatch<F>(target: Self::Target, unwrap_kind: F) -> Self
+    where
+        F: Fn(DispatchTensor) -> BackendTensor<B>,
+    {
+        let lists = [
+            target.params,
+            target.grads,
+            target.moments_1,
+            target.moments_2,
+        ];
+        let [params, grads, moments_1, moments_2] = lists_from_dispatch(lists, unwrap_kind);
+        AdamBatch {
+            params,
+            grads,
+            moments_1,
+            moments_2,
+        }
+    }
+
+    fn routing_tensor(target: &Self::Target) -> Option<&DispatchTensor> {
+        target.params.first()
+    }
+
+    fn routing_float_tensor(target: &Self::Target) -> Option<&DispatchTensor> {
+        target.params.first()
+    }
+
+    fn autodiff_context(target: &Self::Target) -> DispatchAutodiffContext {
+        lists_context(&[
+            &target.params,
+            &target.grads,
+            &target.moments_1,
+            &target.moments_2,
+        ])
+    }
+}
+
+impl<B: Backend> ExtensionType<B> for AdamStepped<B> {
+    type Target = AdamStepped<Dispatch>;
+
+    fn map_to_dispatch<F>(self, map_kind: F, autodiff: DispatchAutodiffContext) -> Self::Target
+    where
+        F: Fn(BackendTensor<B>) -> DispatchTensorKind,
+    {
+        let lists = [self.params, self.moments_1, self.moments_2];
+        let [params, moments_1, moments_2] = lists_to_dispatch(lists, map_kind, autodiff);
+        AdamStepped {
+            params,
+            moments_1,
+            moments_2,
+        }
+    }
+
+    fn map_from_dispatch<F>(target: Self::Target, unwrap_kind: F) -> Self
+    where
+        F: Fn(DispatchTensor) -> BackendTensor<B>,
+    {
+        let lists = [target.params, target.moments_1, target.moments_2];
+        let [params, moments_1, moments_2] = lists_from_dispatch(lists, unwrap_kind);
+        AdamStepped {
+            params,
+            moments_1,
+            moments_2,
+        }
+    }
+
+    fn routing_tensor(target: &Self::Target) -> Option<&DispatchTensor> {
+        target.params.first()
+    }
+
+    fn routing_float_tensor(target: &Self::Target) -> Option<&DispatchTensor> {
+        target.params.first()
+    }
+
+    fn autodiff_context(target: &Self::Target) -> DispatchAutodiffContext {
+        lists_context(&[&target.params, &target.moments_1, &target.moments_2])
+    }
+}
+
+/// Adam steps of several flat parameters at once (the batched step, [`super::batch`]).
+///
+/// Listed for `Cube` only: the fusion wrapper the macro writes does not take lists, so
+/// `Fusion<B>` has a handwritten implementation that records the call as one deferred op. The
+/// CPU backends never come here.
+#[backend_extension(Cube)]
+pub trait AdamBatchOps: Backend {
+    /// One Adam step of every parameter of `batch`, all at the same step `scalars`. Returns the
+    /// new parameters and moments, and `watch` as [`AdamStepOps::adam_step`] does. Each of the
+    /// three kinds of output lies in one buffer, laid out by [`segment_starts`]: every output is
+    /// a view of its segment. As few launches as the device's binding limit allows (up to 32
+    /// parameters a launch).
+    fn adam_step_batch(
+        #[extension_type] batch: AdamBatch<Self>,
+        watch: FloatTensor<Self>,
+        inputs: MomentInputs,
+        scalars: AdamScalars,
+    ) -> (AdamStepped<Self>, FloatTensor<Self>);
+}
+
+impl<B: FusionBackend + AdamBatchOps> AdamBatchOps for Fusion<B> {
+    fn adam_step_batch(
+        batch: AdamBatch<Self>,
+        watch: FloatTensor<Self>,
+        inputs: MomentInputs,
+        scalars: AdamScalars,
+    ) -> (AdamStepped<Self>, FloatTensor<Self>) {
+        let count = batch.params.len();
+        let like = batch.params[0].clone();
+        let specs = batch
+            .params
+            .iter()
+            .map(|p| float_like::<B>(&like, p.shape()))
+            .cycle()
+            .take(3 * count)
+            .chain([float_like::<B>(&watch, watch.shape())])
+            .collect();
+        let recorded = batch
+            .into_tensors()
+            .chain([watch])
+            .map(Input::Float)
+            .collect();
+        let mut outputs = deferred::<B, _>("adam_step_batch", recorded, specs, move |mut v| {
+            let watch = v
+                .pop()
+                .map(Value::float)
+                .expect("the watch flag was recorded");
+            let all = v.into_iter().map(Value::float).collect();
+            let batch = AdamBatch::from_tensors(all, count, inputs);
+            let (stepped, watch) = B::adam_step_batch(batch, watch, inputs, scalars);
+            stepped
+                .params
+                .into_iter()
+                .chain(stepped.moments_1)
+                .chain(stepped.moments_2)
+                .chain([watch])
+                .map(Value::Float)
+                .collect()
+        });
+        let watch = outputs.pop().expect("the watch flag is an output");
+        let moments_2 = outputs.split_off(2 * count);
+        let moments_1 = outputs.split_off(count);
+        let stepped = AdamStepped {
+            params: outputs,
+            moments_1,
+            moments_2,
+        };
+        (stepped, watch)
+    }
 }
