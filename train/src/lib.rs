@@ -38,8 +38,8 @@
 //! - [`data_parallel`]: batches of several samples: gradient accumulation, and replicas in
 //!   several processes (MPI) that average their gradients.
 //! - [`prefetch`]: the next step's sample read on another thread while this one computes.
-//! - [`adam`]: Adam with a one-kernel step per parameter on CubeCL devices (Burn's `Adam` on
-//!   the CPU backends), the trainer's optimizer.
+//! - [`adam`]: Adam in a few batched kernels per step on CubeCL devices (Burn's `Adam` on the
+//!   CPU backends), the trainer's optimizer.
 
 pub mod adam;
 pub mod config;

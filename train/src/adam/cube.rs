@@ -126,17 +126,16 @@ impl AdamStepOps for CubeBackend {
     }
 }
 
-/// Most parameters one launch of the batched step binds: four buffers each (parameter, gradient,
-/// two moments) besides the five every launch binds. Above 32 the unrolled kernel grows while
-/// the launches saved are few.
+/// Most parameters one launch of the batched step binds. Above 32 the unrolled kernel grows
+/// while the launches saved are few.
 pub const BATCH_SLOTS: usize = 32;
 
-/// Buffers a batched launch binds besides its parameters' own: the cube table, three flat
-/// outputs and the watch flag.
-const SHARED_BINDINGS: usize = 5;
-
 /// The batched step, one thread per output element of this launch's segments (module docs).
-/// With `first` the moment sequences are empty and the moments start at zero.
+///
+/// `params` holds a buffer per parameter, or with `flat_params` one buffer in the batch's own
+/// layout (the previous batched step's output, read at the output's index); `moments_1` and
+/// `moments_2` the same with `flat_moments`, and nothing with `first`, where the moments start
+/// at zero.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 fn adam_batch_kernel(
@@ -158,6 +157,8 @@ fn adam_batch_kernel(
     epsilon: f32,
     lr: f32,
     #[comptime] first: bool,
+    #[comptime] flat_params: bool,
+    #[comptime] flat_moments: bool,
 ) {
     let cube = (ABSOLUTE_POS / SEGMENT_ALIGN) as u32;
     #[unroll]
@@ -166,6 +167,7 @@ fn adam_batch_kernel(
             let i = ABSOLUTE_POS - first_cube[s] as usize * SEGMENT_ALIGN;
             let grad = &grads[s];
             if i < grad.len() {
+                let o = out_offset + ABSOLUTE_POS;
                 let g = grad[i];
                 if f32::is_nan(g) || f32::is_inf(g) {
                     watch[0] = 1.0;
@@ -173,31 +175,107 @@ fn adam_batch_kernel(
                 let mut m = g * one_minus_beta_1;
                 let mut v = (g * g) * one_minus_beta_2;
                 if !first {
-                    m += moments_1[s][i] * beta_1;
-                    v += moments_2[s][i] * beta_2;
+                    if flat_moments {
+                        m += moments_1[0][o] * beta_1;
+                        v += moments_2[0][o] * beta_2;
+                    } else {
+                        m += moments_1[s][i] * beta_1;
+                        v += moments_2[s][i] * beta_2;
+                    }
                 }
-                let o = out_offset + ABSOLUTE_POS;
                 moment_1_out[o] = m;
                 moment_2_out[o] = v;
                 let update = (m * moment_factor) / (f32::sqrt(v) + epsilon);
-                param_out[o] = params[s][i] - update * lr;
+                let p = if flat_params {
+                    params[0][o]
+                } else {
+                    params[s][i]
+                };
+                param_out[o] = p - update * lr;
             }
         }
     }
 }
 
+/// How one kind of a batch's inputs is bound.
+enum Layout {
+    /// A buffer per parameter.
+    PerSlot(Vec<CubeTensor>),
+    /// Every parameter's values in one buffer (`whole`), laid out as this batch's outputs will
+    /// be; `parts` are the parameters' views of it.
+    Flat {
+        whole: CubeTensor,
+        parts: Vec<CubeTensor>,
+    },
+}
+
+impl Layout {
+    /// `list` (one tensor per parameter) as one buffer where every tensor is the view of its
+    /// segment of one buffer in the layout of `starts` and `total` (the outputs of a batched step
+    /// of the same parameters: every step after the first), or else per parameter.
+    fn of(list: Vec<CubeTensor>, starts: &[usize], total: usize) -> Self {
+        let Some(head) = list.first() else {
+            return Self::PerSlot(list);
+        };
+        let memory = head.handle.memory.descriptor();
+        let bytes = 4 * total as u64;
+        let flat = list.iter().zip(starts).all(|(t, &start)| {
+            t.dtype == burn::tensor::DType::F32
+                && t.handle.memory.descriptor() == memory
+                && t.handle.size() == bytes
+                && t.handle.offset_start.unwrap_or(0) == 4 * start as u64
+        });
+        if !flat {
+            return Self::PerSlot(list);
+        }
+        let mut whole = head.handle.clone();
+        (whole.offset_start, whole.offset_end) = (None, None);
+        Self::Flat {
+            whole: tensor_f32(&head.client, &head.device, whole, &[total]),
+            parts: list,
+        }
+    }
+
+    /// The same tensors bound one per parameter.
+    fn per_slot(self) -> Self {
+        match self {
+            Self::Flat { parts, .. } => Self::PerSlot(parts),
+            per_slot => per_slot,
+        }
+    }
+
+    fn is_flat(&self) -> bool {
+        matches!(self, Self::Flat { .. })
+    }
+
+    /// Buffers bound for `slots` parameters.
+    fn bindings(&self, slots: usize) -> usize {
+        match self {
+            Self::PerSlot(_) => slots,
+            Self::Flat { .. } => 1,
+        }
+    }
+
+    /// The kernel's sequence for the parameters `range`.
+    fn arg(&self, range: std::ops::Range<usize>) -> SequenceArg<Box<[f32]>> {
+        match self {
+            Self::PerSlot(list) => list[range].iter().map(tensor_arg).collect(),
+            Self::Flat { whole, .. } => [tensor_arg(whole)].into_iter().collect(),
+        }
+    }
+}
+
 /// Parameters per launch of the batched step on `client`'s device: as many as its binding
-/// limit allows, at most [`BATCH_SLOTS`], at least one.
+/// limit allows with the inputs bound as `bound` gives, at most [`BATCH_SLOTS`], at least one.
 fn slots_per_launch(
     client: &lifegom_render::cube::host::ComputeClient,
-    inputs: MomentInputs,
+    bound: impl Fn(usize) -> usize,
 ) -> usize {
-    let per_slot = match inputs {
-        MomentInputs::Zero => 2,
-        MomentInputs::Given => 4,
-    };
-    let bindings = client.properties().hardware.max_bindings as usize;
-    (bindings.saturating_sub(SHARED_BINDINGS) / per_slot).clamp(1, BATCH_SLOTS)
+    let limit = client.properties().hardware.max_bindings as usize;
+    (1..=BATCH_SLOTS)
+        .take_while(|&k| bound(k) <= limit)
+        .last()
+        .unwrap_or(1)
 }
 
 impl AdamBatchOps for CubeBackend {
@@ -218,18 +296,35 @@ impl AdamBatchOps for CubeBackend {
         let ready = |list: Vec<FloatTensor<Self>>| -> Vec<CubeTensor> {
             list.into_iter().map(prepare).collect()
         };
-        let params = ready(batch.params);
-        let grads = ready(batch.grads);
-        let moments_1 = ready(batch.moments_1);
-        let moments_2 = ready(batch.moments_2);
+        let params = Layout::of(ready(batch.params), &starts, total);
+        let grads = Layout::PerSlot(ready(batch.grads));
+        let (moments_1, moments_2) = match inputs {
+            MomentInputs::Zero => (Layout::PerSlot(Vec::new()), Layout::PerSlot(Vec::new())),
+            MomentInputs::Given => {
+                let moments_1 = Layout::of(ready(batch.moments_1), &starts, total);
+                let moments_2 = Layout::of(ready(batch.moments_2), &starts, total);
+                // Both flat or neither: one comptime choice for the pair.
+                if moments_1.is_flat() && moments_2.is_flat() {
+                    (moments_1, moments_2)
+                } else {
+                    (moments_1.per_slot(), moments_2.per_slot())
+                }
+            }
+        };
         let watch = prepare(watch);
         let outputs = [(); 3].map(|()| client.empty(4 * total));
         let first = inputs == MomentInputs::Zero;
-        let slots = slots_per_launch(&client, inputs);
-        let buffers =
-            |ts: &[CubeTensor], range: std::ops::Range<usize>| -> SequenceArg<Box<[f32]>> {
-                ts[range].iter().map(tensor_arg).collect()
+        // Buffers a launch of `k` parameters binds: the inputs, the cube table, three outputs
+        // and the watch flag.
+        let bound = |k| {
+            let moments = if first {
+                0
+            } else {
+                moments_1.bindings(k) + moments_2.bindings(k)
             };
+            params.bindings(k) + grads.bindings(k) + moments + 5
+        };
+        let slots = slots_per_launch(&client, bound);
         for begin in (0..lens.len()).step_by(slots) {
             let range = begin..(begin + slots).min(lens.len());
             let base = starts[begin];
@@ -241,19 +336,19 @@ impl AdamBatchOps for CubeBackend {
                 .chain([((end - base) / SEGMENT_ALIGN) as u32])
                 .collect();
             let table = client.create_from_slice(&u32_bytes(&cubes));
-            let moments = |ts: &[CubeTensor]| {
+            let moments = |m: &Layout| {
                 if first {
                     SequenceArg::new()
                 } else {
-                    buffers(ts, range.clone())
+                    m.arg(range.clone())
                 }
             };
             adam_batch_kernel::launch(
                 &client,
                 count_1d(end - base),
                 CubeDim::new_1d(SEGMENT_ALIGN as u32),
-                buffers(&params, range.clone()),
-                buffers(&grads, range.clone()),
+                params.arg(range.clone()),
+                grads.arg(range.clone()),
                 moments(&moments_1),
                 moments(&moments_2),
                 arg(&table, cubes.len()),
@@ -270,6 +365,8 @@ impl AdamBatchOps for CubeBackend {
                 s.epsilon,
                 s.lr,
                 first,
+                params.is_flat(),
+                moments_1.is_flat(),
             );
         }
         // Each output a view of its segment: offsets at both ends, no copy. The segment starts

@@ -1,11 +1,13 @@
-//! Adam in one kernel per parameter on CubeCL devices (design.md §9.4).
+//! Adam in a few kernels per model step on CubeCL devices (design.md §9.4).
 //!
 //! Burn's `Adam` updates a parameter with about a dozen tensor ops (two moment updates, the
 //! square, the bias corrections, the square root, the division, the step), each one kernel on a
 //! GPU: about 3,900 of the 20,900 kernels a quickstart training step launched on wgpu
 //! (BENCHMARKS.md, "Kernel launches per training step"). [`FusedAdam`] computes the same update
 //! in one kernel per parameter there ([`op::AdamStepOps`], `cube` module): read the parameter,
-//! its gradient and both moments, write all three back.
+//! its gradient and both moments, write all three back. The trainer's [`AdamOptimizer`]
+//! ([`batch`]) goes further: one launch steps up to 32 parameters ([`op::AdamBatchOps`]), 14
+//! launches for the quickstart model's 303 parameters.
 //!
 //! - Its state is Burn's [`AdamState`]: checkpoints written with Burn's `Adam` load, and the
 //!   other way round.
@@ -18,7 +20,7 @@
 //! before the step (they are on the host already). On a GPU that would cost a read-back or a
 //! reduction per parameter, so the step kernels watch instead: with a [`GradientWatch`] armed,
 //! each kernel sets a one-element flag wherever its gradient is NaN or infinite, the same flag
-//! passing from one parameter's step to the next. The trainer reads it once after the step (one
+//! passing from one launch to the next. The trainer reads it once after the step (one
 //! read-back, no extra launch) and, if it is set, puts back the weights and the optimiser state
 //! it kept from before the step: the step is not applied (design.md §1.6).
 
