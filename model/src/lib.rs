@@ -64,6 +64,7 @@ pub mod checkpoint;
 pub mod dropout;
 pub mod encoder;
 pub mod error;
+pub mod frozen_affine;
 pub mod fusion;
 pub mod grouping;
 pub mod heads;

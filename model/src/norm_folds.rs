@@ -164,10 +164,7 @@ impl<'a> NormFolds<'a> {
         if let Some(found) = self.affine.borrow().get(&key) {
             return found.clone();
         }
-        let mean = bn.running_mean.value().to_device(device);
-        let var = bn.running_var.value().to_device(device);
-        let scale = bn.gamma.val() / (var + bn.epsilon).sqrt();
-        let shift = bn.beta.val() - mean * scale.clone();
+        let (scale, shift) = crate::frozen_affine::frozen_affine(bn, device);
         self.affine
             .borrow_mut()
             .insert(key, (scale.clone(), shift.clone()));
