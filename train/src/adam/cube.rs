@@ -204,7 +204,7 @@ enum Layout {
     /// Every parameter's values in one buffer (`whole`), laid out as this batch's outputs will
     /// be; `parts` are the parameters' views of it.
     Flat {
-        whole: CubeTensor,
+        whole: Box<CubeTensor>,
         parts: Vec<CubeTensor>,
     },
 }
@@ -231,7 +231,7 @@ impl Layout {
         let mut whole = head.handle.clone();
         (whole.offset_start, whole.offset_end) = (None, None);
         Self::Flat {
-            whole: tensor_f32(&head.client, &head.device, whole, &[total]),
+            whole: Box::new(tensor_f32(&head.client, &head.device, whole, &[total])),
             parts: list,
         }
     }
