@@ -27,6 +27,59 @@ use super::op::{
     segment_starts,
 };
 
+/// Adam's per-step factors as one kernel argument ([`AdamScalars`] on the host).
+#[derive(CubeType, CubeLaunch)]
+struct StepScalars {
+    beta_1: f32,
+    one_minus_beta_1: f32,
+    beta_2: f32,
+    one_minus_beta_2: f32,
+    moment_factor: f32,
+    epsilon: f32,
+    lr: f32,
+}
+
+/// The kernel argument for `s`.
+fn step_scalars(s: &AdamScalars) -> StepScalarsLaunch {
+    StepScalarsLaunch::new(
+        s.beta_1,
+        s.one_minus_beta_1,
+        s.beta_2,
+        s.one_minus_beta_2,
+        s.moment_factor,
+        s.epsilon,
+        s.lr,
+    )
+}
+
+/// Sets `watch[0]` when `g` is NaN or infinite (module docs).
+#[cube]
+fn watch_gradient(g: f32, watch: &mut [f32]) {
+    if f32::is_nan(g) || f32::is_inf(g) {
+        watch[0] = 1.0;
+    }
+}
+
+/// Stores one element's step at `o`: its new moments `m`, `v` and the parameter `p` moved by
+/// `(m·c / (√v + ε'))·lr`, in the order of Burn's op-by-op update.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn store_step(
+    p: f32,
+    m: f32,
+    v: f32,
+    o: usize,
+    param_out: &mut [f32],
+    moment_1_out: &mut [f32],
+    moment_2_out: &mut [f32],
+    s: &StepScalars,
+) {
+    moment_1_out[o] = m;
+    moment_2_out[o] = v;
+    let update = (m * s.moment_factor) / (f32::sqrt(v) + s.epsilon);
+    param_out[o] = p - update * s.lr;
+}
+
 /// One thread per element. With `first` (≠ 0) the moments' inputs are not read: they start at
 /// zero ([`MomentInputs::Zero`]).
 #[cube(launch)]
@@ -42,31 +95,20 @@ fn adam_step_kernel(
     watch: &mut [f32],
     units: usize,
     first: u32,
-    beta_1: f32,
-    one_minus_beta_1: f32,
-    beta_2: f32,
-    one_minus_beta_2: f32,
-    moment_factor: f32,
-    epsilon: f32,
-    lr: f32,
+    s: &StepScalars,
 ) {
     let i = ABSOLUTE_POS;
     if i < units {
         let g = grad[i];
-        if f32::is_nan(g) || f32::is_inf(g) {
-            watch[0] = 1.0;
-        }
-        let mut m = g * one_minus_beta_1;
-        let mut v = (g * g) * one_minus_beta_2;
+        watch_gradient(g, watch);
+        let mut m = g * s.one_minus_beta_1;
+        let mut v = (g * g) * s.one_minus_beta_2;
         if first == 0 {
             // Float addition commutes: the same sums as Burn's `m·β₁ + g·(1 − β₁)`.
-            m += moment_1[i] * beta_1;
-            v += moment_2[i] * beta_2;
+            m += moment_1[i] * s.beta_1;
+            v += moment_2[i] * s.beta_2;
         }
-        moment_1_out[i] = m;
-        moment_2_out[i] = v;
-        let update = (m * moment_factor) / (f32::sqrt(v) + epsilon);
-        param_out[i] = param[i] - update * lr;
+        store_step(param[i], m, v, i, param_out, moment_1_out, moment_2_out, s);
     }
 }
 
@@ -112,13 +154,7 @@ impl AdamStepOps for CubeBackend {
                 tensor_arg(&watch),
                 n,
                 first,
-                s.beta_1,
-                s.one_minus_beta_1,
-                s.beta_2,
-                s.one_minus_beta_2,
-                s.moment_factor,
-                s.epsilon,
-                s.lr,
+                step_scalars(&s),
             );
         }
         let [p, m, v] = outputs.map(|h| cast_to(tensor_f32(&client, &device, h, &shape), dtype));
@@ -149,49 +185,38 @@ fn adam_batch_kernel(
     moment_2_out: &mut [f32],
     watch: &mut [f32],
     out_offset: usize,
-    beta_1: f32,
-    one_minus_beta_1: f32,
-    beta_2: f32,
-    one_minus_beta_2: f32,
-    moment_factor: f32,
-    epsilon: f32,
-    lr: f32,
+    s: &StepScalars,
     #[comptime] first: bool,
     #[comptime] flat_params: bool,
     #[comptime] flat_moments: bool,
 ) {
     let cube = (ABSOLUTE_POS / SEGMENT_ALIGN) as u32;
     #[unroll]
-    for s in 0..grads.len() {
-        if cube >= first_cube[s] && cube < first_cube[s + 1] {
-            let i = ABSOLUTE_POS - first_cube[s] as usize * SEGMENT_ALIGN;
-            let grad = &grads[s];
+    for slot in 0..grads.len() {
+        if cube >= first_cube[slot] && cube < first_cube[slot + 1] {
+            let i = ABSOLUTE_POS - first_cube[slot] as usize * SEGMENT_ALIGN;
+            let grad = &grads[slot];
             if i < grad.len() {
                 let o = out_offset + ABSOLUTE_POS;
                 let g = grad[i];
-                if f32::is_nan(g) || f32::is_inf(g) {
-                    watch[0] = 1.0;
-                }
-                let mut m = g * one_minus_beta_1;
-                let mut v = (g * g) * one_minus_beta_2;
+                watch_gradient(g, watch);
+                let mut m = g * s.one_minus_beta_1;
+                let mut v = (g * g) * s.one_minus_beta_2;
                 if !first {
                     if flat_moments {
-                        m += moments_1[0][o] * beta_1;
-                        v += moments_2[0][o] * beta_2;
+                        m += moments_1[0][o] * s.beta_1;
+                        v += moments_2[0][o] * s.beta_2;
                     } else {
-                        m += moments_1[s][i] * beta_1;
-                        v += moments_2[s][i] * beta_2;
+                        m += moments_1[slot][i] * s.beta_1;
+                        v += moments_2[slot][i] * s.beta_2;
                     }
                 }
-                moment_1_out[o] = m;
-                moment_2_out[o] = v;
-                let update = (m * moment_factor) / (f32::sqrt(v) + epsilon);
                 let p = if flat_params {
                     params[0][o]
                 } else {
-                    params[s][i]
+                    params[slot][i]
                 };
-                param_out[o] = p - update * lr;
+                store_step(p, m, v, o, param_out, moment_1_out, moment_2_out, s);
             }
         }
     }
@@ -357,13 +382,7 @@ impl AdamBatchOps for CubeBackend {
                 arg(&outputs[2], total),
                 tensor_arg(&watch),
                 base,
-                s.beta_1,
-                s.one_minus_beta_1,
-                s.beta_2,
-                s.one_minus_beta_2,
-                s.moment_factor,
-                s.epsilon,
-                s.lr,
+                step_scalars(&s),
                 first,
                 params.is_flat(),
                 moments_1.is_flat(),
