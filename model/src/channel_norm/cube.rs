@@ -1,5 +1,5 @@
 //! The channel norm's kernels on Burn's CubeCL backend (see [`super`]), for `[N, C, H, W]`
-//! images and the vector `p = [γ; β]`. The images are read in the layout they come in when it
+//! images and the per-channel `γ`, `β`. The images are read in the layout they come in when it
 //! is a permutation of a contiguous one (Burn's convolutions hand channels-last images back),
 //! and the outputs are written in that layout: copying them to the row-major order and back
 //! would cost two launches per pass each way. Each thread computes its channel's
@@ -53,21 +53,22 @@ fn offset(layout: &Layout, n: usize, c: usize, pixel: usize, width: usize) -> us
 
 /// Channel `c`'s `s = γ/√(σ²+ε)`.
 #[cube]
-fn scale_of(p: &[f32], var: &[f32], c: usize, eps: f32) -> f32 {
-    p[c] / f32::sqrt(var[c] + eps)
+fn scale_of(gamma: &[f32], var: &[f32], c: usize, eps: f32) -> f32 {
+    gamma[c] / f32::sqrt(var[c] + eps)
 }
 
 /// Channel `c`'s `t = β − μ·s`.
 #[cube]
-fn shift_of(p: &[f32], mean: &[f32], c: usize, channels: usize, s: f32) -> f32 {
-    p[channels + c] - mean[c] * s
+fn shift_of(beta: &[f32], mean: &[f32], c: usize, s: f32) -> f32 {
+    beta[c] - mean[c] * s
 }
 
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 fn channel_norm_forward_kernel(
     x: &[f32],
-    p: &[f32],
+    gamma: &[f32],
+    beta: &[f32],
     mean: &[f32],
     var: &[f32],
     out: &mut [f32],
@@ -82,8 +83,8 @@ fn channel_norm_forward_kernel(
     let e = ABSOLUTE_POS;
     if e < units {
         let c = (e / channel_stride) % channels;
-        let s = scale_of(p, var, c, eps);
-        let t = shift_of(p, mean, c, channels, s);
+        let s = scale_of(gamma, var, c, eps);
+        let t = shift_of(beta, mean, c, s);
         let mut y = x[e] * s + t;
         if relu != 0 {
             y = f32::max(y, 0.0);
@@ -96,7 +97,8 @@ fn channel_norm_forward_kernel(
 #[allow(clippy::too_many_arguments)]
 fn channel_norm_partials_kernel(
     x: &[f32],
-    p: &[f32],
+    gamma: &[f32],
+    beta: &[f32],
     mean: &[f32],
     var: &[f32],
     grad: &[f32],
@@ -119,8 +121,8 @@ fn channel_norm_partials_kernel(
         let row = unit / channels;
         let n = row / chunks;
         let chunk = row % chunks;
-        let s = scale_of(p, var, c, eps);
-        let t = shift_of(p, mean, c, channels, s);
+        let s = scale_of(gamma, var, c, eps);
+        let t = shift_of(beta, mean, c, s);
         let start = chunk * chunk_len;
         let end = usize::min(start + chunk_len, pixels);
         let mut gx = 0.0f32;
@@ -188,16 +190,6 @@ fn channel_norm_totals_kernel(
     }
 }
 
-#[cube(launch)]
-fn join_parameters_kernel(gamma: &[f32], beta: &[f32], out: &mut [f32], channels: usize) {
-    let e = ABSOLUTE_POS;
-    if e < channels {
-        out[e] = gamma[e];
-    } else if e < 2 * channels {
-        out[e] = beta[e - channels];
-    }
-}
-
 /// `t` as it is when it is `f32` and its layout a permutation of a contiguous one over a buffer
 /// of its own, else a row-major copy.
 fn dense(t: FloatTensor<CubeBackend>) -> CubeTensor {
@@ -245,34 +237,19 @@ fn image_sizes(x: &FloatTensor<CubeBackend>) -> (usize, usize, usize) {
 impl ChannelNormOps for CubeBackend {
     fn channel_norm_parameters(
         gamma: FloatTensor<Self>,
-        beta: FloatTensor<Self>,
+        _beta: FloatTensor<Self>,
         _mean: FloatTensor<Self>,
         _var: FloatTensor<Self>,
         _epsilon: f32,
         _ledger: NormLedger,
     ) -> FloatTensor<Self> {
-        let dtype = gamma.dtype();
-        let c = gamma.shape()[0];
-        let (client, device) = (gamma.client.clone(), gamma.device.clone());
-        let [gamma, beta] = [gamma, beta].map(prepare);
-        let out = client.empty(4 * (2 * c).max(1));
-        if c > 0 {
-            join_parameters_kernel::launch(
-                &client,
-                count_1d(2 * c),
-                CubeDim::new_1d(THREADS_1D),
-                tensor_arg(&gamma),
-                tensor_arg(&beta),
-                arg(&out, 2 * c),
-                c,
-            );
-        }
-        cast_to(tensor_f32(&client, &device, out, &[2 * c]), dtype)
+        gamma
     }
 
     fn channel_norm(
         x: FloatTensor<Self>,
         params: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         epsilon: f32,
@@ -283,7 +260,7 @@ impl ChannelNormOps for CubeBackend {
         let (n, c, hw) = image_sizes(&x);
         let client = x.client.clone();
         let x = dense(x);
-        let [p, mean, var] = [params, mean, var].map(prepare);
+        let [gamma, beta, mean, var] = [params, beta, mean, var].map(prepare);
         let units = n * c * hw;
         let channel_stride = x.meta.strides()[1].max(1);
         let out = client.empty(4 * units.max(1));
@@ -293,7 +270,8 @@ impl ChannelNormOps for CubeBackend {
                 count_1d(units),
                 CubeDim::new_1d(THREADS_1D),
                 tensor_arg(&x),
-                tensor_arg(&p),
+                tensor_arg(&gamma),
+                tensor_arg(&beta),
                 tensor_arg(&mean),
                 tensor_arg(&var),
                 arg(&out, units),
@@ -312,6 +290,7 @@ impl ChannelNormKernels for CubeBackend {
     fn channel_norm_backward(
         x: FloatTensor<Self>,
         params: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         grad: FloatTensor<Self>,
@@ -324,7 +303,7 @@ impl ChannelNormKernels for CubeBackend {
         let (n, c, hw) = image_sizes(&x);
         let (client, device) = (x.client.clone(), x.device.clone());
         let (x, grad) = (dense(x), dense(grad));
-        let [p, mean, var] = [params, mean, var].map(prepare);
+        let [gamma, beta, mean, var] = [params, beta, mean, var].map(prepare);
         let chunks = hw.div_ceil(PIXELS_PER_CHUNK).max(1);
         let units = n * chunks * c;
         let dx = client.empty(4 * (n * c * hw).max(1));
@@ -336,7 +315,8 @@ impl ChannelNormKernels for CubeBackend {
                 count_1d(units),
                 CubeDim::new_1d(THREADS_1D),
                 tensor_arg(&x),
-                tensor_arg(&p),
+                tensor_arg(&gamma),
+                tensor_arg(&beta),
                 tensor_arg(&mean),
                 tensor_arg(&var),
                 tensor_arg(&grad),

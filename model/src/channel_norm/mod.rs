@@ -8,9 +8,9 @@
 //! a ReLU. As tensor ops that is, per pass, a product and a sum forward, and backward the
 //! input's gradient, two reductions for `s` and `t` and the ReLU's mask; then per step the
 //! fold's own backward and Burn's additions of every pass's `∂s`, `∂t`. [`ChannelNorm`] is one
-//! vector `[γ; β]` per BatchNorm and reconstruction, and per pass one op: forward one launch
-//! (the map and the ReLU), backward one launch writing `∂x` and the pass's partial sums of
-//! `g·x` and `g` per channel; the vector's node adds every pass's sums up in one launch and
+//! parameter node per BatchNorm and reconstruction (no launch), and per pass one op: forward one
+//! launch (the map and the ReLU), backward one launch writing `∂x` and the pass's partial sums
+//! of `g·x` and `g` per channel; the parameter node adds every pass's sums up in one launch and
 //! turns them into `∂γ`, `∂β` (the `op` module, the same scheme as the Point Transformer's
 //! shared weights).
 //!
@@ -26,11 +26,13 @@ use burn::tensor::{Device, Tensor};
 pub use op::ChannelActivation;
 use op::{ChannelNormOps, NormLedger};
 
-/// One BatchNorm's `[γ; β]` and statistics, kept for every pass of a reconstruction on a CubeCL
+/// One BatchNorm's `γ`, `β` and statistics, kept for every pass of a reconstruction on a CubeCL
 /// device (module docs).
 #[derive(Debug, Clone)]
 pub struct ChannelNorm {
+    /// `γ` as the parameter node hands it on (the `op` module).
     params: Tensor<1>,
+    beta: Tensor<1>,
     mean: Tensor<1>,
     var: Tensor<1>,
     epsilon: f32,
@@ -38,7 +40,7 @@ pub struct ChannelNorm {
 }
 
 impl ChannelNorm {
-    /// The BatchNorm `bn` on `device` (one launch: the vector `[γ; β]`).
+    /// The BatchNorm `bn` on `device` (no launch).
     ///
     /// # Panics
     ///
@@ -62,6 +64,7 @@ impl ChannelNorm {
         ));
         Self {
             params,
+            beta: bn.beta.val(),
             mean,
             var,
             epsilon,
@@ -76,13 +79,14 @@ impl ChannelNorm {
     /// If `x`'s channels are not the BatchNorm's.
     pub fn apply(&self, x: Tensor<4>, activation: ChannelActivation) -> Tensor<4> {
         assert_eq!(
-            2 * x.dims()[1],
+            x.dims()[1],
             self.params.dims()[0],
             "one BatchNorm channel per image channel"
         );
         Tensor::from_dispatch(<Dispatch as ChannelNormOps>::channel_norm(
             x.into_dispatch(),
             self.params.clone().into_dispatch(),
+            self.beta.clone().into_dispatch(),
             self.mean.clone().into_dispatch(),
             self.var.clone().into_dispatch(),
             self.epsilon,

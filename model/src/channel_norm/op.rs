@@ -3,13 +3,15 @@
 //!
 //! Listed for `Cube`, `Fusion` and `Autodiff`; the CPU backends never reach it.
 //!
-//! - a **parameter node** (`channel_norm_parameters`) makes the vector `[γ; β]` the passes read;
-//!   Burn runs it after every pass's node (it is shallower). It adds the passes' partial sums up
-//!   in one launch (four passes a launch) and registers `∂γ` and `∂β`;
-//! - a **pass node** (`channel_norm`) keeps `x` and the vector (handles). Its backward writes
-//!   `∂x` and the pass's partial sums of `g·x` and `g` per channel in one launch, files the
-//!   partial sums with the vector's [`NormLedger`] and, the first time, registers a placeholder
-//!   for the vector's node (the vector's own handle: the right shape, no copy).
+//! - a **parameter node** (`channel_norm_parameters`), with `γ` and `β` as parents, hands `γ`'s
+//!   value on (no launch) to every pass; Burn runs it after every pass's node (it is shallower).
+//!   It adds the passes' partial sums up in one launch (four passes a launch) and registers `∂γ`
+//!   and `∂β`;
+//! - a **pass node** (`channel_norm`) keeps `x`, `γ` and `β` (handles; `β` enters as a constant,
+//!   its gradient comes from the parameter node). Its backward writes `∂x` and the pass's partial
+//!   sums of `g·x` and `g` per channel in one launch, files the partial sums with the
+//!   parameter's [`NormLedger`] and, the first time, registers a placeholder for the parameter
+//!   node (`γ`'s own handle: the right shape, no copy).
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -53,10 +55,11 @@ pub type NormLedger = PassLedger;
 /// `γ`, `β` read by several passes (see [`super`]).
 #[backend_extension(Cube, Fusion, Autodiff)]
 pub trait ChannelNormOps: Backend {
-    /// `[γ; β]` `[2C]`, the vector every pass reads.
+    /// `γ` `[C]` as the parameter every pass reads, standing for `γ` and `β` in the backward
+    /// (module docs): no launch.
     #[allow(clippy::too_many_arguments)]
     #[fusion(meta = |gamma, _beta, _mean, _var, _epsilon, _ledger| {
-        TensorSpec::new(Shape::new([2 * gamma.shape[0]]), gamma.dtype)
+        TensorSpec::new(gamma.shape.clone(), gamma.dtype)
     })]
     fn channel_norm_parameters(
         gamma: FloatTensor<Self>,
@@ -67,13 +70,14 @@ pub trait ChannelNormOps: Backend {
         ledger: NormLedger,
     ) -> FloatTensor<Self>;
 
-    /// `act(x·s + t)` per channel, `s = γ/√(σ²+ε)`, `t = β − μ·s`, with `[γ; β]` from
-    /// `params`; `x`'s shape.
+    /// `act(x·s + t)` per channel, `s = γ/√(σ²+ε)`, `t = β − μ·s`, with `γ` from `params`
+    /// (the parameter node's output) and `β` `[C]`; `x`'s shape.
     #[allow(clippy::too_many_arguments)]
     #[fusion(dtype = x, shape = x.clone())]
     fn channel_norm(
         x: FloatTensor<Self>,
         params: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         epsilon: f32,
@@ -91,6 +95,7 @@ pub trait ChannelNormKernels: Backend {
     fn channel_norm_backward(
         x: FloatTensor<Self>,
         params: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         grad: FloatTensor<Self>,
@@ -112,6 +117,7 @@ impl<B: FusionBackend + ChannelNormKernels> ChannelNormKernels for Fusion<B> {
     fn channel_norm_backward(
         x: FloatTensor<Self>,
         params: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         grad: FloatTensor<Self>,
@@ -123,7 +129,7 @@ impl<B: FusionBackend + ChannelNormKernels> ChannelNormKernels for Fusion<B> {
             float_like::<B>(&x, x.shape()),
             float_like::<B>(&x, Shape::new([partial_len])),
         ];
-        let inputs = [x, params, mean, var, grad]
+        let inputs = [x, params, beta, mean, var, grad]
             .into_iter()
             .map(Input::Float)
             .collect();
@@ -132,10 +138,11 @@ impl<B: FusionBackend + ChannelNormKernels> ChannelNormKernels for Fusion<B> {
             inputs,
             specs,
             move |v| {
-                let [x, params, mean, var, grad] = array(v);
+                let [x, params, beta, mean, var, grad] = array(v);
                 let (dx, partial) = B::channel_norm_backward(
                     x.float(),
                     params.float(),
+                    beta.float(),
                     mean.float(),
                     var.float(),
                     grad.float(),
@@ -192,6 +199,7 @@ impl<B: FusionBackend + ChannelNormKernels> ChannelNormKernels for Fusion<B> {
 pub struct PassInputs<B: Backend> {
     x: FloatTensor<B>,
     params: FloatTensor<B>,
+    beta: FloatTensor<B>,
     mean: FloatTensor<B>,
     var: FloatTensor<B>,
     epsilon: f32,
@@ -217,6 +225,7 @@ impl<B: ChannelNormKernels> Backward<B, 2> for PassBackward {
         let (dx, partial) = B::channel_norm_backward(
             s.x,
             s.params.clone(),
+            s.beta,
             s.mean,
             s.var,
             grad,
@@ -317,6 +326,7 @@ impl<B: ChannelNormOps + ChannelNormKernels, C: CheckpointStrategy> ChannelNormO
     fn channel_norm(
         x: FloatTensor<Self>,
         params: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         epsilon: f32,
@@ -325,13 +335,15 @@ impl<B: ChannelNormOps + ChannelNormKernels, C: CheckpointStrategy> ChannelNormO
     ) -> FloatTensor<Self> {
         let (x, x_node) = x.into_parts();
         let (params, params_node) = params.into_parts();
-        let [mean, var] = [mean, var].map(|t| t.into_primitive());
+        // `β`'s gradient comes from the parameter node, which has it as a parent.
+        let [beta, mean, var] = [beta, mean, var].map(|t| t.into_primitive());
         record::<B, C, _, _, 2>(
             PassBackward,
             [x_node, params_node],
             PassInputs {
                 x,
                 params,
+                beta,
                 mean,
                 var,
                 epsilon,
@@ -342,6 +354,7 @@ impl<B: ChannelNormOps + ChannelNormKernels, C: CheckpointStrategy> ChannelNormO
                 B::channel_norm(
                     s.x,
                     s.params,
+                    s.beta,
                     s.mean,
                     s.var,
                     s.epsilon,
