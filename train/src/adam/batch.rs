@@ -265,12 +265,14 @@ mod tests {
     use burn::tensor::TensorData;
     use lifegom_render::testing::{Rng, read, wgpu_test_device};
 
-    /// Parameters of ranks 1 to 3, sizes from one element to several cubes, and more of them
-    /// than one launch binds (`cube::BATCH_SLOTS`).
+    /// Parameters of ranks 1 to 3, sizes from none or one element to several cubes, and more of
+    /// them than one launch binds (`cube::BATCH_SLOTS`).
     #[derive(Module, Debug)]
     struct Parts {
         small: Vec<Param<Tensor<1>>>,
         plane: Param<Tensor<2>>,
+        /// No elements: stepped without a launch.
+        empty: Param<Tensor<2>>,
         block: Param<Tensor<3>>,
         other: Vec<Param<Tensor<2>>>,
     }
@@ -290,6 +292,7 @@ mod tests {
                 .map(|i| Param::from_data(tensor(vec![1 + i % 5]), device))
                 .collect(),
             plane: Param::from_data(tensor(vec![17, 33]), device),
+            empty: Param::from_data(tensor(vec![0, 4]), device),
             block: Param::from_data(tensor(vec![3, 2, 100]), device),
             other: (0..2)
                 .map(|_| Param::from_data(tensor(vec![4, 70]), device))

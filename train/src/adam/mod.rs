@@ -129,6 +129,16 @@ impl Optimizer for FusedAdam {
             None => (1, None),
         };
         let shape = tensor.shape();
+        if shape.num_elements() == 0 {
+            // Nothing to update and no buffer to bind: the step only counts, once (in the walk
+            // that applies, not the one that gathers).
+            if matches!(*self.batch.phase(), Phase::Gather(_)) {
+                return (tensor, state);
+            }
+            let empty = tensor.clone();
+            let momentum = AdaptiveMomentumState::new(time, empty.clone(), empty);
+            return (tensor, Some(AdamState::new(momentum)));
+        }
         let flat = |t: Tensor<D>| t.reshape([shape.num_elements()]);
         match &mut *self.batch.phase() {
             Phase::Single => {}
