@@ -40,6 +40,8 @@ use lifegom_render::select::select_rows;
 pub mod bilinear;
 mod cube;
 pub mod op;
+mod projection_cube;
+pub mod projection_op;
 
 use bilinear::LevelShape;
 use op::PyramidLayout;
@@ -119,6 +121,9 @@ pub fn project_points(points: Tensor<3>, cameras: &[Camera]) -> Result<Projectio
     }
     let device = points.device();
     let dtype = points.dtype();
+    if !lifegom_render::device::runs_on_host(&device) {
+        return Ok(project_on_device(points, cameras));
+    }
     // camᵀ = xᵀ·Rᵀ + tᵀ, with Rᵀ stored per view as [N, 3, 3] and t as [N, 1, 3].
     let mut rt = Vec::with_capacity(n * 9);
     let mut t = Vec::with_capacity(n * 3);
@@ -150,6 +155,42 @@ pub fn project_points(points: Tensor<3>, cameras: &[Camera]) -> Result<Projectio
         uv,
         depth: z.reshape([n, v]),
     })
+}
+
+/// [`project_points`] on a CubeCL device: one op (`projection_op`) and one split of its
+/// `(u, v, Z)` columns, where the tensor ops cost about twenty launches.
+fn project_on_device(points: Tensor<3>, cameras: &[Camera]) -> Projection {
+    let [n, v, _] = points.dims();
+    let mut table = Vec::with_capacity(n * projection_op::CAMERA_FLOATS);
+    for cam in cameras {
+        let m = cam.view_matrix(); // row-major [R | t]
+        for j in 0..3 {
+            for i in 0..3 {
+                table.push(m[4 * i + j]);
+            }
+        }
+        table.extend([m[3], m[7], m[11]]);
+        let k = cam.intrinsics;
+        table.extend([k.fx, k.fy, k.cx, k.cy]);
+    }
+    let device = points.device();
+    let table = Tensor::<2>::from_data(
+        TensorData::new(table, [n, projection_op::CAMERA_FLOATS]),
+        (&device, points.dtype()),
+    );
+    let projected = Tensor::<3>::from_dispatch(
+        <burn::backend::Dispatch as projection_op::ProjectionOps>::project(
+            points.into_dispatch(),
+            table.into_dispatch(),
+        ),
+    );
+    let mut columns = lifegom_render::split::split_columns(projected, &[2, 1]).into_iter();
+    let mut next = || columns.next().expect("two blocks");
+    let uv = next();
+    Projection {
+        uv,
+        depth: next().reshape([n, v]),
+    }
 }
 
 /// `uv` `[N, V, 2]` with every point whose `visible` `[V, N]` entry is 0 moved outside every
@@ -910,6 +951,55 @@ mod tests {
         );
     }
     lifegom_render::cpu_backend_tests!(projection_gradients_reach_points => projection_gradients);
+
+    /// On wgpu the projection op and its split equal the tensor ops on Flex: `uv`, depth and the
+    /// points' gradient of a loss weighing both, in f32, for points in front of the cameras,
+    /// behind them and in the plane of their centres (where the clamp stops the depth's share).
+    #[test]
+    fn projection_op_matches_tensor_ops_wgpu() {
+        let Some(device) = lifegom_render::testing::wgpu_test_device() else {
+            return;
+        };
+        let cams = cameras();
+        let mut rng = Rng::new(17);
+        let (n, v) = (cams.len(), 40);
+        let mut pts: Vec<f32> = (0..n * v * 3)
+            .map(|_| rng.range(-0.5, 0.5) as f32)
+            .collect();
+        // Behind the first camera (at z = 2.5 looking at the origin), and in its centre's plane.
+        pts[..3].copy_from_slice(&[0.1, 0.2, 3.0]);
+        pts[3..6].copy_from_slice(&[0.3, -0.1, 2.5]);
+        let wu: Vec<f32> = (0..n * v * 2)
+            .map(|_| rng.range(-1.0, 1.0) as f32)
+            .collect();
+        let wd: Vec<f32> = (0..n * v).map(|_| rng.range(-1.0, 1.0) as f32).collect();
+        let run = |device: &Device| {
+            let ad = device.clone().autodiff();
+            let p =
+                Tensor::<3>::from_data(TensorData::new(pts.clone(), [n, v, 3]), &ad).require_grad();
+            let proj = project_points(p.clone(), &cams).unwrap();
+            let weights_uv = Tensor::<3>::from_data(TensorData::new(wu.clone(), [n, v, 2]), &ad);
+            let weights_depth = Tensor::<2>::from_data(TensorData::new(wd.clone(), [n, v]), &ad);
+            let loss =
+                (proj.uv.clone() * weights_uv).sum() + (proj.depth.clone() * weights_depth).sum();
+            let grad = p.grad(&loss.backward()).expect("points gradient");
+            [read(proj.uv), read(proj.depth), read(grad)]
+        };
+        let want = run(&Device::flex());
+        let got = run(&device);
+        for (what, (g, w)) in ["uv", "depth", "points' gradient"]
+            .iter()
+            .zip(got.iter().zip(&want))
+        {
+            let scale = w.iter().fold(0f64, |m, x| m.max(x.abs()));
+            for (i, (a, b)) in g.iter().zip(w).enumerate() {
+                assert!(
+                    (a - b).abs() <= 1e-5 * scale.max(1.0),
+                    "{what}[{i}]: {a} on wgpu, {b} from the tensor ops"
+                );
+            }
+        }
+    }
 
     /// The fused op equals the tensor-op composition it replaces (per level
     /// [`Level::sample_reference`], then the tail's product and the concatenation), values and
