@@ -129,15 +129,10 @@ pub fn project_points(points: Tensor<3>, cameras: &[Camera]) -> Result<Projectio
     let mut t = Vec::with_capacity(n * 3);
     let mut intr = Vec::with_capacity(n * 4);
     for cam in cameras {
-        let m = cam.view_matrix(); // row-major [R | t]
-        for j in 0..3 {
-            for i in 0..3 {
-                rt.push(m[4 * i + j]);
-            }
-        }
-        t.extend([m[3], m[7], m[11]]);
-        let k = cam.intrinsics;
-        intr.extend([k.fx, k.fy, k.cx, k.cy]);
+        let (r, translation, k) = camera_parts(cam);
+        rt.extend(r);
+        t.extend(translation);
+        intr.extend(k);
     }
     let rt = Tensor::<3>::from_data(TensorData::new(rt, [n, 3, 3]), (&device, dtype));
     let t = Tensor::<3>::from_data(TensorData::new(t, [n, 1, 3]), (&device, dtype));
@@ -157,21 +152,22 @@ pub fn project_points(points: Tensor<3>, cameras: &[Camera]) -> Result<Projectio
     })
 }
 
+/// `camera`'s `Rᵀ` (row-major), `t` and `fx, fy, cx, cy`, as the projection reads them.
+fn camera_parts(camera: &Camera) -> ([f32; 9], [f32; 3], [f32; 4]) {
+    let m = camera.view_matrix(); // row-major [R | t]
+    let rt = std::array::from_fn(|e| m[4 * (e % 3) + e / 3]);
+    let k = camera.intrinsics;
+    (rt, [m[3], m[7], m[11]], [k.fx, k.fy, k.cx, k.cy])
+}
+
 /// [`project_points`] on a CubeCL device: one op (`projection_op`) and one split of its
 /// `(u, v, Z)` columns, where the tensor ops cost about twenty launches.
 fn project_on_device(points: Tensor<3>, cameras: &[Camera]) -> Projection {
     let [n, v, _] = points.dims();
     let mut table = Vec::with_capacity(n * projection_op::CAMERA_FLOATS);
     for cam in cameras {
-        let m = cam.view_matrix(); // row-major [R | t]
-        for j in 0..3 {
-            for i in 0..3 {
-                table.push(m[4 * i + j]);
-            }
-        }
-        table.extend([m[3], m[7], m[11]]);
-        let k = cam.intrinsics;
-        table.extend([k.fx, k.fy, k.cx, k.cy]);
+        let (r, translation, k) = camera_parts(cam);
+        table.extend(r.into_iter().chain(translation).chain(k));
     }
     let device = points.device();
     let table = Tensor::<2>::from_data(

@@ -24,6 +24,38 @@ fn camera_space(points: &[f32], cameras: &[f32], at: usize, cam: usize, j: usize
         + cameras[cam + 9 + j]
 }
 
+/// One thread's point in its camera's frame.
+#[derive(CubeType)]
+struct Seen {
+    /// The point's first float in the `[N, V, 3]` buffers.
+    at: usize,
+    /// Its camera's first float in the cameras table.
+    cam: usize,
+    x: f32,
+    y: f32,
+    z: f32,
+    /// `max(z, MIN_DEPTH)`.
+    z_safe: f32,
+}
+
+/// Thread `unit`'s point (view `unit / per_view`) in its camera's frame.
+#[cube]
+fn seen(points: &[f32], cameras: &[f32], unit: usize, per_view: usize, min_depth: f32) -> Seen {
+    let at = unit * 3;
+    let cam = (unit / per_view) * CAMERA_FLOATS;
+    let x = camera_space(points, cameras, at, cam, 0);
+    let y = camera_space(points, cameras, at, cam, 1);
+    let z = camera_space(points, cameras, at, cam, 2);
+    Seen {
+        at,
+        cam,
+        x,
+        y,
+        z,
+        z_safe: f32::max(z, min_depth),
+    }
+}
+
 #[cube(launch)]
 fn project_kernel(
     points: &[f32],
@@ -35,15 +67,10 @@ fn project_kernel(
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
-        let at = unit * 3;
-        let cam = (unit / per_view) * CAMERA_FLOATS;
-        let x = camera_space(points, cameras, at, cam, 0);
-        let y = camera_space(points, cameras, at, cam, 1);
-        let z = camera_space(points, cameras, at, cam, 2);
-        let zs = f32::max(z, min_depth);
-        out[at] = x / zs * cameras[cam + 12] + cameras[cam + 14];
-        out[at + 1] = y / zs * cameras[cam + 13] + cameras[cam + 15];
-        out[at + 2] = z;
+        let p = seen(points, cameras, unit, per_view, min_depth);
+        out[p.at] = p.x / p.z_safe * cameras[p.cam + 12] + cameras[p.cam + 14];
+        out[p.at + 1] = p.y / p.z_safe * cameras[p.cam + 13] + cameras[p.cam + 15];
+        out[p.at + 2] = p.z;
     }
 }
 
@@ -59,19 +86,15 @@ fn project_backward_kernel(
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
-        let at = unit * 3;
-        let cam = (unit / per_view) * CAMERA_FLOATS;
-        let x = camera_space(points, cameras, at, cam, 0);
-        let y = camera_space(points, cameras, at, cam, 1);
-        let z = camera_space(points, cameras, at, cam, 2);
-        let zs = f32::max(z, min_depth);
+        let p = seen(points, cameras, unit, per_view, min_depth);
+        let (at, cam, zs) = (p.at, p.cam, p.z_safe);
         let gu = grad[at] * cameras[cam + 12];
         let gv = grad[at + 1] * cameras[cam + 13];
         let dx = gu / zs;
         let dy = gv / zs;
         let mut dz = grad[at + 2];
-        if z >= min_depth {
-            dz += -(gu * x) / (zs * zs) - (gv * y) / (zs * zs);
+        if p.z >= min_depth {
+            dz += -(gu * p.x) / (zs * zs) - (gv * p.y) / (zs * zs);
         }
         for i in 0..3usize {
             dp[at + i] = dx * cameras[cam + 3 * i]
