@@ -418,6 +418,12 @@ pub fn train_with(
     if root {
         std::fs::create_dir_all(opts.out.join("snapshots"))
             .with_context(|| format!("creating {}", opts.out.display()))?;
+        // A run killed while writing left its temporary file; the folder is this rank's alone.
+        let stale = lifegom_render::atomic_file::remove_stale_temporaries(&opts.out, 2)
+            .with_context(|| format!("clearing stale temporary files in {}", opts.out.display()))?;
+        if stale > 0 {
+            tracing::info!(stale, "removed temporary files a killed run left");
+        }
     }
     if cfg.train.loss_lpips > 0.0 && cfg.train.lpips_fallback == LpipsFallback::Refuse {
         bail!(
