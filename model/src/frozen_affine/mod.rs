@@ -96,10 +96,10 @@ mod tests {
     }
 
     /// On wgpu (lavapipe in CI) the op equals the tensor ops on Flex; asked again for the same
-    /// statistics it hands back the cached result (the same buffers), and new statistics of the
-    /// same shape — made after the first ones were dropped, where an allocator could reuse their
-    /// memory — get their own values, never the cached ones. Also under an autodiff device, as
-    /// the trainer calls it.
+    /// statistics it gives the same values (that it launches nothing then is shown by the launch
+    /// counts, BENCHMARKS.md session 26, not here), and new statistics of the same shape — made
+    /// after the first ones were dropped, where an allocator could reuse their memory — get their
+    /// own values, never the cached ones. Also under an autodiff device, as the trainer calls it.
     #[test]
     fn frozen_affine_matches_tensor_ops_and_caches_wgpu() {
         let Some(device) = wgpu_test_device() else {
@@ -113,7 +113,7 @@ mod tests {
                 assert_close(&read(s.clone()), &want_s, "scale");
                 assert_close(&read(t), &want_t, "shift");
                 let (again, _) = frozen_affine(&first, &device);
-                assert_eq!(read(again), read(s), "the cached scale");
+                assert_eq!(read(again), read(s), "the scale asked again");
                 drop(first);
                 let second = drawn_bn(c, 1000 + c as u64, &device);
                 let (want_s, want_t) = reference(&second);

@@ -28,7 +28,7 @@ use burn::optim::{
     AdamState, AdaptiveMomentumState, GradientsParams, LearningRate, ModuleOptimizer,
 };
 use burn::store::RecordError;
-use burn::tensor::{Bytes, Device, Shape, Tensor};
+use burn::tensor::{Bytes, Shape, Tensor};
 use lifegom_render::device::runs_on_host;
 
 use super::op::{AdamBatch, AdamBatchOps, AdamScalars, MomentInputs};
@@ -136,11 +136,11 @@ impl AdamOptimizer {
         let mut copy = GradientsCopy {
             source: &grads,
             copy: GradientsParams::new(),
-            device: None,
+            on_host: None,
         };
         module.visit(&mut copy);
-        let (again, device) = (copy.copy, copy.device);
-        if device.is_none_or(|d| runs_on_host(&d)) {
+        let again = copy.copy;
+        if copy.on_host != Some(false) {
             return self.optim.step(lr, module, grads);
         }
         self.batch.replace(Phase::Gather(Vec::new()));
@@ -173,17 +173,25 @@ impl AdamOptimizer {
 }
 
 /// Copies `source`'s gradient of every parameter of the visited module into `copy` (handles,
-/// not data), for the second walk, and notes the device of the first.
+/// not data), for the second walk, on a CubeCL device.
 struct GradientsCopy<'a> {
     source: &'a GradientsParams,
     copy: GradientsParams,
-    device: Option<Device>,
+    /// Whether the gradients are on a CPU backend (known from the first); there the walk is
+    /// Burn's alone and copies nothing.
+    on_host: Option<bool>,
 }
 
 impl ModuleVisitor for GradientsCopy<'_> {
     fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-        if let Some(grad) = self.source.get::<D>(param.id) {
-            self.device.get_or_insert_with(|| grad.device());
+        if self.on_host == Some(true) {
+            return;
+        }
+        if let Some(grad) = self.source.get::<D>(param.id)
+            && !*self
+                .on_host
+                .get_or_insert_with(|| runs_on_host(&grad.device()))
+        {
             self.copy.register(param.id, grad);
         }
     }
@@ -262,7 +270,7 @@ mod tests {
     use burn::optim::AdamConfig;
     use burn::optim::lr_scheduler::LrSchedulerConfig;
     use burn::optim::lr_scheduler::module_lr_scheduler::ModuleLrSchedulerConfig;
-    use burn::tensor::TensorData;
+    use burn::tensor::{Device, TensorData};
     use lifegom_render::testing::{Rng, read, wgpu_test_device};
 
     /// Parameters of ranks 1 to 3, sizes from none or one element to several cubes, and more of

@@ -162,137 +162,78 @@ pub struct AdamStepped<B: Backend> {
     pub moments_2: Vec<FloatTensor<B>>,
 }
 
-/// Lists of tensors across the dispatch boundary, element by element: the derive of
-/// [`ExtensionType`] takes single tensors, not lists, so the two list records are written out
-/// over these.
-fn lists_to_dispatch<B: Backend, const N: usize>(
-    lists: [Vec<FloatTensor<B>>; N],
-    map_kind: impl Fn(BackendTensor<B>) -> DispatchTensorKind,
-    autodiff: DispatchAutodiffContext,
-) -> [Vec<DispatchTensor>; N] {
-    lists.map(|list| {
-        list.into_iter()
-            .map(|t| DispatchTensor {
-                kind: map_kind(BackendTensor::Float(t)),
-                autodiff,
-            })
-            .collect()
-    })
-}
+/// [`ExtensionType`] for a record of tensor lists: each list crosses the dispatch boundary
+/// element by element (the derive takes single tensors, not lists); the first list routes.
+macro_rules! list_record {
+    ($name:ident { $route:ident $(, $field:ident)* }) => {
+        impl<B: Backend> ExtensionType<B> for $name<B> {
+            type Target = $name<Dispatch>;
 
-/// The inverse of [`lists_to_dispatch`].
-fn lists_from_dispatch<B: Backend, const N: usize>(
-    lists: [Vec<DispatchTensor>; N],
-    unwrap_kind: impl Fn(DispatchTensor) -> BackendTensor<B>,
-) -> [Vec<FloatTensor<B>>; N] {
-    lists.map(|list| list.into_iter().map(|t| unwrap_kind(t).float()).collect())
-}
+            fn map_to_dispatch<F>(
+                self,
+                map_kind: F,
+                autodiff: DispatchAutodiffContext,
+            ) -> Self::Target
+            where
+                F: Fn(BackendTensor<B>) -> DispatchTensorKind,
+            {
+                let to = |list: Vec<FloatTensor<B>>| -> Vec<DispatchTensor> {
+                    list.into_iter()
+                        .map(|t| DispatchTensor {
+                            kind: map_kind(BackendTensor::Float(t)),
+                            autodiff,
+                        })
+                        .collect()
+                };
+                $name {
+                    $route: to(self.$route),
+                    $($field: to(self.$field),)*
+                }
+            }
 
-/// Every list's autodiff context merged (the routing of a list record).
-fn lists_context(lists: &[&Vec<DispatchTensor>]) -> DispatchAutodiffContext {
-    lists
-        .iter()
-        .flat_map(|list| list.iter())
-        .fold(DispatchAutodiffContext::Disabled, |c, t| {
-            c.merge(t.autodiff)
-        })
-}
+            fn map_from_dispatch<F>(target: Self::Target, unwrap_kind: F) -> Self
+            where
+                F: Fn(DispatchTensor) -> BackendTensor<B>,
+            {
+                let from = |list: Vec<DispatchTensor>| -> Vec<FloatTensor<B>> {
+                    list.into_iter().map(|t| unwrap_kind(t).float()).collect()
+                };
+                $name {
+                    $route: from(target.$route),
+                    $($field: from(target.$field),)*
+                }
+            }
 
-impl<B: Backend> ExtensionType<B> for AdamBatch<B> {
-    type Target = AdamBatch<Dispatch>;
+            fn routing_tensor(target: &Self::Target) -> Option<&DispatchTensor> {
+                target.$route.first()
+            }
 
-    fn map_to_dispatch<F>(self, map_kind: F, autodiff: DispatchAutodiffContext) -> Self::Target
-    where
-        F: Fn(BackendTensor<B>) -> DispatchTensorKind,
-    {
-        let lists = [self.params, self.grads, self.moments_1, self.moments_2];
-        let [params, grads, moments_1, moments_2] = lists_to_dispatch(lists, map_kind, autodiff);
-        AdamBatch {
-            params,
-            grads,
-            moments_1,
-            moments_2,
+            fn routing_float_tensor(target: &Self::Target) -> Option<&DispatchTensor> {
+                target.$route.first()
+            }
+
+            fn autodiff_context(target: &Self::Target) -> DispatchAutodiffContext {
+                target
+                    .$route
+                    .iter()
+                    $(.chain(&target.$field))*
+                    .fold(DispatchAutodiffContext::Disabled, |c, t| c.merge(t.autodiff))
+            }
         }
-    }
-
-    fn map_from_dispatch<F>(target: Self::Target, unwrap_kind: F) -> Self
-    where
-        F: Fn(DispatchTensor) -> BackendTensor<B>,
-    {
-        let lists = [
-            target.params,
-            target.grads,
-            target.moments_1,
-            target.moments_2,
-        ];
-        let [params, grads, moments_1, moments_2] = lists_from_dispatch(lists, unwrap_kind);
-        AdamBatch {
-            params,
-            grads,
-            moments_1,
-            moments_2,
-        }
-    }
-
-    fn routing_tensor(target: &Self::Target) -> Option<&DispatchTensor> {
-        target.params.first()
-    }
-
-    fn routing_float_tensor(target: &Self::Target) -> Option<&DispatchTensor> {
-        target.params.first()
-    }
-
-    fn autodiff_context(target: &Self::Target) -> DispatchAutodiffContext {
-        lists_context(&[
-            &target.params,
-            &target.grads,
-            &target.moments_1,
-            &target.moments_2,
-        ])
-    }
+    };
 }
 
-impl<B: Backend> ExtensionType<B> for AdamStepped<B> {
-    type Target = AdamStepped<Dispatch>;
-
-    fn map_to_dispatch<F>(self, map_kind: F, autodiff: DispatchAutodiffContext) -> Self::Target
-    where
-        F: Fn(BackendTensor<B>) -> DispatchTensorKind,
-    {
-        let lists = [self.params, self.moments_1, self.moments_2];
-        let [params, moments_1, moments_2] = lists_to_dispatch(lists, map_kind, autodiff);
-        AdamStepped {
-            params,
-            moments_1,
-            moments_2,
-        }
-    }
-
-    fn map_from_dispatch<F>(target: Self::Target, unwrap_kind: F) -> Self
-    where
-        F: Fn(DispatchTensor) -> BackendTensor<B>,
-    {
-        let lists = [target.params, target.moments_1, target.moments_2];
-        let [params, moments_1, moments_2] = lists_from_dispatch(lists, unwrap_kind);
-        AdamStepped {
-            params,
-            moments_1,
-            moments_2,
-        }
-    }
-
-    fn routing_tensor(target: &Self::Target) -> Option<&DispatchTensor> {
-        target.params.first()
-    }
-
-    fn routing_float_tensor(target: &Self::Target) -> Option<&DispatchTensor> {
-        target.params.first()
-    }
-
-    fn autodiff_context(target: &Self::Target) -> DispatchAutodiffContext {
-        lists_context(&[&target.params, &target.moments_1, &target.moments_2])
-    }
-}
+list_record!(AdamBatch {
+    params,
+    grads,
+    moments_1,
+    moments_2
+});
+list_record!(AdamStepped {
+    params,
+    moments_1,
+    moments_2
+});
 
 /// Adam steps of several flat parameters at once (the batched step, [`super::batch`]).
 ///
