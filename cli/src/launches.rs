@@ -87,6 +87,11 @@ pub struct LaunchTally {
     pub kernels: BTreeMap<String, KernelTally>,
     /// Launches per innermost `tracing` span open on the thread that issued them.
     pub by_span: BTreeMap<String, u64>,
+    /// Device time of the timed launches per innermost span open when each was timed (empty
+    /// unless timing was asked for). With Burn's kernel fusion on, its stream launches on the
+    /// fusion thread, where no model span is open, so most time is filed under `(no span)`:
+    /// per-stage figures want `LIFEGOM_FUSION=off` (design.md §1.4).
+    pub device_time_by_span: BTreeMap<String, Duration>,
 }
 
 impl LaunchTally {
@@ -107,6 +112,9 @@ impl LaunchTally {
         }
         for (span, n) in &other.by_span {
             *self.by_span.entry(span.clone()).or_default() += n;
+        }
+        for (span, t) in &other.device_time_by_span {
+            *self.device_time_by_span.entry(span.clone()).or_default() += *t;
         }
     }
 
@@ -170,6 +178,18 @@ impl LaunchTally {
                 "kernel_device_ms_per_step".into(),
                 serde_json::json!(round2(sum.total_device_time().as_secs_f64() * 1e3 / steps)),
             );
+            let ms_by_span: serde_json::Map<String, serde_json::Value> = sum
+                .device_time_by_span
+                .iter()
+                .map(|(span, t)| {
+                    let ms = round2(t.as_secs_f64() * 1e3 / steps);
+                    (span.clone(), serde_json::json!(ms))
+                })
+                .collect();
+            fields.insert(
+                "kernel_device_ms_per_step_by_span".into(),
+                serde_json::Value::Object(ms_by_span),
+            );
             let host_timed: u64 = sum.kernels.values().map(|k| k.host_timed).sum();
             fields.insert("host_timed_launches".into(), serde_json::json!(host_timed));
         }
@@ -184,6 +204,16 @@ struct Observer {
     /// Launches per innermost `tracing` span open on the issuing thread: which stage of the
     /// model issues them (the stage names of `train-bench`'s `stages_ms`).
     by_span: Mutex<BTreeMap<&'static str, u64>>,
+    /// Device time per innermost span open on the thread when the launch was timed: under
+    /// [`TimingRequest::Resolved`] that is the issuing thread, right after the launch.
+    time_by_span: Mutex<BTreeMap<&'static str, Duration>>,
+}
+
+/// The name of the innermost `tracing` span open on this thread.
+fn current_span() -> &'static str {
+    tracing::Span::current()
+        .metadata()
+        .map_or("(no span)", |m| m.name())
 }
 
 impl Observer {
@@ -197,9 +227,7 @@ impl Observer {
 impl LaunchObserver for Observer {
     fn launched(&self, kernel: &'static str) {
         self.with_kernel(kernel, |k| k.launches += 1);
-        let span = tracing::Span::current()
-            .metadata()
-            .map_or("(no span)", |m| m.name());
+        let span = current_span();
         *self
             .by_span
             .lock()
@@ -222,6 +250,12 @@ impl LaunchObserver for Observer {
                 k.host_timed += 1;
             }
         });
+        *self
+            .time_by_span
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .entry(current_span())
+            .or_default() += duration;
     }
 }
 
@@ -262,6 +296,7 @@ impl LaunchCounter {
             timing,
             tally: Mutex::new(BTreeMap::new()),
             by_span: Mutex::new(BTreeMap::new()),
+            time_by_span: Mutex::new(BTreeMap::new()),
         });
         let _observation = LaunchObservation::new(observer.clone());
         Self {
@@ -289,10 +324,21 @@ impl LaunchCounter {
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner),
         );
+        let time_by_span = std::mem::take(
+            &mut *self
+                .observer
+                .time_by_span
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner),
+        );
         let mut tally = LaunchTally {
             by_span: by_span
                 .into_iter()
                 .map(|(s, n)| (s.to_owned(), n))
+                .collect(),
+            device_time_by_span: time_by_span
+                .into_iter()
+                .map(|(s, t)| (s.to_owned(), t))
                 .collect(),
             ..LaunchTally::default()
         };
@@ -334,6 +380,7 @@ mod tests {
                 })
                 .collect(),
             by_span: [("fusion".to_owned(), pairs.iter().map(|(_, c)| c).sum())].into(),
+            device_time_by_span: BTreeMap::new(),
         };
         let steps = [
             step(&[("add", 10), ("mul", 5)]),
@@ -352,6 +399,47 @@ mod tests {
             serde_json::json!(19.33)
         );
         assert!(!fields.contains_key("kernel_device_ms_per_step"));
+        assert!(!fields.contains_key("kernel_device_ms_per_step_by_span"));
         assert!(LaunchTally::json_fields(&[], 3).is_empty());
+    }
+
+    /// Timed steps: kernels ordered by device time, and the device time per span averaged
+    /// over the steps.
+    #[test]
+    fn json_fields_device_time_by_span() {
+        let ms = Duration::from_millis;
+        let step = |conv: u64, add: u64| LaunchTally {
+            kernels: [
+                (
+                    "conv".to_owned(),
+                    KernelTally {
+                        launches: 1,
+                        device_time: ms(conv),
+                        host_timed: 0,
+                    },
+                ),
+                (
+                    "add".to_owned(),
+                    KernelTally {
+                        launches: 9,
+                        device_time: ms(add),
+                        host_timed: 0,
+                    },
+                ),
+            ]
+            .into(),
+            by_span: [("encoder".to_owned(), 10)].into(),
+            device_time_by_span: [
+                ("encoder".to_owned(), ms(conv)),
+                ("fusion".to_owned(), ms(add)),
+            ]
+            .into(),
+        };
+        let fields = LaunchTally::json_fields(&[step(30, 2), step(50, 4)], 1);
+        assert_eq!(fields["top_kernels"][0]["kernel"], "conv");
+        assert_eq!(fields["kernel_device_ms_per_step"], serde_json::json!(43.0));
+        let by_span = &fields["kernel_device_ms_per_step_by_span"];
+        assert_eq!(by_span["encoder"], serde_json::json!(40.0));
+        assert_eq!(by_span["fusion"], serde_json::json!(3.0));
     }
 }
