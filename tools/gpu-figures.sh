@@ -20,8 +20,9 @@
 #      from one machine, since figures move between machines of the same kind;
 #      then the same two from $BIN with Burn's kernel fusion off (LIFEGOM_FUSION=off);
 #   2. the paper network's reconstruction at 256² (the size the issue records launches at);
-#   3. per-kernel device times (`--kernel-times`) of the paper-setting reconstruction and of a
-#      training step at the paper preset (configs/paper-bench.toml);
+#   3. per-kernel device times (`--kernel-times`, also summed per `tracing` span) of the
+#      paper-setting reconstruction, of a quickstart training step and of a training step at the
+#      paper preset (configs/paper-bench.toml);
 #   4. the rasterizer's headline (1024², 2 subdivisions) and test binaries named `test-*` in $BIN
 #      (run with LIFEGOM_REQUIRE_WGPU=1: the CubeCL kernels' parity with the CPU reference on the
 #      card);
@@ -58,11 +59,17 @@ fi
 export RUST_LOG=warn
 
 # Binaries travel compressed (`strip --strip-all`, then `xz -9`: ≈ 12 MB each). A call carries
-# at most 64 MiB, the repository's tracked files included (about 27 MB in session 19), so one
-# full set of binaries and one more binary fit.
-for dir in "$BIN" $BIN_BEFORE ${AUTOTUNE_BIN:-}; do
+# at most 64 MiB, the repository's tracked files included (53 MB in session 27), so a folder's
+# binaries travel best as ONE solid archive, `bins.tar.xz`: the binaries share most of their
+# code (Burn, CubeCL, wgpu), and one xz stream with a dictionary as large as a binary stores
+# that code once (tools/pack-gpu-bins.sh makes it). Single `NAME.xz` files still work.
+for dir in "$BIN" $BIN_BEFORE ${AUTOTUNE_BIN:-} ${CUDA_BIN:-}; do
+    if [ -e "$dir/bins.tar.xz" ]; then
+        python3 -c 'import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2])' "$dir/bins.tar.xz" "$dir"
+    fi
     for f in "$dir"/*.xz; do
         [ -e "$f" ] || continue
+        case "$f" in *.tar.xz) continue ;; esac
         python3 -c 'import lzma, shutil, sys; shutil.copyfileobj(lzma.open(sys.argv[1]), open(sys.argv[2], "wb"))' "$f" "${f%.xz}"
         chmod +x "${f%.xz}"
     done
@@ -129,8 +136,14 @@ step recon-wgpu-paper-256 60 "$BIN/recon-bench" --device wgpu --config paper --s
 
 # 3. Where the device time goes at the paper's setting, kernel by kernel.
 compare profile-recon-paper-1024-s2 90 recon-bench --device "$GPU_DEVICE" --config paper --size 1024 --subdiv 2 --runs 1 --json --template "$TEMPLATE" --kernel-times --top-kernels 25
+step profile-train-wgpu-quickstart 60 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/quickstart.toml --steps 3 --warmup 1 --kernel-times --top-kernels 25
+# The same two paper-setting profiles with fusion off: every kernel is then launched on the
+# model's thread, so the device time per `tracing` span (`kernel_device_ms_per_step_by_span`)
+# says which stage of the network spends it (with fusion on most of it is under `(no span)`).
+step spans-recon-paper-1024-s2 90 env LIFEGOM_FUSION=off "$BIN/recon-bench" --device "$GPU_DEVICE" --config paper --size 1024 --subdiv 2 --runs 1 --json --template "$TEMPLATE" --kernel-times --top-kernels 25
 step train-paper-bench 150 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1
 step profile-train-paper-bench 120 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 2 --warmup 1 --kernel-times --top-kernels 25
+step spans-train-paper-bench 120 env LIFEGOM_FUSION=off "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 2 --warmup 1 --kernel-times --top-kernels 25
 
 # 4. The rasterizer's headline and the parity tests on the card.
 if [ -x "$BIN/render-bench" ]; then
