@@ -1,0 +1,247 @@
+//! `matmul-bench`: Burn's matrix product on one device, for the shapes a training step issues.
+//!
+//! ```text
+//! cargo run --release -p lifegom-cli --bin matmul-bench -- --device wgpu --runs 20
+//! ```
+//!
+//! On an H200 a quickstart training step spent 220 of its 409 ms of kernel time in Burn's matmul,
+//! 364 µs a launch, though its products are small (at most `[3,687 × 144]·[144 × 432]`;
+//! BENCHMARKS.md, session 27). The shapes below are the ones `BURN_FUSION_LOG=full` lists for
+//! that step, plus the paper network's largest, in the three forms a step uses them:
+//!
+//! - `forward`: `[m, k]·[k, n]`, a layer's product;
+//! - `weight_grad`: `xᵀ·g` with `x: [k, m]` read through a transposed view, a layer's weight
+//!   gradient as Burn's autodiff forms it: a small `[m, n]` output over a long `k`. A product
+//!   tiled over its output gets a handful of cubes for it, each walking all of `k`;
+//! - `split_k`: the same weight gradient as `S` products over `k`-chunks of 256 rows (a batched
+//!   product `[S, m, 256]·[S, 256, n]`) and a sum over `S`: what a layer's backward could launch
+//!   instead. The inputs are padded to whole chunks outside the timed region, so the figure is
+//!   the two kernels' cost, not the padding's;
+//! - `batched`: `[b, m, k]·[1, k, n]`, the Point Transformer's per-group products.
+//!
+//! Every case runs `--runs` times after three warm-ups; each run's output is read back, so the
+//! wall time per run includes a round trip. On CubeCL devices each launch is also timed on the
+//! device (`lifegom_cli::launches`, resolved timing: kernels run one at a time), and the line
+//! gives the device time per run of every kernel the case launched. Prints one JSON line per
+//! case.
+
+use std::time::Instant;
+
+use anyhow::Context;
+use burn::tensor::{Distribution, Tensor};
+use clap::Parser;
+use lifegom_cli::launches::{KernelTiming, LaunchCounter, LaunchTally};
+use lifegom_render::device::{DeviceChoice, wait_for_values};
+
+#[derive(Parser, Debug)]
+#[command(about = "Benchmark Burn's matmul for the shapes of a training step")]
+struct Args {
+    /// Backend: ndarray, flex or wgpu (a GPU, or Mesa lavapipe on the CPU).
+    #[arg(long, default_value = "wgpu")]
+    device: DeviceChoice,
+    /// Timed runs per case.
+    #[arg(long, default_value_t = 20)]
+    runs: usize,
+    /// Leave out the paper network's shapes (seconds on a CPU).
+    #[arg(long)]
+    skip_paper: bool,
+}
+
+/// How a case forms its product.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Form {
+    Forward,
+    WeightGrad,
+    SplitK,
+    Batched { batch: usize },
+}
+
+impl Form {
+    fn name(self) -> &'static str {
+        match self {
+            Form::Forward => "forward",
+            Form::WeightGrad => "weight_grad",
+            Form::SplitK => "split_k",
+            Form::Batched { .. } => "batched",
+        }
+    }
+}
+
+/// One product `[m, k]·[k, n]` in one form.
+#[derive(Debug, Clone, Copy)]
+struct Case {
+    form: Form,
+    m: usize,
+    k: usize,
+    n: usize,
+    /// Part of the paper network rather than the quickstart's tiny one.
+    paper: bool,
+}
+
+/// Rows of `k` per chunk in the split-k form.
+const SPLIT_K_CHUNK: usize = 256;
+
+fn cases() -> Vec<Case> {
+    let case = |form, m, k, n, paper| Case {
+        form,
+        m,
+        k,
+        n,
+        paper,
+    };
+    let mut out = vec![
+        // Forward products of the quickstart step (fusion log), largest first.
+        case(Form::Forward, 3687, 144, 432, false),
+        case(Form::Forward, 3687, 144, 144, false),
+        case(Form::Forward, 1229, 144, 144, false),
+        case(Form::Forward, 307, 16, 48, false),
+        case(Form::Forward, 1229, 8, 8, false),
+        case(Form::Forward, 4, 64, 64, false),
+        case(Form::Batched { batch: 1229 }, 8, 2, 8, false),
+        case(Form::Batched { batch: 76 }, 16, 8, 32, false),
+        case(Form::Batched { batch: 307 }, 16, 4, 16, false),
+        case(Form::Forward, 41154, 1152, 1152, true),
+    ];
+    // Weight gradients: `[m, k]·[k, n]` with k the rows of the layer's input.
+    for (m, k, n, paper) in [
+        (144, 3687, 144, false),
+        (144, 3687, 432, false),
+        (8, 3687, 8, false),
+        (16, 921, 16, false),
+        (32, 228, 32, false),
+        (64, 57, 64, false),
+        (1152, 41154, 1152, true),
+    ] {
+        out.push(case(Form::WeightGrad, m, k, n, paper));
+        if k > SPLIT_K_CHUNK {
+            out.push(case(Form::SplitK, m, k, n, paper));
+        }
+    }
+    out
+}
+
+/// The case's inputs, made before timing, and its product.
+enum Inputs {
+    Forward(Tensor<2>, Tensor<2>),
+    /// `x: [k, m]`, `g: [k, n]`.
+    WeightGrad(Tensor<2>, Tensor<2>),
+    /// `x: [S, m, chunk]` (a transposed view, as the weight gradient reads it), `g: [S, chunk, n]`.
+    SplitK(Tensor<3>, Tensor<3>),
+    Batched(Tensor<3>, Tensor<3>),
+}
+
+impl Inputs {
+    fn new(case: &Case, device: &burn::tensor::Device) -> Self {
+        let normal = Distribution::Normal(0.0, 1.0);
+        let Case { m, k, n, .. } = *case;
+        match case.form {
+            Form::Forward => Inputs::Forward(
+                Tensor::random([m, k], normal, device),
+                Tensor::random([k, n], normal, device),
+            ),
+            Form::WeightGrad => Inputs::WeightGrad(
+                Tensor::random([k, m], normal, device),
+                Tensor::random([k, n], normal, device),
+            ),
+            Form::SplitK => {
+                let s = k.div_ceil(SPLIT_K_CHUNK);
+                let rows = s * SPLIT_K_CHUNK;
+                let pad = |t: Tensor<2>, cols: usize| {
+                    Tensor::cat(vec![t, Tensor::zeros([rows - k, cols], device)], 0).reshape([
+                        s,
+                        SPLIT_K_CHUNK,
+                        cols,
+                    ])
+                };
+                let x = pad(Tensor::random([k, m], normal, device), m).swap_dims(1, 2);
+                let g = pad(Tensor::random([k, n], normal, device), n);
+                Inputs::SplitK(x, g)
+            }
+            Form::Batched { batch } => Inputs::Batched(
+                Tensor::random([batch, m, k], normal, device),
+                Tensor::random([1, k, n], normal, device),
+            ),
+        }
+    }
+
+    /// One product, read back.
+    fn run(&self) -> usize {
+        match self {
+            Inputs::Forward(a, b) => wait_for_values(a.clone().matmul(b.clone())),
+            Inputs::WeightGrad(x, g) => wait_for_values(x.clone().transpose().matmul(g.clone())),
+            Inputs::SplitK(x, g) => wait_for_values(x.clone().matmul(g.clone()).sum_dim(0)),
+            Inputs::Batched(a, b) => wait_for_values(a.clone().matmul(b.clone())),
+        }
+    }
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    // SAFETY: the first thing `main` does after parsing; no thread has started yet.
+    unsafe { lifegom_cli::make_default_device(args.device) };
+    let device = args.device.device();
+    let runs = args.runs.max(1);
+    for case in cases() {
+        if args.skip_paper && case.paper {
+            continue;
+        }
+        let inputs = Inputs::new(&case, &device);
+        for _ in 0..3 {
+            inputs.run();
+        }
+        // Wall times first, without device timing (which runs kernels one at a time).
+        let mut wall: Vec<f64> = (0..runs)
+            .map(|_| {
+                let t = Instant::now();
+                inputs.run();
+                t.elapsed().as_secs_f64() * 1e6
+            })
+            .collect();
+        wall.sort_by(f64::total_cmp);
+        let mut line = serde_json::json!({
+            "bench": "matmul",
+            "backend": args.device.name(),
+            "kernel_fusion": lifegom_render::device::KernelFusion::on_device(&device).map(|k| k.name()),
+            "form": case.form.name(),
+            "m": case.m,
+            "k": case.k,
+            "n": case.n,
+            "gflop": 2.0 * (case.m * case.k * case.n) as f64
+                * match case.form { Form::Batched { batch } => batch as f64, _ => 1.0 } / 1e9,
+            "runs": runs,
+            "wall_us_median": (wall[runs / 2] * 10.0).round() / 10.0,
+            "wall_us_min": (wall[0] * 10.0).round() / 10.0,
+        });
+        if let Form::Batched { batch } = case.form {
+            line["batch"] = serde_json::json!(batch);
+        }
+        if case.form == Form::SplitK {
+            line["chunks"] = serde_json::json!(case.k.div_ceil(SPLIT_K_CHUNK));
+        }
+        if let Some(counter) = LaunchCounter::on_cube_device(&device, KernelTiming::Resolved) {
+            inputs.run();
+            counter.take();
+            let per_run: Vec<LaunchTally> = (0..runs)
+                .map(|_| {
+                    inputs.run();
+                    counter.take()
+                })
+                .collect();
+            let fields = counter.json_fields(&per_run, 4);
+            for key in [
+                "kernel_launches",
+                "kernel_device_ms_per_step",
+                "top_kernels",
+            ] {
+                if let Some(v) = fields.get(key) {
+                    line[key] = v.clone();
+                }
+            }
+        }
+        println!(
+            "{}",
+            serde_json::to_string(&line).context("formatting the JSON line")?
+        );
+    }
+    Ok(())
+}
