@@ -13,10 +13,10 @@
 //! - `weight_grad`: `xᵀ·g` with `x: [k, m]` read through a transposed view, a layer's weight
 //!   gradient as Burn's autodiff forms it: a small `[m, n]` output over a long `k`. A product
 //!   tiled over its output gets a handful of cubes for it, each walking all of `k`;
-//! - `split_k`: the same weight gradient as `S` products over `k`-chunks of 256 rows (a batched
-//!   product `[S, m, 256]·[S, 256, n]`) and a sum over `S`: what a layer's backward could launch
-//!   instead. The inputs are padded to whole chunks outside the timed region, so the figure is
-//!   the two kernels' cost, not the padding's;
+//! - `split_k`: the same weight gradient as `S` products over `k`-chunks of `c` rows (128, 256
+//!   and 512: a batched product `[S, m, c]·[S, c, n]`) and a sum over `S`: what a layer's
+//!   backward could launch instead. The inputs are padded to whole chunks outside the timed
+//!   region, so the figure is the two kernels' cost, not the padding's;
 //! - `batched`: `[b, m, k]·[1, k, n]`, the Point Transformer's per-group products.
 //!
 //! Every case runs `--runs` times after three warm-ups; each run's output is read back, so the
@@ -52,7 +52,7 @@ struct Args {
 enum Form {
     Forward,
     WeightGrad,
-    SplitK,
+    SplitK { chunk: usize },
     Batched { batch: usize },
 }
 
@@ -61,7 +61,7 @@ impl Form {
         match self {
             Form::Forward => "forward",
             Form::WeightGrad => "weight_grad",
-            Form::SplitK => "split_k",
+            Form::SplitK { .. } => "split_k",
             Form::Batched { .. } => "batched",
         }
     }
@@ -78,8 +78,8 @@ struct Case {
     paper: bool,
 }
 
-/// Rows of `k` per chunk in the split-k form.
-const SPLIT_K_CHUNK: usize = 256;
+/// Rows of `k` per chunk in the split-k forms.
+const SPLIT_K_CHUNKS: [usize; 3] = [128, 256, 512];
 
 fn cases() -> Vec<Case> {
     let case = |form, m, k, n, paper| Case {
@@ -113,8 +113,10 @@ fn cases() -> Vec<Case> {
         (1152, 41154, 1152, true),
     ] {
         out.push(case(Form::WeightGrad, m, k, n, paper));
-        if k > SPLIT_K_CHUNK {
-            out.push(case(Form::SplitK, m, k, n, paper));
+        for chunk in SPLIT_K_CHUNKS {
+            if k > chunk {
+                out.push(case(Form::SplitK { chunk }, m, k, n, paper));
+            }
         }
     }
     out
@@ -125,7 +127,7 @@ enum Inputs {
     Forward(Tensor<2>, Tensor<2>),
     /// `x: [k, m]`, `g: [k, n]`.
     WeightGrad(Tensor<2>, Tensor<2>),
-    /// `x: [S, m, chunk]` (a transposed view, as the weight gradient reads it), `g: [S, chunk, n]`.
+    /// `x: [S, m, c]` (a transposed view, as the weight gradient reads it), `g: [S, c, n]`.
     SplitK(Tensor<3>, Tensor<3>),
     Batched(Tensor<3>, Tensor<3>),
 }
@@ -143,15 +145,12 @@ impl Inputs {
                 Tensor::random([k, m], normal, device),
                 Tensor::random([k, n], normal, device),
             ),
-            Form::SplitK => {
-                let s = k.div_ceil(SPLIT_K_CHUNK);
-                let rows = s * SPLIT_K_CHUNK;
+            Form::SplitK { chunk } => {
+                let s = k.div_ceil(chunk);
+                let rows = s * chunk;
                 let pad = |t: Tensor<2>, cols: usize| {
-                    Tensor::cat(vec![t, Tensor::zeros([rows - k, cols], device)], 0).reshape([
-                        s,
-                        SPLIT_K_CHUNK,
-                        cols,
-                    ])
+                    Tensor::cat(vec![t, Tensor::zeros([rows - k, cols], device)], 0)
+                        .reshape([s, chunk, cols])
                 };
                 let x = pad(Tensor::random([k, m], normal, device), m).swap_dims(1, 2);
                 let g = pad(Tensor::random([k, n], normal, device), n);
@@ -215,8 +214,9 @@ fn main() -> anyhow::Result<()> {
         if let Form::Batched { batch } = case.form {
             line["batch"] = serde_json::json!(batch);
         }
-        if case.form == Form::SplitK {
-            line["chunks"] = serde_json::json!(case.k.div_ceil(SPLIT_K_CHUNK));
+        if let Form::SplitK { chunk } = case.form {
+            line["chunk"] = serde_json::json!(chunk);
+            line["chunks"] = serde_json::json!(case.k.div_ceil(chunk));
         }
         if let Some(counter) = LaunchCounter::on_cube_device(&device, KernelTiming::Resolved) {
             inputs.run();
