@@ -148,6 +148,30 @@ fn wgpu_emulated_float_atomics_match_the_cpu_op() {
     }
 }
 
+/// The backward's pixel groups (a tile's pixels split over several cubes), forced to each count
+/// in turn: the other tests run the default (eight groups); one group (a cube per tile) and a
+/// middle count are checked here too, on scenes dense enough that a tile holds several 32-splat
+/// batches.
+#[test]
+fn wgpu_backward_pixel_groups_match_the_cpu_op() {
+    let Some(device) = wgpu_test_device() else {
+        return;
+    };
+    let scenes = [random_scene(31, 60, 48, 40), random_scene(32, 400, 40, 32)];
+    let result = std::panic::catch_unwind(|| {
+        for groups in [1, 2, 8] {
+            lifegom_render::rasterizer::force_backward_pixel_groups(Some(groups));
+            for scene in &scenes {
+                assert_parity(scene, &device, &format!("wgpu ({groups} pixel groups)"));
+            }
+        }
+    });
+    lifegom_render::rasterizer::force_backward_pixel_groups(None);
+    if let Err(panic) = result {
+        std::panic::resume_unwind(panic);
+    }
+}
+
 /// The model's gathers on wgpu at index counts the official template reaches: Burn 0.22.1's
 /// own `select` backward (a CubeCL `select_assign` with `Add`) mis-sums from 65,536 indices
 /// (with plain `select` this test finds errors of 5.35 where values are about 1), so the model

@@ -48,6 +48,10 @@ struct Args {
     /// Print one JSON line (otherwise a human-readable summary as well).
     #[arg(long)]
     json: bool,
+    /// Pixel groups per tile in the GPU backward (1, 2, 4 or 8; by default 8). `1` is the
+    /// one-cube-per-tile backward of session 26 and before.
+    #[arg(long)]
+    pixel_groups: Option<u32>,
 }
 
 fn median_ms(runs: usize, mut f: impl FnMut()) -> f64 {
@@ -73,6 +77,13 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     // SAFETY: the first thing `main` does after parsing; no thread has started yet.
     unsafe { lifegom_cli::make_default_device(args.device) };
+    if let Some(groups) = args.pixel_groups {
+        anyhow::ensure!(
+            groups.is_power_of_two() && groups <= 8,
+            "--pixel-groups {groups}: must be 1, 2, 4 or 8"
+        );
+    }
+    lifegom_render::rasterizer::force_backward_pixel_groups(args.pixel_groups);
     let template_path = args.template.clone().unwrap_or_else(full_template_path);
     let body = BodyTemplate::load(&template_path)
         .with_context(|| format!("loading {}", template_path.display()))?;
@@ -183,6 +194,7 @@ fn main() -> anyhow::Result<()> {
         "kernel_fusion": lifegom_render::device::KernelFusion::on_device(&device).map(|k| k.name()),
         "threads": rayon::current_num_threads(),
         "runs": args.runs,
+        "pixel_groups": args.pixel_groups.map_or_else(|| "default".to_owned(), |g| g.to_string()),
         "forward_ms": round(forward_ms),
         "fwd_bwd_ms": round(fwd_bwd_ms),
         "backward_extra_ms": round(fwd_bwd_ms - forward_ms),

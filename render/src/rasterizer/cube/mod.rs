@@ -41,7 +41,8 @@
 //!
 //! `rasterize_backward_kernel` replays each tile back to front, one thread per splat and one
 //! atomic add per gradient component per batch (native float atomics where the runtime has
-//! them, an atomic-exchange emulation otherwise), into dense per-Gaussian 2D gradients;
+//! them, an atomic-exchange emulation otherwise), into dense per-Gaussian 2D gradients, each
+//! tile's pixels split into groups of a cube each so that the launch fills a GPU;
 //! `project_backward_kernel` then chains them to the 3D inputs, one thread per Gaussian.
 //!
 //! Everything the backward needs stays on the device in [`CubeSaved`]: nothing is recomputed.
@@ -56,6 +57,7 @@ mod rasterize_backward;
 mod sort;
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, Ordering};
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -64,8 +66,8 @@ use burn_cubecl::cubecl::server::Handle;
 use burn_cubecl::tensor::CubeTensor;
 use burn_cubecl::{CubeBackend, CubeDevice};
 
-use self::common::{GRAD_LANES, RECT_LANES, SPLAT_LANES, TILE_SIDE};
-use self::rasterize_backward::BWD_BATCH;
+use self::common::{GRAD_LANES, RECT_LANES, SPLAT_LANES, TILE_PIXELS, TILE_SIDE};
+use self::rasterize_backward::{BWD_BATCH, BWD_MAX_PIXEL_GROUPS, BWD_PIXEL_GROUPS};
 use self::sort::{bits_for, exclusive_scan, radix_sort_pairs};
 use super::cpu::{AlphaCutoff, RasterConfig, TILE};
 use super::op::{GaussianRasterOps, RasterKernels, SavedRaster};
@@ -75,6 +77,19 @@ use crate::cube::host::{
     u32_bytes, zeros_f32,
 };
 use crate::cube::view::view_args;
+
+/// Pixel groups per tile forced by [`force_backward_pixel_groups`]; 0 for the default.
+static FORCED_PIXEL_GROUPS: AtomicU32 = AtomicU32::new(0);
+
+/// See [`super::force_backward_pixel_groups`].
+pub(super) fn force_backward_pixel_groups(groups: Option<u32>) {
+    let groups = groups.unwrap_or(0);
+    assert!(
+        groups == 0 || (groups.is_power_of_two() && groups <= BWD_MAX_PIXEL_GROUPS),
+        "pixel groups must be a power of two up to {BWD_MAX_PIXEL_GROUPS}, not {groups}"
+    );
+    FORCED_PIXEL_GROUPS.store(groups, Ordering::Relaxed);
+}
 
 /// What the Cube forward keeps for the backward: inputs and intermediates, all on the device.
 struct CubeSaved {
@@ -284,12 +299,16 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
         let grad_len = n * GRAD_LANES;
         let grad2d = zeros_f32(client, device, grad_len);
         let native = use_native_float_atomics(client);
+        let groups = match FORCED_PIXEL_GROUPS.load(Ordering::Relaxed) {
+            0 => BWD_PIXEL_GROUPS,
+            forced => forced,
+        };
         // One kernel, two slot types: see `crate::cube::atomic::AtomicAddF32`.
         macro_rules! launch_backward {
             ($slot:ty) => {
                 rasterize_backward::rasterize_backward_kernel::launch::<$slot>(
                     client,
-                    CubeCount::Static(tiles_x as u32, tiles_y as u32, 1),
+                    CubeCount::Static(tiles_x as u32, tiles_y as u32, groups),
                     CubeDim::new_1d(BWD_BATCH),
                     arg(&saved.splats, n * SPLAT_LANES),
                     tensor_arg(&saved.colors),
@@ -304,6 +323,7 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
                     tiles_x as u32,
                     channels as u32,
                     smooth,
+                    TILE_PIXELS / groups,
                 )
             };
         }

@@ -2,10 +2,20 @@
 //! (`cpu::backward_tile`), giving dense per-Gaussian 2D gradients (`grad2d`, see
 //! [`super::common`]) that [`super::project_backward`] then chains to the 3D inputs.
 //!
-//! One [`BWD_BATCH`]-thread cube per tile, one thread per splat, and one atomic add per gradient
-//! component per batch, into `grad2d`: native float atomics where the runtime has them, an
-//! atomic-exchange emulation otherwise ([`crate::cube::atomic`]). Nothing is recomputed: the kernel
-//! starts from the forward's final transmittance and last contributor per pixel.
+//! One [`BWD_BATCH`]-thread cube per tile and pixel group, one thread per splat, and one atomic
+//! add per gradient component per batch, into `grad2d`: native float atomics where the runtime
+//! has them, an atomic-exchange emulation otherwise ([`crate::cube::atomic`]). Nothing is
+//! recomputed: the kernel starts from the forward's final transmittance and last contributor per
+//! pixel.
+//!
+//! **Pixel groups.** Pixels are independent in the backward: each one replays its own splats.
+//! A tile's pixels can therefore be split into groups of [`BWD_BATCH`]·k row-major pixels, each
+//! group a cube of its own that sums its splats' gradients over its pixels only and adds them
+//! into `grad2d` as a whole tile would. A cube's sweep over a batch takes `group + 31` barrier
+//! steps instead of `256 + 31`, and there are as many times more cubes, for as many times more
+//! atomic adds. On an H200 the most groups ([`BWD_PIXEL_GROUPS`], eight 32-pixel groups) were the
+//! fastest at every size measured, from a 96² image (36 tiles: one cube per tile left the card
+//! nearly idle) to 1024² (backward 36.4 → 9.8 ms; BENCHMARKS.md, session 27).
 
 // `(a + b - 1) / b` stays spelled out because `#[cube]` traces the arithmetic operators, not
 // `u32::div_ceil`.
@@ -24,10 +34,13 @@ use super::common::{
 
 /// Splats per backward batch: the backward's cube size, one thread per splat.
 pub(crate) const BWD_BATCH: u32 = 32;
-/// Pixels per tile, as a shared-memory length.
-const TILE_LEN: usize = TILE_PIXELS as usize;
-/// Shared-memory length of a per-pixel, per-channel array (`FEATURE_LANES` floats a pixel).
-const TILE_FEATURES_LEN: usize = FEATURE_LANES * TILE_LEN;
+/// The most pixel groups a tile can be split into: a group is a whole number of batch-wide
+/// rounds of pixels.
+pub(crate) const BWD_MAX_PIXEL_GROUPS: u32 = TILE_PIXELS / BWD_BATCH;
+/// Pixel groups per tile: the most there can be, the fastest on an H200 at every image size
+/// measured (module docs). Tests force the other counts (`force_backward_pixel_groups`).
+pub(crate) const BWD_PIXEL_GROUPS: u32 = BWD_MAX_PIXEL_GROUPS;
+const _: () = assert!(TILE_PIXELS % (BWD_PIXEL_GROUPS * BWD_BATCH) == 0);
 /// Lane of the depth channel in a per-pixel `FEATURE_LANES` group.
 const DEPTH_LANE: usize = DEPTH_CHANNEL as usize;
 
@@ -43,16 +56,18 @@ fn feature(colors: &[f32], gid: u32, depth: f32, ch: u32) -> f32 {
     f
 }
 
-/// Backward of the blend, one 32-thread cube per tile and one thread per splat.
+/// Backward of the blend, one 32-thread cube per tile and pixel group, one thread per splat.
 ///
-/// The tile's list is replayed back to front in batches of 32 splats, thread `t` holding the
-/// `t`-th splat from the back of the batch in registers. Per-pixel state (transmittance, colour
-/// of everything behind, `dL/dpixel`, last contributor) lives in shared memory. Work follows a
-/// diagonal: at step `s` thread `t` handles pixel `s − t`, so every pixel meets the batch's
-/// splats strictly back to front (thread 0 first) and no two threads touch one pixel in one
-/// step. Each thread sums its splat's gradient over the tile's pixels in registers (in
-/// row-major pixel order, as the CPU does) and then does one atomic add per component into
-/// `grad2d`.
+/// The cube's pixels are the tile's `group_pixels` row-major pixels from
+/// `CUBE_POS_Z · group_pixels` (the whole tile when `group_pixels` is [`TILE_PIXELS`]). The
+/// tile's list is replayed back to front in batches of 32 splats, from the largest last
+/// contributor over those pixels, thread `t` holding the `t`-th splat from the back of the batch
+/// in registers. Per-pixel state (transmittance, colour of everything behind, `dL/dpixel`, last
+/// contributor) lives in shared memory. Work follows a diagonal: at step `s` thread `t` handles
+/// pixel `s − t`, so every pixel meets the batch's splats strictly back to front (thread 0
+/// first) and no two threads touch one pixel in one step. Each thread sums its splat's gradient
+/// over the group's pixels in registers (in row-major pixel order, as the CPU does over a tile)
+/// and then does one atomic add per component into `grad2d`.
 ///
 /// Generic over the slot type `A` (see [`AtomicAddF32`]): `f32` where the runtime has float
 /// atomic add, `u32` (exchange emulation) otherwise. A type parameter rather than a comptime flag
@@ -74,30 +89,35 @@ pub(crate) fn rasterize_backward_kernel<A: AtomicAddF32>(
     tiles_x: u32,
     #[comptime] channels: u32,
     #[comptime] smooth: bool,
+    #[comptime] group_pixels: u32,
 ) {
     let tile = CUBE_POS_Y * tiles_x + CUBE_POS_X;
     let x0 = CUBE_POS_X * TILE_SIDE;
     let y0 = CUBE_POS_Y * TILE_SIDE;
+    let first = CUBE_POS_Z * group_pixels;
     let lane = UNIT_POS;
+    let group_len = comptime!(group_pixels as usize);
 
-    // The tile's start in `gid_from_isect`, and the largest last contributor over its pixels.
+    // The tile's start in `gid_from_isect`, and the largest last contributor over the group's
+    // pixels. Per-pixel arrays are indexed by the pixel's place `q` in the group.
     let mut range = Shared::<[u32]>::new_slice(1usize);
     let max_last = Shared::<[Atomic<u32>]>::new_slice(1usize);
-    let mut trans = Shared::<[f32]>::new_slice(TILE_LEN);
-    let mut behind = Shared::<[f32]>::new_slice(TILE_FEATURES_LEN);
-    let mut d_pix = Shared::<[f32]>::new_slice(TILE_FEATURES_LEN);
-    let mut last = Shared::<[u32]>::new_slice(TILE_LEN);
+    let mut trans = Shared::<[f32]>::new_slice(group_len);
+    let mut behind = Shared::<[f32]>::new_slice(comptime!(FEATURE_LANES * group_len));
+    let mut d_pix = Shared::<[f32]>::new_slice(comptime!(FEATURE_LANES * group_len));
+    let mut last = Shared::<[u32]>::new_slice(group_len);
     if lane == 0u32 {
         range[0] = tile_offsets[tile as usize];
         max_last[0].store(0u32);
     }
     sync_cube();
     let mut local_max = 0u32;
-    for r in 0..TILE_PIXELS / BWD_BATCH {
-        let p = r * BWD_BATCH + lane;
+    for r in 0..group_pixels / BWD_BATCH {
+        let q = r * BWD_BATCH + lane;
+        let p = first + q;
         let px = x0 + p % TILE_SIDE;
         let py = y0 + p / TILE_SIDE;
-        let pu = p as usize;
+        let pu = q as usize;
         for ch in 0..FEATURE_LANES {
             behind[FEATURE_LANES * pu + ch] = 0.0;
             d_pix[FEATURE_LANES * pu + ch] = 0.0;
@@ -135,10 +155,11 @@ pub(crate) fn rasterize_backward_kernel<A: AtomicAddF32>(
         for c in 0..GRAD_LANES {
             g[c] = 0.0;
         }
-        for step in 0..TILE_PIXELS + BWD_BATCH - 1u32 {
-            if valid && step >= lane && step - lane < TILE_PIXELS {
-                let p = step - lane;
-                let pu = p as usize;
+        for step in 0..group_pixels + BWD_BATCH - 1u32 {
+            if valid && step >= lane && step - lane < group_pixels {
+                let q = step - lane;
+                let p = first + q;
+                let pu = q as usize;
                 if k < last[pu] {
                     let dx = sp.x - f32::cast_from(x0 + p % TILE_SIDE);
                     let dy = sp.y - f32::cast_from(y0 + p / TILE_SIDE);
