@@ -13,19 +13,23 @@
 #
 # Every figure is one JSON line from a benchmark binary (recon-bench, train-bench, render-bench),
 # appended to $OUT/figures.jsonl with the step's name. On wgpu the lines carry
-# `kernel_launches` and `top_kernels` (lifegom_cli::launches). The set, about 10 minutes:
+# `kernel_launches` and `top_kernels` (lifegom_cli::launches). The set took 4 min 20 s on an
+# H200 in session 27 (without before binaries and test binaries):
 #   1. the quickstart training step and the paper-setting reconstruction on wgpu, alternated
 #      with the same commands from the binaries of each folder in $BIN_BEFORE (a space-separated
 #      list; a folder may hold only some of the binaries) when it is set: before/after pairs
 #      from one machine, since figures move between machines of the same kind;
 #      then the same two from $BIN with Burn's kernel fusion off (LIFEGOM_FUSION=off);
 #   2. the paper network's reconstruction at 256² (the size the issue records launches at);
-#   3. per-kernel device times (`--kernel-times`, also summed per `tracing` span) of the
+#   3. per-kernel device times (`--kernel-times`; also per `tracing` span, where the launching
+#      thread has one open: Burn's own ops launch on its stream's thread) of the
 #      paper-setting reconstruction, of a quickstart training step and of a training step at the
 #      paper preset (configs/paper-bench.toml);
 #   4. the rasterizer's headline (1024², 2 subdivisions) and test binaries named `test-*` in $BIN
 #      (run with LIFEGOM_REQUIRE_WGPU=1: the CubeCL kernels' parity with the CPU reference on the
 #      card);
+#   4b. `matmul-bench`, when $BIN has it: Burn's matmul for the training step's shapes, with
+#      fusion on and off (every line kept, one per shape and form);
 #   5. with AUTOTUNE_BIN set, the kernels Burn's autotune picks at the paper setting;
 #   6. with CUDA_BIN set (binaries built with `--features lifegom-cli/cuda`), the quickstart
 #      step and the paper reconstruction on `--device cuda` beside wgpu. CubeCL's CUDA runtime
@@ -137,17 +141,26 @@ step recon-wgpu-paper-256 60 "$BIN/recon-bench" --device wgpu --config paper --s
 # 3. Where the device time goes at the paper's setting, kernel by kernel.
 compare profile-recon-paper-1024-s2 90 recon-bench --device "$GPU_DEVICE" --config paper --size 1024 --subdiv 2 --runs 1 --json --template "$TEMPLATE" --kernel-times --top-kernels 25
 step profile-train-wgpu-quickstart 60 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/quickstart.toml --steps 3 --warmup 1 --kernel-times --top-kernels 25
-# The same two paper-setting profiles with fusion off: every kernel is then launched on the
-# model's thread, so the device time per `tracing` span (`kernel_device_ms_per_step_by_span`)
-# says which stage of the network spends it (with fusion on most of it is under `(no span)`).
-step spans-recon-paper-1024-s2 90 env LIFEGOM_FUSION=off "$BIN/recon-bench" --device "$GPU_DEVICE" --config paper --size 1024 --subdiv 2 --runs 1 --json --template "$TEMPLATE" --kernel-times --top-kernels 25
 step train-paper-bench 150 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1
 step profile-train-paper-bench 120 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 2 --warmup 1 --kernel-times --top-kernels 25
-step spans-train-paper-bench 120 env LIFEGOM_FUSION=off "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 2 --warmup 1 --kernel-times --top-kernels 25
 
 # 4. The rasterizer's headline and the parity tests on the card.
 if [ -x "$BIN/render-bench" ]; then
     step render-wgpu-1024-s2 60 "$BIN/render-bench" --device wgpu --size 1024 --subdiv 2 --runs 5 --json --template "$TEMPLATE"
+fi
+if [ -x "$BIN/matmul-bench" ]; then
+    for fusion in on off; do
+        name=matmul-bench-fusion-$fusion
+        echo "== $name ($(date +%T))"
+        t0=$SECONDS
+        LIFEGOM_FUSION=$fusion timeout 120 "$BIN/matmul-bench" --device wgpu --runs 20 >"$LOGS/$name.log" 2>&1
+        echo "   rc $? in $((SECONDS - t0)) s"
+        grep -h '^{' "$LOGS/$name.log" |
+            python3 -c 'import json, sys
+for line in sys.stdin:
+    d = json.loads(line); d["step"] = sys.argv[1]; print(json.dumps(d))' "$name" >>"$OUT/figures.jsonl"
+        tar -czf "$OUT/logs.tar.gz" -C "$LOGS" .
+    done
 fi
 for t in "$BIN"/test-*; do
     case "$t" in *.xz) continue ;; esac

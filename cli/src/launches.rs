@@ -88,9 +88,10 @@ pub struct LaunchTally {
     /// Launches per innermost `tracing` span open on the thread that issued them.
     pub by_span: BTreeMap<String, u64>,
     /// Device time of the timed launches per innermost span open when each was timed (empty
-    /// unless timing was asked for). With Burn's kernel fusion on, its stream launches on the
-    /// fusion thread, where no model span is open, so most time is filed under `(no span)`:
-    /// per-stage figures want `LIFEGOM_FUSION=off` (design.md §1.4).
+    /// unless timing was asked for). Burn's ops run on its fusion stream's thread, where no model
+    /// span is open, also with `LIFEGOM_FUSION=off` (which removes the fusers, not the stream):
+    /// they are filed under `(no span)`, and the named spans hold the kernels launched on the
+    /// model's thread, such as the autodiff backward's and the rasterizer's (design.md §1.4).
     pub device_time_by_span: BTreeMap<String, Duration>,
 }
 
