@@ -311,36 +311,10 @@ impl LaunchCounter {
     /// Launches are counted when issued, so call this after the work's results were read back
     /// (the benchmarks' steps end in a read-back) to attribute them to the right stretch.
     pub fn take(&self) -> LaunchTally {
-        let raw = std::mem::take(
-            &mut *self
-                .observer
-                .tally
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner),
-        );
-        let by_span = std::mem::take(
-            &mut *self
-                .observer
-                .by_span
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner),
-        );
-        let time_by_span = std::mem::take(
-            &mut *self
-                .observer
-                .time_by_span
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner),
-        );
+        let raw = drain(&self.observer.tally);
         let mut tally = LaunchTally {
-            by_span: by_span
-                .into_iter()
-                .map(|(s, n)| (s.to_owned(), n))
-                .collect(),
-            device_time_by_span: time_by_span
-                .into_iter()
-                .map(|(s, t)| (s.to_owned(), t))
-                .collect(),
+            by_span: owned_keys(drain(&self.observer.by_span)),
+            device_time_by_span: owned_keys(drain(&self.observer.time_by_span)),
             ..LaunchTally::default()
         };
         for (kernel, k) in raw {
@@ -349,6 +323,17 @@ impl LaunchCounter {
         }
         tally
     }
+}
+
+/// Takes a shared map's entries, leaving it empty. A panic elsewhere while the lock was held
+/// leaves counts that are still counts.
+fn drain<V>(map: &Mutex<BTreeMap<&'static str, V>>) -> BTreeMap<&'static str, V> {
+    std::mem::take(&mut *map.lock().unwrap_or_else(PoisonError::into_inner))
+}
+
+/// The map with its span names owned.
+fn owned_keys<V>(map: BTreeMap<&'static str, V>) -> BTreeMap<String, V> {
+    map.into_iter().map(|(k, v)| (k.to_owned(), v)).collect()
 }
 
 impl std::fmt::Debug for LaunchCounter {
