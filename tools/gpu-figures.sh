@@ -81,15 +81,15 @@ done
 
 step() {
     # step NAME LIMIT_S COMMAND...: one benchmark, its output kept in $LOGS/NAME.log and its
-    # JSON line in $OUT/figures.jsonl under the step's name.
-    local name=$1 limit=$2
+    # last JSON line (every line with STEP_LINES=all) in $OUT/figures.jsonl under the step's name.
+    local name=$1 limit=$2 keep=${STEP_LINES:-1}
     shift 2
     echo "== $name ($(date +%T)): $*"
     local t0=$SECONDS
     timeout "$limit" "$@" >"$LOGS/$name.log" 2>&1
     local rc=$?
     echo "   rc $rc in $((SECONDS - t0)) s"
-    grep -h '^{' "$LOGS/$name.log" | tail -n 1 |
+    grep -h '^{' "$LOGS/$name.log" | { if [ "$keep" = all ]; then cat; else tail -n 1; fi; } |
         python3 -c 'import json, sys
 for line in sys.stdin:
     d = json.loads(line); d["step"] = sys.argv[1]; print(json.dumps(d))' "$name" |
@@ -150,16 +150,8 @@ if [ -x "$BIN/render-bench" ]; then
 fi
 if [ -x "$BIN/matmul-bench" ]; then
     for fusion in on off; do
-        name=matmul-bench-fusion-$fusion
-        echo "== $name ($(date +%T))"
-        t0=$SECONDS
-        LIFEGOM_FUSION=$fusion timeout 120 "$BIN/matmul-bench" --device wgpu --runs 20 >"$LOGS/$name.log" 2>&1
-        echo "   rc $? in $((SECONDS - t0)) s"
-        grep -h '^{' "$LOGS/$name.log" |
-            python3 -c 'import json, sys
-for line in sys.stdin:
-    d = json.loads(line); d["step"] = sys.argv[1]; print(json.dumps(d))' "$name" >>"$OUT/figures.jsonl"
-        tar -czf "$OUT/logs.tar.gz" -C "$LOGS" .
+        STEP_LINES=all step matmul-bench-fusion-$fusion 120 env LIFEGOM_FUSION=$fusion \
+            "$BIN/matmul-bench" --device wgpu --runs 20
     done
 fi
 for t in "$BIN"/test-*; do

@@ -160,13 +160,14 @@ fn wgpu_backward_pixel_groups_match_the_cpu_op() {
     let scenes = [random_scene(31, 60, 48, 40), random_scene(32, 400, 40, 32)];
     let result = std::panic::catch_unwind(|| {
         for groups in [1, 2, 8] {
-            lifegom_render::rasterizer::force_backward_pixel_groups(Some(groups));
+            lifegom_render::rasterizer::force_backward_pixel_groups(Some(groups))
+                .expect("a valid group count");
             for scene in &scenes {
                 assert_parity(scene, &device, &format!("wgpu ({groups} pixel groups)"));
             }
         }
     });
-    lifegom_render::rasterizer::force_backward_pixel_groups(None);
+    lifegom_render::rasterizer::force_backward_pixel_groups(None).expect("the default");
     if let Err(panic) = result {
         std::panic::resume_unwind(panic);
     }

@@ -77,13 +77,8 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     // SAFETY: the first thing `main` does after parsing; no thread has started yet.
     unsafe { lifegom_cli::make_default_device(args.device) };
-    if let Some(groups) = args.pixel_groups {
-        anyhow::ensure!(
-            groups.is_power_of_two() && groups <= 8,
-            "--pixel-groups {groups}: must be 1, 2, 4 or 8"
-        );
-    }
-    lifegom_render::rasterizer::force_backward_pixel_groups(args.pixel_groups);
+    lifegom_render::rasterizer::force_backward_pixel_groups(args.pixel_groups)
+        .context("--pixel-groups")?;
     let template_path = args.template.clone().unwrap_or_else(full_template_path);
     let body = BodyTemplate::load(&template_path)
         .with_context(|| format!("loading {}", template_path.display()))?;

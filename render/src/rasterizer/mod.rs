@@ -262,10 +262,11 @@ pub fn force_emulated_float_atomics(force: bool) {
 
 /// Makes the GPU backward split every tile into `groups` pixel groups (1, 2, 4 or 8; 1 is one
 /// cube per tile), or, with `None`, into the default eight (process-wide; every count computes
-/// the same sums up to the order of float additions). For tests and benchmarks.
+/// the same sums up to the order of float additions). For tests and benchmarks; any other
+/// count is an [`RenderError::InvalidInput`] and changes nothing.
 #[doc(hidden)]
-pub fn force_backward_pixel_groups(groups: Option<u32>) {
-    cube::force_backward_pixel_groups(groups);
+pub fn force_backward_pixel_groups(groups: Option<u32>) -> Result<()> {
+    cube::force_backward_pixel_groups(groups)
 }
 
 /// Whether the GPU backward on `device` would use native float atomic adds (`false` on CPU

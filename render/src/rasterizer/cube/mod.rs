@@ -67,7 +67,7 @@ use burn_cubecl::tensor::CubeTensor;
 use burn_cubecl::{CubeBackend, CubeDevice};
 
 use self::common::{GRAD_LANES, RECT_LANES, SPLAT_LANES, TILE_PIXELS, TILE_SIDE};
-use self::rasterize_backward::{BWD_BATCH, BWD_MAX_PIXEL_GROUPS, BWD_PIXEL_GROUPS};
+use self::rasterize_backward::{BWD_BATCH, BWD_PIXEL_GROUPS};
 use self::sort::{bits_for, exclusive_scan, radix_sort_pairs};
 use super::cpu::{AlphaCutoff, RasterConfig, TILE};
 use super::op::{GaussianRasterOps, RasterKernels, SavedRaster};
@@ -77,18 +77,22 @@ use crate::cube::host::{
     u32_bytes, zeros_f32,
 };
 use crate::cube::view::view_args;
+use crate::error::RenderError;
 
 /// Pixel groups per tile forced by [`force_backward_pixel_groups`]; 0 for the default.
 static FORCED_PIXEL_GROUPS: AtomicU32 = AtomicU32::new(0);
 
 /// See [`super::force_backward_pixel_groups`].
-pub(super) fn force_backward_pixel_groups(groups: Option<u32>) {
+pub(super) fn force_backward_pixel_groups(groups: Option<u32>) -> Result<(), RenderError> {
     let groups = groups.unwrap_or(0);
-    assert!(
-        groups == 0 || (groups.is_power_of_two() && groups <= BWD_MAX_PIXEL_GROUPS),
-        "pixel groups must be a power of two up to {BWD_MAX_PIXEL_GROUPS}, not {groups}"
-    );
+    if groups != 0 && !(groups.is_power_of_two() && groups <= BWD_PIXEL_GROUPS) {
+        return Err(RenderError::InvalidInput {
+            what: "pixel groups",
+            reason: format!("must be a power of two up to {BWD_PIXEL_GROUPS}, not {groups}"),
+        });
+    }
     FORCED_PIXEL_GROUPS.store(groups, Ordering::Relaxed);
+    Ok(())
 }
 
 /// What the Cube forward keeps for the backward: inputs and intermediates, all on the device.

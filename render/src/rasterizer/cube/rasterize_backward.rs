@@ -34,13 +34,10 @@ use super::common::{
 
 /// Splats per backward batch: the backward's cube size, one thread per splat.
 pub(crate) const BWD_BATCH: u32 = 32;
-/// The most pixel groups a tile can be split into: a group is a whole number of batch-wide
-/// rounds of pixels.
-pub(crate) const BWD_MAX_PIXEL_GROUPS: u32 = TILE_PIXELS / BWD_BATCH;
-/// Pixel groups per tile: the most there can be, the fastest on an H200 at every image size
-/// measured (module docs). Tests force the other counts (`force_backward_pixel_groups`).
-pub(crate) const BWD_PIXEL_GROUPS: u32 = BWD_MAX_PIXEL_GROUPS;
-const _: () = assert!(TILE_PIXELS.is_multiple_of(BWD_PIXEL_GROUPS * BWD_BATCH));
+/// Pixel groups per tile: the most there can be (a group is a whole number of batch-wide
+/// rounds of pixels), and the fastest on an H200 at every image size measured (module docs).
+/// Tests and benchmarks force the smaller powers of two (`force_backward_pixel_groups`).
+pub(crate) const BWD_PIXEL_GROUPS: u32 = TILE_PIXELS / BWD_BATCH;
 /// Lane of the depth channel in a per-pixel `FEATURE_LANES` group.
 const DEPTH_LANE: usize = DEPTH_CHANNEL as usize;
 
