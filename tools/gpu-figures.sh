@@ -19,7 +19,9 @@
 #      with the same commands from the binaries of each folder in $BIN_BEFORE (a space-separated
 #      list; a folder may hold only some of the binaries) when it is set: before/after pairs
 #      from one machine, since figures move between machines of the same kind;
-#      then the same two from $BIN with Burn's kernel fusion off (LIFEGOM_FUSION=off);
+#      then the same two from $BIN with Burn's kernel fusion off (LIFEGOM_FUSION=off), and the
+#      training step (quickstart here, the paper preset in 3.) with the weight gradients as one
+#      product each (`--split-k-rows 0`);
 #   2. the paper network's reconstruction at 256² (the size the issue records launches at);
 #   3. per-kernel device times (`--kernel-times`; also per `tracing` span, where the launching
 #      thread has one open: Burn's own ops launch on its stream's thread) of the
@@ -134,6 +136,10 @@ compare recon-wgpu-paper-1024-s2 90 recon-bench --device wgpu "${PAPER[@]}"
 step fusion-off-train-wgpu-quickstart 90 env LIFEGOM_FUSION=off "$BIN/train-bench" --device wgpu "${QUICK[@]}"
 step fusion-off-recon-wgpu-paper-1024-s2 90 env LIFEGOM_FUSION=off "$BIN/recon-bench" --device wgpu "${PAPER[@]}"
 
+# 1c. The training steps with the shared layers' weight gradients as one product each
+#     (`--split-k-rows 0`, as before session 28) beside the default split-k (design.md §1.4).
+step split-k-off-train-wgpu-quickstart 90 "$BIN/train-bench" --device wgpu "${QUICK[@]}" --split-k-rows 0
+
 GPU_DEVICE=wgpu
 
 step recon-wgpu-paper-256 60 "$BIN/recon-bench" --device wgpu --config paper --size 256 --subdiv 1 --runs 3 --json --template "$TEMPLATE"
@@ -142,6 +148,7 @@ step recon-wgpu-paper-256 60 "$BIN/recon-bench" --device wgpu --config paper --s
 compare profile-recon-paper-1024-s2 90 recon-bench --device "$GPU_DEVICE" --config paper --size 1024 --subdiv 2 --runs 1 --json --template "$TEMPLATE" --kernel-times --top-kernels 25
 step profile-train-wgpu-quickstart 60 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/quickstart.toml --steps 3 --warmup 1 --kernel-times --top-kernels 25
 step train-paper-bench 150 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1
+step split-k-off-train-paper-bench 150 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1 --split-k-rows 0
 step profile-train-paper-bench 120 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 2 --warmup 1 --kernel-times --top-kernels 25
 
 # 4. The rasterizer's headline and the parity tests on the card.

@@ -127,6 +127,10 @@ struct Args {
     /// How many kernels `top_kernels` lists.
     #[arg(long, default_value_t = 15)]
     top_kernels: usize,
+    /// Rows per chunk of the shared layers' split-k weight gradients on a CubeCL device (`0`:
+    /// one product each, as before session 28); by default 128, longer for wide layers.
+    #[arg(long)]
+    split_k_rows: Option<usize>,
 }
 
 fn ms(seconds: f64) -> serde_json::Value {
@@ -138,6 +142,8 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     // SAFETY: the first thing `main` does after parsing; no thread has started yet.
     unsafe { lifegom_cli::make_default_device(args.device) };
+    // The training loop, and so every backward, runs on this thread.
+    lifegom_model::shared_linear::op::force_split_k_rows(args.split_k_rows);
     let mut cfg = ExperimentConfig::load(&args.config)?;
     let stem = args
         .config
@@ -338,6 +344,7 @@ fn main() -> anyhow::Result<()> {
         "runtime": lifegom_render::device::cube_runtime_name(&device),
         "kernel_fusion": lifegom_render::device::KernelFusion::on_device(&device).map(|k| k.name()),
         "threads": rayon::current_num_threads(),
+        "split_k_rows": args.split_k_rows.map_or_else(|| "default".to_owned(), |r| r.to_string()),
         "concurrency": format!("{:?}", args.concurrency).to_lowercase(),
         "by_concurrency": by_concurrency,
         "stages_ms": stage_ms,

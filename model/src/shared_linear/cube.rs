@@ -1,7 +1,8 @@
 //! The stacking of a shared layer's rows on Burn's CubeCL backend: one launch writes `X` and
 //! `G` (see [`super`]). One thread per element of the wider of the two: it finds its row's
 //! pass by comparing the row with the passes' end rows, and copies one element of `X` and one
-//! of `G` where they exist, the latter times its column's scale for a folded layer.
+//! of `G` where they exist, the latter times its column's scale for a folded layer. Rows past
+//! the passes' (the padding of a split-k weight gradient, `super::op`) are written as zeros.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -60,6 +61,7 @@ fn stack_rows_kernel(
     g_out: &mut [f32],
     scaled: u32,
     rows: usize,
+    filled: usize,
     x_width: usize,
     g_width: usize,
     end0: usize,
@@ -68,12 +70,19 @@ fn stack_rows_kernel(
 ) {
     let e = ABSOLUTE_POS;
     if e < rows * x_width {
-        x_out[e] = stacked_element(x0, x1, x2, x3, e, x_width, end0, end1, end2);
+        let mut x = 0.0f32;
+        if e / x_width < filled {
+            x = stacked_element(x0, x1, x2, x3, e, x_width, end0, end1, end2);
+        }
+        x_out[e] = x;
     }
     if e < rows * g_width {
-        let mut g = stacked_element(g0, g1, g2, g3, e, g_width, end0, end1, end2);
-        if scaled != 0 {
-            g *= scale[e % g_width];
+        let mut g = 0.0f32;
+        if e / g_width < filled {
+            g = stacked_element(g0, g1, g2, g3, e, g_width, end0, end1, end2);
+            if scaled != 0 {
+                g *= scale[e % g_width];
+            }
         }
         g_out[e] = g;
     }
@@ -84,6 +93,7 @@ impl StackKernels for CubeBackend {
         xs: Vec<FloatTensor<Self>>,
         gs: Vec<FloatTensor<Self>>,
         scale: Option<FloatTensor<Self>>,
+        padded_rows: usize,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         assert!(
             !gs.is_empty() && gs.len() <= STACK_PARTS && xs.len() == gs.len(),
@@ -94,8 +104,10 @@ impl StackKernels for CubeBackend {
         let x_width = xs[0].shape()[1];
         let g_width = gs[0].shape()[1];
         // Rows end after each pass; the ends of unused parts are the last row's end.
-        let rows: usize = gs.iter().map(|g| g.shape()[0]).sum();
-        let mut ends = [rows; STACK_PARTS];
+        let filled: usize = gs.iter().map(|g| g.shape()[0]).sum();
+        assert!(padded_rows >= filled, "padding adds rows");
+        let rows = padded_rows;
+        let mut ends = [filled; STACK_PARTS];
         let mut end = 0;
         for (slot, g) in ends.iter_mut().zip(&gs) {
             end += g.shape()[0];
@@ -131,6 +143,7 @@ impl StackKernels for CubeBackend {
                 arg(&g_out, rows * g_width),
                 scaled,
                 rows,
+                filled,
                 x_width,
                 g_width,
                 ends[0],

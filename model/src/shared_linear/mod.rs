@@ -153,6 +153,7 @@ mod tests {
     use lifegom_render::testing::{Rng, read, wgpu_test_device};
 
     use crate::norm_folds::NormFolds;
+    use op::force_split_k_rows;
 
     /// How the passes run the layer.
     #[derive(Debug, Clone, Copy, PartialEq)]
@@ -256,7 +257,8 @@ mod tests {
     /// many times, within float summation order, and Flex's results: for one pass (nothing
     /// stacked, or only the fold's scale applied), three (one launch) and six (stacked four at
     /// a time, then the rest); plain, and folded with a frozen BN with and without a bias of
-    /// its own.
+    /// its own; with the weight gradient as one product (37 rows per pass are under two
+    /// chunks) and split-k in chunks of 8 rows (the last chunk padded: 37, 111 and 222 rows).
     #[test]
     fn one_gradient_for_all_passes_wgpu() {
         let Some(device) = wgpu_test_device() else {
@@ -264,23 +266,27 @@ mod tests {
         };
         let ad = device.autodiff();
         let flex = DeviceChoice::Flex.device().autodiff();
-        for norm in [
-            Norm::None,
-            Norm::Folded(FoldBias::Given),
-            Norm::Folded(FoldBias::Absent),
-        ] {
-            for passes in [1, 3, 6] {
-                let reference = run_passes(&flex, passes, Layer::Composed, norm);
-                let shared = run_passes(&ad, passes, Layer::Shared, norm);
-                let composed = run_passes(&ad, passes, Layer::Composed, norm);
-                for (i, what) in ["output", "∂x", "∂W", "∂b"]
-                    .iter()
-                    .enumerate()
-                    .take(shared.len())
-                {
-                    let what = format!("{norm:?}, {passes} passes: {what}");
-                    close(&shared[i], &composed[i], &what);
-                    close(&shared[i], &reference[i], &what);
+        for split in [None, Some(8)] {
+            for norm in [
+                Norm::None,
+                Norm::Folded(FoldBias::Given),
+                Norm::Folded(FoldBias::Absent),
+            ] {
+                for passes in [1, 3, 6] {
+                    let reference = run_passes(&flex, passes, Layer::Composed, norm);
+                    force_split_k_rows(split);
+                    let shared = run_passes(&ad, passes, Layer::Shared, norm);
+                    force_split_k_rows(None);
+                    let composed = run_passes(&ad, passes, Layer::Composed, norm);
+                    for (i, what) in ["output", "∂x", "∂W", "∂b"]
+                        .iter()
+                        .enumerate()
+                        .take(shared.len())
+                    {
+                        let what = format!("split {split:?}, {norm:?}, {passes} passes: {what}");
+                        close(&shared[i], &composed[i], &what);
+                        close(&shared[i], &reference[i], &what);
+                    }
                 }
             }
         }
