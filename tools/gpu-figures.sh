@@ -21,7 +21,8 @@
 #      from one machine, since figures move between machines of the same kind;
 #      then the same two from $BIN with Burn's kernel fusion off (LIFEGOM_FUSION=off), and the
 #      training step (quickstart here, the paper preset in 3.) with the weight gradients as one
-#      product each (`--split-k-rows 0`);
+#      product each (`--split-k-rows 0`), and the paper reconstruction (and in 3. the paper
+#      training step) with Burn's direct convolutions (LIFEGOM_CONV=direct);
 #   2. the paper network's reconstruction at 256² (the size the issue records launches at);
 #   3. per-kernel device times (`--kernel-times`; also per `tracing` span, where the launching
 #      thread has one open: Burn's own ops launch on its stream's thread) of the
@@ -139,6 +140,9 @@ step fusion-off-recon-wgpu-paper-1024-s2 90 env LIFEGOM_FUSION=off "$BIN/recon-b
 # 1c. The training steps with the shared layers' weight gradients as one product each
 #     (`--split-k-rows 0`, as before session 28) beside the default split-k (design.md §1.4).
 step split-k-off-train-wgpu-quickstart 90 "$BIN/train-bench" --device wgpu "${QUICK[@]}" --split-k-rows 0
+# 1d. The encoder's convolutions with Burn's direct kernel (LIFEGOM_CONV=direct, as before
+#     session 28) beside patch columns and one product (model/src/gemm_conv).
+step conv-direct-recon-wgpu-paper-1024-s2 90 env LIFEGOM_CONV=direct "$BIN/recon-bench" --device wgpu "${PAPER[@]}"
 
 GPU_DEVICE=wgpu
 
@@ -149,6 +153,7 @@ compare profile-recon-paper-1024-s2 90 recon-bench --device "$GPU_DEVICE" --conf
 step profile-train-wgpu-quickstart 60 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/quickstart.toml --steps 3 --warmup 1 --kernel-times --top-kernels 25
 step train-paper-bench 150 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1
 step split-k-off-train-paper-bench 150 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1 --split-k-rows 0
+step conv-direct-train-paper-bench 150 env LIFEGOM_CONV=direct "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1
 step profile-train-paper-bench 120 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 2 --warmup 1 --kernel-times --top-kernels 25
 
 # 4. The rasterizer's headline and the parity tests on the card.

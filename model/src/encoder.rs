@@ -62,6 +62,7 @@ use burn::tensor::{Device, Tensor, TensorData, s};
 
 use crate::channel_norm::ChannelActivation::{self, Identity, Relu};
 use crate::channel_norm::ChannelNorm;
+use crate::gemm_conv::conv2d;
 use crate::norm_folds::NormFolds;
 use crate::sampling::{PreparedMaps, SamplingError};
 use crate::weights_file::WeightsFormat;
@@ -313,11 +314,11 @@ impl BasicBlock {
 
     fn forward<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<4>) -> Tensor<4> {
         let shortcut = match &self.downsample {
-            Some(d) => frozen_bn(folds, &d.bn, d.conv.forward(x.clone()), Identity),
+            Some(d) => frozen_bn(folds, &d.bn, conv2d(&d.conv, x.clone()), Identity),
             None => x.clone(),
         };
-        let y = frozen_bn(folds, &self.bn1, self.conv1.forward(x), Relu);
-        let y = frozen_bn(folds, &self.bn2, self.conv2.forward(y), Identity);
+        let y = frozen_bn(folds, &self.bn1, conv2d(&self.conv1, x), Relu);
+        let y = frozen_bn(folds, &self.bn2, conv2d(&self.conv2, y), Identity);
         relu(y + shortcut)
     }
 
@@ -437,7 +438,7 @@ impl ImageEncoder {
         );
         let x = Self::normalize(images);
         let rgb = self.rgb_embed.forward(x.clone());
-        let f0 = frozen_bn(&folds, &self.bn1, self.conv1.forward(x), Relu);
+        let f0 = frozen_bn(&folds, &self.bn1, conv2d(&self.conv1, x), Relu);
         let run = |blocks: &[BasicBlock], x: Tensor<4>| {
             blocks.iter().fold(x, |x, b| b.forward(&folds, x))
         };
@@ -467,7 +468,7 @@ impl ImageEncoder {
             "ImageEncoder::encode: images must be [N, 3, H, W], got {dims:?}"
         );
         let x = Self::normalize(images);
-        let f0 = frozen_bn(folds, &self.bn1, self.conv1.forward(x.clone()), Relu);
+        let f0 = frozen_bn(folds, &self.bn1, conv2d(&self.conv1, x.clone()), Relu);
         let run =
             |blocks: &[BasicBlock], x: Tensor<4>| blocks.iter().fold(x, |x, b| b.forward(folds, x));
         let f1 = run(&self.layer1, self.maxpool.forward(f0.clone()));

@@ -37,6 +37,7 @@
 //! | module | concept |
 //! |---|---|
 //! | [`encoder`] | ResNet-18 feature pyramid + 1×1 rgb embedding (1152 channels), torchvision/official weight import |
+//! | [`gemm_conv`] | the encoder's convolutions as patch columns and one product on devices |
 //! | [`sampling`] | projection of posed vertices and torch-exact bilinear feature sampling |
 //! | [`dropout`] | the fusion layers' dropout, with masks drawn on the host on CPU backends |
 //! | [`fusion`] | multi-source fusion: self-attention over views, cross-attention with a per-vertex query |
@@ -44,6 +45,7 @@
 //! | [`interpolation`] | the Point Transformer's transition-up interpolation, one op on devices |
 //! | [`knn`], [`point_transformer`] | farthest point sampling, kNN, the Point Transformer encoder–decoder |
 //! | [`shared_linear`] | a layer the feedback passes share: one weight gradient for all passes on devices |
+//! | [`split_k`] | weight gradients over many rows as chunked products and a sum on devices |
 //! | [`heads`] | update heads: residual vertex update, new embedding, per-face Gaussian parameters |
 //! | [`reconstructor`] | the reconstructor: T steps of render → encode → fuse → update |
 //! | [`avatar`] | the result: render in any pose and view, save/load, 3DGS `.ply` export |
@@ -66,6 +68,7 @@ pub mod encoder;
 pub mod error;
 pub mod frozen_affine;
 pub mod fusion;
+pub mod gemm_conv;
 pub mod grouping;
 pub mod heads;
 pub mod inputs;
@@ -79,6 +82,7 @@ pub mod reconstructor;
 pub mod rig_export;
 pub mod sampling;
 pub mod shared_linear;
+pub mod split_k;
 #[cfg(test)]
 mod test_grads;
 pub mod trained;

@@ -153,7 +153,7 @@ mod tests {
     use lifegom_render::testing::{Rng, read, wgpu_test_device};
 
     use crate::norm_folds::NormFolds;
-    use op::force_split_k_rows;
+    use crate::split_k::force_split_k_rows;
 
     /// How the passes run the layer.
     #[derive(Debug, Clone, Copy, PartialEq)]

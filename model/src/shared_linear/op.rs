@@ -32,14 +32,12 @@
 //! matmul gives each output tile to one cube that walks the whole reduction, so a few cubes
 //! work while the card idles: 1.2 ms for `[144 × 3,687]·[3,687 × 144]` on an H200, where the
 //! same product in 128-row chunks, as one batched product `[S, in, c]·[S, c, out]` and a sum
-//! over the `S` chunks, takes 0.06 ms (design.md §1.4). So the stacking pads the rows to whole
-//! chunks with zeros (in the same launch) and the weight's node forms the gradient so
-//! (`SplitK`): one more launch, the sum, per layer. Chunks are [`SPLIT_K_ROWS`] long unless
-//! the partial products would pass [`SPLIT_K_MAX_PARTIAL_BYTES`]; the bias's sum reads the
-//! padded `G`, whose zero rows add nothing.
+//! over the `S` chunks, takes 0.06 ms. So the stacking pads the rows to whole chunks with zeros
+//! (in the same launch) and the weight's node forms the gradient so
+//! ([`crate::split_k`]): one more launch, the sum, per layer. The bias's sum reads the padded
+//! `G`, whose zero rows add nothing.
 
 use std::any::Any;
-use std::cell::Cell;
 use std::sync::{Arc, Mutex, PoisonError};
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -53,6 +51,8 @@ use burn::tensor::Shape;
 use lifegom_render::cube::deferred::float_like;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred};
 use lifegom_render::op_backward::record;
+
+use crate::split_k::SplitK;
 
 /// Which parameter of the layer a [`SharedLinearOps::shared_parameter`] node stands for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -140,96 +140,6 @@ fn flatten<B: Backend>(t: FloatTensor<B>) -> FloatTensor<B> {
 
 /// Passes stacked by one launch of [`StackKernels::stack_pass_rows`].
 pub const STACK_PARTS: usize = 4;
-
-/// Rows per chunk of a split-k weight gradient (module docs, "Split-k"): the fastest of 128,
-/// 256 and 512 for every weight-gradient shape of the quickstart step on an H200
-/// (BENCHMARKS.md, `matmul-bench`).
-pub const SPLIT_K_ROWS: usize = 128;
-
-/// The most bytes the chunks' partial products `[chunks, in, out]` may take: wide layers over
-/// many rows take longer chunks instead of more of them (the paper's `[1,152 × 41,154]·[41,154
-/// × 1,152]` takes 46 chunks of 896 rows, 244 MB, instead of 322 of 128 rows, 1.7 GB).
-const SPLIT_K_MAX_PARTIAL_BYTES: usize = 256 << 20;
-
-thread_local! {
-    /// [`force_split_k_rows`]'s choice on this thread.
-    static FORCED_SPLIT_K_ROWS: Cell<Option<usize>> = const { Cell::new(None) };
-}
-
-/// Sets the rows per chunk of the shared layers' weight gradients for backward passes run on
-/// the calling thread (Burn's autodiff runs a backward on the thread that calls it): `Some(0)`
-/// forms each as one product, `Some(n)` splits every gradient over more than `n` rows into
-/// chunks of `n`, `None` restores the default rule ([`SPLIT_K_ROWS`], bounded in memory). For
-/// benchmarks (`train-bench --split-k-rows`) and tests; the result is the same gradient up to
-/// float summation order.
-pub fn force_split_k_rows(rows: Option<usize>) {
-    FORCED_SPLIT_K_ROWS.with(|forced| forced.set(rows));
-}
-
-/// How a weight gradient `Xᵀ·G` over `rows` rows is formed: `chunks` products of `chunk_rows`
-/// rows each, the last padded with zero rows, then summed; one chunk is the plain product.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct SplitK {
-    chunks: usize,
-    chunk_rows: usize,
-}
-
-impl SplitK {
-    /// One product over all `rows`.
-    fn whole(rows: usize) -> Self {
-        Self {
-            chunks: 1,
-            chunk_rows: rows,
-        }
-    }
-
-    /// The split for a `[rows, inputs]ᵀ·[rows, outputs]` product (module docs, "Split-k").
-    fn plan(rows: usize, inputs: usize, outputs: usize) -> Self {
-        let whole = Self::whole(rows);
-        let chunk_rows = match FORCED_SPLIT_K_ROWS.with(Cell::get) {
-            Some(0) => return whole,
-            Some(forced) => forced,
-            None => {
-                // Only reductions of at least two full chunks gain from a split.
-                if rows < 2 * SPLIT_K_ROWS {
-                    return whole;
-                }
-                let partial_bytes = (inputs * outputs * size_of::<f32>()).max(1);
-                let most_chunks = (SPLIT_K_MAX_PARTIAL_BYTES / partial_bytes).max(1);
-                rows.div_ceil(most_chunks)
-                    .next_multiple_of(SPLIT_K_ROWS)
-                    .max(SPLIT_K_ROWS)
-            }
-        };
-        let chunks = rows.div_ceil(chunk_rows);
-        if chunks < 2 {
-            return whole;
-        }
-        Self { chunks, chunk_rows }
-    }
-
-    /// The rows after padding.
-    fn padded_rows(self) -> usize {
-        self.chunks * self.chunk_rows
-    }
-
-    /// `xᵀ·g` for the stacked and padded `x` `[padded, in]`, `g` `[padded, out]`: one batched
-    /// product over the chunks (`x` read through a transposed view, as Burn's autodiff reads a
-    /// weight gradient's input) and a sum over them.
-    fn weight_gradient<B: Backend>(self, x: FloatTensor<B>, g: FloatTensor<B>) -> FloatTensor<B> {
-        let (inputs, outputs) = (x.shape()[1], g.shape()[1]);
-        if self.chunks == 1 {
-            return B::float_matmul(B::float_transpose(x), g);
-        }
-        let chunked =
-            |t, width| B::float_reshape(t, Shape::new([self.chunks, self.chunk_rows, width]));
-        let partial = B::float_matmul(
-            B::float_swap_dims(chunked(x, inputs), 1, 2),
-            chunked(g, outputs),
-        );
-        B::float_reshape(B::float_sum_dim(partial, 0), Shape::new([inputs, outputs]))
-    }
-}
 
 /// `(X, G)`: the passes' rows one after the other (module docs), `G`'s columns times `scale`
 /// for a folded layer, then zero rows up to `padded_rows`. A lone pass without a scale or
@@ -580,34 +490,5 @@ impl<B: StackKernels + SharedLinearOps, C: CheckpointStrategy> SharedLinearOps f
             },
             |s| B::linear(s.x, s.weight, Some(s.bias)),
         )
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The default chunks: none under two chunks' rows, 128-row chunks for the quickstart's
-    /// layers, longer ones where 128-row partials would pass the memory bound (the paper's
-    /// widest layer), and what a forced length asks for.
-    #[test]
-    fn split_k_plans() {
-        let plan = |rows, inputs, outputs| {
-            let p = SplitK::plan(rows, inputs, outputs);
-            (p.chunks, p.chunk_rows)
-        };
-        assert_eq!(plan(255, 144, 144), (1, 255));
-        assert_eq!(plan(256, 144, 144), (2, 128));
-        assert_eq!(plan(3687, 144, 432), (29, 128));
-        assert_eq!(SplitK::plan(3687, 8, 8).padded_rows(), 3712);
-        // 256 MiB / (1152² · 4 B) = 50 chunks at most: ⌈41,154 / 50⌉ = 824 → 896 rows.
-        assert_eq!(plan(41154, 1152, 1152), (46, 896));
-        force_split_k_rows(Some(0));
-        assert_eq!(plan(41154, 1152, 1152), (1, 41154));
-        force_split_k_rows(Some(8));
-        assert_eq!(plan(37, 6, 6), (5, 8));
-        assert_eq!(plan(8, 6, 6), (1, 8));
-        force_split_k_rows(None);
-        assert_eq!(plan(37, 6, 6), (1, 37));
     }
 }

@@ -1,0 +1,187 @@
+//! The patch columns on Burn's CubeCL backend, both ways, and the forward that multiplies them
+//! (see [`super`]).
+//!
+//! Forward: one thread per element of the columns `[N·H_out·W_out, C·kh·kw]`, consecutive
+//! threads along a row, so the writes are coalesced and the reads of one window row are
+//! neighbours. Backward: one thread per input element; it visits the `kh·kw` window positions
+//! that could cover it and adds the column gradient of each output position whose window does
+//! (`y + py − ky` a multiple of the stride and inside the output), so no two threads write one
+//! element and no atomics are needed.
+
+use burn::backend::TensorMetadata;
+use burn::backend::ops::FloatTensorOps;
+use burn::backend::tensor::FloatTensor;
+use burn::tensor::Shape;
+use burn_cubecl::CubeBackend;
+use burn_cubecl::cubecl;
+use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::kernel::into_contiguous;
+use lifegom_render::cube::host::{
+    THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
+};
+
+use super::op::{GemmConvOps, PatchKernels, Patches};
+
+/// The window and grid of one call, as the kernels read them.
+#[derive(CubeLaunch, CubeType)]
+struct Grid {
+    channels: usize,
+    height: usize,
+    width: usize,
+    out_height: usize,
+    out_width: usize,
+    kernel_y: usize,
+    kernel_x: usize,
+    stride_y: usize,
+    stride_x: usize,
+    pad_y: usize,
+    pad_x: usize,
+}
+
+#[cube(launch)]
+fn patch_columns_kernel(x: &[f32], columns: &mut [f32], grid: Grid, units: usize) {
+    let e = ABSOLUTE_POS;
+    if e < units {
+        let window = grid.kernel_y * grid.kernel_x;
+        let width = grid.channels * window;
+        let row = e / width;
+        let col = e % width;
+        let plane = grid.out_height * grid.out_width;
+        let n = row / plane;
+        let p = row % plane;
+        let c = col / window;
+        let k = col % window;
+        // Padded coordinates: the window's pixel is inside the image when both lie in
+        // `[pad, pad + size)`.
+        let y = (p / grid.out_width) * grid.stride_y + k / grid.kernel_x;
+        let x_ = (p % grid.out_width) * grid.stride_x + k % grid.kernel_x;
+        let mut value = 0.0f32;
+        if y >= grid.pad_y
+            && y < grid.pad_y + grid.height
+            && x_ >= grid.pad_x
+            && x_ < grid.pad_x + grid.width
+        {
+            value = x[((n * grid.channels + c) * grid.height + y - grid.pad_y) * grid.width + x_
+                - grid.pad_x];
+        }
+        columns[e] = value;
+    }
+}
+
+// `%` rather than `is_multiple_of`, which CubeCL's kernel language does not have.
+#[allow(clippy::manual_is_multiple_of)]
+#[cube(launch)]
+fn patch_columns_backward_kernel(columns_grad: &[f32], dx: &mut [f32], grid: Grid, units: usize) {
+    let e = ABSOLUTE_POS;
+    if e < units {
+        let window = grid.kernel_y * grid.kernel_x;
+        let width = grid.channels * window;
+        let plane = grid.height * grid.width;
+        let n = e / (grid.channels * plane);
+        let c = (e / plane) % grid.channels;
+        // Padded coordinates of this input element.
+        let y = (e % plane) / grid.width + grid.pad_y;
+        let x_ = e % grid.width + grid.pad_x;
+        let mut sum = 0.0f32;
+        for ky in 0..grid.kernel_y {
+            if y >= ky && (y - ky) % grid.stride_y == 0 {
+                let oy = (y - ky) / grid.stride_y;
+                if oy < grid.out_height {
+                    for kx in 0..grid.kernel_x {
+                        if x_ >= kx && (x_ - kx) % grid.stride_x == 0 {
+                            let ox = (x_ - kx) / grid.stride_x;
+                            if ox < grid.out_width {
+                                let row = (n * grid.out_height + oy) * grid.out_width + ox;
+                                sum += columns_grad
+                                    [row * width + c * window + ky * grid.kernel_x + kx];
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        dx[e] = sum;
+    }
+}
+
+fn grid_arg(input: &Shape, patches: Patches) -> GridLaunch {
+    let [out_height, out_width] = patches.output_size(input[2], input[3]);
+    GridLaunch::new(
+        input[1],
+        input[2],
+        input[3],
+        out_height,
+        out_width,
+        patches.kernel[0],
+        patches.kernel[1],
+        patches.stride[0],
+        patches.stride[1],
+        patches.padding[0],
+        patches.padding[1],
+    )
+}
+
+impl PatchKernels for CubeBackend {
+    fn patch_columns(x: FloatTensor<Self>, patches: Patches) -> FloatTensor<Self> {
+        let dtype = x.dtype();
+        let input = x.shape();
+        let shape = patches.columns_shape(&input);
+        let units = shape.num_elements();
+        let (client, device) = (x.client.clone(), x.device.clone());
+        let x = prepare(x);
+        let out = client.empty(4 * units.max(1));
+        if units > 0 {
+            patch_columns_kernel::launch(
+                &client,
+                count_1d(units),
+                CubeDim::new_1d(THREADS_1D),
+                tensor_arg(&x),
+                arg(&out, units),
+                grid_arg(&input, patches),
+                units,
+            );
+        }
+        cast_to(tensor_f32(&client, &device, out, &shape), dtype)
+    }
+
+    fn patch_columns_backward(
+        columns_grad: FloatTensor<Self>,
+        input: Shape,
+        patches: Patches,
+    ) -> FloatTensor<Self> {
+        let dtype = columns_grad.dtype();
+        let units = input.num_elements();
+        let (client, device) = (columns_grad.client.clone(), columns_grad.device.clone());
+        let columns_grad = prepare(columns_grad);
+        let out = client.empty(4 * units.max(1));
+        if units > 0 {
+            patch_columns_backward_kernel::launch(
+                &client,
+                count_1d(units),
+                CubeDim::new_1d(THREADS_1D),
+                tensor_arg(&columns_grad),
+                arg(&out, units),
+                grid_arg(&input, patches),
+                units,
+            );
+        }
+        cast_to(tensor_f32(&client, &device, out, &input), dtype)
+    }
+}
+
+impl GemmConvOps for CubeBackend {
+    fn gemm_conv2d(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        patches: Patches,
+    ) -> FloatTensor<Self> {
+        let out = patches.output_shape(&x.shape(), &weight.shape());
+        let [n, c_out, h, w] = [out[0], out[1], out[2], out[3]];
+        let columns = Self::patch_columns(x, patches);
+        let width = columns.shape()[1];
+        let weight = Self::float_reshape(weight, Shape::new([c_out, width]));
+        let rows = Self::float_matmul(columns, Self::float_transpose(weight));
+        let nhwc = Self::float_reshape(rows, Shape::new([n, h, w, c_out]));
+        into_contiguous(Self::float_permute(nhwc, &[0, 3, 1, 2]))
+    }
+}

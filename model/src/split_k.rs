@@ -1,0 +1,204 @@
+//! Weight gradients formed split-k on CubeCL devices (design.md §1.4).
+//!
+//! A layer's weight gradient `Xᵀ·G` (`X` `[rows, in]`, `G` `[rows, out]`) is a small output over
+//! a long reduction: the rows are every pass's points (3,687 in the quickstart, 41,154 at the
+//! paper's setting) or a convolution's output pixels (786,432 for the encoder's stem at 1024²
+//! and three views). Burn's CubeCL matmul gives each output tile to one cube that walks the
+//! whole reduction, so a few cubes work while the card idles: 1.2 ms for
+//! `[144 × 3,687]·[3,687 × 144]` on an H200, where the same product over 128-row chunks, one
+//! batched product `[S, in, c]·[S, c, out]` and a sum over the `S` chunks, takes 0.06 ms
+//! (BENCHMARKS.md, `matmul-bench`). [`SplitK`] plans the chunks and forms the product so:
+//!
+//! - chunks are at least [`SPLIT_K_ROWS`] rows long, and there are at most [`MAX_CHUNKS`] of
+//!   them (the paper's widest layer was faster with 81 chunks of 512 rows than with 322 of 128);
+//! - the partial products `[S, in, out]` stay under [`MAX_PARTIAL_BYTES`]: wide layers over
+//!   many rows take longer chunks instead of more of them;
+//! - a reduction of fewer than two chunks' rows is one product.
+//!
+//! [`SplitK::plan`] pads the rows to whole chunks (the caller writes the zero rows, e.g. the
+//! shared layers' stacking launch); [`SplitK::plan_exact`] takes only chunk counts that divide
+//! the rows, for callers that cannot pad. The result is the gradient up to float summation
+//! order.
+
+use std::cell::Cell;
+
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Backend, TensorMetadata};
+use burn::tensor::Shape;
+
+/// The fewest rows a chunk has by default: the fastest of 128, 256 and 512 rows for every
+/// weight-gradient shape of the quickstart step on an H200.
+pub const SPLIT_K_ROWS: usize = 128;
+
+/// The most chunks by default.
+pub const MAX_CHUNKS: usize = 128;
+
+/// The most bytes the chunks' partial products `[chunks, in, out]` may take by default.
+pub const MAX_PARTIAL_BYTES: usize = 256 << 20;
+
+thread_local! {
+    /// [`force_split_k_rows`]'s choice on this thread.
+    static FORCED_ROWS: Cell<Option<usize>> = const { Cell::new(None) };
+}
+
+/// Sets the rows per chunk of split-k weight gradients for backward passes run on the calling
+/// thread (Burn's autodiff runs a backward on the thread that calls it): `Some(0)` forms each
+/// gradient as one product, `Some(n)` splits every gradient over more than `n` rows into chunks
+/// of about `n` rows, `None` restores the default rule (module docs). For benchmarks
+/// (`train-bench --split-k-rows`) and tests.
+pub fn force_split_k_rows(rows: Option<usize>) {
+    FORCED_ROWS.with(|forced| forced.set(rows));
+}
+
+/// How a weight gradient `Xᵀ·G` over `rows` rows is formed: `chunks` products of `chunk_rows`
+/// rows each, then summed; one chunk is the plain product.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SplitK {
+    /// Chunks `S`.
+    pub chunks: usize,
+    /// Rows per chunk.
+    pub chunk_rows: usize,
+}
+
+impl SplitK {
+    /// One product over all `rows`.
+    pub fn whole(rows: usize) -> Self {
+        Self {
+            chunks: 1,
+            chunk_rows: rows,
+        }
+    }
+
+    /// The most chunks for a `[rows, inputs]ᵀ·[rows, outputs]` product, or `None` for one
+    /// product (module docs). `padded`: the last chunk may be short.
+    fn most_chunks(rows: usize, inputs: usize, outputs: usize, padded: bool) -> Option<usize> {
+        let most = match FORCED_ROWS.with(Cell::get) {
+            Some(0) => return None,
+            Some(forced) => rows / forced,
+            // Only reductions of at least two full chunks gain from a split.
+            None if rows < 2 * SPLIT_K_ROWS => return None,
+            None => {
+                let partial_bytes = (inputs * outputs * size_of::<f32>()).max(1);
+                let by_rows = if padded {
+                    rows.div_ceil(SPLIT_K_ROWS)
+                } else {
+                    rows / SPLIT_K_ROWS
+                };
+                by_rows
+                    .min(MAX_CHUNKS)
+                    .min(MAX_PARTIAL_BYTES / partial_bytes)
+            }
+        };
+        (most >= 2).then_some(most)
+    }
+
+    /// The split of a `[rows, inputs]ᵀ·[rows, outputs]` product, its last chunk padded with
+    /// zero rows up to [`Self::padded_rows`] (module docs).
+    pub fn plan(rows: usize, inputs: usize, outputs: usize) -> Self {
+        let Some(most) = Self::most_chunks(rows, inputs, outputs, true) else {
+            return Self::whole(rows);
+        };
+        let chunk_rows = match FORCED_ROWS.with(Cell::get) {
+            Some(forced) => forced,
+            None => rows.div_ceil(most).next_multiple_of(SPLIT_K_ROWS),
+        };
+        let chunks = rows.div_ceil(chunk_rows);
+        if chunks < 2 {
+            return Self::whole(rows);
+        }
+        Self { chunks, chunk_rows }
+    }
+
+    /// The split of a `[rows, inputs]ᵀ·[rows, outputs]` product into chunks that divide the
+    /// rows: the most chunks the rule allows that divide them (one product when only 1 does).
+    pub fn plan_exact(rows: usize, inputs: usize, outputs: usize) -> Self {
+        let Some(most) = Self::most_chunks(rows, inputs, outputs, false) else {
+            return Self::whole(rows);
+        };
+        match (2..=most).rev().find(|s| rows.is_multiple_of(*s)) {
+            Some(chunks) => Self {
+                chunks,
+                chunk_rows: rows / chunks,
+            },
+            None => Self::whole(rows),
+        }
+    }
+
+    /// The rows after padding.
+    pub fn padded_rows(self) -> usize {
+        self.chunks * self.chunk_rows
+    }
+
+    /// `xᵀ·g` `[in, out]` for `x` `[padded, in]`, `g` `[padded, out]` (rows past the data
+    /// zero): one batched product over the chunks (`x` read through a transposed view, as
+    /// Burn's autodiff reads a weight gradient's input) and a sum over them.
+    pub fn weight_gradient<B: Backend>(
+        self,
+        x: FloatTensor<B>,
+        g: FloatTensor<B>,
+    ) -> FloatTensor<B> {
+        let (inputs, outputs) = (x.shape()[1], g.shape()[1]);
+        if self.chunks == 1 {
+            return B::float_matmul(B::float_transpose(x), g);
+        }
+        let chunked =
+            |t, width| B::float_reshape(t, Shape::new([self.chunks, self.chunk_rows, width]));
+        let partial = B::float_matmul(
+            B::float_swap_dims(chunked(x, inputs), 1, 2),
+            chunked(g, outputs),
+        );
+        B::float_reshape(B::float_sum_dim(partial, 0), Shape::new([inputs, outputs]))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plan(rows: usize, inputs: usize, outputs: usize) -> (usize, usize) {
+        let p = SplitK::plan(rows, inputs, outputs);
+        (p.chunks, p.chunk_rows)
+    }
+
+    fn exact(rows: usize, inputs: usize, outputs: usize) -> (usize, usize) {
+        let p = SplitK::plan_exact(rows, inputs, outputs);
+        (p.chunks, p.chunk_rows)
+    }
+
+    /// The default rule: none under two chunks' rows, 128-row chunks for the quickstart's
+    /// layers, longer ones past [`MAX_CHUNKS`] or where the partials would pass the memory
+    /// bound (the paper's widest layer), and what a forced length asks for.
+    #[test]
+    fn padded_plans() {
+        assert_eq!(plan(255, 144, 144), (1, 255));
+        assert_eq!(plan(256, 144, 144), (2, 128));
+        assert_eq!(plan(3687, 144, 432), (29, 128));
+        assert_eq!(SplitK::plan(3687, 8, 8).padded_rows(), 3712);
+        // 256 MiB / (1152² · 4 B) = 50 chunks at most: ⌈41,154 / 50⌉ = 824 → 896 rows.
+        assert_eq!(plan(41154, 1152, 1152), (46, 896));
+        // 128 chunks at most: ⌈100,000 / 128⌉ = 782 → 896 rows.
+        assert_eq!(plan(100_000, 8, 8), (112, 896));
+        force_split_k_rows(Some(0));
+        assert_eq!(plan(41154, 1152, 1152), (1, 41154));
+        force_split_k_rows(Some(8));
+        assert_eq!(plan(37, 6, 6), (5, 8));
+        assert_eq!(plan(8, 6, 6), (1, 8));
+        force_split_k_rows(None);
+        assert_eq!(plan(37, 6, 6), (1, 37));
+    }
+
+    /// Chunk counts that divide the rows: the encoder's stem at 1024² (three views), its last
+    /// stage (bound by memory), a prime row count (one product), and a forced length.
+    #[test]
+    fn exact_plans() {
+        assert_eq!(exact(3 * 512 * 512, 147, 64), (128, 6144));
+        // 256 MiB / (4,608 · 512 · 4 B) = 28 chunks at most, 3,072 / 128 = 24: 24 divides.
+        assert_eq!(exact(3 * 32 * 32, 4608, 512), (24, 128));
+        assert_eq!(exact(1021, 8, 8), (1, 1021));
+        assert_eq!(exact(255, 8, 8), (1, 255));
+        force_split_k_rows(Some(8));
+        // 70 / 8 = 8 chunks at most; 7 divides 70.
+        assert_eq!(exact(70, 6, 6), (7, 10));
+        force_split_k_rows(None);
+    }
+}
