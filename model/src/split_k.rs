@@ -15,6 +15,9 @@
 //!   many rows take longer chunks instead of more of them;
 //! - a reduction of fewer than two chunks' rows is one product.
 //!
+//! A bias gradient `Σ_rows G` is summed the same way ([`SplitK::column_sum`]): within the
+//! chunks, then over them.
+//!
 //! [`SplitK::plan`] pads the rows to whole chunks (the caller writes the zero rows, e.g. the
 //! shared layers' stacking launch); [`SplitK::plan_exact`] takes only chunk counts that divide
 //! the rows, for callers that cannot pad. The result is the gradient up to float summation
@@ -148,6 +151,20 @@ impl SplitK {
             chunked(g, outputs),
         );
         B::float_reshape(B::float_sum_dim(partial, 0), Shape::new([inputs, outputs]))
+    }
+
+    /// `Σ_rows g` `[out]` for `g` `[padded, out]` (rows past the data zero), a bias gradient:
+    /// sums within the chunks, then over them. One sum over all rows gives each output column
+    /// to one thread walking every row, the reduction's form of the weight gradient's problem.
+    pub fn column_sum<B: Backend>(self, g: FloatTensor<B>) -> FloatTensor<B> {
+        let outputs = g.shape()[1];
+        let sum = if self.chunks == 1 {
+            B::float_sum_dim(g, 0)
+        } else {
+            let chunked = B::float_reshape(g, Shape::new([self.chunks, self.chunk_rows, outputs]));
+            B::float_sum_dim(B::float_sum_dim(chunked, 1), 0)
+        };
+        B::float_reshape(sum, Shape::new([outputs]))
     }
 }
 

@@ -17,7 +17,10 @@
 //!   and 512: a batched product `[S, m, c]·[S, c, n]`) and a sum over `S`: what a layer's
 //!   backward could launch instead. The inputs are padded to whole chunks outside the timed
 //!   region, so the figure is the two kernels' cost, not the padding's;
-//! - `batched`: `[b, m, k]·[1, k, n]`, the Point Transformer's per-group products.
+//! - `batched`: `[b, m, k]·[1, k, n]`, the Point Transformer's per-group products;
+//! - `column_sum`: `Σ_rows g` of `g: [k, n]`, a layer's bias gradient (`m` = 1), as one
+//!   `sum_dim(0)`; `chunked_column_sum`: the same as sums within `c`-row chunks, then over the
+//!   chunks (`[S, c, n]` → `[S, 1, n]` → `[1, 1, n]`, the input padded outside the timed region).
 //!
 //! Every case runs `--runs` times after three warm-ups; each run's output is read back, so the
 //! wall time per run includes a round trip. On CubeCL devices each launch is also timed on the
@@ -54,6 +57,8 @@ enum Form {
     WeightGrad,
     SplitK { chunk: usize },
     Batched { batch: usize },
+    ColumnSum,
+    ChunkedColumnSum { chunk: usize },
 }
 
 impl Form {
@@ -63,6 +68,8 @@ impl Form {
             Form::WeightGrad => "weight_grad",
             Form::SplitK { .. } => "split_k",
             Form::Batched { .. } => "batched",
+            Form::ColumnSum => "column_sum",
+            Form::ChunkedColumnSum { .. } => "chunked_column_sum",
         }
     }
 }
@@ -119,6 +126,13 @@ fn cases() -> Vec<Case> {
             }
         }
     }
+    // Bias gradients: the quickstart's stacked rows (3 passes × 3,712) and the paper's.
+    for (k, n, paper) in [(11136, 144, false), (3712, 8, false), (41154, 1152, true)] {
+        out.push(case(Form::ColumnSum, 1, k, n, paper));
+        for chunk in SPLIT_K_CHUNKS {
+            out.push(case(Form::ChunkedColumnSum { chunk }, 1, k, n, paper));
+        }
+    }
     out
 }
 
@@ -130,6 +144,9 @@ enum Inputs {
     /// `x: [S, m, c]` (a transposed view, as the weight gradient reads it), `g: [S, c, n]`.
     SplitK(Tensor<3>, Tensor<3>),
     Batched(Tensor<3>, Tensor<3>),
+    ColumnSum(Tensor<2>),
+    /// `g: [S, c, n]`.
+    ChunkedColumnSum(Tensor<3>),
 }
 
 impl Inputs {
@@ -146,15 +163,13 @@ impl Inputs {
                 Tensor::random([k, n], normal, device),
             ),
             Form::SplitK { chunk } => {
-                let s = k.div_ceil(chunk);
-                let rows = s * chunk;
-                let pad = |t: Tensor<2>, cols: usize| {
-                    Tensor::cat(vec![t, Tensor::zeros([rows - k, cols], device)], 0)
-                        .reshape([s, chunk, cols])
-                };
-                let x = pad(Tensor::random([k, m], normal, device), m).swap_dims(1, 2);
-                let g = pad(Tensor::random([k, n], normal, device), n);
+                let x = padded(Tensor::random([k, m], normal, device), chunk).swap_dims(1, 2);
+                let g = padded(Tensor::random([k, n], normal, device), chunk);
                 Inputs::SplitK(x, g)
+            }
+            Form::ColumnSum => Inputs::ColumnSum(Tensor::random([k, n], normal, device)),
+            Form::ChunkedColumnSum { chunk } => {
+                Inputs::ChunkedColumnSum(padded(Tensor::random([k, n], normal, device), chunk))
             }
             Form::Batched { batch } => Inputs::Batched(
                 Tensor::random([batch, m, k], normal, device),
@@ -170,8 +185,19 @@ impl Inputs {
             Inputs::WeightGrad(x, g) => wait_for_values(x.clone().transpose().matmul(g.clone())),
             Inputs::SplitK(x, g) => wait_for_values(x.clone().matmul(g.clone()).sum_dim(0)),
             Inputs::Batched(a, b) => wait_for_values(a.clone().matmul(b.clone())),
+            Inputs::ColumnSum(g) => wait_for_values(g.clone().sum_dim(0)),
+            Inputs::ChunkedColumnSum(g) => wait_for_values(g.clone().sum_dim(1).sum_dim(0)),
         }
     }
+}
+
+/// `t` `[k, cols]` padded with zero rows to whole chunks of `chunk` rows, as `[S, chunk, cols]`.
+fn padded(t: Tensor<2>, chunk: usize) -> Tensor<3> {
+    let [k, cols] = t.dims();
+    let s = k.div_ceil(chunk);
+    let rows = s * chunk;
+    let device = t.device();
+    Tensor::cat(vec![t, Tensor::zeros([rows - k, cols], &device)], 0).reshape([s, chunk, cols])
 }
 
 fn main() -> anyhow::Result<()> {
@@ -214,7 +240,7 @@ fn main() -> anyhow::Result<()> {
         if let Form::Batched { batch } = case.form {
             line["batch"] = serde_json::json!(batch);
         }
-        if let Form::SplitK { chunk } = case.form {
+        if let Form::SplitK { chunk } | Form::ChunkedColumnSum { chunk } = case.form {
             line["chunk"] = serde_json::json!(chunk);
             line["chunks"] = serde_json::json!(case.k.div_ceil(chunk));
         }

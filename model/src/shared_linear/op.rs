@@ -35,7 +35,7 @@
 //! over the `S` chunks, takes 0.06 ms. So the stacking pads the rows to whole chunks with zeros
 //! (in the same launch) and the weight's node forms the gradient so
 //! ([`crate::split_k`]): one more launch, the sum, per layer. The bias's sum reads the padded
-//! `G`, whose zero rows add nothing.
+//! `G`, whose zero rows add nothing, and is split too (within chunks, then over them).
 
 use std::any::Any;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -374,11 +374,9 @@ impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
         let rows = ledger.rows::<B>();
         let (split, x, g) = rows.stacked.get_or_insert_with(|| {
             let filled = rows.grads.iter().map(|g| g.shape()[0]).sum();
-            // Without a weight gradient there is nothing to split.
-            let split = match rows.inputs.first() {
-                Some(x) => SplitK::plan(filled, x.shape()[1], rows.grads[0].shape()[1]),
-                None => SplitK::whole(filled),
-            };
+            // Without a weight gradient only the bias's sum is split.
+            let inputs = rows.inputs.first().map_or(0, |x| x.shape()[1]);
+            let split = SplitK::plan(filled, inputs, rows.grads[0].shape()[1]);
             let (x, g) = stack::<B>(
                 std::mem::take(&mut rows.inputs),
                 std::mem::take(&mut rows.grads),
@@ -390,10 +388,7 @@ impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
         let grad = match role {
             Role::Weight => split
                 .weight_gradient::<B>(x.clone().expect("the weight's rows were filed"), g.clone()),
-            Role::Bias => {
-                let out = g.shape()[1];
-                B::float_reshape(B::float_sum_dim(g.clone(), 0), Shape::new([out]))
-            }
+            Role::Bias => split.column_sum::<B>(g.clone()),
         };
         if done {
             ledger.rows = None;
