@@ -12,8 +12,9 @@
 //! copies) and `∂b = Σ_rows g`, each written once into a buffer of its own. Products above
 //! [`PARALLEL_MACS`] multiply-adds run on rayon's threads. `gemm` reduces each output element
 //! in a fixed order whatever the thread count, and the bias gradient sums fixed blocks of rows
-//! in block order, so results are deterministic. CubeCL devices, and layers without a bias, keep
-//! Burn's `Linear::forward`, which is also the reference the op is tested against.
+//! in block order, so results are deterministic. Layers without a bias keep Burn's
+//! `Linear::forward`, which is also the reference the op is tested against; on CubeCL devices a
+//! layer with a bias is a [`SharedLinear`] (see [`affine`]).
 
 // NdArray is deprecated in Burn 0.22 in favour of Flex; ndarray is the CI backend the project
 // requires (design.md §1.4).
@@ -37,6 +38,8 @@ use lifegom_render::in_precision;
 use lifegom_render::op_backward::{gradient_per_input, record};
 use lifegom_render::readback::{HostLend, cpu_float_from};
 
+use crate::shared_linear::SharedLinear;
+
 /// Products of at least this many multiply-adds run on rayon's threads; smaller ones cost less
 /// on the calling thread than a hand-off. Burn's Flex uses `192³` ≈ 7.1 M, which leaves the
 /// Point Transformer's and the heads' ~1–5 M products on one of two cores.
@@ -53,7 +56,10 @@ pub fn forward<const D: usize>(layer: &Linear, x: Tensor<D>) -> Tensor<D> {
 }
 
 /// `x·weight + bias` for `x` `[.., I]`, `weight` `[I, O]`, `bias` `[O]` on any device: the
-/// custom op on the CPU backends when there is a bias, else Burn's `linear`.
+/// custom op on the CPU backends when there is a bias; on CubeCL devices a shared layer used
+/// once ([`SharedLinear`]), whose weight and bias gradients are formed split-k
+/// ([`crate::split_k`]: Burn's autodiff gives a long reduction to a handful of cubes); else
+/// Burn's `linear`.
 pub fn affine<const D: usize>(
     x: Tensor<D>,
     weight: Tensor<2>,
@@ -61,7 +67,8 @@ pub fn affine<const D: usize>(
 ) -> Tensor<D> {
     match bias {
         Some(bias) if runs_on_host(&x.device()) => linear(x, weight, bias),
-        bias => burn::tensor::module::linear(x, weight, bias),
+        Some(bias) => SharedLinear::new(weight, bias).forward(x),
+        None => burn::tensor::module::linear(x, weight, None),
     }
 }
 
