@@ -1,5 +1,5 @@
 //! The patch columns on Burn's CubeCL backend, both ways, and the forward that multiplies them
-//! (see [`super`]).
+//! (see [`super`]); its output is an NCHW view of channels-last memory.
 //!
 //! Forward: one thread per element of the columns `[N·H_out·W_out, C·kh·kw]`, consecutive
 //! threads along a row, so the writes are coalesced and the reads of one window row are
@@ -15,7 +15,6 @@ use burn::tensor::Shape;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
-use burn_cubecl::kernel::into_contiguous;
 use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
 };
@@ -182,6 +181,8 @@ impl GemmConvOps for CubeBackend {
         let weight = Self::float_reshape(weight, Shape::new([c_out, width]));
         let rows = Self::float_matmul(columns, Self::float_transpose(weight));
         let nhwc = Self::float_reshape(rows, Shape::new([n, h, w, c_out]));
-        into_contiguous(Self::float_permute(nhwc, &[0, 3, 1, 2]))
+        // Channels-last in memory, as Burn's own convolutions answer: the next ops (the encoder's
+        // norms) read any layout, and a copy to row-major order would be a launch per layer.
+        Self::float_permute(nhwc, &[0, 3, 1, 2])
     }
 }

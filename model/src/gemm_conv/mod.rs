@@ -11,8 +11,9 @@
 //! y[n, :, y, x] = W[C_out, C·kh·kw] · columns[(n, y, x), :]ᵀ
 //! ```
 //!
-//! the patch columns (im2col) in one launch, one product and one copy to NCHW (the `op` and
-//! `cube` modules). Its backward is `∂columns = ∂y·W`, gathered back onto the input in one
+//! the patch columns (im2col) in one launch and one product, whose `[N·H_out·W_out, C_out]`
+//! rows are the output channels-last: an NCHW view of them is the result, as Burn's own
+//! convolutions answer (the `op` and `cube` modules). Its backward is `∂columns = ∂y·W`, gathered back onto the input in one
 //! launch (each input element sums the column entries that read it), and
 //! `∂W = ∂yᵀ·columns`, a product over every output pixel: split-k ([`crate::split_k`]), in
 //! chunks that divide the pixels. The columns take `C·kh·kw` floats per output pixel (at most

@@ -1,7 +1,7 @@
 //! The convolution as a Burn backend extension, and its autodiff node (see [`super`]).
 //!
 //! Listed for `Cube`, `Fusion` and `Autodiff`. The forward (the `cube` module) is the patch
-//! columns, one product, and the output's axes from `[N, H_out, W_out, C_out]` to Burn's
+//! columns, one product, and a view of its `[N, H_out, W_out, C_out]` rows as Burn's
 //! `[N, C_out, H_out, W_out]`; Burn's fusion runs it as one op. The autodiff node keeps the
 //! input and the weight (handles, not the columns: they are rebuilt in the backward, one
 //! memory-bound launch, rather than held from the forward to the backward for every layer).
