@@ -13,8 +13,8 @@
 #
 # Every figure is one JSON line from a benchmark binary (recon-bench, train-bench, render-bench),
 # appended to $OUT/figures.jsonl with the step's name. On wgpu the lines carry
-# `kernel_launches` and `top_kernels` (lifegom_cli::launches). The set took 4 min 20 s on an
-# H200 in session 27 (without before binaries and test binaries):
+# `kernel_launches` and `top_kernels` (lifegom_cli::launches). The set took 4 min 34 s on an
+# H200 in session 28 (without before binaries and test binaries):
 #   1. the quickstart training step and the paper-setting reconstruction on wgpu, alternated
 #      with the same commands from the binaries of each folder in $BIN_BEFORE (a space-separated
 #      list; a folder may hold only some of the binaries) when it is set: before/after pairs

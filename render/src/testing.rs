@@ -1,7 +1,8 @@
 //! Test support shared by the workspace's test suites (not part of the API).
 //!
 //! - [`Rng`]: the workspace's seeded generator ([`crate::rng`]), re-exported for test suites;
-//!   [`read`]: a tensor's values for assertions.
+//!   [`read`]: a tensor's values for assertions; [`assert_close_to_scale`]: two results equal
+//!   within float summation order, relative to the expected values' largest magnitude.
 //! - [`cpu_backend_tests!`](crate::cpu_backend_tests): one test body, run once per CPU backend
 //!   (ndarray, which CI covers, and Flex).
 //! - [`wgpu_test_device`]: the wgpu device for GPU-kernel tests, or a loud skip.
@@ -14,6 +15,21 @@ pub use crate::rng::Rng;
 /// error, which a test should report as a failure).
 pub fn read<const D: usize>(t: burn::tensor::Tensor<D>) -> Vec<f32> {
     crate::readback::read("test tensor", t).expect("reading a test tensor back")
+}
+
+/// Asserts that `got` equals `want` element by element within `relative` times `want`'s
+/// largest magnitude (at least 1e-6): the measure for results that differ only in float
+/// summation order (another backend, a split reduction). `what` names the result in the
+/// failure, with the first element that is off.
+pub fn assert_close_to_scale(got: &[f32], want: &[f32], relative: f32, what: &str) {
+    assert_eq!(got.len(), want.len(), "{what}: lengths");
+    let scale = want.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        assert!(
+            (g - w).abs() <= relative * scale,
+            "{what}[{i}]: {g} against {w} (scale {scale:.2e})"
+        );
+    }
 }
 
 /// Runs test bodies `fn(&burn::tensor::Device)` once per CPU backend.

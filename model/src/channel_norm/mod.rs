@@ -102,7 +102,7 @@ mod tests {
     use burn::module::{Param, RunningState};
     use burn::nn::BatchNormConfig;
     use burn::tensor::TensorData;
-    use lifegom_render::testing::{Rng, read, wgpu_test_device};
+    use lifegom_render::testing::{Rng, assert_close_to_scale, read, wgpu_test_device};
 
     /// `passes` passes of one BatchNorm over different `[2, 5, 9, 31]` images (more pixels than
     /// one partial sum covers; row-major and channels-last), each pass's loss weighing its output differently, on `device`:
@@ -183,12 +183,8 @@ mod tests {
                 let got = run(&device, passes, activation, false);
                 assert_eq!(want.len(), got.len());
                 for (i, (a, b)) in got.iter().zip(&want).enumerate() {
-                    let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
-                    let diff = a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs()));
-                    assert!(
-                        diff <= 1e-5 * scale,
-                        "{activation:?}, {passes} passes, part {i}: max diff {diff:.2e} of {scale:.2e}"
-                    );
+                    let what = format!("{activation:?}, {passes} passes, part {i}");
+                    assert_close_to_scale(a, b, 1e-5, &what);
                 }
             }
         }

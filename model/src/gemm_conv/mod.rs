@@ -123,7 +123,7 @@ mod tests {
     use burn::nn::conv::Conv2dConfig;
     use burn::tensor::TensorData;
     use lifegom_render::device::DeviceChoice;
-    use lifegom_render::testing::{Rng, read, wgpu_test_device};
+    use lifegom_render::testing::{Rng, assert_close_to_scale, read, wgpu_test_device};
 
     use crate::split_k::force_split_k_rows;
 
@@ -181,17 +181,6 @@ mod tests {
         ]
     }
 
-    fn close(a: &[f32], b: &[f32], what: &str) {
-        assert_eq!(a.len(), b.len(), "{what}: lengths");
-        let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
-        for (i, (u, v)) in a.iter().zip(b).enumerate() {
-            assert!(
-                (u - v).abs() <= 2e-5 * scale,
-                "{what}[{i}]: {u} against {v}"
-            );
-        }
-    }
-
     /// On lavapipe the op's output and both gradients equal Burn's convolution on Flex within
     /// float summation order, for the encoder's windows (the 7×7 stride-2 stem, 3×3 with
     /// stride 1 and 2, the 1×1 stride-2 shortcut) on odd, non-square inputs whose windows
@@ -211,9 +200,10 @@ mod tests {
                 let got = run(&device, kernel, stride, pad, shape, 5, true);
                 force_split_k_rows(None);
                 for (i, what) in ["output", "∂x", "∂W"].iter().enumerate() {
-                    close(
+                    assert_close_to_scale(
                         &got[i],
                         &want[i],
+                        2e-5,
                         &format!("{kernel}×{kernel} /{stride} pad {pad}, split {split:?}: {what}"),
                     );
                 }

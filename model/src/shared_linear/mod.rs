@@ -150,7 +150,7 @@ mod tests {
     use burn::nn::BatchNormConfig;
     use burn::tensor::TensorData;
     use lifegom_render::device::DeviceChoice;
-    use lifegom_render::testing::{Rng, read, wgpu_test_device};
+    use lifegom_render::testing::{Rng, assert_close_to_scale, read, wgpu_test_device};
 
     use crate::norm_folds::NormFolds;
     use crate::split_k::force_split_k_rows;
@@ -242,17 +242,6 @@ mod tests {
         parts
     }
 
-    fn close(a: &[f32], b: &[f32], what: &str) {
-        assert_eq!(a.len(), b.len(), "{what}: lengths");
-        let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
-        for (i, (u, v)) in a.iter().zip(b).enumerate() {
-            assert!(
-                (u - v).abs() <= 1e-5 * scale,
-                "{what}[{i}]: {u} against {v}"
-            );
-        }
-    }
-
     /// On lavapipe the shared layer's output and every gradient equal Burn's `linear` used as
     /// many times, within float summation order, and Flex's results: for one pass (nothing
     /// stacked, or only the fold's scale applied), three (one launch) and six (stacked four at
@@ -284,8 +273,8 @@ mod tests {
                         .take(shared.len())
                     {
                         let what = format!("split {split:?}, {norm:?}, {passes} passes: {what}");
-                        close(&shared[i], &composed[i], &what);
-                        close(&shared[i], &reference[i], &what);
+                        assert_close_to_scale(&shared[i], &composed[i], 1e-5, &what);
+                        assert_close_to_scale(&shared[i], &reference[i], 1e-5, &what);
                     }
                 }
             }
