@@ -27,15 +27,11 @@
 //!
 //! # Split-k
 //!
-//! `∂W = Xᵀ·G` is a small output (`[in, out]`, at most `[1152, 1152]`) over a long reduction
-//! (every pass's rows: 3,687 in the quickstart, 41,154 at the paper's setting). Burn's CubeCL
-//! matmul gives each output tile to one cube that walks the whole reduction, so a few cubes
-//! work while the card idles: 1.2 ms for `[144 × 3,687]·[3,687 × 144]` on an H200, where the
-//! same product in 128-row chunks, as one batched product `[S, in, c]·[S, c, out]` and a sum
-//! over the `S` chunks, takes 0.06 ms. So the stacking pads the rows to whole chunks with zeros
-//! (in the same launch) and the weight's node forms the gradient so
-//! ([`crate::split_k`]): one more launch, the sum, per layer. The bias's sum reads the padded
-//! `G`, whose zero rows add nothing, and is split too (within chunks, then over them).
+//! `∂W = Xᵀ·G` is a small output over a long reduction (every pass's rows), which Burn's CubeCL
+//! matmul gives to a handful of cubes; so the stacking pads the rows to whole chunks with zeros
+//! (in the same launch) and the weight's node forms the gradient as chunked products and a sum
+//! ([`crate::split_k`]): one more launch per layer. The bias's sum reads the padded `G`, whose
+//! zero rows add nothing, and is chunked too.
 
 use std::any::Any;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -163,11 +159,10 @@ fn stack<B: StackKernels>(
     while grads.len() > 1 || (grads.len() == 1 && (scale.is_some() || pad)) {
         let take = grads.len().min(STACK_PARTS);
         let last = take == grads.len();
-        let parts: Vec<_> = grads[..take].iter().map(|g| g.shape()[0]).collect();
         let to_rows = if last {
             padded_rows
         } else {
-            parts.iter().sum()
+            grads[..take].iter().map(|g| g.shape()[0]).sum()
         };
         let (x, g) = B::stack_pass_rows(
             inputs.drain(..take).collect(),
