@@ -204,6 +204,48 @@ mod tests {
         assert_eq!(plan(37, 6, 6), (1, 37));
     }
 
+    /// The rule's promises over many shapes: whole chunks cover the rows with less than one
+    /// chunk of padding (or divide them exactly), chunks are at least [`SPLIT_K_ROWS`] rows
+    /// (whole multiples of it when padded), and neither [`MAX_CHUNKS`] nor
+    /// [`MAX_PARTIAL_BYTES`] is passed.
+    #[test]
+    fn plans_keep_their_bounds() {
+        let widths = [
+            (1, 1),
+            (8, 8),
+            (144, 432),
+            (1152, 1152),
+            (4608, 512),
+            (9000, 9000),
+        ];
+        for rows in (0..20_000)
+            .step_by(97)
+            .chain([41_154, 786_432, 1 << 20, 999_983])
+        {
+            for &(inputs, outputs) in &widths {
+                let partial = |p: SplitK| p.chunks * inputs * outputs * size_of::<f32>();
+                let what = format!("{rows} rows, [{inputs} × {outputs}]");
+                let p = SplitK::plan(rows, inputs, outputs);
+                if p.chunks == 1 {
+                    assert_eq!(p.chunk_rows, rows, "{what}: one product");
+                } else {
+                    assert!(p.padded_rows() >= rows, "{what}: covered");
+                    assert!(p.padded_rows() - rows < p.chunk_rows, "{what}: padding");
+                    assert!(p.chunk_rows.is_multiple_of(SPLIT_K_ROWS), "{what}: chunk");
+                    assert!(p.chunks <= MAX_CHUNKS, "{what}: chunks");
+                    assert!(partial(p) <= MAX_PARTIAL_BYTES, "{what}: memory");
+                }
+                let e = SplitK::plan_exact(rows, inputs, outputs);
+                assert_eq!(e.padded_rows(), rows, "{what}: exact");
+                if e.chunks > 1 {
+                    assert!(e.chunk_rows >= SPLIT_K_ROWS, "{what}: exact chunk");
+                    assert!(e.chunks <= MAX_CHUNKS, "{what}: exact chunks");
+                    assert!(partial(e) <= MAX_PARTIAL_BYTES, "{what}: exact memory");
+                }
+            }
+        }
+    }
+
     /// Chunk counts that divide the rows: the encoder's stem at 1024² (three views), its last
     /// stage (bound by memory), a prime row count (one product), and a forced length.
     #[test]

@@ -32,7 +32,13 @@ pub struct Patches {
 }
 
 impl Patches {
-    /// `[H_out, W_out]` for an input of `[H, W]`.
+    /// Whether the window fits the padded input `[H, W]` (an output of at least one pixel).
+    pub fn fits(&self, height: usize, width: usize) -> bool {
+        height + 2 * self.padding[0] >= self.kernel[0]
+            && width + 2 * self.padding[1] >= self.kernel[1]
+    }
+
+    /// `[H_out, W_out]` for an input of `[H, W]` the window [fits](Self::fits).
     pub fn output_size(&self, height: usize, width: usize) -> [usize; 2] {
         let out = |size: usize, axis: usize| {
             (size + 2 * self.padding[axis]).saturating_sub(self.kernel[axis]) / self.stride[axis]
