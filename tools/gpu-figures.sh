@@ -22,7 +22,8 @@
 #      then the same two from $BIN with Burn's kernel fusion off (LIFEGOM_FUSION=off), and the
 #      training step (quickstart here, the paper preset in 3.) with the weight gradients as one
 #      product each (`--split-k-rows 0`), and the paper reconstruction (and in 3. the paper
-#      training step) with Burn's direct convolutions (LIFEGOM_CONV=direct);
+#      training step) with Burn's direct convolutions (LIFEGOM_CONV=direct) and with the Point
+#      Transformer's levels planned inline (LIFEGOM_HIERARCHY=inline);
 #   2. the paper network's reconstruction at 256² (the size the issue records launches at);
 #   3. per-kernel device times (`--kernel-times`; also per `tracing` span, where the launching
 #      thread has one open: Burn's own ops launch on its stream's thread) of the
@@ -143,6 +144,9 @@ step split-k-off-train-wgpu-quickstart 90 "$BIN/train-bench" --device wgpu "${QU
 # 1d. The encoder's convolutions with Burn's direct kernel (LIFEGOM_CONV=direct, as before
 #     session 28) beside patch columns and one product (model/src/gemm_conv).
 step conv-direct-recon-wgpu-paper-1024-s2 90 env LIFEGOM_CONV=direct "$BIN/recon-bench" --device wgpu "${PAPER[@]}"
+# 1e. The Point Transformer's FPS and kNN planned inline, after a read-back that drains the
+#     queue (LIFEGOM_HIERARCHY=inline, as before session 28), beside planned ahead on a thread.
+step hierarchy-inline-recon-wgpu-paper-1024-s2 90 env LIFEGOM_HIERARCHY=inline "$BIN/recon-bench" --device wgpu "${PAPER[@]}"
 
 GPU_DEVICE=wgpu
 
@@ -154,6 +158,7 @@ step profile-train-wgpu-quickstart 60 "$BIN/train-bench" --device "$GPU_DEVICE" 
 step train-paper-bench 150 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1
 step split-k-off-train-paper-bench 150 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1 --split-k-rows 0
 step conv-direct-train-paper-bench 150 env LIFEGOM_CONV=direct "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1
+step hierarchy-inline-train-paper-bench 150 env LIFEGOM_HIERARCHY=inline "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 3 --warmup 1
 step profile-train-paper-bench 120 "$BIN/train-bench" --device "$GPU_DEVICE" --config configs/paper-bench.toml --steps 2 --warmup 1 --kernel-times --top-kernels 25
 
 # 4. The rasterizer's headline and the parity tests on the card.

@@ -372,15 +372,57 @@ impl PointTransformer {
         positions: Tensor<2>,
         features: Tensor<2>,
     ) -> Result<Tensor<2>, ReadbackError> {
-        let [v, three] = positions.dims();
-        assert_eq!(three, 3, "positions must be [V, 3]");
-        assert!(v > 0, "Point Transformer over zero points");
-        assert_eq!(features.dims()[0], v, "one feature row per point");
+        Self::check_points(&positions, &features);
         let levels = {
             let _span = tracing::debug_span!("hierarchy").entered();
             self.hierarchy(positions.clone())?
         };
+        Ok(self.forward_levels(folds, positions, features, levels))
+    }
 
+    /// [`Self::forward_folded`] on levels planned beforehand from the same positions, read
+    /// back by the caller ([`HostHierarchy::plan`] with [`Self::level_windows`]): no read-back
+    /// here, so a caller that planned on another thread while the device worked has the
+    /// device wait for nothing (design.md §7.6).
+    ///
+    /// # Panics
+    ///
+    /// As [`Self::forward`], or if `plan` was made for another number of points.
+    pub fn forward_planned<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        positions: Tensor<2>,
+        features: Tensor<2>,
+        plan: HostHierarchy,
+    ) -> Tensor<2> {
+        Self::check_points(&positions, &features);
+        assert_eq!(
+            plan.levels.first().map(|l| l.host.len()),
+            Some(positions.dims()[0]),
+            "a hierarchy planned for these points"
+        );
+        let levels = {
+            let _span = tracing::debug_span!("hierarchy").entered();
+            self.levels(positions.clone(), plan)
+        };
+        self.forward_levels(folds, positions, features, levels)
+    }
+
+    fn check_points(positions: &Tensor<2>, features: &Tensor<2>) {
+        let [v, three] = positions.dims();
+        assert_eq!(three, 3, "positions must be [V, 3]");
+        assert!(v > 0, "Point Transformer over zero points");
+        assert_eq!(features.dims()[0], v, "one feature row per point");
+    }
+
+    /// The network on its levels.
+    fn forward_levels<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        positions: Tensor<2>,
+        features: Tensor<2>,
+        levels: Vec<Level>,
+    ) -> Tensor<2> {
         // Encoder. The first transition-down (stride 1) consumes cat(p, x).
         let mut x = self.enc[0].down.forward_input(folds, positions, features);
         let mut skips = Vec::with_capacity(self.enc.len());
@@ -418,19 +460,34 @@ impl PointTransformer {
                 y = block.forward(folds, y, levels[l].rel.clone(), levels[l].nbr.clone());
             }
         }
-        Ok(y)
+        y
     }
 
-    /// FPS levels and every kNN of one forward.
+    /// FPS levels and every kNN of one forward: the host plan ([`HostHierarchy`], from the
+    /// positions read back here) and its device half.
+    fn hierarchy(&self, positions: Tensor<2>) -> Result<Vec<Level>, ReadbackError> {
+        let host: Vec<f32> = readback::read("Point Transformer positions", positions.clone())?;
+        let host: Vec<[f32; 3]> = host.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let plan = HostHierarchy::plan(&self.level_windows(), host);
+        Ok(self.levels(positions, plan))
+    }
+
+    /// Each encoder stage's `(stride, nsample)`: what [`HostHierarchy::plan`] needs.
+    pub fn level_windows(&self) -> Vec<(usize, usize)> {
+        self.enc
+            .iter()
+            .map(|stage| (stage.down.stride, stage.down.nsample))
+            .collect()
+    }
+
+    /// The levels of `plan` on `positions`' device.
     ///
     /// On the CPU backends each level's positions are gathered from the previous level's and
     /// the offsets from them. On devices every level's points are kept as rows of the input
     /// points, and each offset table is one op over the input positions
     /// ([`crate::grouping::relative_positions`]): the same values, in fewer launches.
-    fn hierarchy(&self, positions: Tensor<2>) -> Result<Vec<Level>, ReadbackError> {
+    fn levels(&self, positions: Tensor<2>, plan: HostHierarchy) -> Vec<Level> {
         let device = positions.device();
-        let host: Vec<f32> = readback::read("Point Transformer positions", positions.clone())?;
-        let host: Vec<[f32; 3]> = host.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
         let on_host = runs_on_host(&device);
         // Offsets of the neighbours `nb` (rows of the level `reference`) from the points of
         // `query`, each level given as its positions (CPU backends) and its input rows.
@@ -452,50 +509,144 @@ impl PointTransformer {
                 (index_tensor(&nb.indices, &device), rel)
             }
         };
-        let mut levels: Vec<Level> = Vec::with_capacity(self.enc.len());
-        for stage in &self.enc {
-            let k = stage.down.nsample;
-            let (p, host, input_rows, down) = match levels.last() {
-                None => (
-                    on_host.then(|| positions.clone()),
-                    host.clone(),
-                    (0..host.len() as u32).collect(),
-                    None,
-                ),
-                Some(prev) if stage.down.stride == 1 => (
-                    prev.p.clone(),
-                    prev.host.clone(),
-                    prev.input_rows.clone(),
-                    None,
-                ),
-                Some(prev) => {
-                    let m = (prev.n / stage.down.stride).max(1);
-                    let sel = farthest_point_sampling(&prev.host, m);
-                    let p = prev
-                        .p
-                        .as_ref()
-                        .map(|p| select_rows(p.clone(), 0, index_tensor(&sel, &device)));
-                    let host: Vec<[f32; 3]> = sel.iter().map(|&i| prev.host[i as usize]).collect();
-                    let input_rows: Vec<u32> =
-                        sel.iter().map(|&i| prev.input_rows[i as usize]).collect();
-                    let nb = knn(&prev.host, &host, k);
-                    let down = offsets(&nb, (&prev.p, &prev.input_rows), (&p, &input_rows));
-                    (p, host, input_rows, Some(down))
-                }
+        let mut levels: Vec<Level> = Vec::with_capacity(plan.levels.len());
+        for planned in plan.levels {
+            let p = match (levels.last(), &planned.picks) {
+                (None, _) => on_host.then(|| positions.clone()),
+                (Some(prev), None) => prev.p.clone(),
+                (Some(prev), Some((sel, _))) => prev
+                    .p
+                    .as_ref()
+                    .map(|p| select_rows(p.clone(), 0, index_tensor(sel, &device))),
             };
-            let nb = knn(&host, &host, k);
-            let (nbr, rel) = offsets(&nb, (&p, &input_rows), (&p, &input_rows));
+            let down = match (levels.last(), &planned.picks) {
+                (Some(prev), Some((_, nb))) => Some(offsets(
+                    nb,
+                    (&prev.p, &prev.input_rows),
+                    (&p, &planned.input_rows),
+                )),
+                _ => None,
+            };
+            let (nbr, rel) = offsets(
+                &planned.neighbours,
+                (&p, &planned.input_rows),
+                (&p, &planned.input_rows),
+            );
             levels.push(Level {
-                n: host.len(),
+                n: planned.host.len(),
                 p,
-                host,
-                input_rows,
+                host: planned.host,
+                input_rows: planned.input_rows,
                 nbr,
                 rel,
                 down,
             });
         }
-        Ok(levels)
+        levels
+    }
+}
+
+/// Where a reconstruction on a CubeCL device computes the Point Transformer's FPS and kNN
+/// (design.md §7.6).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HierarchyPlanning {
+    /// At the start of each feedback step the current vertices are read back and the levels
+    /// are planned on another thread while the device renders, encodes and fuses (the default).
+    Ahead,
+    /// In the Point Transformer's forward, after a read-back that drains the device's queue
+    /// (`LIFEGOM_HIERARCHY=inline`, as before session 28; the CPU backends always).
+    Inline,
+}
+
+impl HierarchyPlanning {
+    /// This process's choice, read from `LIFEGOM_HIERARCHY` once: `inline`, else ahead (an
+    /// unknown value says so on stderr).
+    pub fn current() -> Self {
+        static PLANNING: std::sync::OnceLock<HierarchyPlanning> = std::sync::OnceLock::new();
+        *PLANNING.get_or_init(|| match std::env::var("LIFEGOM_HIERARCHY").as_deref() {
+            Ok("inline") => HierarchyPlanning::Inline,
+            Ok("ahead") | Err(_) => HierarchyPlanning::Ahead,
+            Ok(other) => {
+                eprintln!(
+                    "warning: LIFEGOM_HIERARCHY={other} is neither `ahead` nor `inline`; the hierarchy is planned ahead"
+                );
+                HierarchyPlanning::Ahead
+            }
+        })
+    }
+
+    /// What a reconstruction on `device` does: this process's choice on CubeCL devices,
+    /// [`Self::Inline`] on the CPU backends (whose read-backs wait for nothing).
+    pub fn on_device(device: &Device) -> Self {
+        if runs_on_host(device) {
+            HierarchyPlanning::Inline
+        } else {
+            Self::current()
+        }
+    }
+
+    /// The name printed in benchmark JSON (`hierarchy_planning` field).
+    pub fn name(self) -> &'static str {
+        match self {
+            HierarchyPlanning::Ahead => "ahead",
+            HierarchyPlanning::Inline => "inline",
+        }
+    }
+}
+
+/// The host half of one forward's levels: FPS picks and kNN tables computed from the input
+/// positions alone, with no tensor, so a caller may compute it on another thread while the
+/// device works ([`PointTransformer::forward_planned`]).
+#[derive(Debug, Clone)]
+pub struct HostHierarchy {
+    levels: Vec<PlannedLevel>,
+}
+
+/// One level of a [`HostHierarchy`].
+#[derive(Debug, Clone)]
+struct PlannedLevel {
+    /// Its points' positions.
+    host: Vec<[f32; 3]>,
+    /// Their rows in the input points.
+    input_rows: Vec<u32>,
+    /// For a subsampling level: the FPS picks (rows of the previous level) and each pick's kNN
+    /// in the previous level.
+    picks: Option<(Vec<u32>, Neighbours)>,
+    /// Self-kNN.
+    neighbours: Neighbours,
+}
+
+impl HostHierarchy {
+    /// The levels of input points at `positions` for encoder stages of `(stride, nsample)`
+    /// ([`PointTransformer::level_windows`]): each stride-1 stage keeps the previous level's
+    /// points, each other one takes `max(1, n / stride)` of them by FPS (module docs).
+    pub fn plan(windows: &[(usize, usize)], positions: Vec<[f32; 3]>) -> Self {
+        let mut levels: Vec<PlannedLevel> = Vec::with_capacity(windows.len());
+        for &(stride, k) in windows {
+            let (host, input_rows, picks) = match levels.last() {
+                None => {
+                    let rows = (0..positions.len() as u32).collect();
+                    (positions.clone(), rows, None)
+                }
+                Some(prev) if stride == 1 => (prev.host.clone(), prev.input_rows.clone(), None),
+                Some(prev) => {
+                    let m = (prev.host.len() / stride).max(1);
+                    let sel = farthest_point_sampling(&prev.host, m);
+                    let host: Vec<[f32; 3]> = sel.iter().map(|&i| prev.host[i as usize]).collect();
+                    let input_rows = sel.iter().map(|&i| prev.input_rows[i as usize]).collect();
+                    let nb = knn(&prev.host, &host, k);
+                    (host, input_rows, Some((sel, nb)))
+                }
+            };
+            let neighbours = knn(&host, &host, k);
+            levels.push(PlannedLevel {
+                host,
+                input_rows,
+                picks,
+                neighbours,
+            });
+        }
+        Self { levels }
     }
 }
 
@@ -1117,6 +1268,36 @@ mod tests {
     }
 
     lifegom_render::cpu_backend_tests!(point_transformer_full_net_lowres => check_full_net);
+
+    /// Levels planned from positions read back beforehand (on another thread, as a
+    /// reconstruction plans them ahead) give the output of the forward that plans them itself,
+    /// to the bit: the same FPS and kNN on the same values.
+    fn check_planned_levels(device: &Device) {
+        let p = lowres_vertices(device);
+        let v = p.dims()[0];
+        let net = PointTransformerConfig::tiny(3 + 13).init(device);
+        let x = random_tensor(&mut Rng::new(5), [v, 13], device);
+        let inline = read(net.forward(p.clone(), x.clone()).unwrap());
+        let host: Vec<[f32; 3]> = read(p.clone())
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect();
+        let windows = net.level_windows();
+        let plan = std::thread::spawn(move || HostHierarchy::plan(&windows, host))
+            .join()
+            .expect("planning");
+        let planned = read(net.forward_planned(&NormFolds::new(), p, x, plan));
+        assert_eq!(planned, inline);
+    }
+
+    lifegom_render::cpu_backend_tests!(planned_levels_equal_inline => check_planned_levels);
+
+    #[test]
+    fn planned_levels_equal_inline_wgpu() {
+        if let Some(device) = lifegom_render::testing::wgpu_test_device() {
+            check_planned_levels(&device);
+        }
+    }
 
     fn check_degenerate(device: &Device) {
         let net = PointTransformerConfig::tiny(3 + 4).init(device);

@@ -21,6 +21,8 @@
 //! `s`-times subdivided mesh given by the [`GomMesh`] the caller passes, so one trained model
 //! serves any `s` (the reference trains with `s = 1` and tests with `s = 2`).
 
+use std::thread::JoinHandle;
+
 use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Distribution, Int, Tensor, TensorData};
@@ -45,7 +47,9 @@ use crate::heads::{
     faces_per_block, highres_features,
 };
 use crate::norm_folds::NormFolds;
-use crate::point_transformer::{PointTransformer, PointTransformerConfig};
+use crate::point_transformer::{
+    HierarchyPlanning, HostHierarchy, PointTransformer, PointTransformerConfig,
+};
 use crate::sampling::{hide_invisible, project_points, sample_single};
 use lifegom_render::select::select_rows;
 
@@ -495,6 +499,7 @@ impl Reconstructor {
         };
         for step in 0..self.iterations {
             let _span = tracing::debug_span!("feedback_step", step).entered();
+            let planned = self.plan_hierarchy_ahead(&state.xyz)?;
             // The rendered branch carries no gradient into the encoder (design.md §7.3, §12).
             let feats_ren = {
                 let _span = tracing::debug_span!("encode_renders").entered();
@@ -511,6 +516,7 @@ impl Reconstructor {
                 renders.alpha.clone().detach(),
                 &state,
                 &folds,
+                planned,
             )?;
             renders = render_views(
                 mesh,
@@ -605,7 +611,26 @@ impl Reconstructor {
         (fused_src, fused_ren)
     }
 
-    /// One feedback step (module docs).
+    /// With [`HierarchyPlanning::Ahead`] on a CubeCL device: the Point Transformer's levels
+    /// for the vertices `xyz`, planned on a thread of their own while the step's rendering,
+    /// encoding and fusion are queued and run. The read-back here waits only for the previous
+    /// step, which the step needs anyway; the host's FPS and kNN then no longer leave the device
+    /// idle between a drained queue and the network's next ops.
+    fn plan_hierarchy_ahead(&self, xyz: &Tensor<2>) -> Result<Option<JoinHandle<HostHierarchy>>> {
+        if HierarchyPlanning::on_device(&xyz.device()) == HierarchyPlanning::Inline {
+            return Ok(None);
+        }
+        let _span = tracing::debug_span!("hierarchy_readback").entered();
+        let host: Vec<f32> = readback::read("Point Transformer positions", xyz.clone().detach())?;
+        let host: Vec<[f32; 3]> = host.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let windows = self.point_transformer.level_windows();
+        Ok(Some(std::thread::spawn(move || {
+            HostHierarchy::plan(&windows, host)
+        })))
+    }
+
+    /// One feedback step (module docs). `planned`: the Point Transformer's levels for
+    /// `state.xyz`, being planned ([`Self::plan_hierarchy_ahead`]); `None` plans them inline.
     #[allow(clippy::too_many_arguments)]
     fn update<'a>(
         &'a self,
@@ -617,6 +642,7 @@ impl Reconstructor {
         alpha_prev: Tensor<4>,
         state: &GomState,
         folds: &NormFolds<'a>,
+        planned: Option<JoinHandle<HostHierarchy>>,
     ) -> Result<GomState> {
         let (w, h) = (sources.cameras[0].width, sources.cameras[0].height);
         let n = sources.cameras.len();
@@ -693,11 +719,21 @@ impl Reconstructor {
         drop(span);
         let h_pt = {
             let _span = tracing::debug_span!("point_transformer").entered();
-            self.point_transformer.forward_folded(
-                folds,
-                state.xyz.clone(),
-                lifegom_render::split::join_columns(vec![fused_src, fused_ren]),
-            )?
+            let features = lifegom_render::split::join_columns(vec![fused_src, fused_ren]);
+            match planned {
+                Some(handle) => {
+                    // A panic in FPS or kNN is a bug; it surfaces here as it would inline.
+                    let plan = handle
+                        .join()
+                        .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                    self.point_transformer
+                        .forward_planned(folds, state.xyz.clone(), features, plan)
+                }
+                None => {
+                    self.point_transformer
+                        .forward_folded(folds, state.xyz.clone(), features)?
+                }
+            }
         };
         let span = tracing::debug_span!("vertex_heads").entered();
         let vertex = self.heads.vertices_folded(folds, h_pt.clone());

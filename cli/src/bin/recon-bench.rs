@@ -219,6 +219,7 @@ fn main() -> anyhow::Result<()> {
         "runtime": lifegom_render::device::cube_runtime_name(&device),
         "kernel_fusion": lifegom_render::device::KernelFusion::on_device(&device).map(|k| k.name()),
         "conv_kernel": lifegom_model::gemm_conv::ConvKernel::on_device(&device).map(|k| k.name()),
+        "hierarchy_planning": lifegom_model::point_transformer::HierarchyPlanning::on_device(&device).name(),
         "threads": rayon::current_num_threads(),
     });
     if let Some(counter) = &launches {
