@@ -466,9 +466,7 @@ impl PointTransformer {
     /// FPS levels and every kNN of one forward: the host plan ([`HostHierarchy`], from the
     /// positions read back here) and its device half.
     fn hierarchy(&self, positions: Tensor<2>) -> Result<Vec<Level>, ReadbackError> {
-        let host: Vec<f32> = readback::read("Point Transformer positions", positions.clone())?;
-        let host: Vec<[f32; 3]> = host.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-        let plan = HostHierarchy::plan(&self.level_windows(), host);
+        let plan = HostHierarchy::plan(&self.level_windows(), read_points(positions.clone())?);
         Ok(self.levels(positions, plan))
     }
 
@@ -592,6 +590,13 @@ impl HierarchyPlanning {
             HierarchyPlanning::Inline => "inline",
         }
     }
+}
+
+/// `positions` `[V, 3]` read back as points, what [`HostHierarchy::plan`] takes (on a device a
+/// read-back waits for the work queued before it).
+pub fn read_points(positions: Tensor<2>) -> Result<Vec<[f32; 3]>, ReadbackError> {
+    let host: Vec<f32> = readback::read("Point Transformer positions", positions)?;
+    Ok(host.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
 }
 
 /// The host half of one forward's levels: FPS picks and kNN tables computed from the input

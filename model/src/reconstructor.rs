@@ -48,7 +48,7 @@ use crate::heads::{
 };
 use crate::norm_folds::NormFolds;
 use crate::point_transformer::{
-    HierarchyPlanning, HostHierarchy, PointTransformer, PointTransformerConfig,
+    HierarchyPlanning, HostHierarchy, PointTransformer, PointTransformerConfig, read_points,
 };
 use crate::sampling::{hide_invisible, project_points, sample_single};
 use lifegom_render::select::select_rows;
@@ -621,8 +621,7 @@ impl Reconstructor {
             return Ok(None);
         }
         let _span = tracing::debug_span!("hierarchy_readback").entered();
-        let host: Vec<f32> = readback::read("Point Transformer positions", xyz.clone().detach())?;
-        let host: Vec<[f32; 3]> = host.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let host = read_points(xyz.clone().detach())?;
         let windows = self.point_transformer.level_windows();
         Ok(Some(std::thread::spawn(move || {
             HostHierarchy::plan(&windows, host)
