@@ -509,21 +509,17 @@ impl PointTransformer {
         };
         let mut levels: Vec<Level> = Vec::with_capacity(plan.levels.len());
         for planned in plan.levels {
-            let p = match (levels.last(), &planned.picks) {
-                (None, _) => on_host.then(|| positions.clone()),
-                (Some(prev), None) => prev.p.clone(),
-                (Some(prev), Some((sel, _))) => prev
-                    .p
-                    .as_ref()
-                    .map(|p| select_rows(p.clone(), 0, index_tensor(sel, &device))),
-            };
-            let down = match (levels.last(), &planned.picks) {
-                (Some(prev), Some((_, nb))) => Some(offsets(
-                    nb,
-                    (&prev.p, &prev.input_rows),
-                    (&p, &planned.input_rows),
-                )),
-                _ => None,
+            let (p, down) = match (levels.last(), &planned.picks) {
+                (None, _) => (on_host.then(|| positions.clone()), None),
+                (Some(prev), None) => (prev.p.clone(), None),
+                (Some(prev), Some((sel, nb))) => {
+                    let p = prev
+                        .p
+                        .as_ref()
+                        .map(|p| select_rows(p.clone(), 0, index_tensor(sel, &device)));
+                    let down = offsets(nb, (&prev.p, &prev.input_rows), (&p, &planned.input_rows));
+                    (p, Some(down))
+                }
             };
             let (nbr, rel) = offsets(
                 &planned.neighbours,
@@ -561,15 +557,12 @@ impl HierarchyPlanning {
     /// unknown value says so on stderr).
     pub fn current() -> Self {
         static PLANNING: std::sync::OnceLock<HierarchyPlanning> = std::sync::OnceLock::new();
-        *PLANNING.get_or_init(|| match std::env::var("LIFEGOM_HIERARCHY").as_deref() {
-            Ok("inline") => HierarchyPlanning::Inline,
-            Ok("ahead") | Err(_) => HierarchyPlanning::Ahead,
-            Ok(other) => {
-                eprintln!(
-                    "warning: LIFEGOM_HIERARCHY={other} is neither `ahead` nor `inline`; the hierarchy is planned ahead"
-                );
-                HierarchyPlanning::Ahead
-            }
+        *PLANNING.get_or_init(|| {
+            lifegom_render::device::env_switch(
+                "LIFEGOM_HIERARCHY",
+                ("ahead", HierarchyPlanning::Ahead),
+                ("inline", HierarchyPlanning::Inline),
+            )
         })
     }
 
@@ -625,13 +618,13 @@ impl HostHierarchy {
     /// The levels of input points at `positions` for encoder stages of `(stride, nsample)`
     /// ([`PointTransformer::level_windows`]): each stride-1 stage keeps the previous level's
     /// points, each other one takes `max(1, n / stride)` of them by FPS (module docs).
-    pub fn plan(windows: &[(usize, usize)], positions: Vec<[f32; 3]>) -> Self {
+    pub fn plan(windows: &[(usize, usize)], mut positions: Vec<[f32; 3]>) -> Self {
         let mut levels: Vec<PlannedLevel> = Vec::with_capacity(windows.len());
         for &(stride, k) in windows {
             let (host, input_rows, picks) = match levels.last() {
                 None => {
                     let rows = (0..positions.len() as u32).collect();
-                    (positions.clone(), rows, None)
+                    (std::mem::take(&mut positions), rows, None)
                 }
                 Some(prev) if stride == 1 => (prev.host.clone(), prev.input_rows.clone(), None),
                 Some(prev) => {

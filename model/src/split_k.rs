@@ -65,7 +65,7 @@ pub struct SplitK {
 
 impl SplitK {
     /// One product over all `rows`.
-    pub fn whole(rows: usize) -> Self {
+    fn whole(rows: usize) -> Self {
         Self {
             chunks: 1,
             chunk_rows: rows,

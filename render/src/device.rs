@@ -96,6 +96,24 @@ impl std::str::FromStr for DeviceChoice {
     }
 }
 
+/// A process's two-way choice from the environment variable `var`: `alternative`'s value when
+/// the variable holds its name, else `default`'s (an unset variable silently, any other value
+/// with a warning on stderr). The switches for benchmarks to compare against (kernel fusion,
+/// the convolution kernel, where the Point Transformer plans its levels) read it once each.
+pub fn env_switch<T>(var: &str, default: (&str, T), alternative: (&str, T)) -> T {
+    match std::env::var(var) {
+        Ok(value) if value == alternative.0 => alternative.1,
+        Ok(value) if value != default.0 => {
+            eprintln!(
+                "warning: {var}={value} is neither `{}` nor `{}`; `{}` stays",
+                default.0, alternative.0, default.0
+            );
+            default.1
+        }
+        _ => default.1,
+    }
+}
+
 /// Whether Burn's kernel fusion merges ops on CubeCL devices.
 ///
 /// Fusion is compiled in: on a CubeCL device every tensor op is recorded in a stream, and runs of
@@ -117,16 +135,11 @@ impl KernelFusion {
     pub fn current() -> Self {
         static MODE: OnceLock<KernelFusion> = OnceLock::new();
         *MODE.get_or_init(|| {
-            let mode = match std::env::var("LIFEGOM_FUSION").as_deref() {
-                Ok("off") => KernelFusion::Off,
-                Ok("on") | Err(_) => KernelFusion::On,
-                Ok(other) => {
-                    eprintln!(
-                        "warning: LIFEGOM_FUSION={other} is neither `on` nor `off`; kernel fusion stays on"
-                    );
-                    KernelFusion::On
-                }
-            };
+            let mode = env_switch(
+                "LIFEGOM_FUSION",
+                ("on", KernelFusion::On),
+                ("off", KernelFusion::Off),
+            );
             if mode == KernelFusion::Off {
                 for name in burn_cubecl::fusion::BUILTIN_NAMES {
                     if let Err(err) = burn_cubecl::fusion::remove(name) {

@@ -32,7 +32,7 @@ use burn::nn::conv::Conv2d;
 use std::sync::OnceLock;
 
 use burn::tensor::{Device, Tensor};
-use lifegom_render::device::runs_on_host;
+use lifegom_render::device::{env_switch, runs_on_host};
 
 use op::{GemmConvOps, Patches};
 
@@ -50,15 +50,12 @@ impl ConvKernel {
     /// the product (an unknown value says so on stderr).
     pub fn current() -> Self {
         static KERNEL: OnceLock<ConvKernel> = OnceLock::new();
-        *KERNEL.get_or_init(|| match std::env::var("LIFEGOM_CONV").as_deref() {
-            Ok("direct") => ConvKernel::Direct,
-            Ok("gemm") | Err(_) => ConvKernel::Gemm,
-            Ok(other) => {
-                eprintln!(
-                    "warning: LIFEGOM_CONV={other} is neither `gemm` nor `direct`; convolutions stay products"
-                );
-                ConvKernel::Gemm
-            }
+        *KERNEL.get_or_init(|| {
+            env_switch(
+                "LIFEGOM_CONV",
+                ("gemm", ConvKernel::Gemm),
+                ("direct", ConvKernel::Direct),
+            )
         })
     }
 
