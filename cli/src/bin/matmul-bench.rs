@@ -85,6 +85,19 @@ struct Case {
     paper: bool,
 }
 
+impl Case {
+    /// Floating-point operations: a multiply and an add per term of a product, an add per
+    /// element of a column sum.
+    fn flop(&self) -> f64 {
+        let terms = (self.m * self.k * self.n) as f64;
+        match self.form {
+            Form::Batched { batch } => 2.0 * terms * batch as f64,
+            Form::ColumnSum | Form::ChunkedColumnSum { .. } => terms,
+            _ => 2.0 * terms,
+        }
+    }
+}
+
 /// Rows of `k` per chunk in the split-k forms.
 const SPLIT_K_CHUNKS: [usize; 3] = [128, 256, 512];
 
@@ -231,8 +244,7 @@ fn main() -> anyhow::Result<()> {
             "m": case.m,
             "k": case.k,
             "n": case.n,
-            "gflop": 2.0 * (case.m * case.k * case.n) as f64
-                * match case.form { Form::Batched { batch } => batch as f64, _ => 1.0 } / 1e9,
+            "gflop": case.flop() / 1e9,
             "runs": runs,
             "wall_us_median": (wall[runs / 2] * 10.0).round() / 10.0,
             "wall_us_min": (wall[0] * 10.0).round() / 10.0,
