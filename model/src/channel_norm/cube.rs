@@ -24,6 +24,7 @@ use burn_cubecl::tensor::CubeTensor;
 use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
 };
+use lifegom_render::cube::image::{ImageLayout, dense, image_layout};
 
 use super::op::{ChannelActivation, ChannelNormKernels, ChannelNormOps, NormLedger, TOTAL_PARTS};
 
@@ -34,21 +35,6 @@ const PIXELS_PER_CHUNK: usize = 256;
 pub(super) fn partial_len(shape: &Shape) -> usize {
     let (n, c, hw) = (shape[0], shape[1], shape[2] * shape[3]);
     n * hw.div_ceil(PIXELS_PER_CHUNK).max(1) * c * 2
-}
-
-/// Where element `(n, c, h, w)` of an image tensor is: its strides.
-#[derive(CubeType, CubeLaunch)]
-struct Layout {
-    n: usize,
-    c: usize,
-    h: usize,
-    w: usize,
-}
-
-/// The offset of `(n, c, pixel)` for images `width` wide.
-#[cube]
-fn offset(layout: &Layout, n: usize, c: usize, pixel: usize, width: usize) -> usize {
-    n * layout.n + c * layout.c + (pixel / width) * layout.h + (pixel % width) * layout.w
 }
 
 /// Channel `c`'s `s = γ/√(σ²+ε)`.
@@ -112,8 +98,8 @@ fn channel_norm_partials_kernel(
     chunk_len: usize,
     eps: f32,
     relu: u32,
-    x_layout: &Layout,
-    grad_layout: &Layout,
+    x_layout: &ImageLayout,
+    grad_layout: &ImageLayout,
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
@@ -128,9 +114,9 @@ fn channel_norm_partials_kernel(
         let mut gx = 0.0f32;
         let mut g_sum = 0.0f32;
         for i in start..end {
-            let at = offset(x_layout, n, c, i, width);
+            let at = x_layout.at_pixel(n, c, i, width);
             let xi = x[at];
-            let mut g = grad[offset(grad_layout, n, c, i, width)];
+            let mut g = grad[grad_layout.at_pixel(n, c, i, width)];
             if relu != 0 && xi * s + t <= 0.0 {
                 g = 0.0;
             }
@@ -188,32 +174,6 @@ fn channel_norm_totals_kernel(
         dbeta[c] = g;
         dgamma[c] = (gx - mean[c] * g) / f32::sqrt(var[c] + eps);
     }
-}
-
-/// `t` as it is when it is `f32` and its layout a permutation of a contiguous one over a buffer
-/// of its own, else a row-major copy.
-fn dense(t: FloatTensor<CubeBackend>) -> CubeTensor {
-    let shape = t.meta.shape().to_vec();
-    let strides = t.meta.strides().to_vec();
-    let mut axes: Vec<usize> = (0..shape.len()).filter(|&a| shape[a] > 1).collect();
-    axes.sort_by_key(|&a| strides[a]);
-    let mut expected = 1;
-    let permuted = axes.iter().all(|&a| {
-        let ok = strides[a] == expected;
-        expected *= shape[a];
-        ok
-    });
-    if permuted && t.dtype() == DType::F32 && t.is_contiguous_buffer() {
-        t
-    } else {
-        prepare(t)
-    }
-}
-
-/// `t`'s strides as a kernel [`Layout`].
-fn layout(t: &CubeTensor) -> LayoutLaunch {
-    let s = t.meta.strides();
-    LayoutLaunch::new(s[0], s[1], s[2], s[3])
 }
 
 /// A tensor over `handle` laid out as `like`.
@@ -330,8 +290,8 @@ impl ChannelNormKernels for CubeBackend {
                 PIXELS_PER_CHUNK,
                 epsilon,
                 u32::from(activation == ChannelActivation::Relu),
-                layout(&x),
-                layout(&grad),
+                image_layout(&x),
+                image_layout(&grad),
             );
         }
         (

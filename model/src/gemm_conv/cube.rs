@@ -3,7 +3,9 @@
 //!
 //! Forward: one thread per element of the columns `[N·H_out·W_out, C·kh·kw]`, consecutive
 //! threads along a row, so the writes are coalesced and the reads of one window row are
-//! neighbours. Backward: one thread per input element; it visits the `kh·kw` window positions
+//! neighbours. The input is read in the layout it comes in ([`lifegom_render::cube::image`]):
+//! the previous layer's output is a channels-last view, which a row-major copy would cost a
+//! launch per layer and pass, forward and in the backward's rebuild. Backward: one thread per input element; it visits the `kh·kw` window positions
 //! that could cover it and adds the column gradient of each output position whose window does
 //! (`y + py − ky` a multiple of the stride and inside the output), so no two threads write one
 //! element and no atomics are needed.
@@ -18,6 +20,7 @@ use burn_cubecl::cubecl::prelude::*;
 use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
 };
+use lifegom_render::cube::image::{ImageLayout, dense, image_layout};
 
 use super::op::{GemmConvOps, PatchKernels, Patches};
 
@@ -38,7 +41,13 @@ struct Grid {
 }
 
 #[cube(launch)]
-fn patch_columns_kernel(x: &[f32], columns: &mut [f32], grid: Grid, units: usize) {
+fn patch_columns_kernel(
+    x: &[f32],
+    x_layout: &ImageLayout,
+    columns: &mut [f32],
+    grid: Grid,
+    units: usize,
+) {
     let e = ABSOLUTE_POS;
     if e < units {
         let window = grid.kernel_y * grid.kernel_x;
@@ -60,8 +69,7 @@ fn patch_columns_kernel(x: &[f32], columns: &mut [f32], grid: Grid, units: usize
             && x_ >= grid.pad_x
             && x_ < grid.pad_x + grid.width
         {
-            value = x[((n * grid.channels + c) * grid.height + y - grid.pad_y) * grid.width + x_
-                - grid.pad_x];
+            value = x[x_layout.at(n, c, y - grid.pad_y, x_ - grid.pad_x)];
         }
         columns[e] = value;
     }
@@ -127,7 +135,8 @@ impl PatchKernels for CubeBackend {
         let shape = patches.columns_shape(&input);
         let units = shape.num_elements();
         let (client, device) = (x.client.clone(), x.device.clone());
-        let x = prepare(x);
+        // In the layout it comes in: the previous layer's output is channels-last.
+        let x = dense(x);
         let out = client.empty(4 * units.max(1));
         if units > 0 {
             patch_columns_kernel::launch(
@@ -135,6 +144,7 @@ impl PatchKernels for CubeBackend {
                 count_1d(units),
                 CubeDim::new_1d(THREADS_1D),
                 tensor_arg(&x),
+                image_layout(&x),
                 arg(&out, units),
                 grid_arg(&input, patches),
                 units,

@@ -128,14 +128,21 @@ mod tests {
 
     use crate::split_k::force_split_k_rows;
 
+    /// How a test input is laid out in memory.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    enum Memory {
+        RowMajor,
+        /// An NCHW view of NHWC memory, as a convolution hands its output on.
+        ChannelsLast,
+    }
+
     /// `(output, ∂x, ∂W)` of `Σ y·r` for a fixed `r`, with `conv2d` (`ours`) or Burn's conv.
     fn run(
         device: &Device,
-        kernel: usize,
-        stride: usize,
-        pad: usize,
+        (kernel, stride, pad): (usize, usize, usize),
         [n, c, h, w]: [usize; 4],
         c_out: usize,
+        memory: Memory,
         ours: bool,
     ) -> [Vec<f32>; 3] {
         let ad = device.clone().autodiff();
@@ -156,8 +163,14 @@ mod tests {
         )
         .require_grad();
         layer.weight = burn::module::Param::from_tensor(weight.clone());
-        let x = Tensor::<4>::from_data(TensorData::new(draw(n * c * h * w), [n, c, h, w]), &ad)
-            .require_grad();
+        let values = draw(n * c * h * w);
+        // Channels-last in memory, as the previous layer hands its output on, or row-major.
+        let x = if memory == Memory::ChannelsLast {
+            Tensor::<4>::from_data(TensorData::new(values, [n, h, w, c]), &ad).permute([0, 3, 1, 2])
+        } else {
+            Tensor::<4>::from_data(TensorData::new(values, [n, c, h, w]), &ad)
+        }
+        .require_grad();
         let y = if ours && !runs_on_host(device) {
             // The op itself, whatever `LIFEGOM_CONV` says.
             gemm_conv2d(
@@ -187,7 +200,8 @@ mod tests {
     /// stride 1 and 2, the 1×1 stride-2 shortcut) on odd, non-square inputs whose windows
     /// leave pixels unread, on inputs smaller than the window (most taps read padding: the
     /// late stages of a small image), with the weight gradient as one product and split-k
-    /// (chunks forced to 8 rows: the exact divisor rule's chunks).
+    /// (chunks forced to 8 rows: the exact divisor rule's chunks), on row-major inputs and on
+    /// channels-last ones (how a layer's output reaches the next: read in place).
     #[test]
     fn conv2d_matches_burn_wgpu() {
         let Some(device) = wgpu_test_device() else {
@@ -201,14 +215,20 @@ mod tests {
             // A 1×1 image: every tap but the centre reads padding.
             .chain([((3, 1, 1), [1, 4, 1, 1])]);
         for ((kernel, stride, pad), shape) in cases {
-            for split in [Some(0), Some(8)] {
-                let want = run(&flex, kernel, stride, pad, shape, 5, false);
+            let window = (kernel, stride, pad);
+            for (split, memory) in [
+                (Some(0), Memory::RowMajor),
+                (Some(8), Memory::RowMajor),
+                (Some(8), Memory::ChannelsLast),
+            ] {
+                let want = run(&flex, window, shape, 5, memory, false);
                 force_split_k_rows(split);
-                let got = run(&device, kernel, stride, pad, shape, 5, true);
+                let got = run(&device, window, shape, 5, memory, true);
                 force_split_k_rows(None);
                 for (i, what) in ["output", "∂x", "∂W"].iter().enumerate() {
                     let what = format!(
-                        "{kernel}×{kernel} /{stride} pad {pad} on {shape:?}, split {split:?}: {what}"
+                        "{kernel}×{kernel} /{stride} pad {pad} on {shape:?}, split {split:?}, \
+                         {memory:?}: {what}"
                     );
                     assert_close_to_scale(&got[i], &want[i], 2e-5, &what);
                     assert!(got[i].iter().all(|v| v.is_finite()), "{what}: finite");
@@ -222,8 +242,8 @@ mod tests {
     fn host_conv_is_burns() {
         for choice in DeviceChoice::CPU {
             let device = choice.device();
-            let a = run(&device, 3, 2, 1, [1, 2, 7, 6], 3, true);
-            let b = run(&device, 3, 2, 1, [1, 2, 7, 6], 3, false);
+            let a = run(&device, (3, 2, 1), [1, 2, 7, 6], 3, Memory::RowMajor, true);
+            let b = run(&device, (3, 2, 1), [1, 2, 7, 6], 3, Memory::RowMajor, false);
             assert_eq!(a, b, "{choice:?}");
         }
     }

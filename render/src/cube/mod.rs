@@ -6,6 +6,8 @@
 //! - [`atomic`]: float atomic adds in kernels, native or emulated with exchanges, and which
 //!   one a device gets (public for the other crates' scatter kernels, as [`host`] is).
 //! - [`deferred`]: the ops on Burn's fusion backend, recorded as opaque steps of its stream.
+//! - [`image`]: image tensors read in the layout they come in (channels-last views of
+//!   convolutions' outputs) instead of copied to row-major order first.
 //! - [`host`]: host-side plumbing — tensor preparation, buffer allocation, kernel arguments,
 //!   1D launch shapes, small read-backs. Nothing here is specific to one op.
 //! - `view` (crate-private): the camera record every projecting kernel takes (`ViewArgs`),
@@ -14,4 +16,5 @@
 pub mod atomic;
 pub mod deferred;
 pub mod host;
+pub mod image;
 pub(crate) mod view;
