@@ -3,6 +3,8 @@
 //! pass by comparing the row with the passes' end rows, and copies one element of `X` and one
 //! of `G` where they exist, the latter times its column's scale for a folded layer. Rows past
 //! the passes' (the padding of a split-k weight gradient, `super::op`) are written as zeros.
+//! Columns past the inputs' (the bias's, `super::op::BIAS_COLUMNS`) are a column of ones on the
+//! passes' rows, then zeros.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -63,16 +65,33 @@ fn stack_rows_kernel(
     rows: usize,
     filled: usize,
     x_width: usize,
+    x_out_width: usize,
     g_width: usize,
     end0: usize,
     end1: usize,
     end2: usize,
 ) {
     let e = ABSOLUTE_POS;
-    if e < rows * x_width {
+    if e < rows * x_out_width {
+        let row = e / x_out_width;
+        let col = e % x_out_width;
         let mut x = 0.0f32;
-        if e / x_width < filled {
-            x = stacked_element(x0, x1, x2, x3, e, x_width, end0, end1, end2);
+        if row < filled {
+            if col < x_width {
+                x = stacked_element(
+                    x0,
+                    x1,
+                    x2,
+                    x3,
+                    row * x_width + col,
+                    x_width,
+                    end0,
+                    end1,
+                    end2,
+                );
+            } else if col == x_width {
+                x = 1.0;
+            }
         }
         x_out[e] = x;
     }
@@ -94,6 +113,7 @@ impl StackKernels for CubeBackend {
         gs: Vec<FloatTensor<Self>>,
         scale: Option<FloatTensor<Self>>,
         padded_rows: usize,
+        extra_columns: usize,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         assert!(
             !gs.is_empty() && gs.len() <= STACK_PARTS && xs.len() == gs.len(),
@@ -102,6 +122,7 @@ impl StackKernels for CubeBackend {
         let dtype = gs[0].dtype();
         let (client, device) = (gs[0].client.clone(), gs[0].device.clone());
         let x_width = xs[0].shape()[1];
+        let x_out_width = x_width + extra_columns;
         let g_width = gs[0].shape()[1];
         // Rows end after each pass; the ends of unused parts are the last row's end.
         let filled: usize = gs.iter().map(|g| g.shape()[0]).sum();
@@ -122,9 +143,9 @@ impl StackKernels for CubeBackend {
         let part = |parts: &[burn_cubecl::tensor::CubeTensor], i: usize| {
             tensor_arg(parts.get(i).unwrap_or(&parts[0]))
         };
-        let x_out = client.empty(4 * (rows * x_width).max(1));
+        let x_out = client.empty(4 * (rows * x_out_width).max(1));
         let g_out = client.empty(4 * (rows * g_width).max(1));
-        let units = rows * x_width.max(g_width);
+        let units = rows * x_out_width.max(g_width);
         if units > 0 {
             stack_rows_kernel::launch(
                 &client,
@@ -139,12 +160,13 @@ impl StackKernels for CubeBackend {
                 part(&gs, 2),
                 part(&gs, 3),
                 tensor_arg(&scale),
-                arg(&x_out, rows * x_width),
+                arg(&x_out, rows * x_out_width),
                 arg(&g_out, rows * g_width),
                 scaled,
                 rows,
                 filled,
                 x_width,
+                x_out_width,
                 g_width,
                 ends[0],
                 ends[1],
@@ -152,7 +174,10 @@ impl StackKernels for CubeBackend {
             );
         }
         (
-            cast_to(tensor_f32(&client, &device, x_out, &[rows, x_width]), dtype),
+            cast_to(
+                tensor_f32(&client, &device, x_out, &[rows, x_out_width]),
+                dtype,
+            ),
             cast_to(tensor_f32(&client, &device, g_out, &[rows, g_width]), dtype),
         )
     }

@@ -16,7 +16,9 @@
 //!   runs after all of them, since Burn's autodiff runs nodes deepest first and each product
 //!   node is deeper than the parameter nodes it reads. It drops the placeholder and registers
 //!   `∂W = Xᵀ·G` or `∂b = Σ_rows G` from the ledger's rows, stacked once for both by one
-//!   launch (`stack_pass_rows`, the `cube` module).
+//!   launch (`stack_pass_rows`, the `cube` module). When both take a gradient, the stack
+//!   appends a column of ones to `X` and one product answers both, `[X | 1]ᵀ·G = [∂W; ∂b]`:
+//!   the bias's sum costs no launch of its own (two fewer per layer than summing `G` apart).
 //!
 //! A layer that a frozen BatchNorm follows is folded with it by [`SharedLinearOps::shared_fold`]:
 //! one launch makes `W·diag(s)` and `b·s + t` (`s = γ/√(σ²+ε)`, `t = β − μ·s`) from the
@@ -30,8 +32,8 @@
 //! `∂W = Xᵀ·G` is a small output over a long reduction (every pass's rows), which Burn's CubeCL
 //! matmul gives to a handful of cubes; so the stacking pads the rows to whole chunks with zeros
 //! (in the same launch) and the weight's node forms the gradient as chunked products and a sum
-//! ([`crate::split_k`]): one more launch per layer. The bias's sum reads the padded `G`, whose
-//! zero rows add nothing, and is chunked too.
+//! ([`crate::split_k`]): one more launch per layer. The padding rows of `X`'s ones column are
+//! zero too; a bias without a weight gradient is a sum of the padded `G`, chunked the same way.
 
 use std::any::Any;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -98,9 +100,25 @@ struct Rows<B: Backend> {
     inputs: Vec<FloatTensor<B>>,
     /// `[rows, out]` per pass.
     grads: Vec<FloatTensor<B>>,
-    /// How the weight gradient is split, and `(X, G)`: every pass's rows, one after the
-    /// other, padded for the split.
-    stacked: Option<(SplitK, Option<FloatTensor<B>>, FloatTensor<B>)>,
+    /// The parameters' gradients once formed: `[∂W; ∂b]` from one product when both take
+    /// one, else `(X, G)` for each node to form its own (every pass's rows, one after the
+    /// other, padded for the split).
+    formed: Option<Formed<B>>,
+}
+
+/// How a layer's parameter gradients were formed ([`Rows::formed`]).
+enum Formed<B: Backend> {
+    /// `[X | 1 | 0…]ᵀ·G` `[in + BIAS_COLUMNS, out]`: `∂W` is its first `in` rows, `∂b` the next.
+    Joint {
+        product: FloatTensor<B>,
+        inputs: usize,
+    },
+    /// The stacked rows, for the one parameter that takes a gradient.
+    Apart {
+        split: SplitK,
+        x: Option<FloatTensor<B>>,
+        g: FloatTensor<B>,
+    },
 }
 
 impl Ledger {
@@ -116,7 +134,7 @@ impl LedgerState {
                 Box::new(Rows::<B> {
                     inputs: Vec::new(),
                     grads: Vec::new(),
-                    stacked: None,
+                    formed: None,
                 })
             })
             .downcast_mut::<Rows<B>>()
@@ -137,16 +155,23 @@ fn flatten<B: Backend>(t: FloatTensor<B>) -> FloatTensor<B> {
 /// Passes stacked by one launch of [`StackKernels::stack_pass_rows`].
 pub const STACK_PARTS: usize = 4;
 
+/// Columns appended to `X` when the bias's gradient comes from the weight's product (module
+/// docs): the ones, then zeros, so that `X`'s width stays a multiple of four when the layer's
+/// input width is (the width of the rows Burn's matmul reads as vectors of four).
+pub const BIAS_COLUMNS: usize = 4;
+
 /// `(X, G)`: the passes' rows one after the other (module docs), `G`'s columns times `scale`
-/// for a folded layer, then zero rows up to `padded_rows`. A lone pass without a scale or
-/// padding is handed back; more than [`STACK_PARTS`] are stacked that many at a time, each
-/// stack then being one part of the next launch (the scale and the padding applied by the
+/// for a folded layer, then zero rows up to `padded_rows`, and `extra_columns` columns after
+/// `X`'s ([`BIAS_COLUMNS`] or none). A lone pass without a scale, padding or extra columns is
+/// handed back; more than [`STACK_PARTS`] are stacked that many at a time, each stack then
+/// being one part of the next launch (the scale, the padding and the columns applied by the
 /// last).
 fn stack<B: StackKernels>(
     mut inputs: Vec<FloatTensor<B>>,
     mut grads: Vec<FloatTensor<B>>,
     scale: Option<FloatTensor<B>>,
     padded_rows: usize,
+    extra_columns: usize,
 ) -> (Option<FloatTensor<B>>, FloatTensor<B>) {
     // Without a weight gradient the gradients stand in for the inputs; their stack is dropped.
     let with_inputs = !inputs.is_empty();
@@ -155,7 +180,7 @@ fn stack<B: StackKernels>(
     }
     let rows: usize = grads.iter().map(|g| g.shape()[0]).sum();
     let mut scale = scale;
-    let mut pad = padded_rows != rows;
+    let mut pad = padded_rows != rows || extra_columns > 0;
     while grads.len() > 1 || (grads.len() == 1 && (scale.is_some() || pad)) {
         let take = grads.len().min(STACK_PARTS);
         let last = take == grads.len();
@@ -169,6 +194,7 @@ fn stack<B: StackKernels>(
             grads.drain(..take).collect(),
             if last { scale.take() } else { None },
             to_rows,
+            if last { extra_columns } else { 0 },
         );
         if last {
             pad = false;
@@ -186,12 +212,14 @@ pub trait StackKernels: Backend {
     /// `(X, G)`: the rows of `xs` `[rows_t, in]` one after the other, and those of `gs`
     /// `[rows_t, out]` times `scale` `[out]` per column when given, then zero rows up to
     /// `padded_rows` (at least `Σ rows_t`), in one launch; 1 to [`STACK_PARTS`] passes, pass
-    /// `t` of both with the same rows.
+    /// `t` of both with the same rows. `X` has `extra_columns` more columns: ones on the
+    /// passes' rows in the first of them, zeros elsewhere (`[rows, in + extra_columns]`).
     fn stack_pass_rows(
         xs: Vec<FloatTensor<Self>>,
         gs: Vec<FloatTensor<Self>>,
         scale: Option<FloatTensor<Self>>,
         padded_rows: usize,
+        extra_columns: usize,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 }
 
@@ -201,12 +229,13 @@ impl<B: FusionBackend + StackKernels> StackKernels for Fusion<B> {
         gs: Vec<FloatTensor<Self>>,
         scale: Option<FloatTensor<Self>>,
         padded_rows: usize,
+        extra_columns: usize,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let passes = gs.len();
         let scaled = scale.is_some();
         let rows = padded_rows;
         let specs = vec![
-            float_like::<B>(&xs[0], Shape::new([rows, xs[0].shape()[1]])),
+            float_like::<B>(&xs[0], Shape::new([rows, xs[0].shape()[1] + extra_columns])),
             float_like::<B>(&gs[0], Shape::new([rows, gs[0].shape()[1]])),
         ];
         let inputs = xs
@@ -227,7 +256,7 @@ impl<B: FusionBackend + StackKernels> StackKernels for Fusion<B> {
                 };
                 let gs = v.split_off(passes).into_iter().map(Value::float).collect();
                 let xs = v.into_iter().map(Value::float).collect();
-                let (x, g) = B::stack_pass_rows(xs, gs, scale, padded_rows);
+                let (x, g) = B::stack_pass_rows(xs, gs, scale, padded_rows, extra_columns);
                 vec![Value::Float(x), Value::Float(g)]
             },
         ));
@@ -366,24 +395,55 @@ impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
         };
         ledger.delivered[slot] = true;
         let done = (0..2).all(|i| !ledger.seeded[i] || ledger.delivered[i]);
+        // Both parameters take a gradient: one product answers both (module docs).
+        let joint = ledger.seeded == [true, true];
         let rows = ledger.rows::<B>();
-        let (split, x, g) = rows.stacked.get_or_insert_with(|| {
+        let formed = rows.formed.get_or_insert_with(|| {
             let filled = rows.grads.iter().map(|g| g.shape()[0]).sum();
+            let outputs = rows.grads[0].shape()[1];
             // Without a weight gradient only the bias's sum is split.
             let inputs = rows.inputs.first().map_or(0, |x| x.shape()[1]);
-            let split = SplitK::plan(filled, inputs, rows.grads[0].shape()[1]);
+            let extra = if joint { BIAS_COLUMNS } else { 0 };
+            let split = SplitK::plan(filled, inputs + extra, outputs);
             let (x, g) = stack::<B>(
                 std::mem::take(&mut rows.inputs),
                 std::mem::take(&mut rows.grads),
                 scale,
                 split.padded_rows(),
+                extra,
             );
-            (split, x, g)
+            if joint {
+                let x = x.expect("the weight's rows were filed");
+                Formed::Joint {
+                    product: split.weight_gradient::<B>(x, g),
+                    inputs,
+                }
+            } else {
+                Formed::Apart { split, x, g }
+            }
         });
-        let grad = match role {
-            Role::Weight => split
+        let grad = match (formed, role) {
+            (Formed::Joint { product, inputs }, role) => {
+                let outputs = product.shape()[1];
+                let (first, last) = match role {
+                    Role::Weight => (0, *inputs),
+                    Role::Bias => (*inputs, *inputs + 1),
+                };
+                let grad = B::float_slice(
+                    product.clone(),
+                    &[
+                        burn::tensor::Slice::from(first..last),
+                        burn::tensor::Slice::from(0..outputs),
+                    ],
+                );
+                match role {
+                    Role::Weight => grad,
+                    Role::Bias => B::float_reshape(grad, Shape::new([outputs])),
+                }
+            }
+            (Formed::Apart { split, x, g }, Role::Weight) => split
                 .weight_gradient::<B>(x.clone().expect("the weight's rows were filed"), g.clone()),
-            Role::Bias => split.column_sum::<B>(g.clone()),
+            (Formed::Apart { split, g, .. }, Role::Bias) => split.column_sum::<B>(g.clone()),
         };
         if done {
             ledger.rows = None;
