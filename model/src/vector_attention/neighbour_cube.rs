@@ -10,7 +10,7 @@
 //!   softmax over the neighbours (as `vector_attention::cube` computes it) applied to the
 //!   gathered values `v[nbr, ch] + δ[i, κ, ch]` of the `S` channels `ch = s·C/S + j`.
 //!
-//! Backward, two launches each, no zero-fill: a first kernel writes every output it owns
+//! Backward, two launches each (three for a pair), no zero-fill: a first kernel writes every output it owns
 //! (including zeros over the rows of `∂qkv` the scatter adds into), a second adds the
 //! neighbours' shares into the key (relation) or value (aggregation) columns of `∂qkv` with
 //! float atomic adds ([`lifegom_render::cube::atomic`]), reading them from the `∂δ` the first
@@ -22,6 +22,9 @@
 //!   value's gradient), the softmax's backward for the logits as in `vector_attention::cube`,
 //!   zeros over all of row `i`'s columns of channel `j`.
 //! - `scatter_columns_kernel`, one thread per `(i, κ, ch)`: `∂qkv[nbr, offset + ch] += ∂δ[i, κ, ch]`.
+//!   For a paired relation and aggregation (`super::neighbour_op`) the relation's launch also
+//!   adds the aggregation's `∂δ` into the value columns, which the aggregation's backward then
+//!   skips: three launches for the pair instead of four.
 //!
 //! A neighbour index outside `0..n` gathers zero and receives nothing (the callers build them
 //! in range; this only keeps a bad index from reading out of bounds).
@@ -38,7 +41,9 @@ use lifegom_render::cube::host::{
 };
 
 use super::cube::{probability, softmax_scale};
-use super::neighbour_op::{AttentionPair, NeighbourAttentionKernels, NeighbourAttentionOps};
+use super::neighbour_op::{
+    AttentionPair, NeighbourAttentionKernels, NeighbourAttentionOps, ValueScatter,
+};
 
 /// The sizes every kernel indexes with.
 #[derive(CubeType, CubeLaunch)]
@@ -247,7 +252,8 @@ fn aggregate_gathered_backward_rows_kernel(
 
 /// `qkv_grad[nbr, offset + ch] += delta_grad[i, κ, ch]` for every `(i, κ, ch)`; with `added`,
 /// also `delta_out = delta_grad + delta_addend` (the relation's `∂δ` and the paired
-/// aggregation's, `super::neighbour_op`).
+/// aggregation's, `super::neighbour_op`) and the values' scatter the aggregation left to it,
+/// `qkv_grad[nbr, 2c + ch] += delta_addend[i, κ, ch]` (`ValueScatter::ToRelation`).
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 fn scatter_columns_kernel<A: AtomicAddF32>(
@@ -270,10 +276,11 @@ fn scatter_columns_kernel<A: AtomicAddF32>(
         let ik = unit / sizes.c;
         let row = neighbours[ik];
         if row >= 0 && (row as usize) < sizes.n {
-            A::atomic_add_f32(
-                &qkv_grad[row as usize * 3 * sizes.c + offset + ch],
-                delta_grad[unit],
-            );
+            let at = row as usize * 3 * sizes.c;
+            A::atomic_add_f32(&qkv_grad[at + offset + ch], delta_grad[unit]);
+            if added != 0 {
+                A::atomic_add_f32(&qkv_grad[at + 2 * sizes.c + ch], delta_addend[unit]);
+            }
         }
     }
 }
@@ -285,7 +292,9 @@ fn sizes_of(qkv: &CubeTensor, delta: &CubeTensor) -> (usize, usize, usize) {
 }
 
 /// Adds `delta_grad` into the columns `offset..offset + c` of `qkv_grad` at each neighbour's row;
-/// with `sum = Some((addend, out))` also writes `delta_grad + addend` into `out`.
+/// with `sum = Some((addend, out))` also writes `delta_grad + addend` into `out` and adds
+/// `addend` into the values' columns `2c..3c` (the paired aggregation's `∂δ`, which is its
+/// values' gradient).
 fn scatter_columns(
     client: &lifegom_render::cube::host::ComputeClient,
     neighbours: &CubeTensor,
@@ -481,6 +490,7 @@ impl NeighbourAttentionKernels for CubeBackend {
         delta: FloatTensor<Self>,
         logits: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        scatter: ValueScatter,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
         let _span = tracing::trace_span!("cube_attention_aggregate_gathered_backward").entered();
         let dtypes = (qkv.dtype(), delta.dtype(), logits.dtype());
@@ -511,15 +521,17 @@ impl NeighbourAttentionKernels for CubeBackend {
                 cs,
                 SizesLaunch::new(n, k, c),
             );
-            scatter_columns(
-                &client,
-                &neighbours,
-                &delta_grad,
-                &qkv_grad,
-                2 * c,
-                (n, k, c),
-                None,
-            );
+            if scatter == ValueScatter::Here {
+                scatter_columns(
+                    &client,
+                    &neighbours,
+                    &delta_grad,
+                    &qkv_grad,
+                    2 * c,
+                    (n, k, c),
+                    None,
+                );
+            }
         }
         (
             cast_to(

@@ -12,7 +12,9 @@
 //! gradients: two more launches per layer and pass. A relation and the aggregation whose logits
 //! come from it can share an [`AttentionPair`]: the aggregation's node, which Burn runs first
 //! (it is deeper), files its `∂qkv` and `∂δ` with the pair instead of registering them, and the
-//! relation's backward kernels add them to their own as they write them. A pair must join
+//! relation's backward kernels add them to their own as they write them. The aggregation then
+//! leaves its values' scatter onto the neighbours' rows of `∂qkv` to the relation, whose keys'
+//! scatter walks the same neighbours: one scatter launch for both ([`ValueScatter`]). A pair must join
 //! exactly one relation to one aggregation whose logits depend on the relation's output;
 //! otherwise the filed gradients are never taken (the public functions pair nothing; the Point
 //! Transformer layer pairs its own two ops).
@@ -52,6 +54,11 @@ impl AttentionPair {
     /// A pair for one relation and one aggregation.
     pub fn new() -> Self {
         Self(Some(Arc::default()))
+    }
+
+    /// Whether the pair joins two ops.
+    fn is_paired(&self) -> bool {
+        self.0.is_some()
     }
 
     /// No pairing: each op registers its own gradients.
@@ -108,11 +115,22 @@ pub trait NeighbourAttentionOps: Backend {
     ) -> FloatTensor<Self>;
 }
 
+/// Where the aggregation's values' gradient `∂v[nbr] += ∂(v + δ)` is scattered onto `∂qkv`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ValueScatter {
+    /// By the aggregation's backward.
+    Here,
+    /// By the paired relation's backward, with its keys' (module docs): the aggregation's
+    /// `∂qkv` lacks it.
+    ToRelation,
+}
+
 /// What a backend implements so that `Autodiff<B>` can differentiate the ops.
 #[doc(hidden)]
 pub trait NeighbourAttentionKernels: Backend {
     /// `(∂qkv, ∂δ)` of [`NeighbourAttentionOps::attention_relation`] given its output's
-    /// gradient, plus `addends` (the paired aggregation's `(∂qkv, ∂δ)`) when given.
+    /// gradient, plus `addends` (the paired aggregation's `(∂qkv, ∂δ)`, its values' scatter
+    /// left to this one: [`ValueScatter::ToRelation`]) when given.
     #[allow(clippy::too_many_arguments)]
     fn attention_relation_backward(
         qkv: FloatTensor<Self>,
@@ -124,13 +142,15 @@ pub trait NeighbourAttentionKernels: Backend {
         addends: Option<(FloatTensor<Self>, FloatTensor<Self>)>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
-    /// `(∂qkv, ∂δ, ∂logits)` of [`NeighbourAttentionOps::attention_aggregate_gathered`].
+    /// `(∂qkv, ∂δ, ∂logits)` of [`NeighbourAttentionOps::attention_aggregate_gathered`], the
+    /// values' part of `∂qkv` scattered as `scatter` says.
     fn attention_aggregate_gathered_backward(
         qkv: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
         delta: FloatTensor<Self>,
         logits: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        scatter: ValueScatter,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
 }
 
@@ -198,8 +218,19 @@ impl<B: NeighbourAttentionKernels> Backward<B, 3> for GatheredBackward {
         let grad = grads.consume::<B>(&ops.node);
         let [qkv_node, delta_node, logits_node] = ops.parents;
         let s = ops.state;
-        let (qkv, delta, logits) =
-            B::attention_aggregate_gathered_backward(s.qkv, s.neighbours, s.delta, s.logits, grad);
+        let scatter = if s.pair.is_paired() {
+            ValueScatter::ToRelation
+        } else {
+            ValueScatter::Here
+        };
+        let (qkv, delta, logits) = B::attention_aggregate_gathered_backward(
+            s.qkv,
+            s.neighbours,
+            s.delta,
+            s.logits,
+            grad,
+            scatter,
+        );
         if let Some(node) = logits_node {
             grads.register::<B>(node.id, logits);
         }
@@ -330,6 +361,7 @@ impl<B: FusionBackend + NeighbourAttentionKernels> NeighbourAttentionKernels for
         delta: FloatTensor<Self>,
         logits: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        scatter: ValueScatter,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
         let specs = vec![
             float_like::<B>(&qkv, qkv.shape()),
@@ -347,7 +379,7 @@ impl<B: FusionBackend + NeighbourAttentionKernels> NeighbourAttentionKernels for
             "attention_aggregate_gathered_backward",
             inputs,
             specs,
-            |v| {
+            move |v| {
                 let [qkv, neighbours, delta, logits, grad] = array(v);
                 let (qkv, delta, logits) = B::attention_aggregate_gathered_backward(
                     qkv.float(),
@@ -355,6 +387,7 @@ impl<B: FusionBackend + NeighbourAttentionKernels> NeighbourAttentionKernels for
                     delta.float(),
                     logits.float(),
                     grad.float(),
+                    scatter,
                 );
                 vec![Value::Float(qkv), Value::Float(delta), Value::Float(logits)]
             },
