@@ -12,6 +12,14 @@
 //! run one at a time: the per-kernel times say where device time goes, and a step timed with
 //! them on is not the step's time (the benchmarks report both, and say which is which).
 //!
+//! Launch sites say little on their own with Burn's fusion on: its ops run on the fusion
+//! stream's thread, where no model span is open, so most launches land under `(no span)`.
+//! [`StageAttribution`] fixes that for diagnosis (`train-bench --attribute-launches`): a
+//! `tracing` layer that, on the model's thread, waits for the device at every stage boundary
+//! (a read-back, which drains the stream) and files every launch under the stage the model was
+//! in when it was queued (`launches_per_step_by_stage`). The waits serialise the step, so its
+//! time is not the step's time, and fusion cannot fuse across a boundary (a few more launches).
+//!
 //! ```no_run
 //! use lifegom_cli::launches::{KernelTiming, LaunchCounter};
 //! let counter = LaunchCounter::install(KernelTiming::Off);
@@ -85,7 +93,8 @@ pub struct LaunchTally {
     /// Per kernel, keyed by the kernel's short name (generics dropped, as CubeCL's own
     /// profiling log names them).
     pub kernels: BTreeMap<String, KernelTally>,
-    /// Launches per innermost `tracing` span open on the thread that issued them.
+    /// Launches per innermost `tracing` span open on the thread that issued them, or per model
+    /// stage under a [`StageAttribution`].
     pub by_span: BTreeMap<String, u64>,
     /// Device time of the timed launches per innermost span open when each was timed (empty
     /// unless timing was asked for). Burn's ops run on its fusion stream's thread, where no model
@@ -198,6 +207,101 @@ impl LaunchTally {
     }
 }
 
+/// The model's stage path while a [`StageAttribution`] is installed (`None` otherwise); every
+/// launch is filed under it. Paths are interned: a run has a few dozen.
+static MODEL_STAGE: Mutex<Option<&'static str>> = Mutex::new(None);
+
+/// `path` as a `&'static str`, leaked once per distinct path.
+fn intern(path: String) -> &'static str {
+    static PATHS: Mutex<BTreeMap<String, &'static str>> = Mutex::new(BTreeMap::new());
+    let mut paths = PATHS.lock().unwrap_or_else(PoisonError::into_inner);
+    if let Some(interned) = paths.get(&path) {
+        return interned;
+    }
+    let interned: &'static str = Box::leak(path.clone().into_boxed_str());
+    paths.insert(path, interned);
+    interned
+}
+
+/// A `tracing` layer that files every kernel launch under the model stage (span path) that
+/// queued it (module docs): on the thread that made it, each span's entry and exit first wait
+/// for the device with `drain`, so the launches of the stage just left have been issued, then
+/// name the stage now current. Spans on other threads (the fusion stream's, a planning thread)
+/// neither wait nor change the stage: only one thread runs the model.
+pub struct StageAttribution {
+    model_thread: std::thread::ThreadId,
+    drain: Box<dyn Fn() + Send + Sync>,
+}
+
+impl StageAttribution {
+    /// Attribution to the spans of the calling thread; `drain` waits until every kernel queued
+    /// so far has been launched (e.g. reading a fresh one-element tensor back on the model's
+    /// device). Launches before the first span are filed under `(no stage)`.
+    pub fn new(drain: impl Fn() + Send + Sync + 'static) -> Self {
+        *MODEL_STAGE.lock().unwrap_or_else(PoisonError::into_inner) = Some("(no stage)");
+        Self {
+            model_thread: std::thread::current().id(),
+            drain: Box::new(drain),
+        }
+    }
+
+    /// On the model's thread: waits for the device, then makes `stage` (a span path, or none
+    /// when the outermost span was left) the current one.
+    fn switch(&self, stage: impl FnOnce() -> String) {
+        if std::thread::current().id() != self.model_thread {
+            return;
+        }
+        // Before any lock of the registry's: the stream's thread enters spans of its own while
+        // it runs what the drain waits for.
+        (self.drain)();
+        let stage = intern(stage());
+        *MODEL_STAGE.lock().unwrap_or_else(PoisonError::into_inner) = Some(stage);
+    }
+}
+
+impl Drop for StageAttribution {
+    fn drop(&mut self) {
+        *MODEL_STAGE.lock().unwrap_or_else(PoisonError::into_inner) = None;
+    }
+}
+
+/// The path `outer/…/inner` of the span `id` (its own name last), or of its parent only.
+fn span_path<S>(
+    id: &tracing::span::Id,
+    ctx: &tracing_subscriber::layer::Context<'_, S>,
+    with_self: bool,
+) -> String
+where
+    S: tracing::Subscriber + for<'a> tracing_subscriber::registry::LookupSpan<'a>,
+{
+    let Some(span) = ctx.span(id) else {
+        return "(no stage)".into();
+    };
+    let mut names: Vec<&str> = span.scope().map(|s| s.name()).collect();
+    if !with_self {
+        names.remove(0);
+    }
+    names.reverse();
+    if names.is_empty() {
+        "(no stage)".into()
+    } else {
+        names.join("/")
+    }
+}
+
+impl<S> tracing_subscriber::Layer<S> for StageAttribution
+where
+    S: tracing::Subscriber + for<'a> tracing_subscriber::registry::LookupSpan<'a>,
+{
+    fn on_enter(&self, id: &tracing::span::Id, ctx: tracing_subscriber::layer::Context<'_, S>) {
+        self.switch(|| span_path(id, &ctx, true));
+    }
+
+    fn on_exit(&self, id: &tracing::span::Id, ctx: tracing_subscriber::layer::Context<'_, S>) {
+        self.switch(|| span_path(id, &ctx, false));
+    }
+}
+
 /// The observer CubeCL calls; its tally is shared with the [`LaunchCounter`] that installed it.
 struct Observer {
     timing: KernelTiming,
@@ -210,8 +314,12 @@ struct Observer {
     time_by_span: Mutex<BTreeMap<&'static str, Duration>>,
 }
 
-/// The name of the innermost `tracing` span open on this thread.
+/// The model stage of a [`StageAttribution`] when one is installed, else the name of the
+/// innermost `tracing` span open on this thread.
 fn current_span() -> &'static str {
+    if let Some(stage) = *MODEL_STAGE.lock().unwrap_or_else(PoisonError::into_inner) {
+        return stage;
+    }
     tracing::Span::current()
         .metadata()
         .map_or("(no span)", |m| m.name())
@@ -288,6 +396,15 @@ impl LaunchCounter {
             "kernel_timing".into(),
             serde_json::json!(self.observer.timing.name()),
         );
+        // Under a stage attribution the tally's keys are model stages (module docs).
+        if MODEL_STAGE
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .is_some()
+            && let Some(stages) = fields.remove("launches_per_step_by_span")
+        {
+            fields.insert("launches_per_step_by_stage".into(), stages);
+        }
         fields
     }
 

@@ -23,7 +23,10 @@
 //! launches per step, and `top_kernels`, the kernels launched most per step
 //! ([`lifegom_cli::launches`]). With `--kernel-times` every launch is also timed on the device
 //! and `top_kernels` is ordered by device time; the kernels then run one at a time, so the step
-//! times of such a run are not the step's time.
+//! times of such a run are not the step's time. With `--attribute-launches` the launches are
+//! also counted per model stage that queued them (`launches_per_step_by_stage`, e.g.
+//! `step/train_step/batch_gradients/reconstruct/feedback_step/point_transformer`), the device
+//! waited for at every stage boundary; again the step times are not the step's.
 //!
 //! If the config trains on its split (`[train] subjects = "split"`) and the split is missing, it
 //! is generated first, with at most `--subjects` training subjects (the timing does not depend on
@@ -42,12 +45,12 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Parser;
-use lifegom_cli::launches::{KernelTiming, LaunchCounter};
+use lifegom_cli::launches::{KernelTiming, LaunchCounter, StageAttribution};
 use lifegom_cli::profile::{StageTimer, median, peak_resident_mib, process_cpu_times};
 use lifegom_data::synth;
 use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::{HostConcurrency, MeshPurpose};
-use lifegom_render::device::DeviceChoice;
+use lifegom_render::device::{DeviceChoice, runs_on_host};
 use lifegom_train::config::{ExperimentConfig, TrainingSubjects};
 use lifegom_train::data_parallel::BatchLayout;
 use lifegom_train::losses::UniformLaplacian;
@@ -127,6 +130,11 @@ struct Args {
     /// How many kernels `top_kernels` lists.
     #[arg(long, default_value_t = 15)]
     top_kernels: usize,
+    /// On a CubeCL device, file each launch under the model stage that queued it
+    /// (`launches_per_step_by_stage`): the device is waited for at every stage boundary, so
+    /// the step times are not the step's (`lifegom_cli::launches::StageAttribution`).
+    #[arg(long)]
+    attribute_launches: bool,
     /// Rows per chunk of split-k weight gradients on a CubeCL device (`0`: one product each, as
     /// before session 28); by default the `lifegom_model::split_k` rule.
     #[arg(long)]
@@ -201,8 +209,19 @@ fn main() -> anyhow::Result<()> {
     } else {
         StageTimer::default()
     };
-    tracing::subscriber::set_global_default(tracing_subscriber::registry().with(timer.clone()))
-        .context("installing the stage timer")?;
+    let attribution = (args.attribute_launches && !runs_on_host(&device)).then(|| {
+        let device = device.clone();
+        StageAttribution::new(move || {
+            // A read-back on the model's thread drains its fusion stream.
+            let _ = burn::tensor::Tensor::<1>::zeros([1], &device).into_data();
+        })
+    });
+    tracing::subscriber::set_global_default(
+        tracing_subscriber::registry()
+            .with(timer.clone())
+            .with(attribution),
+    )
+    .context("installing the stage timer")?;
 
     let launches =
         LaunchCounter::on_cube_device(&device, KernelTiming::from_flag(args.kernel_times));
