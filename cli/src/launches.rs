@@ -545,4 +545,45 @@ mod tests {
         assert_eq!(by_span["encoder"], serde_json::json!(40.0));
         assert_eq!(by_span["fusion"], serde_json::json!(3.0));
     }
+
+    /// A stage attribution names the model thread's span path on every entry and exit, after
+    /// waiting for the device each time; spans on another thread neither wait nor move the
+    /// stage; dropping it restores span names.
+    #[test]
+    fn stage_attribution_follows_the_model_thread() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        use tracing_subscriber::layer::SubscriberExt;
+
+        let drains = Arc::new(AtomicUsize::new(0));
+        let counted = drains.clone();
+        let attribution = StageAttribution::new(move || {
+            counted.fetch_add(1, Ordering::SeqCst);
+        });
+        let subscriber = tracing_subscriber::registry().with(attribution);
+        tracing::subscriber::with_default(subscriber, || {
+            assert_eq!(current_span(), "(no stage)");
+            let outer = tracing::info_span!("step").entered();
+            assert_eq!(current_span(), "step");
+            {
+                let _inner = tracing::info_span!("fusion").entered();
+                assert_eq!(current_span(), "step/fusion");
+                // Another thread's span (the fusion stream's, a planning thread) changes nothing.
+                let dispatch = tracing::dispatcher::get_default(|d| d.clone());
+                std::thread::spawn(move || {
+                    tracing::dispatcher::with_default(&dispatch, || {
+                        let _other = tracing::info_span!("elsewhere").entered();
+                    })
+                })
+                .join()
+                .expect("the thread ran");
+                assert_eq!(current_span(), "step/fusion");
+            }
+            assert_eq!(current_span(), "step");
+            drop(outer);
+            assert_eq!(current_span(), "(no stage)");
+        });
+        // Two entries and two exits on the model thread, none for the other thread's span.
+        assert_eq!(drains.load(Ordering::SeqCst), 4);
+        assert_eq!(current_span(), "(no span)");
+    }
 }
