@@ -572,7 +572,7 @@ mod tests {
                 std::thread::spawn(move || {
                     tracing::dispatcher::with_default(&dispatch, || {
                         let _other = tracing::info_span!("elsewhere").entered();
-                    })
+                    });
                 })
                 .join()
                 .expect("the thread ran");

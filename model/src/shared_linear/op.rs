@@ -180,8 +180,9 @@ fn stack<B: StackKernels>(
     }
     let rows: usize = grads.iter().map(|g| g.shape()[0]).sum();
     let mut scale = scale;
-    let mut pad = padded_rows != rows || extra_columns > 0;
-    while grads.len() > 1 || (grads.len() == 1 && (scale.is_some() || pad)) {
+    // Whether the last launch has rows or columns to add.
+    let mut widen = padded_rows != rows || extra_columns > 0;
+    while grads.len() > 1 || (grads.len() == 1 && (scale.is_some() || widen)) {
         let take = grads.len().min(STACK_PARTS);
         let last = take == grads.len();
         let to_rows = if last {
@@ -197,7 +198,7 @@ fn stack<B: StackKernels>(
             if last { extra_columns } else { 0 },
         );
         if last {
-            pad = false;
+            widen = false;
         }
         inputs.insert(0, x);
         grads.insert(0, g);
