@@ -2,7 +2,8 @@
 //!
 //! # Algorithm
 //!
-//! One thread per face, two passes over the same traversal (`raster_faces_kernel`, the pass is
+//! The depth and ID buffers start at `+inf` and "no face" (`fill_pair_kernel`, one launch);
+//! then one thread per face, two passes over the same traversal (`raster_faces_kernel`, the pass is
 //! a comptime flag), then a per-pixel resolve:
 //!
 //! 1. **Depth pass**: transform the corners to camera space, clip against `z = NEAR`, project,
@@ -328,6 +329,17 @@ fn fill_kernel(data: &mut [u32], value: u32, n: u32) {
     }
 }
 
+/// `a[i] = a_value` and `b[i] = b_value` for `i < n`: the depth and ID buffers' initial values
+/// in one launch.
+#[cube(launch)]
+fn fill_pair_kernel(a: &mut [u32], a_value: u32, b: &mut [u32], b_value: u32, n: u32) {
+    let i = ABSOLUTE_POS as u32;
+    if i < n {
+        a[i as usize] = a_value;
+        b[i as usize] = b_value;
+    }
+}
+
 /// Per pixel: the public `-1` / `+inf` encoding of empty pixels.
 #[cube(launch)]
 fn resolve_kernel(
@@ -415,8 +427,16 @@ impl TriangleIdOps for CubeBackend {
 
         let depth_bits = empty_u32(&client, pixels);
         let ids = empty_u32(&client, pixels);
-        fill(&client, &depth_bits, INF_BITS, pixels);
-        fill(&client, &ids, EMPTY_ID, pixels);
+        fill_pair_kernel::launch(
+            &client,
+            count_1d(pixels),
+            CubeDim::new_1d(THREADS_1D),
+            arg(&depth_bits, pixels),
+            INF_BITS,
+            arg(&ids, pixels),
+            EMPTY_ID,
+            pixels as u32,
+        );
         if num_faces > 0 && num_vertices > 0 {
             for ids_pass in [false, true] {
                 raster_faces_kernel::launch(
