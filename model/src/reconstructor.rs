@@ -52,6 +52,7 @@ use crate::point_transformer::{
 };
 use crate::sampling::{hide_invisible, project_points, sample_single};
 use lifegom_render::select::select_rows;
+use lifegom_render::split::join_columns;
 
 /// Width of the encoder's concatenated pyramid for a configuration (1152 for the paper's).
 fn encoder_feature_dim(cfg: &ImageEncoderConfig) -> usize {
@@ -569,34 +570,8 @@ impl Reconstructor {
     ) -> Tensor<2> {
         let device = src.device();
         if !runs_on_host(&device) && !device.is_autodiff() {
-            let _span = tracing::debug_span!("stacked").entered();
-            let [v, n, d] = src.dims();
-            // [V, 2, N, D] → [2V, N, D]: rows 2i and 2i + 1 are vertex i's two branches.
-            let tokens = Tensor::stack::<4>(vec![src, ren], 1).reshape([2 * v, n, d]);
-            let queries = embed
-                .clone()
-                .reshape([v, 1, d])
-                .expand([v, 2, d])
-                .reshape([2 * v, d]);
-            return self
-                .fusion
-                .forward_folded(folds, tokens, queries)
-                .reshape([v, 2 * d]);
+            return self.fuse_stacked(folds, src, ren, embed);
         }
-        let (fused_src, fused_ren) = self.fuse_branches_apart(folds, src, ren, embed, src_repeats);
-        lifegom_render::split::join_columns(vec![fused_src, fused_ren])
-    }
-
-    /// [`Self::fuse_branches`] as two passes: the fused source and rendered features.
-    fn fuse_branches_apart<'a>(
-        &'a self,
-        folds: &NormFolds<'a>,
-        src: Tensor<3>,
-        ren: Tensor<3>,
-        embed: &Tensor<2>,
-        src_repeats: Option<&RepeatedTokens>,
-    ) -> (Tensor<2>, Tensor<2>) {
-        let device = src.device();
         // The inference copy first: Burn initialises parameters lazily from the same RNG, and a
         // first use here, on this thread, keeps those draws ahead of the mask seeds and out of
         // the other branch.
@@ -620,7 +595,7 @@ impl Reconstructor {
                     .forward_folded(folds, ren, embed.clone())
                     .detach()
             };
-            return (fused_src, fused_ren);
+            return join_columns(vec![fused_src, fused_ren]);
         };
         let parent = tracing::Span::current();
         let (ren, ren_embed) = (ren.inner(), embed.clone().inner());
@@ -646,7 +621,30 @@ impl Reconstructor {
         } else {
             fused_ren
         };
-        (fused_src, fused_ren)
+        join_columns(vec![fused_src, fused_ren])
+    }
+
+    /// [`Self::fuse_branches`] at inference on a CubeCL device: both branches in one pass over
+    /// `2V` rows, whose `[2V, D]` output is the `[V, 2D]` result as it stands.
+    fn fuse_stacked<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        src: Tensor<3>,
+        ren: Tensor<3>,
+        embed: &Tensor<2>,
+    ) -> Tensor<2> {
+        let _span = tracing::debug_span!("stacked").entered();
+        let [v, n, d] = src.dims();
+        // [V, 2, N, D] → [2V, N, D]: rows 2i and 2i + 1 are vertex i's two branches.
+        let tokens = Tensor::stack::<4>(vec![src, ren], 1).reshape([2 * v, n, d]);
+        let queries = embed
+            .clone()
+            .reshape([v, 1, d])
+            .expand([v, 2, d])
+            .reshape([2 * v, d]);
+        self.fusion
+            .forward_folded(folds, tokens, queries)
+            .reshape([v, 2 * d])
     }
 
     /// With [`HierarchyPlanning::Ahead`] on a CubeCL device: the Point Transformer's levels
