@@ -23,6 +23,7 @@ use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor};
 
 use crate::linear_op;
 use crate::norm_folds::NormFolds;
+use crate::shared_linear::Activation;
 use lifegom_render::gom::GomParams;
 use lifegom_render::select::select_rows;
 
@@ -75,7 +76,7 @@ impl Mlp {
     /// [`Self::forward`] with both layers shared through `folds` (a reconstruction's feedback
     /// steps run it once each).
     pub fn forward_folded<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
-        folds.apply(&self.l2, relu(folds.apply(&self.l0, x)))
+        folds.apply(&self.l2, folds.apply_with(&self.l0, x, Activation::Relu))
     }
 }
 

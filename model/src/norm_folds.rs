@@ -23,7 +23,8 @@ use burn::tensor::{Device, Tensor};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::split::join_columns;
 
-use crate::shared_linear::SharedLinear;
+use crate::activation::relu;
+use crate::shared_linear::{Activation, SharedLinear};
 
 /// Anything a reconstruction keeps under a layer's address and a name ([`NormFolds::keep`]).
 type KeptValue = Box<dyn Any>;
@@ -146,9 +147,20 @@ impl<'a> NormFolds<'a> {
     /// `linear` applied to `x`: as a shared layer when it has a bias ([`Self::shared_layer`]),
     /// else Burn's `Linear`.
     pub(crate) fn apply<const D: usize>(&self, linear: &'a Linear, x: Tensor<D>) -> Tensor<D> {
-        match linear.bias {
-            Some(_) => self.shared_layer(linear).forward(x),
-            None => crate::linear_op::forward(linear, x),
+        self.apply_with(linear, x, Activation::Identity)
+    }
+
+    /// `act(linear(x))`, the activation in a shared layer's product ([`Self::apply`]).
+    pub(crate) fn apply_with<const D: usize>(
+        &self,
+        linear: &'a Linear,
+        x: Tensor<D>,
+        activation: Activation,
+    ) -> Tensor<D> {
+        match (&linear.bias, activation) {
+            (Some(_), _) => self.shared_layer(linear).forward_with(x, activation),
+            (None, Activation::Identity) => crate::linear_op::forward(linear, x),
+            (None, Activation::Relu) => relu(crate::linear_op::forward(linear, x)),
         }
     }
 

@@ -86,6 +86,7 @@
 //! whose input width differs; design.md §11.2.)
 
 use crate::activation::relu;
+use crate::shared_linear::Activation;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
@@ -279,6 +280,19 @@ fn linear_bn<'a, const D: usize>(
     x: Tensor<D>,
 ) -> Tensor<D> {
     folds.shared_fold(linear, bn, &x.device()).forward(x)
+}
+
+/// `ReLU(BN(Linear(x)))`: [`linear_bn`] with the ReLU in the product's launch on CubeCL devices
+/// ([`SharedLinear::forward_with`](crate::shared_linear::SharedLinear::forward_with)).
+fn linear_bn_relu<'a, const D: usize>(
+    folds: &NormFolds<'a>,
+    linear: &'a Linear,
+    bn: &'a BatchNorm,
+    x: Tensor<D>,
+) -> Tensor<D> {
+    folds
+        .shared_fold(linear, bn, &x.device())
+        .forward_with(x, Activation::Relu)
 }
 
 /// The Point Transformer encoder–decoder (module docs). Build with [`PointTransformerConfig`].
@@ -664,7 +678,7 @@ pub struct TransitionDown {
 impl TransitionDown {
     /// Stride 1: `ReLU(BN(Linear(x)))`, `[n, in] → [n, out]`.
     pub fn forward_pointwise<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
-        relu(linear_bn(folds, &self.linear, &self.bn, x))
+        linear_bn_relu(folds, &self.linear, &self.bn, x)
     }
 
     /// Stride 1 on `cat(p, x)` without forming it: `p·W[0..3] + x·W[3..]`. For the paper's
@@ -704,12 +718,12 @@ impl TransitionDown {
         let [m, k, _] = rel.dims();
         let c_in = x.dims()[1];
         let grouped = select_rows(x, 0, idx).reshape([m, k, c_in]);
-        let h = relu(linear_bn(
+        let h = linear_bn_relu(
             folds,
             &self.linear,
             &self.bn,
             lifegom_render::split::join_columns(vec![rel, grouped]),
-        ));
+        );
         let c = h.dims()[2];
         h.max_dim(1).reshape([m, c])
     }
@@ -754,7 +768,7 @@ impl PointTransformerBlock {
         nbr: Tensor<1, Int>,
     ) -> Tensor<2> {
         let identity = x.clone();
-        let h = relu(linear_bn(folds, &self.linear1, &self.bn1, x));
+        let h = linear_bn_relu(folds, &self.linear1, &self.bn1, x);
         let h = self.transformer2.forward(folds, h, rel, nbr);
         let h = relu(bn_last(folds, &self.bn2, h));
         let h = linear_bn(folds, &self.linear3, &self.bn3, h);
@@ -859,7 +873,7 @@ impl PointTransformerLayer {
         let vf = select_rows(linear_op::forward(&self.linear_v, x), 0, nbr).reshape([n, k, c]);
 
         let mp = &self.linear_p;
-        let delta = linear_op::forward(&mp.fc3, relu(linear_bn(folds, &mp.fc0, &mp.bn1, rel))); // [n, k, c]
+        let delta = linear_op::forward(&mp.fc3, linear_bn_relu(folds, &mp.fc0, &mp.bn1, rel)); // [n, k, c]
 
         let mw = &self.linear_w;
         let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
@@ -923,7 +937,7 @@ impl PointTransformerLayer {
         let mw = &self.linear_w;
         let (scale, shift) = folds.affine(&mw.bn0, &device);
         vector_attention::attend(qkv, nbr, delta, scale, shift, |related| {
-            let w = relu(linear_bn(folds, &mw.fc2, &mw.bn3, related));
+            let w = linear_bn_relu(folds, &mw.fc2, &mw.bn3, related);
             folds.shared_layer(&mw.fc5).forward(w) // [n, k, c/s]
         })
     }
@@ -980,18 +994,16 @@ impl TransitionUp {
     /// Head (coarsest level, global context): `[n, c] → [n, c]`.
     pub fn forward_head<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
         let [n, c] = x.dims();
-        let global = relu(
-            folds
-                .shared_layer(&self.linear2)
-                .forward(x.clone().mean_dim(0)),
-        )
-        .expand([n, c]);
-        relu(linear_bn(
+        let global = folds
+            .shared_layer(&self.linear2)
+            .forward_with(x.clone().mean_dim(0), Activation::Relu)
+            .expand([n, c]);
+        linear_bn_relu(
             folds,
             &self.linear1,
             &self.bn1,
             lifegom_render::split::join_columns(vec![x, global]),
-        ))
+        )
     }
 
     /// `skip` `[n_fine, c]` (encoder features of this level) plus the interpolated decoder
@@ -1003,12 +1015,14 @@ impl TransitionUp {
         coarse: Tensor<2>,
         interp: &Interpolation,
     ) -> Tensor<2> {
-        let fine = relu(linear_bn(folds, &self.linear1, &self.bn1, skip));
+        let fine = linear_bn_relu(folds, &self.linear1, &self.bn1, skip);
         let up = match &self.bn2 {
-            Some(bn) => linear_bn(folds, &self.linear2, bn, coarse),
-            None => folds.shared_layer(&self.linear2).forward(coarse),
+            Some(bn) => linear_bn_relu(folds, &self.linear2, bn, coarse),
+            None => folds
+                .shared_layer(&self.linear2)
+                .forward_with(coarse, Activation::Relu),
         };
-        fine + interp.apply(relu(up))
+        fine + interp.apply(up)
     }
 }
 

@@ -24,7 +24,6 @@ mod cube;
 pub mod kernels;
 pub mod op;
 
-use crate::activation::relu;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
@@ -35,6 +34,7 @@ use lifegom_render::split::split_columns;
 
 use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with, drops_nothing};
 use crate::norm_folds::NormFolds;
+use crate::shared_linear::Activation;
 use lifegom_render::device::runs_on_host;
 use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
 
@@ -278,7 +278,10 @@ impl AttentionLayer {
             dropout_with(&self.dropout, attn, masks[0]),
             kernel,
         );
-        let ff = folds.apply(&self.fc2, relu(folds.apply(&self.fc1, x.clone())));
+        let ff = folds.apply(
+            &self.fc2,
+            folds.apply_with(&self.fc1, x.clone(), Activation::Relu),
+        );
         self.add_norm(
             &self.norm2,
             x,
@@ -697,6 +700,8 @@ mod tests {
     #![allow(deprecated)]
     use super::*;
     use burn::tensor::Distribution;
+
+    use crate::activation::relu;
 
     use lifegom_render::testing::read;
 

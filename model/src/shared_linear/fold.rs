@@ -14,7 +14,7 @@ use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
 };
 
-use super::op::{FoldBias, Ledger, SharedLinearOps};
+use super::op::{Activation, FoldBias, Ledger, SharedLinearOps};
 
 /// `γ[c]/√(σ²[c]+ε)`.
 #[cube]
@@ -56,6 +56,16 @@ fn fold_kernel(
 }
 
 impl SharedLinearOps for CubeBackend {
+    fn shared_linear(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        _ledger: Ledger,
+        activation: Activation,
+    ) -> FloatTensor<Self> {
+        super::product::affine(x, weight, bias, activation)
+    }
+
     fn shared_fold(
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,

@@ -28,6 +28,7 @@
 mod cube;
 mod fold;
 pub mod op;
+mod product;
 
 use burn::backend::Dispatch;
 use burn::nn::{BatchNorm, Linear};
@@ -35,6 +36,7 @@ use burn::tensor::{Device, Tensor};
 use lifegom_render::device::runs_on_host;
 
 use crate::linear_op;
+pub use op::Activation;
 use op::{FoldBias, Ledger, Role, SharedLinearOps};
 
 /// `x·W + b` over the last axis, with `W` `[in, out]` and `b` `[out]` read by several passes
@@ -126,8 +128,22 @@ impl SharedLinear {
     ///
     /// If `x`'s last axis is not the layer's input width.
     pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
+        self.forward_with(x, Activation::Identity)
+    }
+
+    /// `act(x·W + b)`: `x` `[.., in]` → `[.., out]`, the activation in the product's launch on
+    /// CubeCL devices (the `product` module); on the CPU backends the layer, then Burn's ReLU.
+    ///
+    /// # Panics
+    ///
+    /// If `x`'s last axis is not the layer's input width.
+    pub fn forward_with<const D: usize>(&self, x: Tensor<D>, activation: Activation) -> Tensor<D> {
         let Some(ledger) = &self.ledger else {
-            return linear_op::affine(x, self.weight.clone(), Some(self.bias.clone()));
+            let y = linear_op::affine(x, self.weight.clone(), Some(self.bias.clone()));
+            return match activation {
+                Activation::Identity => y,
+                Activation::Relu => burn::tensor::activation::relu(y),
+            };
         };
         assert_eq!(
             x.dims()[D - 1],
@@ -139,6 +155,7 @@ impl SharedLinear {
             self.weight.clone().into_dispatch(),
             self.bias.clone().into_dispatch(),
             ledger.clone(),
+            activation,
         ))
     }
 }
@@ -176,6 +193,39 @@ mod tests {
     /// the first input, the weight and the bias (when it has one and takes a gradient). The same
     /// values whatever the device and the way the layer runs.
     fn run_passes(device: &Device, passes: usize, layer: Layer, norm: Norm) -> Vec<Vec<f32>> {
+        run_activated(
+            device,
+            Passes {
+                passes,
+                rows: 37,
+                width: 6,
+            },
+            layer,
+            norm,
+            Activation::Identity,
+        )
+    }
+
+    /// How many passes of how many rows through a layer of how many channels.
+    #[derive(Debug, Clone, Copy)]
+    struct Passes {
+        passes: usize,
+        rows: usize,
+        width: usize,
+    }
+
+    /// [`run_passes`] for any size, with `activation` after the layer.
+    fn run_activated(
+        device: &Device,
+        Passes {
+            passes,
+            rows,
+            width,
+        }: Passes,
+        layer: Layer,
+        norm: Norm,
+        activation: Activation,
+    ) -> Vec<Vec<f32>> {
         let mut rng = Rng::new(7);
         let mut draw = |shape: [usize; 2], lo: f32, hi: f32| {
             let values: Vec<f32> = (0..shape[0] * shape[1])
@@ -183,10 +233,10 @@ mod tests {
                 .collect();
             Tensor::<2>::from_data(TensorData::new(values, shape), device)
         };
-        let x0 = draw([37, 6], -1.0, 1.0).require_grad();
-        let weight = draw([6, 6], -1.0, 1.0).require_grad();
-        let bias = draw([1, 6], -1.0, 1.0).reshape([6]).require_grad();
-        let mut stat = |lo: f32, hi: f32| draw([1, 6], lo, hi).reshape([6]);
+        let x0 = draw([rows, width], -1.0, 1.0).require_grad();
+        let weight = draw([width, width], -1.0, 1.0).require_grad();
+        let bias = draw([1, width], -1.0, 1.0).reshape([width]).require_grad();
+        let mut stat = |lo: f32, hi: f32| draw([1, width], lo, hi).reshape([width]);
         let (gamma, beta, mean, var) = (
             stat(-1.5, 1.5),
             stat(-0.5, 0.5),
@@ -200,7 +250,7 @@ mod tests {
                 _ => Some(Param::from_tensor(bias.clone())),
             },
         };
-        let mut bn = BatchNormConfig::new(6).init(device);
+        let mut bn = BatchNormConfig::new(width).init(device);
         bn.gamma = Param::from_tensor(gamma).set_require_grad(false);
         bn.beta = Param::from_tensor(beta).set_require_grad(false);
         bn.running_mean = RunningState::new(mean);
@@ -217,9 +267,14 @@ mod tests {
         let mut x = x0.clone();
         let mut total = None;
         for pass in 0..passes {
-            let y = match layer {
-                Layer::Shared => shared.forward(x.clone()),
-                Layer::Composed => linear_op::affine(x.clone(), w.clone(), Some(b.clone())),
+            let y = match (layer, activation) {
+                (Layer::Shared, _) => shared.forward_with(x.clone(), activation),
+                (Layer::Composed, Activation::Identity) => {
+                    linear_op::affine(x.clone(), w.clone(), Some(b.clone()))
+                }
+                (Layer::Composed, Activation::Relu) => burn::tensor::activation::relu(
+                    linear_op::affine(x.clone(), w.clone(), Some(b.clone())),
+                ),
             };
             // A different use per pass, so that no two passes' gradients are equal.
             let out = (y.clone() * (0.5 + pass as f32 / 4.0)).tanh();
@@ -276,6 +331,45 @@ mod tests {
                         assert_close_to_scale(&shared[i], &composed[i], 1e-5, &what);
                         assert_close_to_scale(&shared[i], &reference[i], 1e-5, &what);
                     }
+                }
+            }
+        }
+    }
+
+    /// On lavapipe the product kernel (`product`) with the ReLU in its launch, and the masked
+    /// backward product that writes the masked gradient, equal Burn's `linear` and `relu` on Flex:
+    /// output, `∂x`, `∂W`, `∂b`, plain and folded, for one and three passes, at sizes that leave
+    /// partial blocks on every axis (150 rows, 70 channels: two full blocks of 64 rows and one
+    /// of 22, one full column block and one of 6, four full inner steps of 16 and one of 6), and
+    /// at the 6-channel size of [`one_gradient_for_all_passes_wgpu`]. The weights are drawn so
+    /// that about half of the outputs are negative: the mask matters.
+    #[test]
+    fn relu_products_match_burn_wgpu() {
+        let Some(device) = wgpu_test_device() else {
+            return;
+        };
+        let ad = device.autodiff();
+        let flex = DeviceChoice::Flex.device().autodiff();
+        for (rows, width) in [(150, 70), (37, 6)] {
+            for norm in [Norm::None, Norm::Folded(FoldBias::Given)] {
+                for passes in [1, 3] {
+                    let size = Passes {
+                        passes,
+                        rows,
+                        width,
+                    };
+                    let reference =
+                        run_activated(&flex, size, Layer::Composed, norm, Activation::Relu);
+                    let shared = run_activated(&ad, size, Layer::Shared, norm, Activation::Relu);
+                    for (i, what) in ["output", "∂x", "∂W", "∂b"].iter().enumerate() {
+                        let what = format!("{size:?}, {norm:?}: {what}");
+                        assert_close_to_scale(&shared[i], &reference[i], 1e-5, &what);
+                    }
+                    let zeros = shared[0].iter().filter(|v| **v == 0.0).count();
+                    assert!(
+                        zeros > 0 && zeros < shared[0].len(),
+                        "{size:?}: the ReLU clips some outputs and passes others ({zeros})"
+                    );
                 }
             }
         }

@@ -38,6 +38,7 @@
 use std::any::Any;
 use std::sync::{Arc, Mutex, PoisonError};
 
+use crate::activation::op::ReluKernels;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
@@ -48,7 +49,6 @@ use burn::backend::{Autodiff, AutodiffBackend, Backend, TensorMetadata, backend_
 use burn::tensor::Shape;
 use lifegom_render::cube::deferred::float_like;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred};
-use lifegom_render::op_backward::record;
 
 use crate::split_k::SplitK;
 
@@ -69,6 +69,16 @@ pub enum FoldBias {
     /// The layer has none and the bias argument is not read (pass any `[out]` tensor, e.g. the
     /// BN's `β`): the folded bias is `t`.
     Absent,
+}
+
+/// What a shared layer applies to `x·W + b` (in the product's own launch on CubeCL devices,
+/// see `super::product`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Activation {
+    /// Nothing: `x·W + b`.
+    Identity,
+    /// Burn's ReLU, `max(x·W + b, 0)` (NaN passes).
+    Relu,
 }
 
 /// One layer's record of its passes' backward: the inputs and output gradients of every
@@ -297,17 +307,76 @@ pub trait SharedLinearOps: Backend {
         ledger: Ledger,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
 
-    /// One pass's product.
-    #[fusion(default)]
+    /// One pass's product, `act(x·W + b)`.
+    #[fusion(dtype = x, shape = product_shape(x, weight))]
     fn shared_linear(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
         ledger: Ledger,
-    ) -> FloatTensor<Self> {
-        let _ = ledger;
-        Self::linear(x, weight, Some(bias))
+        activation: Activation,
+    ) -> FloatTensor<Self>;
+}
+
+/// The shape of `x·W` for `x` `[.., in]` and `W` `[in, out]`: `x`'s with its last axis `out`.
+fn product_shape(x: &Shape, weight: &Shape) -> Shape {
+    let mut dims = x.to_vec();
+    if let Some(last) = dims.last_mut() {
+        *last = weight[1];
     }
+    Shape::from(dims)
+}
+
+/// What a backend implements so that `Autodiff<B>` can differentiate a shared layer through
+/// its ReLU in one launch.
+#[doc(hidden)]
+pub trait ProductKernels: Backend {
+    /// `(∂x, g ⊙ [y > 0])` with `∂x = (g ⊙ [y > 0])·Wᵀ`, for the gradient `grad` `[.., out]` of
+    /// the layer's output `output` (same shape) and its weight `[in, out]` (Burn's ReLU
+    /// backward: the gradient is zeroed where the output is `≤ 0`).
+    fn relu_product_backward(
+        grad: FloatTensor<Self>,
+        output: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>);
+}
+
+impl<B: FusionBackend + ProductKernels> ProductKernels for Fusion<B> {
+    fn relu_product_backward(
+        grad: FloatTensor<Self>,
+        output: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let specs = vec![
+            float_like::<B>(
+                &grad,
+                product_shape(&grad.shape(), &transposed(&weight.shape())),
+            ),
+            float_like::<B>(&grad, grad.shape()),
+        ];
+        let inputs = vec![
+            Input::Float(grad),
+            Input::Float(output),
+            Input::Float(weight),
+        ];
+        let [dx, masked] = array(deferred::<B, _>(
+            "relu_product_backward",
+            inputs,
+            specs,
+            |v| {
+                let [grad, output, weight] = array(v);
+                let (dx, masked) =
+                    B::relu_product_backward(grad.float(), output.float(), weight.float());
+                vec![Value::Float(dx), Value::Float(masked)]
+            },
+        ));
+        (dx, masked)
+    }
+}
+
+/// `[out, in]` for a weight `[in, out]`.
+fn transposed(weight: &Shape) -> Shape {
+    Shape::new([weight[1], weight[0]])
 }
 
 /// A product node's state.
@@ -315,8 +384,11 @@ pub trait SharedLinearOps: Backend {
 pub struct ProductInputs<B: Backend> {
     x: FloatTensor<B>,
     weight: FloatTensor<B>,
+    /// Also the bias node's placeholder.
     bias: FloatTensor<B>,
     ledger: Ledger,
+    /// The layer's output, kept for a ReLU's mask.
+    activated: Option<FloatTensor<B>>,
 }
 
 /// A parameter node's state: its layer, its role, and the folded BN's scale `s` for a folded
@@ -331,7 +403,7 @@ pub struct ParameterRole<B: Backend> {
 #[derive(Debug)]
 struct ProductBackward;
 
-impl<B: Backend> Backward<B, 3> for ProductBackward {
+impl<B: ProductKernels + ReluKernels> Backward<B, 3> for ProductBackward {
     type State = ProductInputs<B>;
 
     fn backward(
@@ -343,8 +415,21 @@ impl<B: Backend> Backward<B, 3> for ProductBackward {
         let grad = grads.consume::<B>(&ops.node);
         let [x_node, weight_node, bias_node] = ops.parents;
         let s = ops.state;
-        if let Some(node) = x_node {
-            let dx = B::linear_x_backward(s.weight.clone(), grad.clone());
+        // Through a ReLU, `∂x`'s product masks the gradient and writes the masked gradient for
+        // the parameters in the same launch; without `∂x` the mask is a launch of its own.
+        let (dx, grad) = match (s.activated, &x_node) {
+            (None, Some(_)) => (
+                Some(B::linear_x_backward(s.weight.clone(), grad.clone())),
+                grad,
+            ),
+            (None, None) => (None, grad),
+            (Some(output), Some(_)) => {
+                let (dx, masked) = B::relu_product_backward(grad, output, s.weight.clone());
+                (Some(dx), masked)
+            }
+            (Some(output), None) => (None, B::fused_relu_backward(output, grad)),
+        };
+        if let (Some(node), Some(dx)) = (x_node, dx) {
             grads.register::<B>(node.id, dx);
         }
         if weight_node.is_none() && bias_node.is_none() {
@@ -454,7 +539,9 @@ impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
     }
 }
 
-impl<B: StackKernels + SharedLinearOps, C: CheckpointStrategy> SharedLinearOps for Autodiff<B, C> {
+impl<B: StackKernels + ProductKernels + ReluKernels + SharedLinearOps, C: CheckpointStrategy>
+    SharedLinearOps for Autodiff<B, C>
+{
     fn shared_parameter(value: FloatTensor<Self>, ledger: Ledger, role: Role) -> FloatTensor<Self> {
         let (value, node) = value.into_parts();
         match ParameterBackward
@@ -526,20 +613,37 @@ impl<B: StackKernels + SharedLinearOps, C: CheckpointStrategy> SharedLinearOps f
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
         ledger: Ledger,
+        activation: Activation,
     ) -> FloatTensor<Self> {
         let (x, x_node) = x.into_parts();
         let (weight, weight_node) = weight.into_parts();
         let (bias, bias_node) = bias.into_parts();
-        record::<B, C, _, _, 3>(
-            ProductBackward,
-            [x_node, weight_node, bias_node],
-            ProductInputs {
-                x,
-                weight,
-                bias,
-                ledger,
-            },
-            |s| B::linear(s.x, s.weight, Some(s.bias)),
-        )
+        match ProductBackward
+            .prepare::<C>([x_node, weight_node, bias_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let output = B::shared_linear(
+                    x.clone(),
+                    weight.clone(),
+                    bias.clone(),
+                    ledger.clone(),
+                    activation,
+                );
+                let activated = (activation == Activation::Relu).then(|| output.clone());
+                let state = ProductInputs {
+                    x,
+                    weight,
+                    bias,
+                    ledger,
+                    activated,
+                };
+                prep.finish(state, output)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::shared_linear(x, weight, bias, ledger, activation))
+            }
+        }
     }
 }

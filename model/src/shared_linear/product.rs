@@ -1,0 +1,305 @@
+//! The shared layer's products on Burn's CubeCL backend, with the layer's bias and activation in
+//! the same launch (design.md §1.4).
+//!
+//! Burn's fused-matmul path would run `act(x·W + b)` as one kernel, but without `autotune` it
+//! tries only its cooperative-matrix kernel, which `f32` products cannot use on the devices we
+//! have; its fallback is Burn's product and then one elementwise kernel for the bias and the
+//! activation, forward, and one for the activation's mask before `∂x`'s product, backward. Here
+//! each is one launch:
+//!
+//! - forward, `y = act(x·W + b)` ([`Activation`]);
+//! - backward through a ReLU, `∂x = (g ⊙ [y > 0])·Wᵀ`, which also writes the masked
+//!   `g ⊙ [y > 0]` for the parameters' gradient (the shared layer files it, `super::op`).
+//!
+//! One kernel, `affine_product_kernel`, computes `out = epilogue(A·B)` for a row-major `A`
+//! `[rows, inner]` and a strided `B` (`W` as stored, or `Wᵀ` as a view of it). Each cube of
+//! 16 × 16 threads owns a [`TILE`] × [`TILE`] block of the output and walks the inner axis
+//! [`DEPTH`] at a time: its threads stage the `A` and `B` slices in shared memory (neighbouring
+//! threads read neighbouring addresses of the row-major operands), then each thread accumulates
+//! a 4 × 4 grid of outputs, rows `ty + 16·i` and columns `tx + 16·j`, so that neighbouring
+//! threads write neighbouring columns. The masked variant multiplies `A` by its mask where it is
+//! staged; the cubes of the first column of blocks, which together stage every element of `A`
+//! once, also write it out. Each output is one thread's sum over the inner axis in a fixed
+//! order: results do not depend on scheduling.
+
+use burn::backend::TensorMetadata;
+use burn::backend::ops::FloatTensorOps;
+use burn::backend::tensor::FloatTensor;
+use burn::tensor::{DType, Shape};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::cubecl;
+use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::tensor::CubeTensor;
+use lifegom_render::cube::host::{arg, cast_to, prepare, tensor_arg, tensor_f32};
+
+use super::op::{Activation, ProductKernels};
+
+/// Output rows and columns of a cube's block.
+const TILE: usize = 64;
+
+/// Inner-axis entries staged per step.
+const DEPTH: usize = 16;
+
+/// Threads along each axis of a cube.
+const SIDE: usize = 16;
+
+/// Outputs per thread along each axis (`TILE / SIDE`).
+const PER_THREAD: usize = 4;
+
+/// Threads of a cube.
+const THREADS: usize = SIDE * SIDE;
+
+/// Row stride of the staged `A` slice: one more than a block's rows, so that the threads
+/// staging one row's `DEPTH` entries write to distinct shared-memory banks.
+const A_STRIDE: usize = TILE + 1;
+
+/// The sizes and `B`'s strides.
+#[derive(CubeType, CubeLaunch)]
+struct ProductDims {
+    rows: usize,
+    inner: usize,
+    cols: usize,
+    /// `B[k, n]` is at `k·b_inner_stride + n·b_col_stride`.
+    b_inner_stride: usize,
+    b_col_stride: usize,
+}
+
+/// `out = epilogue(A·B)` (module docs). `mask` and `masked_out` are read and written only when
+/// `masked`, `bias` only when `biased`.
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn affine_product_kernel(
+    a: &[f32],
+    mask: &[f32],
+    b: &[f32],
+    bias: &[f32],
+    out: &mut [f32],
+    masked_out: &mut [f32],
+    dims: &ProductDims,
+    #[comptime] masked: bool,
+    #[comptime] biased: bool,
+    #[comptime] relu: bool,
+) {
+    let mut a_tile = Shared::<[f32]>::new_slice(DEPTH * A_STRIDE);
+    let mut b_tile = Shared::<[f32]>::new_slice(DEPTH * TILE);
+    let tx = UNIT_POS_X as usize;
+    let ty = UNIT_POS_Y as usize;
+    let unit = ty * SIDE + tx;
+    let row0 = CUBE_POS_Y as usize * TILE;
+    let col0 = CUBE_POS_X as usize * TILE;
+    let writes_masked = CUBE_POS_X == 0;
+    let mut acc = Array::<f32>::new(PER_THREAD * PER_THREAD);
+    #[unroll]
+    for i in 0..PER_THREAD * PER_THREAD {
+        acc[i] = 0.0f32;
+    }
+    let mut k0 = 0usize;
+    while k0 < dims.inner {
+        // `A`'s block: entry `e` is row `e / DEPTH`, inner index `e % DEPTH`.
+        #[unroll]
+        for l in 0..TILE * DEPTH / THREADS {
+            let e = unit + l * THREADS;
+            let r = e / DEPTH;
+            let kk = e % DEPTH;
+            let (row, k) = (row0 + r, k0 + kk);
+            let mut v = 0.0f32;
+            if row < dims.rows && k < dims.inner {
+                let at = row * dims.inner + k;
+                v = a[at];
+                if masked {
+                    v = select(mask[at] <= 0.0f32, 0.0f32, v);
+                    if writes_masked {
+                        masked_out[at] = v;
+                    }
+                }
+            }
+            a_tile[kk * A_STRIDE + r] = v;
+        }
+        // `B`'s block: entry `e` is inner index `e / TILE`, column `e % TILE`.
+        #[unroll]
+        for l in 0..TILE * DEPTH / THREADS {
+            let e = unit + l * THREADS;
+            let kk = e / TILE;
+            let c = e % TILE;
+            let (k, col) = (k0 + kk, col0 + c);
+            let mut v = 0.0f32;
+            if k < dims.inner && col < dims.cols {
+                v = b[k * dims.b_inner_stride + col * dims.b_col_stride];
+            }
+            b_tile[kk * TILE + c] = v;
+        }
+        sync_cube();
+        for kk in 0..DEPTH {
+            let mut av = Array::<f32>::new(PER_THREAD);
+            let mut bv = Array::<f32>::new(PER_THREAD);
+            #[unroll]
+            for i in 0..PER_THREAD {
+                av[i] = a_tile[kk * A_STRIDE + ty + i * SIDE];
+                bv[i] = b_tile[kk * TILE + tx + i * SIDE];
+            }
+            #[unroll]
+            for i in 0..PER_THREAD {
+                #[unroll]
+                for j in 0..PER_THREAD {
+                    acc[i * PER_THREAD + j] += av[i] * bv[j];
+                }
+            }
+        }
+        sync_cube();
+        k0 += DEPTH;
+    }
+    #[unroll]
+    for i in 0..PER_THREAD {
+        let row = row0 + ty + i * SIDE;
+        #[unroll]
+        for j in 0..PER_THREAD {
+            let col = col0 + tx + j * SIDE;
+            if row < dims.rows && col < dims.cols {
+                let mut v = acc[i * PER_THREAD + j];
+                if biased {
+                    v += bias[col];
+                }
+                if relu {
+                    // Burn's ReLU: `v ≤ 0 → 0`, NaN passes.
+                    v = select(v <= 0.0f32, 0.0f32, v);
+                }
+                out[row * dims.cols + col] = v;
+            }
+        }
+    }
+}
+
+/// `B` of a product: the weight `W` `[in, out]` as stored, or its transpose.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum WeightSide {
+    /// `x·W`.
+    AsStored,
+    /// `g·Wᵀ`.
+    Transposed,
+}
+
+/// `(epilogue(A·B), A ⊙ [mask > 0] when masked)` for `a` `[rows, inner]`, its `mask` of the
+/// same shape and the layer's weight, all prepared.
+fn launch_product(
+    a: &CubeTensor,
+    mask: Option<&CubeTensor>,
+    weight: &CubeTensor,
+    side: WeightSide,
+    bias: Option<&CubeTensor>,
+    activation: Activation,
+) -> (CubeTensor, Option<CubeTensor>) {
+    let (client, device) = (&a.client, &a.device);
+    let [rows, inner] = [a.shape()[0], a.shape()[1]];
+    let [w_in, w_out] = [weight.shape()[0], weight.shape()[1]];
+    let (cols, b_inner_stride, b_col_stride) = match side {
+        WeightSide::AsStored => (w_out, w_out, 1),
+        WeightSide::Transposed => (w_in, 1, w_out),
+    };
+    assert_eq!(
+        inner,
+        match side {
+            WeightSide::AsStored => w_in,
+            WeightSide::Transposed => w_out,
+        },
+        "a product's inner widths"
+    );
+    let out = client.empty(4 * (rows * cols).max(1));
+    let masked = mask.is_some();
+    let masked_out = masked.then(|| client.empty(4 * (rows * inner).max(1)));
+    if rows > 0 && cols > 0 {
+        // Unused bindings are bound to `A` and never read or written.
+        let mask_arg = tensor_arg(mask.unwrap_or(a));
+        let masked_arg = masked_out
+            .as_ref()
+            .map_or_else(|| tensor_arg(a), |h| arg(h, rows * inner));
+        let blocks = |n: usize| n.div_ceil(TILE) as u32;
+        affine_product_kernel::launch(
+            client,
+            CubeCount::Static(blocks(cols), blocks(rows), 1),
+            CubeDim::new_2d(SIDE as u32, SIDE as u32),
+            tensor_arg(a),
+            mask_arg,
+            tensor_arg(weight),
+            tensor_arg(bias.unwrap_or(a)),
+            arg(&out, rows * cols),
+            masked_arg,
+            ProductDimsLaunch::new(rows, inner, cols, b_inner_stride, b_col_stride),
+            masked,
+            bias.is_some(),
+            activation == Activation::Relu,
+        );
+    }
+    let masked_out = masked_out.map(|h| tensor_f32(client, device, h, &[rows, inner]));
+    (tensor_f32(client, device, out, &[rows, cols]), masked_out)
+}
+
+/// `x` `[.., c]` as `[rows, c]`, prepared (a view of the prepared tensor: no launch).
+fn rows_of(x: FloatTensor<CubeBackend>) -> CubeTensor {
+    let x = prepare(x);
+    let shape = x.shape();
+    let c = shape[shape.num_dims() - 1];
+    let rows = shape.num_elements() / c.max(1);
+    CubeBackend::float_reshape(x, Shape::new([rows, c]))
+}
+
+/// `t` `[rows, last]` as `shape` with its last axis `last`, in `dtype`.
+fn shaped(t: CubeTensor, shape: &Shape, last: usize, dtype: DType) -> CubeTensor {
+    let mut dims = shape.to_vec();
+    if let Some(d) = dims.last_mut() {
+        *d = last;
+    }
+    cast_to(CubeBackend::float_reshape(t, Shape::from(dims)), dtype)
+}
+
+/// `act(x·W + b)` for `x` `[.., in]`, `W` `[in, out]`, `b` `[out]` → `[.., out]`.
+pub(super) fn affine(
+    x: FloatTensor<CubeBackend>,
+    weight: FloatTensor<CubeBackend>,
+    bias: FloatTensor<CubeBackend>,
+    activation: Activation,
+) -> FloatTensor<CubeBackend> {
+    let dtype = x.dtype();
+    let shape = x.shape();
+    let a = rows_of(x);
+    let weight = prepare(weight);
+    let bias = prepare(bias);
+    let cols = weight.shape()[1];
+    let (out, _) = launch_product(
+        &a,
+        None,
+        &weight,
+        WeightSide::AsStored,
+        Some(&bias),
+        activation,
+    );
+    shaped(out, &shape, cols, dtype)
+}
+
+impl ProductKernels for CubeBackend {
+    fn relu_product_backward(
+        grad: FloatTensor<Self>,
+        output: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let dtype = grad.dtype();
+        let shape = grad.shape();
+        let g = rows_of(grad);
+        let mask = rows_of(output);
+        let weight = prepare(weight);
+        let d_in = weight.shape()[0];
+        let (dx, masked) = launch_product(
+            &g,
+            Some(&mask),
+            &weight,
+            WeightSide::Transposed,
+            None,
+            Activation::Identity,
+        );
+        let masked = masked.expect("a masked product writes its masked gradient");
+        let out = shape[shape.num_dims() - 1];
+        (
+            shaped(dx, &shape, d_in, dtype),
+            shaped(masked, &shape, out, dtype),
+        )
+    }
+}
