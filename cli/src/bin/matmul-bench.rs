@@ -18,6 +18,9 @@
 //!   backward could launch instead. The inputs are padded to whole chunks outside the timed
 //!   region, so the figure is the two kernels' cost, not the padding's;
 //! - `batched`: `[b, m, k]·[1, k, n]`, the Point Transformer's per-group products;
+//! - `layer`: `relu(x·W + b)`, a layer with its bias and ReLU, as Burn's product and
+//!   elementwise ops (`"kernel": "burn"`) and as the shared layer's product kernel with both in
+//!   its launch (`"kernel": "shared"`, `lifegom_model::shared_linear`);
 //! - `column_sum`: `Σ_rows g` of `g: [k, n]`, a layer's bias gradient (`m` = 1), as one
 //!   `sum_dim(0)`; `chunked_column_sum`: the same as sums within `c`-row chunks, then over the
 //!   chunks (`[S, c, n]` → `[S, 1, n]` → `[1, 1, n]`, the input padded outside the timed region).
@@ -34,6 +37,7 @@ use anyhow::Context;
 use burn::tensor::{Distribution, Tensor};
 use clap::Parser;
 use lifegom_cli::launches::{KernelTiming, LaunchCounter, LaunchTally};
+use lifegom_model::shared_linear::{Activation, SharedLinear};
 use lifegom_render::device::{DeviceChoice, wait_for_values};
 
 #[derive(Parser, Debug)]
@@ -59,6 +63,16 @@ enum Form {
     Batched { batch: usize },
     ColumnSum,
     ChunkedColumnSum { chunk: usize },
+    Layer { kernel: LayerKernel },
+}
+
+/// Which kernels run a `layer` case.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum LayerKernel {
+    /// Burn's product, then its elementwise ops for the bias and the ReLU.
+    Burn,
+    /// [`SharedLinear::forward_with`]: one launch on CubeCL devices.
+    Shared,
 }
 
 impl Form {
@@ -70,6 +84,7 @@ impl Form {
             Form::Batched { .. } => "batched",
             Form::ColumnSum => "column_sum",
             Form::ChunkedColumnSum { .. } => "chunked_column_sum",
+            Form::Layer { .. } => "layer",
         }
     }
 }
@@ -122,6 +137,17 @@ fn cases() -> Vec<Case> {
         case(Form::Batched { batch: 307 }, 16, 4, 16, false),
         case(Form::Forward, 41154, 1152, 1152, true),
     ];
+    // Layers with a bias and a ReLU: the quickstart's and the paper Point Transformer's widest.
+    for (m, k, n, paper) in [
+        (3687, 144, 144, false),
+        (1229, 144, 144, false),
+        (1229, 8, 8, false),
+        (41154, 144, 144, true),
+    ] {
+        for kernel in [LayerKernel::Burn, LayerKernel::Shared] {
+            out.push(case(Form::Layer { kernel }, m, k, n, paper));
+        }
+    }
     // Weight gradients: `[m, k]·[k, n]` with k the rows of the layer's input.
     for (m, k, n, paper) in [
         (144, 3687, 144, false),
@@ -160,6 +186,10 @@ enum Inputs {
     ColumnSum(Tensor<2>),
     /// `g: [S, c, n]`.
     ChunkedColumnSum(Tensor<3>),
+    /// `x`, `W`, `b`.
+    BurnLayer(Tensor<2>, Tensor<2>, Tensor<1>),
+    /// `x` and the layer.
+    SharedLayer(Tensor<2>, SharedLinear),
 }
 
 impl Inputs {
@@ -184,6 +214,15 @@ impl Inputs {
             Form::ChunkedColumnSum { chunk } => {
                 Inputs::ChunkedColumnSum(padded(Tensor::random([k, n], normal, device), chunk))
             }
+            Form::Layer { kernel } => {
+                let x = Tensor::random([m, k], normal, device);
+                let w = Tensor::random([k, n], normal, device);
+                let b = Tensor::random([n], normal, device);
+                match kernel {
+                    LayerKernel::Burn => Inputs::BurnLayer(x, w, b),
+                    LayerKernel::Shared => Inputs::SharedLayer(x, SharedLinear::new(w, b)),
+                }
+            }
             Form::Batched { batch } => Inputs::Batched(
                 Tensor::random([batch, m, k], normal, device),
                 Tensor::random([1, k, n], normal, device),
@@ -200,6 +239,12 @@ impl Inputs {
             Inputs::Batched(a, b) => wait_for_values(a.clone().matmul(b.clone())),
             Inputs::ColumnSum(g) => wait_for_values(g.clone().sum_dim(0)),
             Inputs::ChunkedColumnSum(g) => wait_for_values(g.clone().sum_dim(1).sum_dim(0)),
+            Inputs::BurnLayer(x, w, b) => wait_for_values(burn::tensor::activation::relu(
+                x.clone().matmul(w.clone()) + b.clone().unsqueeze_dim(0),
+            )),
+            Inputs::SharedLayer(x, layer) => {
+                wait_for_values(layer.forward_with(x.clone(), Activation::Relu))
+            }
         }
     }
 }
@@ -251,6 +296,12 @@ fn main() -> anyhow::Result<()> {
         });
         if let Form::Batched { batch } = case.form {
             line["batch"] = serde_json::json!(batch);
+        }
+        if let Form::Layer { kernel } = case.form {
+            line["kernel"] = serde_json::json!(match kernel {
+                LayerKernel::Burn => "burn",
+                LayerKernel::Shared => "shared",
+            });
         }
         if let Form::SplitK { chunk } | Form::ChunkedColumnSum { chunk } = case.form {
             line["chunk"] = serde_json::json!(chunk);
