@@ -771,8 +771,9 @@ impl PointTransformerBlock {
         let h = linear_bn_relu(folds, &self.linear1, &self.bn1, x);
         let h = self.transformer2.forward(folds, h, rel, nbr);
         let h = relu(bn_last(folds, &self.bn2, h));
-        let h = linear_bn(folds, &self.linear3, &self.bn3, h);
-        relu(h + identity)
+        folds
+            .shared_fold(&self.linear3, &self.bn3, &h.device())
+            .forward_residual_relu(h, identity)
     }
 }
 

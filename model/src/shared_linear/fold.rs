@@ -63,7 +63,17 @@ impl SharedLinearOps for CubeBackend {
         _ledger: Ledger,
         activation: Activation,
     ) -> FloatTensor<Self> {
-        super::product::affine(x, weight, bias, activation)
+        super::product::affine(x, weight, bias, None, activation)
+    }
+
+    fn shared_linear_residual(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        residual: FloatTensor<Self>,
+        _ledger: Ledger,
+    ) -> FloatTensor<Self> {
+        super::product::affine(x, weight, bias, Some(residual), Activation::Relu)
     }
 
     fn shared_fold(

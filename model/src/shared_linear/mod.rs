@@ -131,6 +131,44 @@ impl SharedLinear {
         self.forward_with(x, Activation::Identity)
     }
 
+    /// `relu(x·W + b + residual)` for `x` `[.., in]` and `residual` `[.., out]`, a residual
+    /// block's last layer: the sum and the ReLU in the product's launch on CubeCL devices, and
+    /// the residual's gradient the masked gradient that the backward's product writes anyway;
+    /// on the CPU backends the layer, the sum and Burn's ReLU.
+    ///
+    /// # Panics
+    ///
+    /// If `x`'s last axis is not the layer's input width, or `residual` is not the output's shape.
+    pub fn forward_residual_relu<const D: usize>(
+        &self,
+        x: Tensor<D>,
+        residual: Tensor<D>,
+    ) -> Tensor<D> {
+        let Some(ledger) = &self.ledger else {
+            let y = linear_op::affine(x, self.weight.clone(), Some(self.bias.clone()));
+            return burn::tensor::activation::relu(y + residual);
+        };
+        let mut out = x.dims();
+        out[D - 1] = self.weight.dims()[1];
+        assert_eq!(
+            x.dims()[D - 1],
+            self.weight.dims()[0],
+            "input width of a shared layer"
+        );
+        assert_eq!(
+            residual.dims(),
+            out,
+            "a residual has the layer's output shape"
+        );
+        Tensor::from_dispatch(<Dispatch as SharedLinearOps>::shared_linear_residual(
+            x.into_dispatch(),
+            self.weight.clone().into_dispatch(),
+            self.bias.clone().into_dispatch(),
+            residual.into_dispatch(),
+            ledger.clone(),
+        ))
+    }
+
     /// `act(x·W + b)`: `x` `[.., in]` → `[.., out]`, the activation in the product's launch on
     /// CubeCL devices (the `product` module); on the CPU backends the layer, then Burn's ReLU.
     ///
@@ -193,7 +231,7 @@ mod tests {
     /// the first input, the weight and the bias (when it has one and takes a gradient). The same
     /// values whatever the device and the way the layer runs.
     fn run_passes(device: &Device, passes: usize, layer: Layer, norm: Norm) -> Vec<Vec<f32>> {
-        run_activated(
+        run_ending(
             device,
             Passes {
                 passes,
@@ -202,7 +240,7 @@ mod tests {
             },
             layer,
             norm,
-            Activation::Identity,
+            Ending::Activated(Activation::Identity),
         )
     }
 
@@ -214,8 +252,17 @@ mod tests {
         width: usize,
     }
 
-    /// [`run_passes`] for any size, with `activation` after the layer.
-    fn run_activated(
+    /// What follows the layer's product.
+    #[derive(Debug, Clone, Copy, PartialEq)]
+    enum Ending {
+        /// The activation.
+        Activated(Activation),
+        /// The pass's input added as a residual, then a ReLU.
+        ResidualRelu,
+    }
+
+    /// [`run_passes`] for any size and [`Ending`].
+    fn run_ending(
         device: &Device,
         Passes {
             passes,
@@ -224,7 +271,7 @@ mod tests {
         }: Passes,
         layer: Layer,
         norm: Norm,
-        activation: Activation,
+        ending: Ending,
     ) -> Vec<Vec<f32>> {
         let mut rng = Rng::new(7);
         let mut draw = |shape: [usize; 2], lo: f32, hi: f32| {
@@ -267,14 +314,21 @@ mod tests {
         let mut x = x0.clone();
         let mut total = None;
         for pass in 0..passes {
-            let y = match (layer, activation) {
-                (Layer::Shared, _) => shared.forward_with(x.clone(), activation),
-                (Layer::Composed, Activation::Identity) => {
-                    linear_op::affine(x.clone(), w.clone(), Some(b.clone()))
+            let composed = || linear_op::affine(x.clone(), w.clone(), Some(b.clone()));
+            let y = match (layer, ending) {
+                (Layer::Shared, Ending::Activated(activation)) => {
+                    shared.forward_with(x.clone(), activation)
                 }
-                (Layer::Composed, Activation::Relu) => burn::tensor::activation::relu(
-                    linear_op::affine(x.clone(), w.clone(), Some(b.clone())),
-                ),
+                (Layer::Shared, Ending::ResidualRelu) => {
+                    shared.forward_residual_relu(x.clone(), x.clone())
+                }
+                (Layer::Composed, Ending::Activated(Activation::Identity)) => composed(),
+                (Layer::Composed, Ending::Activated(Activation::Relu)) => {
+                    burn::tensor::activation::relu(composed())
+                }
+                (Layer::Composed, Ending::ResidualRelu) => {
+                    burn::tensor::activation::relu(composed() + x.clone())
+                }
             };
             // A different use per pass, so that no two passes' gradients are equal.
             let out = (y.clone() * (0.5 + pass as f32 / 4.0)).tanh();
@@ -336,8 +390,9 @@ mod tests {
         }
     }
 
-    /// On lavapipe the product kernel (`product`) with the ReLU in its launch, and the masked
-    /// backward product that writes the masked gradient, equal Burn's `linear` and `relu` on Flex:
+    /// On lavapipe the product kernel (`product`) with the ReLU in its launch (alone, and after
+    /// the pass's input added as a residual), and the masked backward product that writes the
+    /// masked gradient (also the residual's), equal Burn's `linear`, `+` and `relu` on Flex:
     /// output, `∂x`, `∂W`, `∂b`, plain and folded, for one and three passes, at sizes that leave
     /// partial blocks on every axis (150 rows, 70 channels: two full blocks of 64 rows and one
     /// of 22, one full column block and one of 6, four full inner steps of 16 and one of 6), and
@@ -358,18 +413,20 @@ mod tests {
                         rows,
                         width,
                     };
-                    let reference =
-                        run_activated(&flex, size, Layer::Composed, norm, Activation::Relu);
-                    let shared = run_activated(&ad, size, Layer::Shared, norm, Activation::Relu);
-                    for (i, what) in ["output", "∂x", "∂W", "∂b"].iter().enumerate() {
-                        let what = format!("{size:?}, {norm:?}: {what}");
-                        assert_close_to_scale(&shared[i], &reference[i], 1e-5, &what);
+                    for ending in [Ending::Activated(Activation::Relu), Ending::ResidualRelu] {
+                        let reference = run_ending(&flex, size, Layer::Composed, norm, ending);
+                        let shared = run_ending(&ad, size, Layer::Shared, norm, ending);
+                        for (i, what) in ["output", "∂x", "∂W", "∂b"].iter().enumerate() {
+                            let what = format!("{size:?}, {norm:?}, {ending:?}: {what}");
+                            assert_close_to_scale(&shared[i], &reference[i], 1e-5, &what);
+                        }
+                        let zeros = shared[0].iter().filter(|v| **v == 0.0).count();
+                        assert!(
+                            zeros > 0 && zeros < shared[0].len(),
+                            "{size:?}, {ending:?}: the ReLU clips some outputs and passes \
+                             others ({zeros})"
+                        );
                     }
-                    let zeros = shared[0].iter().filter(|v| **v == 0.0).count();
-                    assert!(
-                        zeros > 0 && zeros < shared[0].len(),
-                        "{size:?}: the ReLU clips some outputs and passes others ({zeros})"
-                    );
                 }
             }
         }

@@ -39,6 +39,7 @@ use std::any::Any;
 use std::sync::{Arc, Mutex, PoisonError};
 
 use crate::activation::op::ReluKernels;
+use burn::backend::autodiff::NodeId;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
@@ -316,6 +317,17 @@ pub trait SharedLinearOps: Backend {
         ledger: Ledger,
         activation: Activation,
     ) -> FloatTensor<Self>;
+
+    /// One pass's product with a residual `r` (`[.., out]`) added before a ReLU,
+    /// `relu(x·W + b + r)`: a residual block's last layer.
+    #[fusion(dtype = x, shape = product_shape(x, weight))]
+    fn shared_linear_residual(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        residual: FloatTensor<Self>,
+        ledger: Ledger,
+    ) -> FloatTensor<Self>;
 }
 
 /// The shape of `x·W` for `x` `[.., in]` and `W` `[in, out]`: `x`'s with its last axis `out`.
@@ -413,43 +425,78 @@ impl<B: ProductKernels + ReluKernels> Backward<B, 3> for ProductBackward {
         _checkpointer: &mut Checkpointer,
     ) {
         let grad = grads.consume::<B>(&ops.node);
-        let [x_node, weight_node, bias_node] = ops.parents;
-        let s = ops.state;
-        // Through a ReLU, `∂x`'s product masks the gradient and writes the masked gradient for
-        // the parameters in the same launch; without `∂x` the mask is a launch of its own.
-        let (dx, grad) = match (s.activated, &x_node) {
-            (None, Some(_)) => (
-                Some(B::linear_x_backward(s.weight.clone(), grad.clone())),
-                grad,
-            ),
-            (None, None) => (None, grad),
-            (Some(output), Some(_)) => {
-                let (dx, masked) = B::relu_product_backward(grad, output, s.weight.clone());
-                (Some(dx), masked)
-            }
-            (Some(output), None) => (None, B::fused_relu_backward(output, grad)),
-        };
-        if let (Some(node), Some(dx)) = (x_node, dx) {
-            grads.register::<B>(node.id, dx);
-        }
-        if weight_node.is_none() && bias_node.is_none() {
-            return;
-        }
-        let mut ledger = s.ledger.lock();
-        for (slot, node, placeholder) in [(0, &weight_node, &s.weight), (1, &bias_node, &s.bias)] {
-            if let Some(node) = node
-                && !ledger.seeded[slot]
-            {
-                grads.register::<B>(node.id, placeholder.clone());
-                ledger.seeded[slot] = true;
-            }
-        }
-        let rows = ledger.rows::<B>();
-        if weight_node.is_some() {
-            rows.inputs.push(flatten::<B>(s.x));
-        }
-        rows.grads.push(flatten::<B>(grad));
+        let ids = ops.parents.map(|node| node.map(|n| n.id));
+        product_backward(grad, ids, ops.state, grads);
     }
+}
+
+/// A product node with a residual added before its ReLU
+/// ([`SharedLinearOps::shared_linear_residual`]): the residual's gradient is the masked
+/// gradient the product's backward forms anyway.
+#[derive(Debug)]
+struct ResidualProductBackward;
+
+impl<B: ProductKernels + ReluKernels> Backward<B, 4> for ResidualProductBackward {
+    type State = ProductInputs<B>;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 4>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let [x, weight, bias, residual] = ops.parents.map(|node| node.map(|n| n.id));
+        let masked = product_backward(grad, [x, weight, bias], ops.state, grads);
+        if let Some(residual) = residual {
+            grads.register::<B>(residual, masked);
+        }
+    }
+}
+
+/// A product node's backward (module docs): registers `∂x`, files the pass's rows with the
+/// layer, and returns the gradient at the activation's input (`grad` masked through a ReLU).
+fn product_backward<B: ProductKernels + ReluKernels>(
+    grad: FloatTensor<B>,
+    [x_node, weight_node, bias_node]: [Option<NodeId>; 3],
+    s: ProductInputs<B>,
+    grads: &mut Gradients,
+) -> FloatTensor<B> {
+    // Through a ReLU, `∂x`'s product masks the gradient and writes the masked gradient for the
+    // parameters in the same launch; without `∂x` the mask is a launch of its own.
+    let (dx, grad) = match (s.activated, x_node) {
+        (None, Some(_)) => (
+            Some(B::linear_x_backward(s.weight.clone(), grad.clone())),
+            grad,
+        ),
+        (None, None) => (None, grad),
+        (Some(output), Some(_)) => {
+            let (dx, masked) = B::relu_product_backward(grad, output, s.weight.clone());
+            (Some(dx), masked)
+        }
+        (Some(output), None) => (None, B::fused_relu_backward(output, grad)),
+    };
+    if let (Some(node), Some(dx)) = (x_node, dx) {
+        grads.register::<B>(node, dx);
+    }
+    if weight_node.is_none() && bias_node.is_none() {
+        return grad;
+    }
+    let mut ledger = s.ledger.lock();
+    for (slot, node, placeholder) in [(0, weight_node, &s.weight), (1, bias_node, &s.bias)] {
+        if let Some(node) = node
+            && !ledger.seeded[slot]
+        {
+            grads.register::<B>(node, placeholder.clone());
+            ledger.seeded[slot] = true;
+        }
+    }
+    let rows = ledger.rows::<B>();
+    if weight_node.is_some() {
+        rows.inputs.push(flatten::<B>(s.x));
+    }
+    rows.grads.push(flatten::<B>(grad.clone()));
+    grad
 }
 
 #[derive(Debug)]
@@ -643,6 +690,45 @@ impl<B: StackKernels + ProductKernels + ReluKernels + SharedLinearOps, C: Checkp
             }
             OpsKind::UnTracked(prep) => {
                 prep.finish(B::shared_linear(x, weight, bias, ledger, activation))
+            }
+        }
+    }
+
+    fn shared_linear_residual(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        residual: FloatTensor<Self>,
+        ledger: Ledger,
+    ) -> FloatTensor<Self> {
+        let (x, x_node) = x.into_parts();
+        let (weight, weight_node) = weight.into_parts();
+        let (bias, bias_node) = bias.into_parts();
+        let (residual, residual_node) = residual.into_parts();
+        match ResidualProductBackward
+            .prepare::<C>([x_node, weight_node, bias_node, residual_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let output = B::shared_linear_residual(
+                    x.clone(),
+                    weight.clone(),
+                    bias.clone(),
+                    residual,
+                    ledger.clone(),
+                );
+                let state = ProductInputs {
+                    x,
+                    weight,
+                    bias,
+                    ledger,
+                    activated: Some(output.clone()),
+                };
+                prep.finish(state, output)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::shared_linear_residual(x, weight, bias, residual, ledger))
             }
         }
     }

@@ -7,7 +7,8 @@
 //! activation, forward, and one for the activation's mask before `∂x`'s product, backward. Here
 //! each is one launch:
 //!
-//! - forward, `y = act(x·W + b)` ([`Activation`]);
+//! - forward, `y = act(x·W + b)` ([`Activation`]), or `y = relu(x·W + b + r)` for a residual
+//!   block's last layer;
 //! - backward through a ReLU, `∂x = (g ⊙ [y > 0])·Wᵀ`, which also writes the masked
 //!   `g ⊙ [y > 0]` for the parameters' gradient (the shared layer files it, `super::op`).
 //!
@@ -65,7 +66,8 @@ struct ProductDims {
 }
 
 /// `out = epilogue(A·B)` (module docs). `mask` and `masked_out` are read and written only when
-/// `masked`, `bias` only when `biased`.
+/// `masked`, `bias` only when `biased`, `residual` (`[rows, cols]`, added before the
+/// activation) only when `residual_added`.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 fn affine_product_kernel(
@@ -73,11 +75,13 @@ fn affine_product_kernel(
     mask: &[f32],
     b: &[f32],
     bias: &[f32],
+    residual: &[f32],
     out: &mut [f32],
     masked_out: &mut [f32],
     dims: &ProductDims,
     #[comptime] masked: bool,
     #[comptime] biased: bool,
+    #[comptime] residual_added: bool,
     #[comptime] relu: bool,
 ) {
     let mut a_tile = Shared::<[f32]>::new_slice(DEPTH * A_STRIDE);
@@ -159,6 +163,9 @@ fn affine_product_kernel(
                 if biased {
                     v += bias[col];
                 }
+                if residual_added {
+                    v += residual[row * dims.cols + col];
+                }
                 if relu {
                     // Burn's ReLU: `v ≤ 0 → 0`, NaN passes.
                     v = select(v <= 0.0f32, 0.0f32, v);
@@ -178,6 +185,25 @@ enum WeightSide {
     Transposed,
 }
 
+/// What a product adds to `A·B` before its activation, and the activation; every tensor
+/// prepared.
+struct Epilogue<'t> {
+    /// `[cols]`.
+    bias: Option<&'t CubeTensor>,
+    /// `[rows, cols]`.
+    residual: Option<&'t CubeTensor>,
+    activation: Activation,
+}
+
+impl Epilogue<'_> {
+    /// Nothing added, nothing applied.
+    const NONE: Epilogue<'static> = Epilogue {
+        bias: None,
+        residual: None,
+        activation: Activation::Identity,
+    };
+}
+
 /// `(epilogue(A·B), A ⊙ [mask > 0] when masked)` for `a` `[rows, inner]`, its `mask` of the
 /// same shape and the layer's weight, all prepared.
 fn launch_product(
@@ -185,9 +211,13 @@ fn launch_product(
     mask: Option<&CubeTensor>,
     weight: &CubeTensor,
     side: WeightSide,
-    bias: Option<&CubeTensor>,
-    activation: Activation,
+    epilogue: Epilogue<'_>,
 ) -> (CubeTensor, Option<CubeTensor>) {
+    let Epilogue {
+        bias,
+        residual,
+        activation,
+    } = epilogue;
     let (client, device) = (&a.client, &a.device);
     let [rows, inner] = [a.shape()[0], a.shape()[1]];
     let [w_in, w_out] = [weight.shape()[0], weight.shape()[1]];
@@ -221,11 +251,13 @@ fn launch_product(
             mask_arg,
             tensor_arg(weight),
             tensor_arg(bias.unwrap_or(a)),
+            tensor_arg(residual.unwrap_or(a)),
             arg(&out, rows * cols),
             masked_arg,
             ProductDimsLaunch::new(rows, inner, cols, b_inner_stride, b_col_stride),
             masked,
             bias.is_some(),
+            residual.is_some(),
             activation == Activation::Relu,
         );
     }
@@ -251,11 +283,13 @@ fn shaped(t: CubeTensor, shape: &Shape, last: usize, dtype: DType) -> CubeTensor
     cast_to(CubeBackend::float_reshape(t, Shape::from(dims)), dtype)
 }
 
-/// `act(x·W + b)` for `x` `[.., in]`, `W` `[in, out]`, `b` `[out]` → `[.., out]`.
+/// `act(x·W + b [+ r])` for `x` `[.., in]`, `W` `[in, out]`, `b` `[out]` and the residual `r`
+/// `[.., out]` when given → `[.., out]`.
 pub(super) fn affine(
     x: FloatTensor<CubeBackend>,
     weight: FloatTensor<CubeBackend>,
     bias: FloatTensor<CubeBackend>,
+    residual: Option<FloatTensor<CubeBackend>>,
     activation: Activation,
 ) -> FloatTensor<CubeBackend> {
     let dtype = x.dtype();
@@ -263,15 +297,14 @@ pub(super) fn affine(
     let a = rows_of(x);
     let weight = prepare(weight);
     let bias = prepare(bias);
+    let residual = residual.map(rows_of);
     let cols = weight.shape()[1];
-    let (out, _) = launch_product(
-        &a,
-        None,
-        &weight,
-        WeightSide::AsStored,
-        Some(&bias),
+    let epilogue = Epilogue {
+        bias: Some(&bias),
+        residual: residual.as_ref(),
         activation,
-    );
+    };
+    let (out, _) = launch_product(&a, None, &weight, WeightSide::AsStored, epilogue);
     shaped(out, &shape, cols, dtype)
 }
 
@@ -292,8 +325,7 @@ impl ProductKernels for CubeBackend {
             Some(&mask),
             &weight,
             WeightSide::Transposed,
-            None,
-            Activation::Identity,
+            Epilogue::NONE,
         );
         let masked = masked.expect("a masked product writes its masked gradient");
         let out = shape[shape.num_dims() - 1];
