@@ -32,8 +32,9 @@
 #   4. the rasterizer's headline (1024², 2 subdivisions) and test binaries named `test-*` in $BIN
 #      (run with LIFEGOM_REQUIRE_WGPU=1: the CubeCL kernels' parity with the CPU reference on the
 #      card);
-#   4b. `matmul-bench`, when $BIN has it: Burn's matmul for the training step's shapes, with
-#      fusion on and off (every line kept, one per shape and form);
+#   4b. `matmul-bench`, when $BIN has it: Burn's matmul for the training step's shapes, and
+#      `relu(x·W + b)` as Burn's kernels beside the shared layer's product kernel (`layer`
+#      lines), with fusion on and off (every line kept, one per shape and form);
 #   5. with AUTOTUNE_BIN set, the kernels Burn's autotune picks at the paper setting;
 #   6. with CUDA_BIN set (binaries built with `--features lifegom-cli/cuda`), the quickstart
 #      step and the paper reconstruction on `--device cuda` beside wgpu. CubeCL's CUDA runtime
