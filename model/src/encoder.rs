@@ -60,7 +60,7 @@ use burn::nn::{BatchNorm, BatchNormConfig, Initializer, PaddingConfig2d};
 use burn::store::{ApplyResult, KeyRemapper, ModuleSnapshot, PytorchStore, SafetensorsStore};
 use burn::tensor::{Device, Tensor, TensorData, s};
 
-use crate::channel_norm::ChannelActivation::{self, Identity, Relu};
+use crate::activation::Activation::{self, Identity, Relu};
 use crate::channel_norm::ChannelNorm;
 use crate::gemm_conv::conv2d;
 use crate::norm_folds::NormFolds;
@@ -280,7 +280,7 @@ fn frozen_bn<'a>(
     folds: &NormFolds<'a>,
     bn: &'a BatchNorm,
     x: Tensor<4>,
-    activation: ChannelActivation,
+    activation: Activation,
 ) -> Tensor<4> {
     let device = x.device();
     if !runs_on_host(&device) {
@@ -292,8 +292,8 @@ fn frozen_bn<'a>(
     let (scale, shift) = folds.affine(bn, &device);
     let y = x * scale.reshape([1, c, 1, 1]) + shift.reshape([1, c, 1, 1]);
     match activation {
-        ChannelActivation::Identity => y,
-        ChannelActivation::Relu => relu(y),
+        Activation::Identity => y,
+        Activation::Relu => relu(y),
     }
 }
 

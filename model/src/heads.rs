@@ -21,9 +21,9 @@ use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::module::linear;
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor};
 
+use crate::activation::Activation;
 use crate::linear_op;
 use crate::norm_folds::NormFolds;
-use crate::shared_linear::Activation;
 use lifegom_render::gom::GomParams;
 use lifegom_render::select::select_rows;
 

@@ -23,8 +23,9 @@ use burn::tensor::{Device, Tensor};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::split::join_columns;
 
+use crate::activation::Activation;
 use crate::activation::relu;
-use crate::shared_linear::{Activation, SharedLinear};
+use crate::shared_linear::SharedLinear;
 
 /// Anything a reconstruction keeps under a layer's address and a name ([`NormFolds::keep`]).
 type KeptValue = Box<dyn Any>;

@@ -85,8 +85,8 @@
 //! import. (The official code's ScanNet-pretrained initialisation skips `enc1.0.linear.weight`,
 //! whose input width differs; design.md §11.2.)
 
+use crate::activation::Activation;
 use crate::activation::relu;
-use crate::shared_linear::Activation;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
@@ -267,32 +267,24 @@ fn bn_last<'a, const D: usize>(
     x * scale.reshape(shape) + shift.reshape(shape)
 }
 
-/// `BN(Linear(x))` as one affine layer: the frozen BN's per-channel `scale`/`shift` folded into
-/// the layer, `x·(W·diag(scale)) + (b·scale + shift)` (`b = 0` for a layer without bias). The
-/// fold is two small ops on `[in, out]` and `[out]`; on the `[rows, out]` activations it saves
-/// the BN's multiply and add (and their backward), and runs a bias-free layer through the
-/// Linear op too ([`linear_op`]). Equal to `bn_last(bn, linear.forward(x))` up to float
-/// summation order (tested below).
+/// `act(BN(Linear(x)))` with `BN(Linear(·))` as one affine layer: the frozen BN's per-channel
+/// `scale`/`shift` folded into the layer, `x·(W·diag(scale)) + (b·scale + shift)` (`b = 0` for a
+/// layer without bias). The fold is two small ops on `[in, out]` and `[out]`; on the
+/// `[rows, out]` activations it saves the BN's multiply and add (and their backward), and runs a
+/// bias-free layer through the Linear op too ([`linear_op`]); on CubeCL devices the activation
+/// is in the product's launch
+/// ([`SharedLinear::forward_with`](crate::shared_linear::SharedLinear::forward_with)). Equal to
+/// `bn_last(bn, linear.forward(x))` up to float summation order (tested below).
 fn linear_bn<'a, const D: usize>(
     folds: &NormFolds<'a>,
     linear: &'a Linear,
     bn: &'a BatchNorm,
     x: Tensor<D>,
-) -> Tensor<D> {
-    folds.shared_fold(linear, bn, &x.device()).forward(x)
-}
-
-/// `ReLU(BN(Linear(x)))`: [`linear_bn`] with the ReLU in the product's launch on CubeCL devices
-/// ([`SharedLinear::forward_with`](crate::shared_linear::SharedLinear::forward_with)).
-fn linear_bn_relu<'a, const D: usize>(
-    folds: &NormFolds<'a>,
-    linear: &'a Linear,
-    bn: &'a BatchNorm,
-    x: Tensor<D>,
+    activation: Activation,
 ) -> Tensor<D> {
     folds
         .shared_fold(linear, bn, &x.device())
-        .forward_with(x, Activation::Relu)
+        .forward_with(x, activation)
 }
 
 /// The Point Transformer encoder–decoder (module docs). Build with [`PointTransformerConfig`].
@@ -678,7 +670,7 @@ pub struct TransitionDown {
 impl TransitionDown {
     /// Stride 1: `ReLU(BN(Linear(x)))`, `[n, in] → [n, out]`.
     pub fn forward_pointwise<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
-        linear_bn_relu(folds, &self.linear, &self.bn, x)
+        linear_bn(folds, &self.linear, &self.bn, x, Activation::Relu)
     }
 
     /// Stride 1 on `cat(p, x)` without forming it: `p·W[0..3] + x·W[3..]`. For the paper's
@@ -718,11 +710,12 @@ impl TransitionDown {
         let [m, k, _] = rel.dims();
         let c_in = x.dims()[1];
         let grouped = select_rows(x, 0, idx).reshape([m, k, c_in]);
-        let h = linear_bn_relu(
+        let h = linear_bn(
             folds,
             &self.linear,
             &self.bn,
             lifegom_render::split::join_columns(vec![rel, grouped]),
+            Activation::Relu,
         );
         let c = h.dims()[2];
         h.max_dim(1).reshape([m, c])
@@ -768,7 +761,7 @@ impl PointTransformerBlock {
         nbr: Tensor<1, Int>,
     ) -> Tensor<2> {
         let identity = x.clone();
-        let h = linear_bn_relu(folds, &self.linear1, &self.bn1, x);
+        let h = linear_bn(folds, &self.linear1, &self.bn1, x, Activation::Relu);
         let h = self.transformer2.forward(folds, h, rel, nbr);
         let h = relu(bn_last(folds, &self.bn2, h));
         folds
@@ -874,11 +867,20 @@ impl PointTransformerLayer {
         let vf = select_rows(linear_op::forward(&self.linear_v, x), 0, nbr).reshape([n, k, c]);
 
         let mp = &self.linear_p;
-        let delta = linear_op::forward(&mp.fc3, linear_bn_relu(folds, &mp.fc0, &mp.bn1, rel)); // [n, k, c]
+        let delta = linear_op::forward(
+            &mp.fc3,
+            linear_bn(folds, &mp.fc0, &mp.bn1, rel, Activation::Relu),
+        ); // [n, k, c]
 
         let mw = &self.linear_w;
         let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
-        let w = linear_bn(folds, &mw.fc2, &mw.bn3, relu(bn_last(folds, &mw.bn0, w)));
+        let w = linear_bn(
+            folds,
+            &mw.fc2,
+            &mw.bn3,
+            relu(bn_last(folds, &mw.bn0, w)),
+            Activation::Identity,
+        );
         let w = linear_op::forward(&mw.fc5, relu(w)); // [n, k, c/s]
 
         let values = (vf + delta).reshape([n, k, s, c / s]);
@@ -938,7 +940,7 @@ impl PointTransformerLayer {
         let mw = &self.linear_w;
         let (scale, shift) = folds.affine(&mw.bn0, &device);
         vector_attention::attend(qkv, nbr, delta, scale, shift, |related| {
-            let w = linear_bn_relu(folds, &mw.fc2, &mw.bn3, related);
+            let w = linear_bn(folds, &mw.fc2, &mw.bn3, related, Activation::Relu);
             folds.shared_layer(&mw.fc5).forward(w) // [n, k, c/s]
         })
     }
@@ -999,11 +1001,12 @@ impl TransitionUp {
             .shared_layer(&self.linear2)
             .forward_with(x.clone().mean_dim(0), Activation::Relu)
             .expand([n, c]);
-        linear_bn_relu(
+        linear_bn(
             folds,
             &self.linear1,
             &self.bn1,
             lifegom_render::split::join_columns(vec![x, global]),
+            Activation::Relu,
         )
     }
 
@@ -1016,9 +1019,9 @@ impl TransitionUp {
         coarse: Tensor<2>,
         interp: &Interpolation,
     ) -> Tensor<2> {
-        let fine = linear_bn_relu(folds, &self.linear1, &self.bn1, skip);
+        let fine = linear_bn(folds, &self.linear1, &self.bn1, skip, Activation::Relu);
         let up = match &self.bn2 {
-            Some(bn) => linear_bn_relu(folds, &self.linear2, bn, coarse),
+            Some(bn) => linear_bn(folds, &self.linear2, bn, coarse, Activation::Relu),
             None => folds
                 .shared_layer(&self.linear2)
                 .forward_with(coarse, Activation::Relu),
@@ -1139,7 +1142,13 @@ mod tests {
             );
             let run = |folded: bool| {
                 let y = if folded {
-                    linear_bn(&NormFolds::new(), &layer, &bn, x.clone())
+                    linear_bn(
+                        &NormFolds::new(),
+                        &layer,
+                        &bn,
+                        x.clone(),
+                        Activation::Identity,
+                    )
                 } else {
                     bn_last(&NormFolds::new(), &bn, layer.forward(x.clone()))
                 };

@@ -37,7 +37,8 @@ use anyhow::Context;
 use burn::tensor::{Distribution, Tensor};
 use clap::Parser;
 use lifegom_cli::launches::{KernelTiming, LaunchCounter, LaunchTally};
-use lifegom_model::shared_linear::{Activation, SharedLinear};
+use lifegom_model::activation::Activation;
+use lifegom_model::shared_linear::SharedLinear;
 use lifegom_render::device::{DeviceChoice, wait_for_values};
 
 #[derive(Parser, Debug)]

@@ -20,6 +20,17 @@ pub mod op;
 use burn::tensor::Tensor;
 use lifegom_render::device::{KernelFusion, runs_on_host};
 
+/// What a layer applies after its affine map, inside the op's own launch where the op has one
+/// (the encoder's norms, [`crate::channel_norm`]; the shared layers' products,
+/// [`crate::shared_linear`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Activation {
+    /// Nothing.
+    Identity,
+    /// Burn's ReLU, `max(·, 0)` (NaN passes); its gradient passes where the output is positive.
+    Relu,
+}
+
 /// `max(x, 0)` elementwise, Burn's `relu` (module docs).
 pub fn relu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
     if runs_on_host(&x.device()) || KernelFusion::current() == KernelFusion::On {

@@ -26,7 +26,8 @@ use lifegom_render::cube::host::{
 };
 use lifegom_render::cube::image::{ImageLayout, dense, image_layout};
 
-use super::op::{ChannelActivation, ChannelNormKernels, ChannelNormOps, NormLedger, TOTAL_PARTS};
+use super::op::{ChannelNormKernels, ChannelNormOps, NormLedger, TOTAL_PARTS};
+use crate::activation::Activation;
 
 /// Pixels of one image and channel each partial sum covers.
 const PIXELS_PER_CHUNK: usize = 256;
@@ -213,7 +214,7 @@ impl ChannelNormOps for CubeBackend {
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         epsilon: f32,
-        activation: ChannelActivation,
+        activation: Activation,
         _ledger: NormLedger,
     ) -> FloatTensor<Self> {
         let dtype = x.dtype();
@@ -239,7 +240,7 @@ impl ChannelNormOps for CubeBackend {
                 c,
                 channel_stride,
                 epsilon,
-                u32::from(activation == ChannelActivation::Relu),
+                u32::from(activation == Activation::Relu),
             );
         }
         cast_to(laid_out_as(&x, out), dtype)
@@ -255,7 +256,7 @@ impl ChannelNormKernels for CubeBackend {
         var: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         epsilon: f32,
-        activation: ChannelActivation,
+        activation: Activation,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let dtype = x.dtype();
         let shape = x.shape();
@@ -289,7 +290,7 @@ impl ChannelNormKernels for CubeBackend {
                 chunks,
                 PIXELS_PER_CHUNK,
                 epsilon,
-                u32::from(activation == ChannelActivation::Relu),
+                u32::from(activation == Activation::Relu),
                 image_layout(&x),
                 image_layout(&grad),
             );

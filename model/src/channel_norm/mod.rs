@@ -23,7 +23,7 @@ use burn::backend::Dispatch;
 use burn::nn::BatchNorm;
 use burn::tensor::{Device, Tensor};
 
-pub use op::ChannelActivation;
+use crate::activation::Activation;
 use op::{ChannelNormOps, NormLedger};
 
 /// One BatchNorm's `γ`, `β` and statistics, kept for every pass of a reconstruction on a CubeCL
@@ -77,7 +77,7 @@ impl ChannelNorm {
     /// # Panics
     ///
     /// If `x`'s channels are not the BatchNorm's.
-    pub fn apply(&self, x: Tensor<4>, activation: ChannelActivation) -> Tensor<4> {
+    pub fn apply(&self, x: Tensor<4>, activation: Activation) -> Tensor<4> {
         assert_eq!(
             x.dims()[1],
             self.params.dims()[0],
@@ -111,7 +111,7 @@ mod tests {
     fn run(
         device: &Device,
         passes: usize,
-        activation: ChannelActivation,
+        activation: Activation,
         composed: bool,
     ) -> Vec<Vec<f32>> {
         let device = device.clone().autodiff();
@@ -150,8 +150,8 @@ mod tests {
                     let shift = bn.beta.val() - bn.running_mean.value() * scale.clone();
                     let y = x.clone() * scale.reshape([1, c, 1, 1]) + shift.reshape([1, c, 1, 1]);
                     match activation {
-                        ChannelActivation::Identity => y,
-                        ChannelActivation::Relu => crate::activation::relu(y),
+                        Activation::Identity => y,
+                        Activation::Relu => crate::activation::relu(y),
                     }
                 }
             };
@@ -177,7 +177,7 @@ mod tests {
         let Some(device) = wgpu_test_device() else {
             return;
         };
-        for activation in [ChannelActivation::Identity, ChannelActivation::Relu] {
+        for activation in [Activation::Identity, Activation::Relu] {
             for passes in [1, 3, 6] {
                 let want = run(&Device::flex(), passes, activation, true);
                 let got = run(&device, passes, activation, false);

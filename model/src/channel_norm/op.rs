@@ -25,17 +25,10 @@ use burn::tensor::Shape;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
 use lifegom_render::op_backward::{PassLedger, record, reduce_in_launches};
 
+use crate::activation::Activation;
+
 /// Passes' partial sums added by one launch of [`ChannelNormKernels::channel_norm_totals`].
 pub const TOTAL_PARTS: usize = 4;
-
-/// What follows the affine map.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ChannelActivation {
-    /// Nothing.
-    Identity,
-    /// `max(·, 0)`; its gradient passes where the output is positive, as Burn's does.
-    Relu,
-}
 
 /// The running statistics and `ε` of one BatchNorm: `μ`, `σ²` `[C]`, constants.
 #[derive(Debug, Clone)]
@@ -81,7 +74,7 @@ pub trait ChannelNormOps: Backend {
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         epsilon: f32,
-        activation: ChannelActivation,
+        activation: Activation,
         ledger: NormLedger,
     ) -> FloatTensor<Self>;
 }
@@ -100,7 +93,7 @@ pub trait ChannelNormKernels: Backend {
         var: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         epsilon: f32,
-        activation: ChannelActivation,
+        activation: Activation,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
     /// 1 to [`TOTAL_PARTS`] passes' partial sums added up: `(sums [C · 2], ∂γ [C], ∂β [C])`,
@@ -122,7 +115,7 @@ impl<B: FusionBackend + ChannelNormKernels> ChannelNormKernels for Fusion<B> {
         var: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         epsilon: f32,
-        activation: ChannelActivation,
+        activation: Activation,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let partial_len = super::cube::partial_len(&x.shape());
         let specs = vec![
@@ -203,7 +196,7 @@ pub struct PassInputs<B: Backend> {
     mean: FloatTensor<B>,
     var: FloatTensor<B>,
     epsilon: f32,
-    activation: ChannelActivation,
+    activation: Activation,
     ledger: NormLedger,
 }
 
@@ -330,7 +323,7 @@ impl<B: ChannelNormOps + ChannelNormKernels, C: CheckpointStrategy> ChannelNormO
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         epsilon: f32,
-        activation: ChannelActivation,
+        activation: Activation,
         ledger: NormLedger,
     ) -> FloatTensor<Self> {
         let (x, x_node) = x.into_parts();

@@ -32,9 +32,9 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::select::select_rows;
 use lifegom_render::split::split_columns;
 
+use crate::activation::Activation;
 use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with, drops_nothing};
 use crate::norm_folds::NormFolds;
-use crate::shared_linear::Activation;
 use lifegom_render::device::runs_on_host;
 use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
 

@@ -14,7 +14,8 @@ use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
 };
 
-use super::op::{Activation, FoldBias, Ledger, SharedLinearOps};
+use super::op::{FoldBias, Ledger, SharedLinearOps};
+use crate::activation::Activation;
 
 /// `γ[c]/√(σ²[c]+ε)`.
 #[cube]

@@ -35,8 +35,8 @@ use burn::nn::{BatchNorm, Linear};
 use burn::tensor::{Device, Tensor};
 use lifegom_render::device::runs_on_host;
 
+use crate::activation::Activation;
 use crate::linear_op;
-pub use op::Activation;
 use op::{FoldBias, Ledger, Role, SharedLinearOps};
 
 /// `x·W + b` over the last axis, with `W` `[in, out]` and `b` `[out]` read by several passes

@@ -38,12 +38,13 @@
 use std::any::Any;
 use std::sync::{Arc, Mutex, PoisonError};
 
+use crate::activation::Activation;
 use crate::activation::op::ReluKernels;
 use burn::backend::autodiff::NodeId;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::ops::{Backward, NodeGuard, Ops, OpsKind};
 use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, AutodiffBackend, Backend, TensorMetadata, backend_extension};
@@ -70,16 +71,6 @@ pub enum FoldBias {
     /// The layer has none and the bias argument is not read (pass any `[out]` tensor, e.g. the
     /// BN's `β`): the folded bias is `t`.
     Absent,
-}
-
-/// What a shared layer applies to `x·W + b` (in the product's own launch on CubeCL devices,
-/// see `super::product`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Activation {
-    /// Nothing: `x·W + b`.
-    Identity,
-    /// Burn's ReLU, `max(x·W + b, 0)` (NaN passes).
-    Relu,
 }
 
 /// One layer's record of its passes' backward: the inputs and output gradients of every
@@ -403,6 +394,24 @@ pub struct ProductInputs<B: Backend> {
     activated: Option<FloatTensor<B>>,
 }
 
+impl<B: Backend> ProductInputs<B> {
+    /// The inputs, no output kept yet.
+    fn new(
+        x: FloatTensor<B>,
+        weight: FloatTensor<B>,
+        bias: FloatTensor<B>,
+        ledger: Ledger,
+    ) -> Self {
+        Self {
+            x,
+            weight,
+            bias,
+            ledger,
+            activated: None,
+        }
+    }
+}
+
 /// A parameter node's state: its layer, its role, and the folded BN's scale `s` for a folded
 /// layer.
 #[derive(Debug, Clone)]
@@ -665,33 +674,13 @@ impl<B: StackKernels + ProductKernels + ReluKernels + SharedLinearOps, C: Checkp
         let (x, x_node) = x.into_parts();
         let (weight, weight_node) = weight.into_parts();
         let (bias, bias_node) = bias.into_parts();
-        match ProductBackward
-            .prepare::<C>([x_node, weight_node, bias_node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let output = B::shared_linear(
-                    x.clone(),
-                    weight.clone(),
-                    bias.clone(),
-                    ledger.clone(),
-                    activation,
-                );
-                let activated = (activation == Activation::Relu).then(|| output.clone());
-                let state = ProductInputs {
-                    x,
-                    weight,
-                    bias,
-                    ledger,
-                    activated,
-                };
-                prep.finish(state, output)
-            }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::shared_linear(x, weight, bias, ledger, activation))
-            }
-        }
+        record_product::<B, C, _, 3>(
+            ProductBackward,
+            [x_node, weight_node, bias_node],
+            ProductInputs::new(x, weight, bias, ledger),
+            activation,
+            |s| B::shared_linear(s.x, s.weight, s.bias, s.ledger, activation),
+        )
     }
 
     fn shared_linear_residual(
@@ -705,31 +694,41 @@ impl<B: StackKernels + ProductKernels + ReluKernels + SharedLinearOps, C: Checkp
         let (weight, weight_node) = weight.into_parts();
         let (bias, bias_node) = bias.into_parts();
         let (residual, residual_node) = residual.into_parts();
-        match ResidualProductBackward
-            .prepare::<C>([x_node, weight_node, bias_node, residual_node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let output = B::shared_linear_residual(
-                    x.clone(),
-                    weight.clone(),
-                    bias.clone(),
-                    residual,
-                    ledger.clone(),
-                );
-                let state = ProductInputs {
-                    x,
-                    weight,
-                    bias,
-                    ledger,
-                    activated: Some(output.clone()),
-                };
-                prep.finish(state, output)
-            }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::shared_linear_residual(x, weight, bias, residual, ledger))
-            }
+        record_product::<B, C, _, 4>(
+            ResidualProductBackward,
+            [x_node, weight_node, bias_node, residual_node],
+            ProductInputs::new(x, weight, bias, ledger),
+            Activation::Relu,
+            |s| B::shared_linear_residual(s.x, s.weight, s.bias, residual, s.ledger),
+        )
+    }
+}
+
+/// A product node over `nodes` (`x`, `W`, `b` and any residual): `forward` runs on the inner
+/// backend, and when a node is tracked the node keeps `inputs`, and the output too when a ReLU
+/// follows (its mask, see [`product_backward`]).
+fn record_product<B, C, BW, const N: usize>(
+    backward: BW,
+    nodes: [NodeGuard; N],
+    inputs: ProductInputs<B>,
+    activation: Activation,
+    forward: impl FnOnce(ProductInputs<B>) -> FloatTensor<B>,
+) -> FloatTensor<Autodiff<B, C>>
+where
+    B: Backend,
+    C: CheckpointStrategy,
+    BW: Backward<B, N, State = ProductInputs<B>>,
+{
+    match backward.prepare::<C>(nodes).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => {
+            let output = forward(inputs.clone());
+            let activated = (activation == Activation::Relu).then(|| output.clone());
+            let state = ProductInputs {
+                activated,
+                ..inputs
+            };
+            prep.finish(state, output)
         }
+        OpsKind::UnTracked(prep) => prep.finish(forward(inputs)),
     }
 }

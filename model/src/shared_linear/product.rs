@@ -33,7 +33,8 @@ use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::tensor::CubeTensor;
 use lifegom_render::cube::host::{arg, cast_to, prepare, tensor_arg, tensor_f32};
 
-use super::op::{Activation, ProductKernels};
+use super::op::ProductKernels;
+use crate::activation::Activation;
 
 /// Output rows and columns of a cube's block.
 const TILE: usize = 64;
