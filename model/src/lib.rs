@@ -46,6 +46,7 @@
 //! | [`knn`], [`point_transformer`] | farthest point sampling, kNN, the Point Transformer encoder–decoder |
 //! | [`shared_linear`] | a layer the feedback passes share: one weight gradient for all passes on devices |
 //! | [`split_k`] | weight gradients over many rows as chunked products and a sum on devices |
+//! | [`handoff`] | a gradient one backward node hands to another, which adds it in its own launch |
 //! | [`heads`] | update heads: residual vertex update, new embedding, per-face Gaussian parameters |
 //! | [`reconstructor`] | the reconstructor: T steps of render → encode → fuse → update |
 //! | [`avatar`] | the result: render in any pose and view, save/load, 3DGS `.ply` export |
@@ -70,6 +71,7 @@ pub mod frozen_affine;
 pub mod fusion;
 pub mod gemm_conv;
 pub mod grouping;
+pub mod handoff;
 pub mod heads;
 pub mod inputs;
 pub mod interpolation;

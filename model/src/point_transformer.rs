@@ -87,6 +87,7 @@
 
 use crate::activation::Activation;
 use crate::activation::relu;
+use crate::handoff::Handoff;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
@@ -761,12 +762,16 @@ impl PointTransformerBlock {
         nbr: Tensor<1, Int>,
     ) -> Tensor<2> {
         let identity = x.clone();
-        let h = linear_bn(folds, &self.linear1, &self.bn1, x, Activation::Relu);
+        // The residual's gradient is added in `linear1`'s `∂x` launch (`crate::handoff`).
+        let skip = Handoff::new();
+        let h = folds
+            .shared_fold(&self.linear1, &self.bn1, &x.device())
+            .forward_receiving(x, Activation::Relu, &skip);
         let h = self.transformer2.forward(folds, h, rel, nbr);
         let h = relu(bn_last(folds, &self.bn2, h));
         folds
             .shared_fold(&self.linear3, &self.bn3, &h.device())
-            .forward_residual_relu(h, identity)
+            .forward_residual_relu(h, identity, &skip)
     }
 }
 

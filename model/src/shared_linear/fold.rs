@@ -16,6 +16,7 @@ use lifegom_render::cube::host::{
 
 use super::op::{FoldBias, Ledger, SharedLinearOps};
 use crate::activation::Activation;
+use crate::handoff::Handoff;
 
 /// `γ[c]/√(σ²[c]+ε)`.
 #[cube]
@@ -63,6 +64,7 @@ impl SharedLinearOps for CubeBackend {
         bias: FloatTensor<Self>,
         _ledger: Ledger,
         activation: Activation,
+        _handoff: Handoff,
     ) -> FloatTensor<Self> {
         super::product::affine(x, weight, bias, None, activation)
     }
@@ -73,6 +75,7 @@ impl SharedLinearOps for CubeBackend {
         bias: FloatTensor<Self>,
         residual: FloatTensor<Self>,
         _ledger: Ledger,
+        _handoff: Handoff,
     ) -> FloatTensor<Self> {
         super::product::affine(x, weight, bias, Some(residual), Activation::Relu)
     }

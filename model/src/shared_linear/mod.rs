@@ -13,20 +13,21 @@
 //!
 //! [`SharedLinear`] computes it so: each pass's backward computes its `∂x` at once and files
 //! `(xₜ, gₜ)` with the layer; the weight's and the bias's own nodes, which Burn's autodiff runs
-//! after every pass's, stack the rows and take one product and one reduction (the `op` module).
+//! after every pass's, form both from every pass's rows in one launch and a sum over chunks of
+//! rows (the `op` and `gradient` modules).
 //! The result is the same gradient up to float summation order. Cost: each pass's `gₜ` is held
 //! until the layer's parameters are differentiated, instead of being freed after its products.
 //!
 //! A layer that a frozen BatchNorm follows is folded with it in the same place
 //! (`SharedLinear::folded`): one launch makes the folded weight and bias, and the BN's scale
-//! enters the parameters' gradient where the rows are stacked, so the fold adds no launch to the
+//! enters the parameters' gradient where the rows are read, so the fold adds no launch to the
 //! backward (the `fold` module, [`op::SharedLinearOps::shared_fold`]).
 //!
 //! On the CPU backends a shared layer is the layer it wraps ([`crate::linear_op::affine`]): their
 //! gradients stay the same to the bit.
 
-mod cube;
 mod fold;
+mod gradient;
 pub mod op;
 mod product;
 
@@ -36,6 +37,7 @@ use burn::tensor::{Device, Tensor};
 use lifegom_render::device::runs_on_host;
 
 use crate::activation::Activation;
+use crate::handoff::Handoff;
 use crate::linear_op;
 use op::{FoldBias, Ledger, Role, SharedLinearOps};
 
@@ -82,7 +84,7 @@ impl SharedLinear {
     /// `BN(linear(·))` for a BatchNorm on its running statistics whose `γ`, `β` take no
     /// gradient, as one shared layer on a CubeCL device: `x·(W·diag(s)) + (b·s + t)` with
     /// `s = γ/√(σ²+ε)`, `t = β − μ·s` (`b = 0` without a bias). The fold is one launch, and its
-    /// backward is folded into the stacking of the passes' rows (module docs).
+    /// backward is folded into the parameters' gradient launch (module docs).
     ///
     /// The CPU backends fold with tensor ops and use [`Self::new`]
     /// ([`crate::norm_folds::NormFolds::shared_fold`]).
@@ -133,8 +135,10 @@ impl SharedLinear {
 
     /// `relu(x·W + b + residual)` for `x` `[.., in]` and `residual` `[.., out]`, a residual
     /// block's last layer: the sum and the ReLU in the product's launch on CubeCL devices, and
-    /// the residual's gradient the masked gradient that the backward's product writes anyway;
-    /// on the CPU backends the layer, the sum and Burn's ReLU.
+    /// the residual's gradient the masked gradient that the backward's product writes anyway,
+    /// handed to the layer `handoff` joins (the block's first, which reads `residual` as its
+    /// input: [`Self::forward_receiving`]) or else registered; on the CPU backends the layer,
+    /// the sum and Burn's ReLU.
     ///
     /// # Panics
     ///
@@ -143,6 +147,7 @@ impl SharedLinear {
         &self,
         x: Tensor<D>,
         residual: Tensor<D>,
+        handoff: &Handoff,
     ) -> Tensor<D> {
         let Some(ledger) = &self.ledger else {
             let y = linear_op::affine(x, self.weight.clone(), Some(self.bias.clone()));
@@ -166,6 +171,7 @@ impl SharedLinear {
             self.bias.clone().into_dispatch(),
             residual.into_dispatch(),
             ledger.clone(),
+            handoff.clone(),
         ))
     }
 
@@ -176,6 +182,22 @@ impl SharedLinear {
     ///
     /// If `x`'s last axis is not the layer's input width.
     pub fn forward_with<const D: usize>(&self, x: Tensor<D>, activation: Activation) -> Tensor<D> {
+        self.forward_receiving(x, activation, &Handoff::none())
+    }
+
+    /// [`Self::forward_with`], `x`'s gradient on CubeCL devices adding, in its launch, the one
+    /// `handoff` brings from a later residual layer that adds `x`
+    /// ([`Self::forward_residual_relu`]).
+    ///
+    /// # Panics
+    ///
+    /// If `x`'s last axis is not the layer's input width.
+    pub fn forward_receiving<const D: usize>(
+        &self,
+        x: Tensor<D>,
+        activation: Activation,
+        handoff: &Handoff,
+    ) -> Tensor<D> {
         let Some(ledger) = &self.ledger else {
             let y = linear_op::affine(x, self.weight.clone(), Some(self.bias.clone()));
             return match activation {
@@ -194,6 +216,7 @@ impl SharedLinear {
             self.bias.clone().into_dispatch(),
             ledger.clone(),
             activation,
+            handoff.clone(),
         ))
     }
 }
@@ -320,7 +343,7 @@ mod tests {
                     shared.forward_with(x.clone(), activation)
                 }
                 (Layer::Shared, Ending::ResidualRelu) => {
-                    shared.forward_residual_relu(x.clone(), x.clone())
+                    shared.forward_residual_relu(x.clone(), x.clone(), &Handoff::none())
                 }
                 (Layer::Composed, Ending::Activated(Activation::Identity)) => composed(),
                 (Layer::Composed, Ending::Activated(Activation::Relu)) => {
@@ -352,11 +375,11 @@ mod tests {
     }
 
     /// On lavapipe the shared layer's output and every gradient equal Burn's `linear` used as
-    /// many times, within float summation order, and Flex's results: for one pass (nothing
-    /// stacked, or only the fold's scale applied), three (one launch) and six (stacked four at
-    /// a time, then the rest); plain, and folded with a frozen BN with and without a bias of
-    /// its own; with the weight gradient as one product (37 rows per pass are under two
-    /// chunks) and split-k in chunks of 8 rows (the last chunk padded: 37, 111 and 222 rows).
+    /// many times, within float summation order, and Flex's results: for one pass, three (one
+    /// gradient launch) and six (a launch for four passes' rows, one for the rest); plain, and
+    /// folded with a frozen BN with and without a bias of its own; with the gradient as one
+    /// chunk (37 rows per pass are under two chunks) and split-k in chunks of 8 rows (each
+    /// launch's last chunk short: 37, 111, 148 and 74 rows).
     #[test]
     fn one_gradient_for_all_passes_wgpu() {
         let Some(device) = wgpu_test_device() else {

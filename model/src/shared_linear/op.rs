@@ -15,31 +15,30 @@
 //!   the parameter (a folded weight, a stacked one or a `Param`) and every pass's product. It
 //!   runs after all of them, since Burn's autodiff runs nodes deepest first and each product
 //!   node is deeper than the parameter nodes it reads. It drops the placeholder and registers
-//!   `∂W = Xᵀ·G` or `∂b = Σ_rows G` from the ledger's rows, stacked once for both by one
-//!   launch (`stack_pass_rows`, the `cube` module). When both take a gradient, the stack
-//!   appends a column of ones to `X` and one product answers both, `[X | 1]ᵀ·G = [∂W; ∂b]`:
-//!   the bias's sum costs no launch of its own (two fewer per layer than summing `G` apart).
+//!   its part of `[Xᵀ; 1ᵀ]·G = [∂W; ∂b]`, which the first of the two to run forms for both from
+//!   the ledger's rows in one launch ([`GradientKernels::pass_gradient`], the `gradient`
+//!   module): the kernel reads every pass's rows where they are, so `X` and `G` are never
+//!   stacked, and the bias's sum is the row of ones' (no launch of its own).
 //!
 //! A layer that a frozen BatchNorm follows is folded with it by [`SharedLinearOps::shared_fold`]:
 //! one launch makes `W·diag(s)` and `b·s + t` (`s = γ/√(σ²+ε)`, `t = β − μ·s`) from the
 //! parameters and the statistics (the `fold` module), and its two parameter nodes stand between
 //! `W`, `b` and the folded values. The BN's columns scale enter the gradient where the rows are
-//! stacked, `∂W = Xᵀ·(G·diag(s))` and `∂b = Σ_rows G·diag(s)`: the fold's backward costs no
+//! read, `∂W = Xᵀ·(G·diag(s))` and `∂b = Σ_rows G·diag(s)`: the fold's backward costs no
 //! launch of its own.
 //!
 //! # Split-k
 //!
-//! `∂W = Xᵀ·G` is a small output over a long reduction (every pass's rows), which Burn's CubeCL
-//! matmul gives to a handful of cubes; so the stacking pads the rows to whole chunks with zeros
-//! (in the same launch) and the weight's node forms the gradient as chunked products and a sum
-//! ([`crate::split_k`]): one more launch per layer. The padding rows of `X`'s ones column are
-//! zero too; a bias without a weight gradient is a sum of the padded `G`, chunked the same way.
+//! `∂W = Xᵀ·G` is a small output over a long reduction (every pass's rows), so the rows are cut
+//! into chunks ([`crate::split_k`]): each chunk's cubes write a partial gradient and a sum over
+//! the chunks follows, one more launch per layer.
 
 use std::any::Any;
 use std::sync::{Arc, Mutex, PoisonError};
 
 use crate::activation::Activation;
 use crate::activation::op::ReluKernels;
+use crate::handoff::Handoff;
 use burn::backend::autodiff::NodeId;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -96,31 +95,15 @@ struct LedgerState {
     delivered: [bool; 2],
 }
 
-/// The rows filed by the product nodes, and their stacks once made.
+/// The rows filed by the product nodes, and the parameters' gradient once formed.
 struct Rows<B: Backend> {
     /// `[rows, in]` per pass, when the weight takes a gradient.
     inputs: Vec<FloatTensor<B>>,
     /// `[rows, out]` per pass.
     grads: Vec<FloatTensor<B>>,
-    /// The parameters' gradients once formed: `[∂W; ∂b]` from one product when both take
-    /// one, else `(X, G)` for each node to form its own (every pass's rows, one after the
-    /// other, padded for the split).
-    formed: Option<Formed<B>>,
-}
-
-/// How a layer's parameter gradients were formed ([`Rows::formed`]).
-enum Formed<B: Backend> {
-    /// `[X | 1 | 0…]ᵀ·G` `[in + BIAS_COLUMNS, out]`: `∂W` is its first `in` rows, `∂b` the next.
-    Joint {
-        product: FloatTensor<B>,
-        inputs: usize,
-    },
-    /// The stacked rows, for the one parameter that takes a gradient.
-    Apart {
-        split: SplitK,
-        x: Option<FloatTensor<B>>,
-        g: FloatTensor<B>,
-    },
+    /// `[∂W; ∂b]` `[in + 1, out]` when both take a gradient, else the one that does (`∂b` as
+    /// `[1, out]`), with `in` (module docs).
+    formed: Option<(FloatTensor<B>, usize)>,
 }
 
 impl Ledger {
@@ -154,116 +137,79 @@ fn flatten<B: Backend>(t: FloatTensor<B>) -> FloatTensor<B> {
     B::float_reshape(t, Shape::new([shape.num_elements() / c, c]))
 }
 
-/// Passes stacked by one launch of [`StackKernels::stack_pass_rows`].
-pub const STACK_PARTS: usize = 4;
+/// Passes whose rows one launch of [`GradientKernels::pass_gradient`] reads; more take a
+/// launch per this many.
+pub const PASS_PARTS: usize = 4;
 
-/// Columns appended to `X` when the bias's gradient comes from the weight's product (module
-/// docs): the ones, then zeros, so that `X`'s width stays a multiple of four when the layer's
-/// input width is (the width of the rows Burn's matmul reads as vectors of four).
-pub const BIAS_COLUMNS: usize = 4;
-
-/// `(X, G)`: the passes' rows one after the other (module docs), `G`'s columns times `scale`
-/// for a folded layer, then zero rows up to `padded_rows`, and `extra_columns` columns after
-/// `X`'s ([`BIAS_COLUMNS`] or none). A lone pass without a scale, padding or extra columns is
-/// handed back; more than [`STACK_PARTS`] are stacked that many at a time, each stack then
-/// being one part of the next launch (the scale, the padding and the columns applied by the
-/// last).
-fn stack<B: StackKernels>(
-    mut inputs: Vec<FloatTensor<B>>,
-    mut grads: Vec<FloatTensor<B>>,
-    scale: Option<FloatTensor<B>>,
-    padded_rows: usize,
-    extra_columns: usize,
-) -> (Option<FloatTensor<B>>, FloatTensor<B>) {
-    // Without a weight gradient the gradients stand in for the inputs; their stack is dropped.
-    let with_inputs = !inputs.is_empty();
-    if !with_inputs {
-        inputs = grads.clone();
-    }
-    let rows: usize = grads.iter().map(|g| g.shape()[0]).sum();
-    let mut scale = scale;
-    // Whether the last launch has rows or columns to add.
-    let mut widen = padded_rows != rows || extra_columns > 0;
-    while grads.len() > 1 || (grads.len() == 1 && (scale.is_some() || widen)) {
-        let take = grads.len().min(STACK_PARTS);
-        let last = take == grads.len();
-        let to_rows = if last {
-            padded_rows
-        } else {
-            grads[..take].iter().map(|g| g.shape()[0]).sum()
-        };
-        let (x, g) = B::stack_pass_rows(
-            inputs.drain(..take).collect(),
-            grads.drain(..take).collect(),
-            if last { scale.take() } else { None },
-            to_rows,
-            if last { extra_columns } else { 0 },
-        );
-        if last {
-            widen = false;
-        }
-        inputs.insert(0, x);
-        grads.insert(0, g);
-    }
-    let g = grads.pop().expect("a pass filed its rows");
-    (inputs.pop().filter(|_| with_inputs), g)
-}
-
-/// What a backend implements so that `Autodiff<B>` can stack the passes' rows.
+/// What a layer's parameter gradient is formed from (module docs): every pass's rows as filed.
 #[doc(hidden)]
-pub trait StackKernels: Backend {
-    /// `(X, G)`: the rows of `xs` `[rows_t, in]` one after the other, and those of `gs`
-    /// `[rows_t, out]` times `scale` `[out]` per column when given, then zero rows up to
-    /// `padded_rows` (at least `Σ rows_t`), in one launch; 1 to [`STACK_PARTS`] passes, pass
-    /// `t` of both with the same rows. `X` has `extra_columns` more columns: ones on the
-    /// passes' rows in the first of them, zeros elsewhere (`[rows, in + extra_columns]`).
-    fn stack_pass_rows(
-        xs: Vec<FloatTensor<Self>>,
-        gs: Vec<FloatTensor<Self>>,
-        scale: Option<FloatTensor<Self>>,
-        padded_rows: usize,
-        extra_columns: usize,
-    ) -> (FloatTensor<Self>, FloatTensor<Self>);
+pub struct ParameterRows<B: Backend> {
+    /// `[rows_t, in]` per pass, or none when the weight takes no gradient.
+    pub inputs: Vec<FloatTensor<B>>,
+    /// `[rows_t, out]` per pass, at least one.
+    pub grads: Vec<FloatTensor<B>>,
+    /// A folded BatchNorm's `s` `[out]`, which scales `G`'s columns.
+    pub scale: Option<FloatTensor<B>>,
+    /// Whether the bias takes a gradient: a row `Σ_rows G` after `∂W`'s.
+    pub bias_row: bool,
+    /// Rows per chunk of the split-k sum ([`SplitK`]).
+    pub chunk_rows: usize,
 }
 
-impl<B: FusionBackend + StackKernels> StackKernels for Fusion<B> {
-    fn stack_pass_rows(
-        xs: Vec<FloatTensor<Self>>,
-        gs: Vec<FloatTensor<Self>>,
-        scale: Option<FloatTensor<Self>>,
-        padded_rows: usize,
-        extra_columns: usize,
-    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        let passes = gs.len();
-        let scaled = scale.is_some();
-        let rows = padded_rows;
-        let specs = vec![
-            float_like::<B>(&xs[0], Shape::new([rows, xs[0].shape()[1] + extra_columns])),
-            float_like::<B>(&gs[0], Shape::new([rows, gs[0].shape()[1]])),
-        ];
-        let inputs = xs
+/// What a backend implements so that `Autodiff<B>` can form a shared layer's parameter
+/// gradient.
+#[doc(hidden)]
+pub trait GradientKernels: Backend {
+    /// `[Xᵀ; 1ᵀ]·(G·diag(s))` `[in + 1, out]` (the row of ones only with `bias_row`, `in` = 0
+    /// without inputs), `X` and `G` every pass's rows one after the other, summed over chunks
+    /// of `chunk_rows` rows: one launch per [`PASS_PARTS`] passes, and a sum when there is
+    /// more than one chunk.
+    fn pass_gradient(rows: ParameterRows<Self>) -> FloatTensor<Self>;
+}
+
+impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
+    fn pass_gradient(rows: ParameterRows<Self>) -> FloatTensor<Self> {
+        let ParameterRows {
+            inputs,
+            grads,
+            scale,
+            bias_row,
+            chunk_rows,
+        } = rows;
+        let (passes, with_inputs, scaled) = (grads.len(), !inputs.is_empty(), scale.is_some());
+        let width = inputs.first().map_or(0, |x| x.shape()[1]);
+        let spec = float_like::<B>(
+            &grads[0],
+            Shape::new([width + usize::from(bias_row), grads[0].shape()[1]]),
+        );
+        let tensors = inputs
             .into_iter()
-            .chain(gs)
+            .chain(grads)
             .chain(scale)
             .map(Input::Float)
             .collect();
-        let [x, g] = array(deferred::<B, _>(
-            "stack_pass_rows",
-            inputs,
-            specs,
+        let [gradient] = array(deferred::<B, _>(
+            "pass_gradient",
+            tensors,
+            vec![spec],
             move |mut v| {
                 let scale = if scaled {
                     v.pop().map(Value::float)
                 } else {
                     None
                 };
-                let gs = v.split_off(passes).into_iter().map(Value::float).collect();
-                let xs = v.into_iter().map(Value::float).collect();
-                let (x, g) = B::stack_pass_rows(xs, gs, scale, padded_rows, extra_columns);
-                vec![Value::Float(x), Value::Float(g)]
+                let grads = v.split_off(if with_inputs { passes } else { 0 });
+                let rows = ParameterRows {
+                    inputs: v.into_iter().map(Value::float).collect(),
+                    grads: grads.into_iter().map(Value::float).collect(),
+                    scale,
+                    bias_row,
+                    chunk_rows,
+                };
+                vec![Value::Float(B::pass_gradient(rows))]
             },
         ));
-        (x, g)
+        gradient
     }
 }
 
@@ -299,7 +245,8 @@ pub trait SharedLinearOps: Backend {
         ledger: Ledger,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
 
-    /// One pass's product, `act(x·W + b)`.
+    /// One pass's product, `act(x·W + b)`; `∂x` adds the gradient `handoff` brings (a later
+    /// residual layer's for the same `x`, [`Self::shared_linear_residual`]) in its launch.
     #[fusion(dtype = x, shape = product_shape(x, weight))]
     fn shared_linear(
         x: FloatTensor<Self>,
@@ -307,10 +254,13 @@ pub trait SharedLinearOps: Backend {
         bias: FloatTensor<Self>,
         ledger: Ledger,
         activation: Activation,
+        handoff: Handoff,
     ) -> FloatTensor<Self>;
 
     /// One pass's product with a residual `r` (`[.., out]`) added before a ReLU,
-    /// `relu(x·W + b + r)`: a residual block's last layer.
+    /// `relu(x·W + b + r)`: a residual block's last layer. The residual's gradient goes to
+    /// `handoff` when it joins a product that reads `r` as its input (the block's first
+    /// layer), whose `∂x` then adds it ([`crate::handoff`]).
     #[fusion(dtype = x, shape = product_shape(x, weight))]
     fn shared_linear_residual(
         x: FloatTensor<Self>,
@@ -318,6 +268,7 @@ pub trait SharedLinearOps: Backend {
         bias: FloatTensor<Self>,
         residual: FloatTensor<Self>,
         ledger: Ledger,
+        handoff: Handoff,
     ) -> FloatTensor<Self>;
 }
 
@@ -334,13 +285,15 @@ fn product_shape(x: &Shape, weight: &Shape) -> Shape {
 /// its ReLU in one launch.
 #[doc(hidden)]
 pub trait ProductKernels: Backend {
-    /// `(∂x, g ⊙ [y > 0])` with `∂x = (g ⊙ [y > 0])·Wᵀ`, for the gradient `grad` `[.., out]` of
-    /// the layer's output `output` (same shape) and its weight `[in, out]` (Burn's ReLU
-    /// backward: the gradient is zeroed where the output is `≤ 0`).
+    /// `(∂x, g ⊙ [y > 0])` with `∂x = (g ⊙ [y > 0])·Wᵀ + a`, for the gradient `grad` `[.., out]`
+    /// of the layer's output `output` (same shape), its weight `[in, out]` and `addend` `a`
+    /// (`[.., in]`, none is zero). Burn's ReLU backward: the gradient is zeroed where the output
+    /// is `≤ 0`.
     fn relu_product_backward(
         grad: FloatTensor<Self>,
         output: FloatTensor<Self>,
         weight: FloatTensor<Self>,
+        addend: Option<FloatTensor<Self>>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 }
 
@@ -349,6 +302,7 @@ impl<B: FusionBackend + ProductKernels> ProductKernels for Fusion<B> {
         grad: FloatTensor<Self>,
         output: FloatTensor<Self>,
         weight: FloatTensor<Self>,
+        addend: Option<FloatTensor<Self>>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let specs = vec![
             float_like::<B>(
@@ -357,19 +311,25 @@ impl<B: FusionBackend + ProductKernels> ProductKernels for Fusion<B> {
             ),
             float_like::<B>(&grad, grad.shape()),
         ];
-        let inputs = vec![
-            Input::Float(grad),
-            Input::Float(output),
-            Input::Float(weight),
-        ];
+        let added = addend.is_some();
+        let inputs = [grad, output, weight]
+            .into_iter()
+            .chain(addend)
+            .map(Input::Float)
+            .collect();
         let [dx, masked] = array(deferred::<B, _>(
             "relu_product_backward",
             inputs,
             specs,
-            |v| {
+            move |mut v| {
+                let addend = if added {
+                    v.pop().map(Value::float)
+                } else {
+                    None
+                };
                 let [grad, output, weight] = array(v);
                 let (dx, masked) =
-                    B::relu_product_backward(grad.float(), output.float(), weight.float());
+                    B::relu_product_backward(grad.float(), output.float(), weight.float(), addend);
                 vec![Value::Float(dx), Value::Float(masked)]
             },
         ));
@@ -392,6 +352,8 @@ pub struct ProductInputs<B: Backend> {
     ledger: Ledger,
     /// The layer's output, kept for a ReLU's mask.
     activated: Option<FloatTensor<B>>,
+    /// What `x`'s gradient takes from, or the residual's gives to, another product.
+    handoff: Handoff,
 }
 
 impl<B: Backend> ProductInputs<B> {
@@ -401,6 +363,7 @@ impl<B: Backend> ProductInputs<B> {
         weight: FloatTensor<B>,
         bias: FloatTensor<B>,
         ledger: Ledger,
+        handoff: Handoff,
     ) -> Self {
         Self {
             x,
@@ -408,6 +371,7 @@ impl<B: Backend> ProductInputs<B> {
             bias,
             ledger,
             activated: None,
+            handoff,
         }
     }
 }
@@ -435,13 +399,15 @@ impl<B: ProductKernels + ReluKernels> Backward<B, 3> for ProductBackward {
     ) {
         let grad = grads.consume::<B>(&ops.node);
         let ids = ops.parents.map(|node| node.map(|n| n.id));
-        product_backward(grad, ids, ops.state, grads);
+        // A giver filed for the same `x` only when `x` takes a gradient.
+        let addend = ids[0].and_then(|_| ops.state.handoff.take::<FloatTensor<B>>());
+        product_backward(grad, ids, ops.state, addend, grads);
     }
 }
 
 /// A product node with a residual added before its ReLU
 /// ([`SharedLinearOps::shared_linear_residual`]): the residual's gradient is the masked
-/// gradient the product's backward forms anyway.
+/// gradient the product's backward forms anyway, registered or handed off.
 #[derive(Debug)]
 struct ResidualProductBackward;
 
@@ -456,31 +422,39 @@ impl<B: ProductKernels + ReluKernels> Backward<B, 4> for ResidualProductBackward
     ) {
         let grad = grads.consume::<B>(&ops.node);
         let [x, weight, bias, residual] = ops.parents.map(|node| node.map(|n| n.id));
-        let masked = product_backward(grad, [x, weight, bias], ops.state, grads);
-        if let Some(residual) = residual {
+        let handoff = ops.state.handoff.clone();
+        let masked = product_backward(grad, [x, weight, bias], ops.state, None, grads);
+        if let Some(residual) = residual
+            && !handoff.file(masked.clone())
+        {
             grads.register::<B>(residual, masked);
         }
     }
 }
 
-/// A product node's backward (module docs): registers `∂x`, files the pass's rows with the
-/// layer, and returns the gradient at the activation's input (`grad` masked through a ReLU).
+/// A product node's backward (module docs): registers `∂x` (plus `addend`, another op's
+/// gradient for `x`), files the pass's rows with the layer, and returns the gradient at the
+/// activation's input (`grad` masked through a ReLU).
 fn product_backward<B: ProductKernels + ReluKernels>(
     grad: FloatTensor<B>,
     [x_node, weight_node, bias_node]: [Option<NodeId>; 3],
     s: ProductInputs<B>,
+    addend: Option<FloatTensor<B>>,
     grads: &mut Gradients,
 ) -> FloatTensor<B> {
     // Through a ReLU, `∂x`'s product masks the gradient and writes the masked gradient for the
     // parameters in the same launch; without `∂x` the mask is a launch of its own.
     let (dx, grad) = match (s.activated, x_node) {
-        (None, Some(_)) => (
-            Some(B::linear_x_backward(s.weight.clone(), grad.clone())),
-            grad,
-        ),
+        (None, Some(_)) => {
+            let dx = B::linear_x_backward(s.weight.clone(), grad.clone());
+            (
+                Some(addend.map_or(dx.clone(), |a| B::float_add(dx, a))),
+                grad,
+            )
+        }
         (None, None) => (None, grad),
         (Some(output), Some(_)) => {
-            let (dx, masked) = B::relu_product_backward(grad, output, s.weight.clone());
+            let (dx, masked) = B::relu_product_backward(grad, output, s.weight.clone(), addend);
             (Some(dx), masked)
         }
         (Some(output), None) => (None, B::fused_relu_backward(output, grad)),
@@ -511,7 +485,7 @@ fn product_backward<B: ProductKernels + ReluKernels>(
 #[derive(Debug)]
 struct ParameterBackward;
 
-impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
+impl<B: GradientKernels> Backward<B, 1> for ParameterBackward {
     type State = ParameterRole<B>;
 
     fn backward(
@@ -537,55 +511,38 @@ impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
         };
         ledger.delivered[slot] = true;
         let done = (0..2).all(|i| !ledger.seeded[i] || ledger.delivered[i]);
-        // Both parameters take a gradient: one product answers both (module docs).
-        let joint = ledger.seeded == [true, true];
+        // Both parameters take a gradient: one launch answers both (module docs).
+        let bias_row = ledger.seeded[1];
         let rows = ledger.rows::<B>();
-        let formed = rows.formed.get_or_insert_with(|| {
+        let (formed, inputs) = rows.formed.get_or_insert_with(|| {
             let filled = rows.grads.iter().map(|g| g.shape()[0]).sum();
             let outputs = rows.grads[0].shape()[1];
-            // Without a weight gradient only the bias's sum is split.
             let inputs = rows.inputs.first().map_or(0, |x| x.shape()[1]);
-            let extra = if joint { BIAS_COLUMNS } else { 0 };
-            let split = SplitK::plan(filled, inputs + extra, outputs);
-            let (x, g) = stack::<B>(
-                std::mem::take(&mut rows.inputs),
-                std::mem::take(&mut rows.grads),
+            let split = SplitK::plan(filled, inputs + usize::from(bias_row), outputs);
+            let formed = B::pass_gradient(ParameterRows {
+                inputs: std::mem::take(&mut rows.inputs),
+                grads: std::mem::take(&mut rows.grads),
                 scale,
-                split.padded_rows(),
-                extra,
-            );
-            if joint {
-                let x = x.expect("the weight's rows were filed");
-                Formed::Joint {
-                    product: split.weight_gradient::<B>(x, g),
-                    inputs,
-                }
-            } else {
-                Formed::Apart { split, x, g }
-            }
+                bias_row,
+                chunk_rows: split.chunk_rows,
+            });
+            (formed, inputs)
         });
-        let grad = match (formed, role) {
-            (Formed::Joint { product, inputs }, role) => {
-                let outputs = product.shape()[1];
-                let (first, last) = match role {
-                    Role::Weight => (0, *inputs),
-                    Role::Bias => (*inputs, *inputs + 1),
-                };
-                let grad = B::float_slice(
-                    product.clone(),
-                    &[
-                        burn::tensor::Slice::from(first..last),
-                        burn::tensor::Slice::from(0..outputs),
-                    ],
-                );
-                match role {
-                    Role::Weight => grad,
-                    Role::Bias => B::float_reshape(grad, Shape::new([outputs])),
-                }
-            }
-            (Formed::Apart { split, x, g }, Role::Weight) => split
-                .weight_gradient::<B>(x.clone().expect("the weight's rows were filed"), g.clone()),
-            (Formed::Apart { split, g, .. }, Role::Bias) => split.column_sum::<B>(g.clone()),
+        let outputs = formed.shape()[1];
+        let (first, last) = match role {
+            Role::Weight => (0, *inputs),
+            Role::Bias => (*inputs, *inputs + 1),
+        };
+        let grad = B::float_slice(
+            formed.clone(),
+            &[
+                burn::tensor::Slice::from(first..last),
+                burn::tensor::Slice::from(0..outputs),
+            ],
+        );
+        let grad = match role {
+            Role::Weight => grad,
+            Role::Bias => B::float_reshape(grad, Shape::new([outputs])),
         };
         if done {
             ledger.rows = None;
@@ -595,7 +552,7 @@ impl<B: StackKernels> Backward<B, 1> for ParameterBackward {
     }
 }
 
-impl<B: StackKernels + ProductKernels + ReluKernels + SharedLinearOps, C: CheckpointStrategy>
+impl<B: GradientKernels + ProductKernels + ReluKernels + SharedLinearOps, C: CheckpointStrategy>
     SharedLinearOps for Autodiff<B, C>
 {
     fn shared_parameter(value: FloatTensor<Self>, ledger: Ledger, role: Role) -> FloatTensor<Self> {
@@ -670,6 +627,7 @@ impl<B: StackKernels + ProductKernels + ReluKernels + SharedLinearOps, C: Checkp
         bias: FloatTensor<Self>,
         ledger: Ledger,
         activation: Activation,
+        handoff: Handoff,
     ) -> FloatTensor<Self> {
         let (x, x_node) = x.into_parts();
         let (weight, weight_node) = weight.into_parts();
@@ -677,9 +635,9 @@ impl<B: StackKernels + ProductKernels + ReluKernels + SharedLinearOps, C: Checkp
         record_product::<B, C, _, 3>(
             ProductBackward,
             [x_node, weight_node, bias_node],
-            ProductInputs::new(x, weight, bias, ledger),
+            ProductInputs::new(x, weight, bias, ledger, handoff),
             activation,
-            |s| B::shared_linear(s.x, s.weight, s.bias, s.ledger, activation),
+            |s| B::shared_linear(s.x, s.weight, s.bias, s.ledger, activation, s.handoff),
         )
     }
 
@@ -689,6 +647,7 @@ impl<B: StackKernels + ProductKernels + ReluKernels + SharedLinearOps, C: Checkp
         bias: FloatTensor<Self>,
         residual: FloatTensor<Self>,
         ledger: Ledger,
+        handoff: Handoff,
     ) -> FloatTensor<Self> {
         let (x, x_node) = x.into_parts();
         let (weight, weight_node) = weight.into_parts();
@@ -697,9 +656,9 @@ impl<B: StackKernels + ProductKernels + ReluKernels + SharedLinearOps, C: Checkp
         record_product::<B, C, _, 4>(
             ResidualProductBackward,
             [x_node, weight_node, bias_node, residual_node],
-            ProductInputs::new(x, weight, bias, ledger),
+            ProductInputs::new(x, weight, bias, ledger, handoff),
             Activation::Relu,
-            |s| B::shared_linear_residual(s.x, s.weight, s.bias, residual, s.ledger),
+            |s| B::shared_linear_residual(s.x, s.weight, s.bias, residual, s.ledger, s.handoff),
         )
     }
 }

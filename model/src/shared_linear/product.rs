@@ -10,7 +10,8 @@
 //! - forward, `y = act(x·W + b)` ([`Activation`]), or `y = relu(x·W + b + r)` for a residual
 //!   block's last layer;
 //! - backward through a ReLU, `∂x = (g ⊙ [y > 0])·Wᵀ`, which also writes the masked
-//!   `g ⊙ [y > 0]` for the parameters' gradient (the shared layer files it, `super::op`).
+//!   `g ⊙ [y > 0]` for the parameters' gradient (the shared layer files it, `super::op`), plus
+//!   the gradient another op hands `x` (a residual block's, [`crate::handoff`]).
 //!
 //! One kernel, `affine_product_kernel`, computes `out = epilogue(A·B)` for a row-major `A`
 //! `[rows, inner]` and a strided `B` (`W` as stored, or `Wᵀ` as a view of it). Each cube of
@@ -196,15 +197,6 @@ struct Epilogue<'t> {
     activation: Activation,
 }
 
-impl Epilogue<'_> {
-    /// Nothing added, nothing applied.
-    const NONE: Epilogue<'static> = Epilogue {
-        bias: None,
-        residual: None,
-        activation: Activation::Identity,
-    };
-}
-
 /// `(epilogue(A·B), A ⊙ [mask > 0] when masked)` for `a` `[rows, inner]`, its `mask` of the
 /// same shape and the layer's weight, all prepared.
 fn launch_product(
@@ -314,20 +306,22 @@ impl ProductKernels for CubeBackend {
         grad: FloatTensor<Self>,
         output: FloatTensor<Self>,
         weight: FloatTensor<Self>,
+        addend: Option<FloatTensor<Self>>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let dtype = grad.dtype();
         let shape = grad.shape();
         let g = rows_of(grad);
         let mask = rows_of(output);
         let weight = prepare(weight);
+        let addend = addend.map(rows_of);
         let d_in = weight.shape()[0];
-        let (dx, masked) = launch_product(
-            &g,
-            Some(&mask),
-            &weight,
-            WeightSide::Transposed,
-            Epilogue::NONE,
-        );
+        let epilogue = Epilogue {
+            bias: None,
+            residual: addend.as_ref(),
+            activation: Activation::Identity,
+        };
+        let (dx, masked) =
+            launch_product(&g, Some(&mask), &weight, WeightSide::Transposed, epilogue);
         let masked = masked.expect("a masked product writes its masked gradient");
         let out = shape[shape.num_dims() - 1];
         (

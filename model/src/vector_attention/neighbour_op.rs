@@ -19,9 +19,6 @@
 //! otherwise the filed gradients are never taken (the public functions pair nothing; the Point
 //! Transformer layer pairs its own two ops).
 
-use std::any::Any;
-use std::sync::{Arc, Mutex, PoisonError};
-
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
@@ -32,58 +29,37 @@ use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
 use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
 use lifegom_render::op_backward::{gradient_per_input, record};
 
+use crate::handoff::Handoff;
+
 /// A relation and an aggregation whose gradients for `qkv` and `δ` are added inside the
-/// relation's backward (module docs), or no pairing. Clones share one record.
-#[derive(Clone, Default)]
-pub struct AttentionPair(Option<FiledGradients>);
-
-/// The aggregation's `(∂qkv, ∂δ)` of the backend that runs the backward, once filed.
-type FiledGradients = Arc<Mutex<Option<Box<dyn Any + Send>>>>;
-
-impl std::fmt::Debug for AttentionPair {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(if self.0.is_some() {
-            "AttentionPair"
-        } else {
-            "AttentionPair(unpaired)"
-        })
-    }
-}
+/// relation's backward (module docs), or no pairing: a [`Handoff`] of `(∂qkv, ∂δ)`.
+#[derive(Debug, Clone, Default)]
+pub struct AttentionPair(Handoff);
 
 impl AttentionPair {
     /// A pair for one relation and one aggregation.
     pub fn new() -> Self {
-        Self(Some(Arc::default()))
+        Self(Handoff::new())
     }
 
     /// Whether the pair joins two ops.
     fn is_paired(&self) -> bool {
-        self.0.is_some()
+        self.0.is_joined()
     }
 
     /// No pairing: each op registers its own gradients.
     pub fn unpaired() -> Self {
-        Self(None)
+        Self(Handoff::none())
     }
 
     /// Files the aggregation's `(∂qkv, ∂δ)`; `false` when unpaired.
     fn file<B: Backend>(&self, grads: (FloatTensor<B>, FloatTensor<B>)) -> bool {
-        let Some(slot) = &self.0 else {
-            return false;
-        };
-        *slot.lock().unwrap_or_else(PoisonError::into_inner) = Some(Box::new(grads));
-        true
+        self.0.file(grads)
     }
 
     /// The aggregation's filed `(∂qkv, ∂δ)`, if any.
     fn take<B: Backend>(&self) -> Option<(FloatTensor<B>, FloatTensor<B>)> {
-        let slot = self.0.as_ref()?;
-        let filed = slot.lock().unwrap_or_else(PoisonError::into_inner).take()?;
-        Some(
-            *filed
-                .downcast::<(FloatTensor<B>, FloatTensor<B>)>()
-                .expect("a pair's ops run on one backend"),
-        )
+        self.0.take()
     }
 }
 

@@ -1,0 +1,299 @@
+//! A shared layer's parameter gradients on Burn's CubeCL backend, read straight from the rows
+//! its passes filed (see [`super`], design.md §7.5): one launch, plus a sum when the rows are
+//! split.
+//!
+//! The gradient is `[Xᵀ; 1ᵀ]·(G·diag(s))`: its first `in` rows are `∂W = Xᵀ·G`, its last, when
+//! the bias takes a gradient, `∂b = Σ_rows G` (a row of ones in `Xᵀ`), with `G`'s columns
+//! scaled by a folded BatchNorm's `s` (design.md §7.5). `X` and `G` are every pass's rows one
+//! after the other; the kernel never forms them. A row's pass is found by comparing the row
+//! with the passes' end rows (up to [`PASS_PARTS`] passes per launch), and the ones and the
+//! scale are applied where the rows are staged, so the stacked copies of `X` and `G` that a
+//! library product needs are never written.
+//!
+//! The reduction over rows is long (every pass's points) and the output small, so the rows
+//! are cut into chunks ([`crate::split_k`]): the cubes of chunk `z` write partial gradient
+//! `z`, and a sum over the chunks follows. Within a chunk the kernel is the forward product's
+//! (`super::product`): a cube of 16 × 16 threads owns a 64 × 64 block of the gradient and walks
+//! the chunk's rows 16 at a time, staging the slices of `X` and `G` in shared memory with
+//! neighbouring threads reading neighbouring columns of a row; each thread sums a 4 × 4 grid
+//! of outputs in a fixed order, so results do not depend on scheduling.
+
+use burn::backend::TensorMetadata;
+use burn::backend::ops::FloatTensorOps;
+use burn::backend::tensor::FloatTensor;
+use burn::tensor::Shape;
+use burn_cubecl::CubeBackend;
+use burn_cubecl::cubecl;
+use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::tensor::CubeTensor;
+use lifegom_render::cube::host::{arg, cast_to, prepare, tensor_arg, tensor_f32};
+
+use super::op::{GradientKernels, PASS_PARTS, ParameterRows};
+
+/// Gradient rows and columns of a cube's block.
+const TILE: usize = 64;
+
+/// Rows of `X` and `G` staged per step.
+const DEPTH: usize = 16;
+
+/// Threads along each axis of a cube.
+const SIDE: usize = 16;
+
+/// Outputs per thread along each axis (`TILE / SIDE`).
+const PER_THREAD: usize = 4;
+
+/// Threads of a cube.
+const THREADS: usize = SIDE * SIDE;
+
+/// The sizes of one launch: its passes' rows, the widths and the chunks.
+#[derive(CubeType, CubeLaunch)]
+struct GradientDims {
+    /// Rows of the launch's passes together.
+    filled: usize,
+    /// `X`'s width `in` (0 when the weight takes no gradient).
+    inputs: usize,
+    /// The gradient's rows: `in`, plus one for the bias.
+    out_rows: usize,
+    /// `G`'s width `out`.
+    cols: usize,
+    /// Rows per chunk.
+    chunk_rows: usize,
+    /// The launch's first chunk among all the layer's partial gradients.
+    first_chunk: usize,
+    /// Rows end after passes 0, 1 and 2 (the last part takes the rest).
+    end0: usize,
+    end1: usize,
+    end2: usize,
+}
+
+/// Element `(row, col)` of the rows of parts `p0…p3`, each `width` wide, one after the other.
+#[cube]
+#[allow(clippy::too_many_arguments, unused_assignments)]
+fn pass_element(
+    p0: &[f32],
+    p1: &[f32],
+    p2: &[f32],
+    p3: &[f32],
+    row: usize,
+    col: usize,
+    width: usize,
+    dims: &GradientDims,
+) -> f32 {
+    let mut value = 0.0f32;
+    if row < dims.end0 {
+        value = p0[row * width + col];
+    } else if row < dims.end1 {
+        value = p1[(row - dims.end0) * width + col];
+    } else if row < dims.end2 {
+        value = p2[(row - dims.end1) * width + col];
+    } else {
+        value = p3[(row - dims.end2) * width + col];
+    }
+    value
+}
+
+/// Partial gradient `CUBE_POS_Z` (module docs): `partials[z, i, j] = Σ_rows A[i, r]·B[r, j]` over
+/// the chunk's rows, with `A = [Xᵀ; 1ᵀ]` (the ones only when `bias_row`) and `B = G·diag(s)`
+/// (`scale` read only when `scaled`).
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn pass_gradient_kernel(
+    x0: &[f32],
+    x1: &[f32],
+    x2: &[f32],
+    x3: &[f32],
+    g0: &[f32],
+    g1: &[f32],
+    g2: &[f32],
+    g3: &[f32],
+    scale: &[f32],
+    partials: &mut [f32],
+    dims: &GradientDims,
+    #[comptime] scaled: bool,
+    #[comptime] bias_row: bool,
+) {
+    let mut a_tile = Shared::<[f32]>::new_slice(DEPTH * TILE);
+    let mut b_tile = Shared::<[f32]>::new_slice(DEPTH * TILE);
+    let tx = UNIT_POS_X as usize;
+    let ty = UNIT_POS_Y as usize;
+    let unit = ty * SIDE + tx;
+    let i0 = CUBE_POS_Y as usize * TILE;
+    let j0 = CUBE_POS_X as usize * TILE;
+    let chunk = CUBE_POS_Z as usize;
+    let begin = chunk * dims.chunk_rows;
+    let end = usize::min(begin + dims.chunk_rows, dims.filled);
+    let mut acc = Array::<f32>::new(PER_THREAD * PER_THREAD);
+    #[unroll]
+    for i in 0..PER_THREAD * PER_THREAD {
+        acc[i] = 0.0f32;
+    }
+    let mut r0 = begin;
+    while r0 < end {
+        // Both slices: entry `e` is row `r0 + e / TILE`, column `e % TILE` of the block.
+        #[unroll]
+        for l in 0..TILE * DEPTH / THREADS {
+            let e = unit + l * THREADS;
+            let rr = e / TILE;
+            let c = e % TILE;
+            let row = r0 + rr;
+            let (i, j) = (i0 + c, j0 + c);
+            let mut a = 0.0f32;
+            let mut b = 0.0f32;
+            if row < end {
+                if i < dims.inputs {
+                    a = pass_element(x0, x1, x2, x3, row, i, dims.inputs, dims);
+                } else if bias_row && i == dims.inputs {
+                    a = 1.0f32;
+                }
+                if j < dims.cols {
+                    b = pass_element(g0, g1, g2, g3, row, j, dims.cols, dims);
+                    if scaled {
+                        b *= scale[j];
+                    }
+                }
+            }
+            a_tile[rr * TILE + c] = a;
+            b_tile[rr * TILE + c] = b;
+        }
+        sync_cube();
+        for rr in 0..DEPTH {
+            let mut av = Array::<f32>::new(PER_THREAD);
+            let mut bv = Array::<f32>::new(PER_THREAD);
+            #[unroll]
+            for i in 0..PER_THREAD {
+                av[i] = a_tile[rr * TILE + ty + i * SIDE];
+                bv[i] = b_tile[rr * TILE + tx + i * SIDE];
+            }
+            #[unroll]
+            for i in 0..PER_THREAD {
+                #[unroll]
+                for j in 0..PER_THREAD {
+                    acc[i * PER_THREAD + j] += av[i] * bv[j];
+                }
+            }
+        }
+        sync_cube();
+        r0 += DEPTH;
+    }
+    let base = (dims.first_chunk + chunk) * dims.out_rows;
+    #[unroll]
+    for i in 0..PER_THREAD {
+        let row = i0 + ty + i * SIDE;
+        #[unroll]
+        for j in 0..PER_THREAD {
+            let col = j0 + tx + j * SIDE;
+            if row < dims.out_rows && col < dims.cols {
+                partials[(base + row) * dims.cols + col] = acc[i * PER_THREAD + j];
+            }
+        }
+    }
+}
+
+/// Chunks of `rows` rows at `chunk_rows` each; a group without rows still has one, which
+/// writes zeros.
+fn chunks_of(rows: usize, chunk_rows: usize) -> usize {
+    rows.div_ceil(chunk_rows.max(1)).max(1)
+}
+
+impl GradientKernels for CubeBackend {
+    fn pass_gradient(rows: ParameterRows<Self>) -> FloatTensor<Self> {
+        let ParameterRows {
+            inputs: xs,
+            grads: gs,
+            scale,
+            bias_row,
+            chunk_rows,
+        } = rows;
+        assert!(
+            !gs.is_empty() && (xs.is_empty() || xs.len() == gs.len()),
+            "every pass files its gradient, and its input when the weight takes a gradient"
+        );
+        let dtype = gs[0].dtype();
+        let (client, device) = (gs[0].client.clone(), gs[0].device.clone());
+        let inputs = xs.first().map_or(0, |x| x.shape()[1]);
+        let cols = gs[0].shape()[1];
+        let out_rows = inputs + usize::from(bias_row);
+        let xs: Vec<CubeTensor> = xs.into_iter().map(prepare).collect();
+        let gs: Vec<CubeTensor> = gs.into_iter().map(prepare).collect();
+        // Without a scale or inputs the kernel reads none: the first gradient is bound instead.
+        let scaled = scale.is_some();
+        let scale = scale.map_or_else(|| gs[0].clone(), prepare);
+        let xs = if xs.is_empty() {
+            vec![gs[0].clone()]
+        } else {
+            xs
+        };
+        let groups: Vec<usize> = (0..gs.len()).step_by(PASS_PARTS).collect();
+        let group_rows = |g: usize| -> usize {
+            gs[g..(g + PASS_PARTS).min(gs.len())]
+                .iter()
+                .map(|t| t.shape()[0])
+                .sum()
+        };
+        let chunks: usize = groups
+            .iter()
+            .map(|&g| chunks_of(group_rows(g), chunk_rows))
+            .sum();
+        let partials = client.empty(4 * (chunks * out_rows * cols).max(1));
+        let blocks = |n: usize| n.div_ceil(TILE) as u32;
+        let mut first_chunk = 0;
+        for &g in &groups {
+            let parts = g..(g + PASS_PARTS).min(gs.len());
+            let filled = group_rows(g);
+            let group_chunks = chunks_of(filled, chunk_rows);
+            // Rows end after each pass; the ends of unused parts are the last row's end.
+            let mut ends = [filled; PASS_PARTS];
+            let mut end = 0;
+            for (slot, t) in ends.iter_mut().zip(&gs[parts.clone()]) {
+                end += t.shape()[0];
+                *slot = end;
+            }
+            // Unused parts are bound to one of the group's and never read (the inputs'
+            // stand-in, when the weight takes no gradient, is one tensor).
+            let part = |all: &[CubeTensor], i: usize| {
+                tensor_arg(&all[(parts.start + i).min(parts.end - 1).min(all.len() - 1)])
+            };
+            if out_rows > 0 && cols > 0 {
+                pass_gradient_kernel::launch(
+                    &client,
+                    CubeCount::Static(blocks(cols), blocks(out_rows), group_chunks as u32),
+                    CubeDim::new_2d(SIDE as u32, SIDE as u32),
+                    part(&xs, 0),
+                    part(&xs, 1),
+                    part(&xs, 2),
+                    part(&xs, 3),
+                    part(&gs, 0),
+                    part(&gs, 1),
+                    part(&gs, 2),
+                    part(&gs, 3),
+                    tensor_arg(&scale),
+                    arg(&partials, chunks * out_rows * cols),
+                    GradientDimsLaunch::new(
+                        filled,
+                        inputs,
+                        out_rows,
+                        cols,
+                        chunk_rows.max(1),
+                        first_chunk,
+                        ends[0],
+                        ends[1],
+                        ends[2],
+                    ),
+                    scaled,
+                    bias_row,
+                );
+            }
+            first_chunk += group_chunks;
+        }
+        let partials = tensor_f32(&client, &device, partials, &[chunks, out_rows, cols]);
+        let gradient = if chunks == 1 {
+            partials
+        } else {
+            Self::float_sum_dim(partials, 0)
+        };
+        cast_to(
+            Self::float_reshape(gradient, Shape::new([out_rows, cols])),
+            dtype,
+        )
+    }
+}
