@@ -767,8 +767,9 @@ impl PointTransformerBlock {
         let h = folds
             .shared_fold(&self.linear1, &self.bn1, &x.device())
             .forward_receiving(x, Activation::Relu, &skip);
-        let h = self.transformer2.forward(folds, h, rel, nbr);
-        let h = relu(bn_last(folds, &self.bn2, h));
+        let h = self
+            .transformer2
+            .forward_then_norm(folds, h, rel, nbr, &self.bn2);
         folds
             .shared_fold(&self.linear3, &self.bn3, &h.device())
             .forward_residual_relu(h, identity, &skip)
@@ -856,7 +857,7 @@ impl PointTransformerLayer {
         nbr: Tensor<1, Int>,
     ) -> Tensor<2> {
         if !runs_on_host(&x.device()) {
-            return self.forward_stacked(folds, x, rel, nbr);
+            return self.forward_stacked(folds, x, rel, nbr, None);
         }
         let [n, c] = x.dims();
         let [_, k, _] = rel.dims();
@@ -892,7 +893,27 @@ impl PointTransformerLayer {
         vector_attention::aggregate(values, w)
     }
 
-    /// [`Self::forward`] on CubeCL devices: the query, key and value as one `[n, 3c]` product
+    /// `relu(BN(self.forward(…)))` for a frozen BatchNorm `bn` over the output: the block's
+    /// `bn2` and ReLU, on CubeCL devices in the aggregation's launch
+    /// ([`vector_attention::OutputNorm`]).
+    pub fn forward_then_norm<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        x: Tensor<2>,
+        rel: Tensor<3>,
+        nbr: Tensor<1, Int>,
+        bn: &'a BatchNorm,
+    ) -> Tensor<2> {
+        if runs_on_host(&x.device()) {
+            return relu(bn_last(folds, bn, self.forward(folds, x, rel, nbr)));
+        }
+        let (scale, shift) = folds.affine(bn, &x.device());
+        let norm = vector_attention::OutputNorm { scale, shift };
+        self.forward_stacked(folds, x, rel, nbr, Some(norm))
+    }
+
+    /// [`Self::forward`] on CubeCL devices, then `output_norm` when given: the query, key and
+    /// value as one `[n, 3c]` product
     /// (weights stacked once per [`NormFolds`]), `MLP_p` as [`vector_attention::position_encoding`],
     /// and the neighbourhood work around `MLP_w` as the two ops of [`vector_attention::relation`]
     /// and [`vector_attention::aggregate_gathered`],
@@ -904,6 +925,7 @@ impl PointTransformerLayer {
         x: Tensor<2>,
         rel: Tensor<3>,
         nbr: Tensor<1, Int>,
+        output_norm: Option<vector_attention::OutputNorm>,
     ) -> Tensor<2> {
         let device = x.device();
         let qkv = folds
@@ -944,10 +966,11 @@ impl PointTransformerLayer {
 
         let mw = &self.linear_w;
         let (scale, shift) = folds.affine(&mw.bn0, &device);
-        vector_attention::attend(qkv, nbr, delta, scale, shift, |related| {
+        let mlp = |related| {
             let w = linear_bn(folds, &mw.fc2, &mw.bn3, related, Activation::Relu);
             folds.shared_layer(&mw.fc5).forward(w) // [n, k, c/s]
-        })
+        };
+        vector_attention::attend(qkv, nbr, delta, scale, shift, mlp, output_norm)
     }
 }
 

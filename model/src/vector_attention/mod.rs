@@ -108,15 +108,28 @@ pub fn relation(
     )
 }
 
+/// A frozen BatchNorm's per-channel `scale` and `shift` (`[c]`, constants) and a ReLU after the
+/// layer's output: the Point Transformer block's `relu(BN₂(·))`, which [`attend`] applies in the
+/// aggregation's launch on CubeCL devices.
+#[derive(Debug, Clone)]
+pub struct OutputNorm {
+    /// `γ/√(σ²+ε)`.
+    pub scale: Tensor<1>,
+    /// `β − μ·scale`.
+    pub shift: Tensor<1>,
+}
+
 /// The whole neighbourhood part of the layer: [`relation`], then `mlp` (the rest of `MLP_w`) on
-/// it for the logits, then [`aggregate_gathered`]; `[n, c]`. On CubeCL devices the two ops are
-/// paired ([`neighbour_op::AttentionPair`]): their gradients for `qkv` and `δ` are added inside
-/// the relation's backward instead of by two more launches. `mlp` must use its input (the
-/// pairing relies on the relation's backward running).
+/// it for the logits, then [`aggregate_gathered`], then `relu(··scale + shift)` with
+/// `output_norm`'s when given; `[n, c]`. On CubeCL devices the two ops are paired
+/// ([`neighbour_op::AttentionPair`]): their gradients for `qkv` and `δ` are added inside the
+/// relation's backward instead of by two more launches; and the norm and ReLU are the
+/// aggregation's, forward and backward. `mlp` must use its input (the pairing relies on the
+/// relation's backward running).
 ///
 /// # Panics
 ///
-/// As [`relation`] and [`aggregate_gathered`].
+/// As [`relation`] and [`aggregate_gathered`], or if the norm's vectors are not `[c]`.
 pub fn attend(
     qkv: Tensor<2>,
     neighbours: Tensor<1, Int>,
@@ -124,6 +137,7 @@ pub fn attend(
     scale: Tensor<1>,
     shift: Tensor<1>,
     mlp: impl FnOnce(Tensor<3>) -> Tensor<3>,
+    output_norm: Option<OutputNorm>,
 ) -> Tensor<2> {
     let pair = neighbour_op::AttentionPair::new();
     let related = relation_paired(
@@ -134,7 +148,7 @@ pub fn attend(
         shift,
         pair.clone(),
     );
-    aggregate_gathered_paired(qkv, neighbours, delta, mlp(related), pair)
+    aggregate_gathered_paired(qkv, neighbours, delta, mlp(related), pair, output_norm)
 }
 
 fn relation_paired(
@@ -182,6 +196,7 @@ pub fn aggregate_gathered(
         delta,
         logits,
         neighbour_op::AttentionPair::unpaired(),
+        None,
     )
 }
 
@@ -191,6 +206,7 @@ fn aggregate_gathered_paired(
     delta: Tensor<3>,
     logits: Tensor<3>,
     pair: neighbour_op::AttentionPair,
+    output_norm: Option<OutputNorm>,
 ) -> Tensor<2> {
     check_gathered_shapes(&qkv, &neighbours, &delta);
     let [n, k, c] = delta.dims();
@@ -201,15 +217,43 @@ fn aggregate_gathered_paired(
         logits.dims(),
         delta.dims()
     );
-    if runs_on_host(&qkv.device()) {
-        return aggregate_gathered_reference(qkv, neighbours, delta, logits);
+    if let Some(norm) = &output_norm {
+        assert!(
+            norm.scale.dims() == [c] && norm.shift.dims() == [c],
+            "vector attention: the output norm's scale and shift must be [c]"
+        );
     }
+    if runs_on_host(&qkv.device()) {
+        let h = aggregate_gathered_reference(qkv, neighbours, delta, logits);
+        return match output_norm {
+            Some(OutputNorm { scale, shift }) => {
+                crate::activation::relu(h * scale.unsqueeze_dim(0) + shift.unsqueeze_dim(0))
+            }
+            None => h,
+        };
+    }
+    // Without a norm the op reads neither vector: `δ`'s handle is passed in their place.
+    let (ending, out_scale, out_shift) = match output_norm {
+        Some(OutputNorm { scale, shift }) => (
+            neighbour_op::AggregateEnding::NormRelu,
+            scale.into_dispatch(),
+            shift.into_dispatch(),
+        ),
+        None => (
+            neighbour_op::AggregateEnding::Plain,
+            delta.clone().into_dispatch(),
+            delta.clone().into_dispatch(),
+        ),
+    };
     Tensor::from_dispatch(
         <burn::backend::Dispatch as neighbour_op::NeighbourAttentionOps>::attention_aggregate_gathered(
             qkv.into_dispatch(),
             neighbours.into_dispatch(),
             delta.into_dispatch(),
             logits.into_dispatch(),
+            out_scale,
+            out_shift,
+            ending,
             pair,
         ),
     )
@@ -674,8 +718,15 @@ mod tests {
     /// [`attend`] (on CubeCL devices the paired ops, whose `qkv` and `δ` gradients add up in
     /// the relation's backward) against the reference composition on Flex: the output and the
     /// gradients of `qkv`, `δ` and a tensor the logits also read, with an MLP that mixes the
-    /// relation's channels into the logits.
+    /// relation's channels into the logits; with and without the block's norm and ReLU after
+    /// it ([`OutputNorm`], whose shift puts part of the outputs under zero).
     fn check_attend_matches_reference(device: &Device) {
+        for normed in [false, true] {
+            check_attend(device, normed);
+        }
+    }
+
+    fn check_attend(device: &Device, normed: bool) {
         let (n, k, c, cs) = (37usize, 5usize, 12usize, 4usize);
         let mut rng = Rng::new(29);
         let mut uniform = |len: usize, lo: f32, hi: f32| -> Vec<f32> {
@@ -687,6 +738,8 @@ mod tests {
         let scale = uniform(c, -1.5, 1.5);
         let shift = uniform(c, -0.3, 0.3);
         let out_weight = uniform(n * c, -1.0, 1.0);
+        let out_scale = uniform(c, -1.5, 1.5);
+        let out_shift = uniform(c, -0.5, 0.2);
         let neighbours: Vec<i64> = (0..n * k)
             .map(|ik| ((ik / k) * 5 + (ik % k) * 11) as i64 % n as i64)
             .collect();
@@ -711,12 +764,22 @@ mod tests {
                     * 0.7
                     + bias.clone()
             };
+            let norm = normed.then(|| OutputNorm {
+                scale: t(&out_scale, [c], &ad),
+                shift: t(&out_shift, [c], &ad),
+            });
             let out = if paired {
-                attend(qkv.clone(), nbr, delta.clone(), scale, shift, mlp)
+                attend(qkv.clone(), nbr, delta.clone(), scale, shift, mlp, norm)
             } else {
                 let related =
                     relation_reference(qkv.clone(), nbr.clone(), delta.clone(), scale, shift);
-                aggregate_gathered_reference(qkv.clone(), nbr, delta.clone(), mlp(related))
+                let h = aggregate_gathered_reference(qkv.clone(), nbr, delta.clone(), mlp(related));
+                match norm {
+                    Some(OutputNorm { scale, shift }) => burn::tensor::activation::relu(
+                        h * scale.unsqueeze_dim(0) + shift.unsqueeze_dim(0),
+                    ),
+                    None => h,
+                }
             };
             let grads = (out.clone() * t(&out_weight, [n, c], &ad)).sum().backward();
             [
@@ -740,7 +803,10 @@ mod tests {
                 .iter()
                 .zip(b)
                 .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
-            assert!(diff <= 1e-5, "{name} on {device:?}: max diff {diff:.2e}");
+            assert!(
+                diff <= 1e-5,
+                "{name} on {device:?}, normed {normed}: max diff {diff:.2e}"
+            );
         }
     }
 

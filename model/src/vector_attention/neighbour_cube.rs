@@ -42,7 +42,7 @@ use lifegom_render::cube::host::{
 
 use super::cube::{probability, softmax_scale};
 use super::neighbour_op::{
-    AttentionPair, NeighbourAttentionKernels, NeighbourAttentionOps, ValueScatter,
+    AggregateEnding, AttentionPair, NeighbourAttentionKernels, NeighbourAttentionOps, ValueScatter,
 };
 
 /// The sizes every kernel indexes with.
@@ -171,10 +171,13 @@ fn aggregate_gathered_forward_kernel(
     neighbours: &[i32],
     delta: &[f32],
     logits: &[f32],
+    out_scale: &[f32],
+    out_shift: &[f32],
     out: &mut [f32],
     units: usize,
     cs: usize,
     sizes: &Sizes,
+    #[comptime] normed: bool,
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
@@ -191,6 +194,11 @@ fn aggregate_gathered_forward_kernel(
                 let p = probability(logits, &scale, i, kk, j, k, cs);
                 acc += p * gathered_value(qkv, neighbours, delta, ik, ch, sizes);
             }
+            if normed {
+                // The block's frozen BatchNorm, then Burn's ReLU (`v ≤ 0 → 0`).
+                acc = acc * out_scale[ch] + out_shift[ch];
+                acc = select(acc <= 0.0f32, 0.0f32, acc);
+            }
             out[i * sizes.c + ch] = acc;
         }
     }
@@ -204,12 +212,15 @@ fn aggregate_gathered_backward_rows_kernel(
     delta: &[f32],
     logits: &[f32],
     grad: &[f32],
+    output: &[f32],
+    out_scale: &[f32],
     qkv_grad: &mut [f32],
     delta_grad: &mut [f32],
     logits_grad: &mut [f32],
     units: usize,
     cs: usize,
     sizes: &Sizes,
+    #[comptime] normed: bool,
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
@@ -227,7 +238,11 @@ fn aggregate_gathered_backward_rows_kernel(
             let mut a = 0.0f32;
             for si in 0..s {
                 let ch = si * cs + j;
-                let g = grad[i * c + ch];
+                let mut g = grad[i * c + ch];
+                if normed {
+                    // Through the ReLU and the BatchNorm's scale.
+                    g = select(output[i * c + ch] <= 0.0f32, 0.0f32, g * out_scale[ch]);
+                }
                 delta_grad[ik * c + ch] = p * g;
                 a += g * gathered_value(qkv, neighbours, delta, ik, ch, sizes);
             }
@@ -379,12 +394,22 @@ impl NeighbourAttentionOps for CubeBackend {
         neighbours: IntTensor<Self>,
         delta: FloatTensor<Self>,
         logits: FloatTensor<Self>,
+        out_scale: FloatTensor<Self>,
+        out_shift: FloatTensor<Self>,
+        ending: AggregateEnding,
         _pair: AttentionPair,
     ) -> FloatTensor<Self> {
         let _span = tracing::trace_span!("cube_attention_aggregate_gathered").entered();
         let dtype = delta.dtype();
         let (client, device) = (delta.client.clone(), delta.device.clone());
         let (qkv, delta, logits) = (prepare(qkv), prepare(delta), prepare(logits));
+        let normed = ending == AggregateEnding::NormRelu;
+        // Without the norm the kernel reads neither: `δ` is bound in their place.
+        let (out_scale, out_shift) = if normed {
+            (prepare(out_scale), prepare(out_shift))
+        } else {
+            (delta.clone(), delta.clone())
+        };
         let (n, k, c) = sizes_of(&qkv, &delta);
         let cs = logits.shape()[2];
         let neighbours = prepare_i32(neighbours);
@@ -399,10 +424,13 @@ impl NeighbourAttentionOps for CubeBackend {
                 tensor_arg(&neighbours),
                 tensor_arg(&delta),
                 tensor_arg(&logits),
+                tensor_arg(&out_scale),
+                tensor_arg(&out_shift),
                 arg(&out, n * c),
                 units,
                 cs,
                 SizesLaunch::new(n, k, c),
+                normed,
             );
         }
         cast_to(tensor_f32(&client, &device, out, &[n, c]), dtype)
@@ -491,12 +519,19 @@ impl NeighbourAttentionKernels for CubeBackend {
         logits: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         scatter: ValueScatter,
+        norm: Option<(FloatTensor<Self>, FloatTensor<Self>)>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
         let _span = tracing::trace_span!("cube_attention_aggregate_gathered_backward").entered();
         let dtypes = (qkv.dtype(), delta.dtype(), logits.dtype());
         let (client, device) = (delta.client.clone(), delta.device.clone());
         let (qkv, delta, logits) = (prepare(qkv), prepare(delta), prepare(logits));
         let grad = prepare(grad);
+        let normed = norm.is_some();
+        // Without the norm the kernel reads neither: the gradient is bound in their place.
+        let (output, out_scale) = match norm {
+            Some((output, scale)) => (prepare(output), prepare(scale)),
+            None => (grad.clone(), grad.clone()),
+        };
         let (n, k, c) = sizes_of(&qkv, &delta);
         let cs = logits.shape()[2];
         let neighbours = prepare_i32(neighbours);
@@ -514,12 +549,15 @@ impl NeighbourAttentionKernels for CubeBackend {
                 tensor_arg(&delta),
                 tensor_arg(&logits),
                 tensor_arg(&grad),
+                tensor_arg(&output),
+                tensor_arg(&out_scale),
                 arg(&qkv_grad, n * 3 * c),
                 arg(&delta_grad, n * k * c),
                 arg(&logits_grad, n * k * cs),
                 units,
                 cs,
                 SizesLaunch::new(n, k, c),
+                normed,
             );
             if scatter == ValueScatter::Here {
                 scatter_columns(

@@ -22,7 +22,7 @@
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops};
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
@@ -80,15 +80,31 @@ pub trait NeighbourAttentionOps: Backend {
         pair: AttentionPair,
     ) -> FloatTensor<Self>;
 
-    /// `Σ_κ softmax_κ(logits)·(v[nbr] + δ)`, `[n, c]`, with `logits` `[n, k, C/S]`.
+    /// `h = Σ_κ softmax_κ(logits)·(v[nbr] + δ)`, `[n, c]`, with `logits` `[n, k, C/S]`; with
+    /// [`AggregateEnding::NormRelu`], `relu(h·out_scale + out_shift)` (`[c]` each, a frozen
+    /// BatchNorm's, no gradient), else `h` (the two are not read).
+    #[allow(clippy::too_many_arguments)]
     #[fusion(dtype = delta, shape = burn::tensor::Shape::new([delta[0], delta[2]]))]
     fn attention_aggregate_gathered(
         qkv: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
         delta: FloatTensor<Self>,
         logits: FloatTensor<Self>,
+        out_scale: FloatTensor<Self>,
+        out_shift: FloatTensor<Self>,
+        ending: AggregateEnding,
         pair: AttentionPair,
     ) -> FloatTensor<Self>;
+}
+
+/// What the aggregation's launch applies to its result (the Point Transformer block's BatchNorm
+/// and ReLU after the layer: one launch fewer each way).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AggregateEnding {
+    /// The aggregation itself.
+    Plain,
+    /// `relu(h·scale + shift)`.
+    NormRelu,
 }
 
 /// Where the aggregation's values' gradient `∂v[nbr] += ∂(v + δ)` is scattered onto `∂qkv`.
@@ -119,7 +135,9 @@ pub trait NeighbourAttentionKernels: Backend {
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
     /// `(∂qkv, ∂δ, ∂logits)` of [`NeighbourAttentionOps::attention_aggregate_gathered`], the
-    /// values' part of `∂qkv` scattered as `scatter` says.
+    /// values' part of `∂qkv` scattered as `scatter` says; `norm` is the op's output and
+    /// `out_scale` under [`AggregateEnding::NormRelu`] (`grad` is then the gradient after the
+    /// ReLU).
     fn attention_aggregate_gathered_backward(
         qkv: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
@@ -127,6 +145,7 @@ pub trait NeighbourAttentionKernels: Backend {
         logits: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         scatter: ValueScatter,
+        norm: Option<(FloatTensor<Self>, FloatTensor<Self>)>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
 }
 
@@ -141,14 +160,19 @@ pub struct RelationInputs<B: Backend> {
     pair: AttentionPair,
 }
 
-/// The aggregation node's state: every input.
+/// The aggregation node's state: every input, and under [`AggregateEnding::NormRelu`] the
+/// output (the ReLU's mask) and the norm's scale.
 #[derive(Debug, Clone)]
 pub struct GatheredInputs<B: Backend> {
     qkv: FloatTensor<B>,
     neighbours: IntTensor<B>,
     delta: FloatTensor<B>,
     logits: FloatTensor<B>,
+    out_scale: FloatTensor<B>,
+    out_shift: FloatTensor<B>,
+    ending: AggregateEnding,
     pair: AttentionPair,
+    norm: Option<(FloatTensor<B>, FloatTensor<B>)>,
 }
 
 #[derive(Debug)]
@@ -206,6 +230,7 @@ impl<B: NeighbourAttentionKernels> Backward<B, 3> for GatheredBackward {
             s.logits,
             grad,
             scatter,
+            s.norm,
         );
         if let Some(node) = logits_node {
             grads.register::<B>(node.id, logits);
@@ -257,23 +282,53 @@ impl<B: NeighbourAttentionOps + NeighbourAttentionKernels, C: CheckpointStrategy
         neighbours: IntTensor<Self>,
         delta: FloatTensor<Self>,
         logits: FloatTensor<Self>,
+        out_scale: FloatTensor<Self>,
+        out_shift: FloatTensor<Self>,
+        ending: AggregateEnding,
         pair: AttentionPair,
     ) -> FloatTensor<Self> {
         let (qkv, qkv_node) = qkv.into_parts();
         let (delta, delta_node) = delta.into_parts();
         let (logits, logits_node) = logits.into_parts();
-        record::<B, C, _, _, 3>(
-            GatheredBackward,
-            [qkv_node, delta_node, logits_node],
-            GatheredInputs {
-                qkv,
-                neighbours,
-                delta,
-                logits,
-                pair,
-            },
-            |s| B::attention_aggregate_gathered(s.qkv, s.neighbours, s.delta, s.logits, s.pair),
-        )
+        // Constants of the frozen BatchNorm: their nodes are dropped.
+        let (out_scale, out_shift) = (out_scale.into_primitive(), out_shift.into_primitive());
+        let inputs = GatheredInputs {
+            qkv,
+            neighbours,
+            delta,
+            logits,
+            out_scale,
+            out_shift,
+            ending,
+            pair,
+            norm: None,
+        };
+        let forward = |s: GatheredInputs<B>| {
+            B::attention_aggregate_gathered(
+                s.qkv,
+                s.neighbours,
+                s.delta,
+                s.logits,
+                s.out_scale,
+                s.out_shift,
+                s.ending,
+                s.pair,
+            )
+        };
+        match GatheredBackward
+            .prepare::<C>([qkv_node, delta_node, logits_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let output = forward(inputs.clone());
+                // The ReLU's mask is the output; the norm's scale multiplies the gradient.
+                let norm = (ending == AggregateEnding::NormRelu)
+                    .then(|| (output.clone(), inputs.out_scale.clone()));
+                prep.finish(GatheredInputs { norm, ..inputs }, output)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(forward(inputs)),
+        }
     }
 }
 
@@ -338,24 +393,36 @@ impl<B: FusionBackend + NeighbourAttentionKernels> NeighbourAttentionKernels for
         logits: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         scatter: ValueScatter,
+        norm: Option<(FloatTensor<Self>, FloatTensor<Self>)>,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
         let specs = vec![
             float_like::<B>(&qkv, qkv.shape()),
             float_like::<B>(&delta, delta.shape()),
             float_like::<B>(&logits, logits.shape()),
         ];
-        let inputs = vec![
+        let normed = norm.is_some();
+        let mut inputs = vec![
             Input::Float(qkv),
             Input::Int(neighbours),
             Input::Float(delta),
             Input::Float(logits),
             Input::Float(grad),
         ];
+        if let Some((output, scale)) = norm {
+            inputs.extend([Input::Float(output), Input::Float(scale)]);
+        }
         let [qkv, delta, logits] = array(deferred::<B, _>(
             "attention_aggregate_gathered_backward",
             inputs,
             specs,
-            move |v| {
+            move |mut v| {
+                let norm = if normed {
+                    let scale = v.pop().map(Value::float);
+                    let output = v.pop().map(Value::float);
+                    output.zip(scale)
+                } else {
+                    None
+                };
                 let [qkv, neighbours, delta, logits, grad] = array(v);
                 let (qkv, delta, logits) = B::attention_aggregate_gathered_backward(
                     qkv.float(),
@@ -364,6 +431,7 @@ impl<B: FusionBackend + NeighbourAttentionKernels> NeighbourAttentionKernels for
                     logits.float(),
                     grad.float(),
                     scatter,
+                    norm,
                 );
                 vec![Value::Float(qkv), Value::Float(delta), Value::Float(logits)]
             },
