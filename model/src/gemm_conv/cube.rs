@@ -11,7 +11,6 @@
 //! element and no atomics are needed.
 
 use burn::backend::TensorMetadata;
-use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::tensor::Shape;
 use burn_cubecl::CubeBackend;
@@ -185,14 +184,7 @@ impl GemmConvOps for CubeBackend {
         patches: Patches,
     ) -> FloatTensor<Self> {
         let out = patches.output_shape(&x.shape(), &weight.shape());
-        let [n, c_out, h, w] = [out[0], out[1], out[2], out[3]];
         let columns = Self::patch_columns(x, patches);
-        let width = columns.shape()[1];
-        let weight = Self::float_reshape(weight, Shape::new([c_out, width]));
-        let rows = Self::float_matmul(columns, Self::float_transpose(weight));
-        let nhwc = Self::float_reshape(rows, Shape::new([n, h, w, c_out]));
-        // Channels-last in memory, as Burn's own convolutions answer: the next ops (the encoder's
-        // norms) read any layout, and a copy to row-major order would be a launch per layer.
-        Self::float_permute(nhwc, &[0, 3, 1, 2])
+        super::op::columns_product::<Self>(columns, weight, out)
     }
 }

@@ -201,7 +201,8 @@ mod tests {
     /// leave pixels unread, on inputs smaller than the window (most taps read padding: the
     /// late stages of a small image), with the weight gradient as one product and split-k
     /// (chunks forced to 8 rows: the exact divisor rule's chunks), on row-major inputs and on
-    /// channels-last ones (how a layer's output reaches the next: read in place).
+    /// channels-last ones (how a layer's output reaches the next: read in place), with the
+    /// patch columns kept from the forward and rebuilt in the backward.
     #[test]
     fn conv2d_matches_burn_wgpu() {
         let Some(device) = wgpu_test_device() else {
@@ -216,19 +217,23 @@ mod tests {
             .chain([((3, 1, 1), [1, 4, 1, 1])]);
         for ((kernel, stride, pad), shape) in cases {
             let window = (kernel, stride, pad);
-            for (split, memory) in [
-                (Some(0), Memory::RowMajor),
-                (Some(8), Memory::RowMajor),
-                (Some(8), Memory::ChannelsLast),
+            for (split, memory, kept) in [
+                (Some(0), Memory::RowMajor, op::KEPT_COLUMNS_BYTES),
+                (Some(8), Memory::RowMajor, op::KEPT_COLUMNS_BYTES),
+                (Some(8), Memory::ChannelsLast, op::KEPT_COLUMNS_BYTES),
+                (Some(0), Memory::ChannelsLast, 0),
+                (Some(8), Memory::RowMajor, 0),
             ] {
                 let want = run(&flex, window, shape, 5, memory, false);
                 force_split_k_rows(split);
+                op::keep_columns_up_to(kept);
                 let got = run(&device, window, shape, 5, memory, true);
+                op::keep_columns_up_to(op::KEPT_COLUMNS_BYTES);
                 force_split_k_rows(None);
                 for (i, what) in ["output", "∂x", "∂W"].iter().enumerate() {
                     let what = format!(
                         "{kernel}×{kernel} /{stride} pad {pad} on {shape:?}, split {split:?}, \
-                         {memory:?}: {what}"
+                         {memory:?}, columns kept up to {kept} B: {what}"
                     );
                     assert_close_to_scale(&got[i], &want[i], 2e-5, &what);
                     assert!(got[i].iter().all(|v| v.is_finite()), "{what}: finite");

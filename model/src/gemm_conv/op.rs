@@ -3,19 +3,22 @@
 //! Listed for `Cube`, `Fusion` and `Autodiff`. The forward (the `cube` module) is the patch
 //! columns, one product, and a view of its `[N, H_out, W_out, C_out]` rows as Burn's
 //! `[N, C_out, H_out, W_out]`; Burn's fusion runs it as one op. The autodiff node keeps the
-//! input and the weight (handles, not the columns: they are rebuilt in the backward, one
-//! memory-bound launch, rather than held from the forward to the backward for every layer).
+//! input and the weight, and the columns only when they are small ([`KEPT_COLUMNS_BYTES`]):
+//! larger ones are rebuilt in the backward, one memory-bound launch, rather than held from the
+//! forward to the backward for every layer (0.5 GB for the stem at the paper's setting); small
+//! ones cost less to keep than a launch to rebuild.
+
+use std::cell::Cell;
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops};
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
 use burn::tensor::Shape;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
-use lifegom_render::op_backward::record;
 
 use crate::split_k::SplitK;
 
@@ -93,12 +96,47 @@ pub trait PatchKernels: Backend {
     ) -> FloatTensor<Self>;
 }
 
-/// The node's state: the op's inputs.
+/// The largest patch columns an autodiff node keeps from the forward for its weight gradient
+/// (module docs): every layer of the quickstart's encoder, none of the paper setting's first
+/// stages.
+pub const KEPT_COLUMNS_BYTES: usize = 16 << 20;
+
+thread_local! {
+    /// [`keep_columns_up_to`]'s choice on this thread.
+    static KEPT_BYTES: Cell<usize> = const { Cell::new(KEPT_COLUMNS_BYTES) };
+}
+
+/// Sets the largest patch columns that convolutions run on the calling thread keep for their
+/// backward ([`KEPT_COLUMNS_BYTES`] by default; 0 rebuilds every layer's). For tests.
+pub fn keep_columns_up_to(bytes: usize) {
+    KEPT_BYTES.with(|kept| kept.set(bytes));
+}
+
+/// The convolution's output `out` (`[N, C_out, H_out, W_out]`) from its patch columns and
+/// `weight` `[C_out, C, kh, kw]`: one product, whose `[N·H_out·W_out, C_out]` rows are viewed
+/// as NCHW (see [`super`]).
+pub(crate) fn columns_product<B: Backend>(
+    columns: FloatTensor<B>,
+    weight: FloatTensor<B>,
+    out: Shape,
+) -> FloatTensor<B> {
+    let [n, c_out, h, w] = [out[0], out[1], out[2], out[3]];
+    let width = columns.shape()[1];
+    let weight = B::float_reshape(weight, Shape::new([c_out, width]));
+    let rows = B::float_matmul(columns, B::float_transpose(weight));
+    let nhwc = B::float_reshape(rows, Shape::new([n, h, w, c_out]));
+    // Channels-last in memory, as Burn's own convolutions answer: the next ops (the encoder's
+    // norms) read any layout, and a copy to row-major order would be a launch per layer.
+    B::float_permute(nhwc, &[0, 3, 1, 2])
+}
+
+/// The node's state: the op's inputs, and the patch columns when kept (module docs).
 #[derive(Debug, Clone)]
 pub struct ConvInputs<B: Backend> {
     x: FloatTensor<B>,
     weight: FloatTensor<B>,
     patches: Patches,
+    columns: Option<FloatTensor<B>>,
 }
 
 #[derive(Debug)]
@@ -115,7 +153,12 @@ impl<B: PatchKernels> Backward<B, 2> for ConvBackward {
     ) {
         let grad = grads.consume::<B>(&ops.node);
         let [x_parent, weight_parent] = ops.parents;
-        let ConvInputs { x, weight, patches } = ops.state;
+        let ConvInputs {
+            x,
+            weight,
+            patches,
+            columns,
+        } = ops.state;
         let weight_shape = weight.shape();
         let c_out = weight_shape[0];
         let x_shape = x.shape();
@@ -130,7 +173,7 @@ impl<B: PatchKernels> Backward<B, 2> for ConvBackward {
             Shape::new([c_out, weight_shape.num_elements() / c_out.max(1)]),
         );
         if let Some(parent) = weight_parent {
-            let columns = B::patch_columns(x, patches);
+            let columns = columns.unwrap_or_else(|| B::patch_columns(x, patches));
             let width = columns.shape()[1];
             let split = SplitK::plan_exact(rows, width, c_out);
             // `∂Wᵀ = columnsᵀ·∂y` `[C·kh·kw, C_out]`.
@@ -156,12 +199,34 @@ impl<B: GemmConvOps + PatchKernels, C: CheckpointStrategy> GemmConvOps for Autod
     ) -> FloatTensor<Self> {
         let (x, x_node) = x.into_parts();
         let (weight, weight_node) = weight.into_parts();
-        record::<B, C, _, _, 2>(
-            ConvBackward,
-            [x_node, weight_node],
-            ConvInputs { x, weight, patches },
-            |s| B::gemm_conv2d(s.x, s.weight, s.patches),
-        )
+        let inputs = ConvInputs::<B> {
+            x,
+            weight,
+            patches,
+            columns: None,
+        };
+        match ConvBackward
+            .prepare::<C>([x_node, weight_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let x_shape = inputs.x.shape();
+                let columns_bytes = patches.columns_shape(&x_shape).num_elements() * 4;
+                if columns_bytes > KEPT_BYTES.with(Cell::get) {
+                    let out = B::gemm_conv2d(inputs.x.clone(), inputs.weight.clone(), patches);
+                    return prep.finish(inputs, out);
+                }
+                let out_shape = patches.output_shape(&x_shape, &inputs.weight.shape());
+                let columns = B::patch_columns(inputs.x.clone(), patches);
+                let out = columns_product::<B>(columns.clone(), inputs.weight.clone(), out_shape);
+                let columns = Some(columns);
+                prep.finish(ConvInputs { columns, ..inputs }, out)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::gemm_conv2d(inputs.x, inputs.weight, patches))
+            }
+        }
     }
 }
 
