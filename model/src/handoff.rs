@@ -15,9 +15,12 @@
 use std::any::Any;
 use std::sync::{Arc, Mutex, PoisonError};
 
+/// What a giver filed, until the taker takes it.
+type Slot = Mutex<Option<Box<dyn Any + Send>>>;
+
 /// The slot a giver files its gradient in, shared by both nodes; or no joining.
 #[derive(Clone, Default)]
-pub struct Handoff(Option<Arc<Mutex<Option<Box<dyn Any + Send>>>>>);
+pub struct Handoff(Option<Arc<Slot>>);
 
 impl std::fmt::Debug for Handoff {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
