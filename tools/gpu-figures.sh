@@ -34,7 +34,9 @@
 #      card);
 #   4b. `matmul-bench`, when $BIN has it: Burn's matmul for the training step's shapes, and
 #      `relu(x·W + b)` as Burn's kernels beside the shared layer's product kernel (`layer`
-#      lines), with fusion on and off (every line kept, one per shape and form);
+#      lines), and the same layer through three passes forward and backward, Burn's autodiff
+#      beside the shared layer's masked products and gradient kernel (`layer_backward` lines),
+#      with fusion on and off (every line kept, one per shape and form);
 #   5. with AUTOTUNE_BIN set, the kernels Burn's autotune picks at the paper setting;
 #   6. with CUDA_BIN set (binaries built with `--features lifegom-cli/cuda`), the quickstart
 #      step and the paper reconstruction on `--device cuda` beside wgpu. CubeCL's CUDA runtime

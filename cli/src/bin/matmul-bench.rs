@@ -21,6 +21,12 @@
 //! - `layer`: `relu(x·W + b)`, a layer with its bias and ReLU, as Burn's product and
 //!   elementwise ops (`"kernel": "burn"`) and as the shared layer's product kernel with both in
 //!   its launch (`"kernel": "shared"`, `lifegom_model::shared_linear`);
+//! - `layer_backward`: the same layer run by [`PASSES`] passes (as the feedback loop runs the
+//!   Point Transformer's), forward and backward: `∂x` of each pass, `∂W` and `∂b`. Burn's
+//!   autodiff (`"kernel": "burn"`: per pass a product for `∂x`, a weight-gradient product, a
+//!   bias sum and the ReLU's mask, then additions) against the shared layer (`"shared"`: per
+//!   pass one masked product, then one gradient kernel over every pass's rows and a sum over
+//!   its chunks);
 //! - `column_sum`: `Σ_rows g` of `g: [k, n]`, a layer's bias gradient (`m` = 1), as one
 //!   `sum_dim(0)`; `chunked_column_sum`: the same as sums within `c`-row chunks, then over the
 //!   chunks (`[S, c, n]` → `[S, 1, n]` → `[1, 1, n]`, the input padded outside the timed region).
@@ -65,7 +71,11 @@ enum Form {
     ColumnSum,
     ChunkedColumnSum { chunk: usize },
     Layer { kernel: LayerKernel },
+    LayerBackward { kernel: LayerKernel },
 }
+
+/// Passes through one layer in the `layer_backward` form.
+const PASSES: usize = 3;
 
 /// Which kernels run a `layer` case.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -86,6 +96,7 @@ impl Form {
             Form::ColumnSum => "column_sum",
             Form::ChunkedColumnSum { .. } => "chunked_column_sum",
             Form::Layer { .. } => "layer",
+            Form::LayerBackward { .. } => "layer_backward",
         }
     }
 }
@@ -109,6 +120,8 @@ impl Case {
         match self.form {
             Form::Batched { batch } => 2.0 * terms * batch as f64,
             Form::ColumnSum | Form::ChunkedColumnSum { .. } => terms,
+            // Forward, `∂x` and `∂W` per pass.
+            Form::LayerBackward { .. } => 6.0 * terms * PASSES as f64,
             _ => 2.0 * terms,
         }
     }
@@ -147,6 +160,9 @@ fn cases() -> Vec<Case> {
     ] {
         for kernel in [LayerKernel::Burn, LayerKernel::Shared] {
             out.push(case(Form::Layer { kernel }, m, k, n, paper));
+        }
+        for kernel in [LayerKernel::Burn, LayerKernel::Shared] {
+            out.push(case(Form::LayerBackward { kernel }, m, k, n, paper));
         }
     }
     // Weight gradients: `[m, k]·[k, n]` with k the rows of the layer's input.
@@ -191,6 +207,15 @@ enum Inputs {
     BurnLayer(Tensor<2>, Tensor<2>, Tensor<1>),
     /// `x` and the layer.
     SharedLayer(Tensor<2>, SharedLinear),
+    /// Every pass's `x` `[m, k]`, `W`, `b` and the output weights `r` `[m, n]`, on the device
+    /// with autodiff.
+    LayerBackward {
+        kernel: LayerKernel,
+        xs: Vec<Tensor<2>>,
+        w: Tensor<2>,
+        b: Tensor<1>,
+        r: Tensor<2>,
+    },
 }
 
 impl Inputs {
@@ -224,6 +249,19 @@ impl Inputs {
                     LayerKernel::Shared => Inputs::SharedLayer(x, SharedLinear::new(w, b)),
                 }
             }
+            Form::LayerBackward { kernel } => {
+                let ad = device.clone().autodiff();
+                let xs = (0..PASSES)
+                    .map(|_| Tensor::random([m, k], normal, &ad).require_grad())
+                    .collect();
+                Inputs::LayerBackward {
+                    kernel,
+                    xs,
+                    w: Tensor::random([k, n], normal, &ad).require_grad(),
+                    b: Tensor::random([n], normal, &ad).require_grad(),
+                    r: Tensor::random([m, n], normal, &ad),
+                }
+            }
             Form::Batched { batch } => Inputs::Batched(
                 Tensor::random([batch, m, k], normal, device),
                 Tensor::random([1, k, n], normal, device),
@@ -245,6 +283,35 @@ impl Inputs {
             )),
             Inputs::SharedLayer(x, layer) => {
                 wait_for_values(layer.forward_with(x.clone(), Activation::Relu))
+            }
+            Inputs::LayerBackward {
+                kernel,
+                xs,
+                w,
+                b,
+                r,
+            } => {
+                // One shared layer per reconstruction, as the model makes them.
+                let shared = (*kernel == LayerKernel::Shared)
+                    .then(|| SharedLinear::new(w.clone(), b.clone()));
+                let total = xs
+                    .iter()
+                    .map(|x| {
+                        let y = match &shared {
+                            Some(layer) => layer.forward_with(x.clone(), Activation::Relu),
+                            None => burn::tensor::activation::relu(
+                                x.clone().matmul(w.clone()) + b.clone().unsqueeze_dim(0),
+                            ),
+                        };
+                        (y * r.clone()).sum()
+                    })
+                    .reduce(|a, b| a + b)
+                    .expect("at least one pass");
+                let grads = total.backward();
+                let read = |t: Option<Tensor<2>>| wait_for_values(t.expect("a gradient"));
+                xs.iter().map(|x| read(x.grad(&grads))).sum::<usize>()
+                    + read(w.grad(&grads))
+                    + wait_for_values(b.grad(&grads).expect("a bias gradient"))
             }
         }
     }
@@ -298,7 +365,7 @@ fn main() -> anyhow::Result<()> {
         if let Form::Batched { batch } = case.form {
             line["batch"] = serde_json::json!(batch);
         }
-        if let Form::Layer { kernel } = case.form {
+        if let Form::Layer { kernel } | Form::LayerBackward { kernel } = case.form {
             line["kernel"] = serde_json::json!(match kernel {
                 LayerKernel::Burn => "burn",
                 LayerKernel::Shared => "shared",
