@@ -29,21 +29,7 @@ use burn_cubecl::tensor::CubeTensor;
 use lifegom_render::cube::host::{arg, cast_to, prepare, tensor_arg, tensor_f32};
 
 use super::op::{GradientKernels, PASS_PARTS, ParameterRows};
-
-/// Gradient rows and columns of a cube's block.
-const TILE: usize = 64;
-
-/// Rows of `X` and `G` staged per step.
-const DEPTH: usize = 16;
-
-/// Threads along each axis of a cube.
-const SIDE: usize = 16;
-
-/// Outputs per thread along each axis (`TILE / SIDE`).
-const PER_THREAD: usize = 4;
-
-/// Threads of a cube.
-const THREADS: usize = SIDE * SIDE;
+use super::product::{DEPTH, PER_THREAD, SIDE, THREADS, TILE, multiply_staged};
 
 /// The sizes of one launch: its passes' rows, the widths and the chunks.
 #[derive(CubeType, CubeLaunch)]
@@ -156,22 +142,7 @@ fn pass_gradient_kernel(
             b_tile[rr * TILE + c] = b;
         }
         sync_cube();
-        for rr in 0..DEPTH {
-            let mut av = Array::<f32>::new(PER_THREAD);
-            let mut bv = Array::<f32>::new(PER_THREAD);
-            #[unroll]
-            for i in 0..PER_THREAD {
-                av[i] = a_tile[rr * TILE + ty + i * SIDE];
-                bv[i] = b_tile[rr * TILE + tx + i * SIDE];
-            }
-            #[unroll]
-            for i in 0..PER_THREAD {
-                #[unroll]
-                for j in 0..PER_THREAD {
-                    acc[i * PER_THREAD + j] += av[i] * bv[j];
-                }
-            }
-        }
+        multiply_staged(&a_tile, TILE, &b_tile, &mut acc, tx, ty);
         sync_cube();
         r0 += DEPTH;
     }

@@ -38,19 +38,19 @@ use super::op::ProductKernels;
 use crate::activation::Activation;
 
 /// Output rows and columns of a cube's block.
-const TILE: usize = 64;
+pub(super) const TILE: usize = 64;
 
 /// Inner-axis entries staged per step.
-const DEPTH: usize = 16;
+pub(super) const DEPTH: usize = 16;
 
 /// Threads along each axis of a cube.
-const SIDE: usize = 16;
+pub(super) const SIDE: usize = 16;
 
 /// Outputs per thread along each axis (`TILE / SIDE`).
-const PER_THREAD: usize = 4;
+pub(super) const PER_THREAD: usize = 4;
 
 /// Threads of a cube.
-const THREADS: usize = SIDE * SIDE;
+pub(super) const THREADS: usize = SIDE * SIDE;
 
 /// Row stride of the staged `A` slice: one more than a block's rows, so that the threads
 /// staging one row's `DEPTH` entries write to distinct shared-memory banks.
@@ -65,6 +65,36 @@ struct ProductDims {
     /// `B[k, n]` is at `k·b_inner_stride + n·b_col_stride`.
     b_inner_stride: usize,
     b_col_stride: usize,
+}
+
+/// Adds the product of one staged step to thread `(tx, ty)`'s 4 × 4 outputs: `acc[i·4 + j] +=
+/// Σ_kk a_tile[kk·a_stride + ty + 16·i]·b_tile[kk·TILE + tx + 16·j]`, the inner entries in
+/// order. Shared by this module's kernel and the parameters' gradient kernel (`super::gradient`).
+#[cube]
+pub(super) fn multiply_staged(
+    a_tile: &Shared<[f32]>,
+    #[comptime] a_stride: usize,
+    b_tile: &Shared<[f32]>,
+    acc: &mut Array<f32>,
+    tx: usize,
+    ty: usize,
+) {
+    for kk in 0..DEPTH {
+        let mut av = Array::<f32>::new(PER_THREAD);
+        let mut bv = Array::<f32>::new(PER_THREAD);
+        #[unroll]
+        for i in 0..PER_THREAD {
+            av[i] = a_tile[kk * a_stride + ty + i * SIDE];
+            bv[i] = b_tile[kk * TILE + tx + i * SIDE];
+        }
+        #[unroll]
+        for i in 0..PER_THREAD {
+            #[unroll]
+            for j in 0..PER_THREAD {
+                acc[i * PER_THREAD + j] += av[i] * bv[j];
+            }
+        }
+    }
 }
 
 /// `out = epilogue(A·B)` (module docs). `mask` and `masked_out` are read and written only when
@@ -135,22 +165,7 @@ fn affine_product_kernel(
             b_tile[kk * TILE + c] = v;
         }
         sync_cube();
-        for kk in 0..DEPTH {
-            let mut av = Array::<f32>::new(PER_THREAD);
-            let mut bv = Array::<f32>::new(PER_THREAD);
-            #[unroll]
-            for i in 0..PER_THREAD {
-                av[i] = a_tile[kk * A_STRIDE + ty + i * SIDE];
-                bv[i] = b_tile[kk * TILE + tx + i * SIDE];
-            }
-            #[unroll]
-            for i in 0..PER_THREAD {
-                #[unroll]
-                for j in 0..PER_THREAD {
-                    acc[i * PER_THREAD + j] += av[i] * bv[j];
-                }
-            }
-        }
+        multiply_staged(&a_tile, A_STRIDE, &b_tile, &mut acc, tx, ty);
         sync_cube();
         k0 += DEPTH;
     }
