@@ -1002,8 +1002,14 @@ impl Interpolation {
     }
 
     /// `[n_coarse, c] → [n_fine, c]` ([`crate::interpolation::interpolate`]).
-    fn apply(&self, x: Tensor<2>) -> Tensor<2> {
-        crate::interpolation::interpolate(x, self.idx.clone(), self.weights.clone())
+    /// `base + Σ_j w_ij·x[nbr_ij]`, the sum in the interpolation's launch on devices.
+    fn apply_onto(&self, base: Tensor<2>, x: Tensor<2>) -> Tensor<2> {
+        crate::interpolation::interpolate_onto(
+            Some(base),
+            x,
+            self.idx.clone(),
+            self.weights.clone(),
+        )
     }
 }
 
@@ -1054,7 +1060,7 @@ impl TransitionUp {
                 .shared_layer(&self.linear2)
                 .forward_with(coarse, Activation::Relu),
         };
-        fine + interp.apply(up)
+        interp.apply_onto(fine, up)
     }
 }
 

@@ -19,7 +19,7 @@ use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32, zeros_f32,
 };
 
-use super::op::{InterpolationKernels, InterpolationOps};
+use super::op::{Base, InterpolationKernels, InterpolationOps};
 
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
@@ -27,11 +27,13 @@ fn interpolate_forward_kernel(
     x: &[f32],
     neighbours: &[i32],
     weights: &[f32],
+    base: &[f32],
     out: &mut [f32],
     units: usize,
     n: usize,
     k: usize,
     c: usize,
+    #[comptime] added: bool,
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
@@ -43,6 +45,9 @@ fn interpolate_forward_kernel(
             if row >= 0 && (row as usize) < n {
                 total += weights[i * k + j] * x[row as usize * c + ch];
             }
+        }
+        if added {
+            total = base[unit] + total;
         }
         out[unit] = total;
     }
@@ -81,12 +86,21 @@ impl InterpolationOps for CubeBackend {
         x: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
         weights: FloatTensor<Self>,
+        base: FloatTensor<Self>,
+        onto: Base,
     ) -> FloatTensor<Self> {
         let dtype = x.dtype();
         let (client, device) = (x.client.clone(), x.device.clone());
         let [n, c] = [x.shape()[0], x.shape()[1]];
         let [m, k] = [weights.shape()[0], weights.shape()[1]];
         let (x, neighbours, weights) = (prepare(x), prepare_i32(neighbours), prepare(weights));
+        let added = onto == Base::Added;
+        // Without a base the kernel reads none: the weights are bound in its place.
+        let base = if added {
+            prepare(base)
+        } else {
+            weights.clone()
+        };
         let units = m * c;
         let out = client.empty(4 * units.max(1));
         if units > 0 {
@@ -97,11 +111,13 @@ impl InterpolationOps for CubeBackend {
                 tensor_arg(&x),
                 tensor_arg(&neighbours),
                 tensor_arg(&weights),
+                tensor_arg(&base),
                 arg(&out, units),
                 units,
                 n,
                 k,
                 c,
+                added,
             );
         }
         cast_to(tensor_f32(&client, &device, out, &[m, c]), dtype)

@@ -6,7 +6,8 @@
 //! a gather, a broadcast product and a sum, and in the backward the product's and the sum's
 //! gradients and a zero-filled scatter: on a GPU about seven launches per level and pass.
 //! [`interpolate`] is one launch forward and a zero-fill and one launch backward (the `cube`
-//! module). The CPU backends keep the composition.
+//! module); [`interpolate_onto`] adds the transition-up's fine features in the same launch,
+//! their gradient the output's. The CPU backends keep the composition.
 
 mod cube;
 pub mod op;
@@ -23,6 +24,22 @@ use lifegom_render::select::select_rows;
 ///
 /// If `neighbours` does not hold `K` entries per row of `weights`.
 pub fn interpolate(x: Tensor<2>, neighbours: Tensor<1, Int>, weights: Tensor<2>) -> Tensor<2> {
+    interpolate_onto(None, x, neighbours, weights)
+}
+
+/// `base + interpolate(x, neighbours, weights)` (`base` `[m, c]`, or none), the sum in the op's
+/// launch on CubeCL devices: the transition-up's `fine + interpolated`. The gradient reaches
+/// `base` and `x`.
+///
+/// # Panics
+///
+/// As [`interpolate`], or if `base` is not `[m, c]`.
+pub fn interpolate_onto(
+    base: Option<Tensor<2>>,
+    x: Tensor<2>,
+    neighbours: Tensor<1, Int>,
+    weights: Tensor<2>,
+) -> Tensor<2> {
     let [m, k] = weights.dims();
     assert_eq!(
         neighbours.dims()[0],
@@ -30,17 +47,36 @@ pub fn interpolate(x: Tensor<2>, neighbours: Tensor<1, Int>, weights: Tensor<2>)
         "{k} neighbours per interpolated row"
     );
     let c = x.dims()[1];
+    if let Some(base) = &base {
+        assert_eq!(
+            base.dims(),
+            [m, c],
+            "the base of an interpolation is [m, c]"
+        );
+    }
     if runs_on_host(&x.device()) {
-        return (select_rows(x, 0, neighbours).reshape([m, k, c])
+        let rows = (select_rows(x, 0, neighbours).reshape([m, k, c])
             * weights.detach().reshape([m, k, 1]))
         .sum_dim(1)
         .reshape([m, c]);
+        return match base {
+            Some(base) => base + rows,
+            None => rows,
+        };
     }
+    let weights = weights.detach();
+    // Without a base the op reads none: the (detached) weights stand in, taking no gradient.
+    let (base, onto) = match base {
+        Some(base) => (base, op::Base::Added),
+        None => (weights.clone(), op::Base::None),
+    };
     Tensor::from_dispatch(
         <burn::backend::Dispatch as op::InterpolationOps>::point_interpolation(
             x.into_dispatch(),
             neighbours.into_dispatch(),
-            weights.detach().into_dispatch(),
+            weights.into_dispatch(),
+            base.into_dispatch(),
+            onto,
         ),
     )
 }
@@ -52,8 +88,9 @@ mod tests {
     use lifegom_render::testing::{Rng, read, wgpu_test_device};
 
     /// Interpolated rows and the source's gradient (of a weighted sum), with coarse points
-    /// shared by several rows, a row naming one point twice and points named by none.
-    fn rows_and_gradient(device: &Device) -> (Vec<f32>, Vec<f32>) {
+    /// shared by several rows, a row naming one point twice and points named by none; onto a
+    /// base when `onto` (then also the base's gradient).
+    fn rows_and_gradient(device: &Device, onto: bool) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let ad = device.clone().autodiff();
         let mut rng = Rng::new(9);
         let (n, m, k, c) = (6, 9, 3, 5);
@@ -65,26 +102,53 @@ mod tests {
         let x = Tensor::<2>::from_data(TensorData::new(x, [n, c]), &ad).require_grad();
         let neighbours = Tensor::<1, Int>::from_data(TensorData::new(neighbours, [m * k]), &ad);
         let weights = Tensor::<2>::from_data(TensorData::new(weights, [m, k]), &ad);
-        let out = interpolate(x.clone(), neighbours, weights);
+        let base: Vec<f32> = (0..m * c).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let base = Tensor::<2>::from_data(TensorData::new(base, [m, c]), &ad).require_grad();
+        let out = if onto {
+            interpolate_onto(Some(base.clone()), x.clone(), neighbours, weights)
+        } else {
+            interpolate(x.clone(), neighbours, weights)
+        };
         let probe = Tensor::<2>::from_data(TensorData::new(probe, [m, c]), &ad);
         let grads = (out.clone() * probe).sum().backward();
-        (read(out), read(x.grad(&grads).expect("a gradient")))
+        let base_grad = base.grad(&grads).map(read).unwrap_or_default();
+        assert_eq!(
+            base_grad.is_empty(),
+            !onto,
+            "the base takes a gradient when added"
+        );
+        (
+            read(out),
+            read(x.grad(&grads).expect("a gradient")),
+            base_grad,
+        )
     }
 
-    /// The op on lavapipe against the composition on Flex, values and gradient, within float
-    /// summation order.
+    /// The op on lavapipe against the composition on Flex, values and gradients, within float
+    /// summation order, alone and onto a base.
     #[test]
     fn interpolate_matches_composition_wgpu() {
         let Some(device) = wgpu_test_device() else {
             return;
         };
-        let (want, want_grad) = rows_and_gradient(&Device::flex());
-        let (got, got_grad) = rows_and_gradient(&device);
-        for (what, a, b) in [("rows", &got, &want), ("∂x", &got_grad, &want_grad)] {
-            for (i, (u, v)) in a.iter().zip(b.iter()).enumerate() {
-                assert!((u - v).abs() <= 1e-5, "{what}[{i}]: {u} against {v}");
+        for onto in [false, true] {
+            let want = rows_and_gradient(&Device::flex(), onto);
+            let got = rows_and_gradient(&device, onto);
+            let parts = [
+                ("rows", &got.0, &want.0),
+                ("∂x", &got.1, &want.1),
+                ("∂base", &got.2, &want.2),
+            ];
+            for (what, a, b) in parts {
+                assert_eq!(a.len(), b.len(), "{what}");
+                for (i, (u, v)) in a.iter().zip(b.iter()).enumerate() {
+                    assert!(
+                        (u - v).abs() <= 1e-5,
+                        "{what}[{i}], onto {onto}: {u} against {v}"
+                    );
+                }
             }
+            assert!(want.1.iter().any(|&g| g != 0.0));
         }
-        assert!(want_grad.iter().any(|&g| g != 0.0));
     }
 }

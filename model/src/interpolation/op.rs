@@ -16,16 +16,29 @@ use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
 use lifegom_render::op_backward::{gradient_per_input, record};
 
 /// `Σ_j weights[i, j]·x[neighbours[i·K + j]]` as `[m, c]`, for `x` `[n, c]`, `neighbours`
-/// `[m·K]` (int) and `weights` `[m, K]`. Callers check shapes and ranges.
+/// `[m·K]` (int) and `weights` `[m, K]`; with [`Base::Added`], `base` `[m, c]` plus that.
+/// Callers check shapes and ranges.
 #[backend_extension(Cube, Fusion, Autodiff)]
 pub trait InterpolationOps: Backend {
-    /// The interpolated rows.
+    /// The interpolated rows, onto `base` when `onto` says so (else `base` is not read).
     #[fusion(dtype = x, shape = burn::tensor::Shape::new([weights[0], x[1]]))]
     fn point_interpolation(
         x: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
         weights: FloatTensor<Self>,
+        base: FloatTensor<Self>,
+        onto: Base,
     ) -> FloatTensor<Self>;
+}
+
+/// Whether the interpolated rows are added onto a base in the op's launch (the transition-up's
+/// `fine + interpolated`: one launch fewer per level and pass).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Base {
+    /// The interpolated rows alone.
+    None,
+    /// `base + interpolated`; the base's gradient is the output's.
+    Added,
 }
 
 /// What a backend implements so that `Autodiff<B>` can differentiate the op.
@@ -51,22 +64,22 @@ pub struct InterpolationTable<B: Backend> {
 #[derive(Debug)]
 struct InterpolationBackward;
 
-impl<B: InterpolationKernels> Backward<B, 1> for InterpolationBackward {
+impl<B: InterpolationKernels> Backward<B, 2> for InterpolationBackward {
     type State = InterpolationTable<B>;
 
     fn backward(
         self,
-        ops: Ops<Self::State, 1>,
+        ops: Ops<Self::State, 2>,
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
-        gradient_per_input::<B, _, 1>(ops, grads, |s, grad| {
-            [B::point_interpolation_backward(
-                s.neighbours,
-                s.weights,
+        // The base's gradient is the output's itself (no launch); without a base its node is
+        // untracked and takes nothing.
+        gradient_per_input::<B, _, 2>(ops, grads, |s, grad| {
+            [
+                B::point_interpolation_backward(s.neighbours, s.weights, grad.clone(), s.points),
                 grad,
-                s.points,
-            )]
+            ]
         });
     }
 }
@@ -78,11 +91,15 @@ impl<B: InterpolationOps + InterpolationKernels, C: CheckpointStrategy> Interpol
         x: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
         weights: FloatTensor<Self>,
+        base: FloatTensor<Self>,
+        onto: Base,
     ) -> FloatTensor<Self> {
         let points = x.shape()[0];
         let (x, x_node) = x.into_parts();
         // Constant weights (module docs): their node is dropped.
         let (weights, _) = weights.into_parts();
+        // Callers pass a detached stand-in when nothing is added: its node is untracked.
+        let (base, base_node) = base.into_parts();
         let table = InterpolationTable {
             neighbours,
             weights,
@@ -91,9 +108,11 @@ impl<B: InterpolationOps + InterpolationKernels, C: CheckpointStrategy> Interpol
         // The forward needs `x`, the backward only the table: `x` goes in through the closure.
         let forward = {
             let x = x.clone();
-            move |s: InterpolationTable<B>| B::point_interpolation(x, s.neighbours, s.weights)
+            move |s: InterpolationTable<B>| {
+                B::point_interpolation(x, s.neighbours, s.weights, base, onto)
+            }
         };
-        record::<B, C, _, _, 1>(InterpolationBackward, [x_node], table, forward)
+        record::<B, C, _, _, 2>(InterpolationBackward, [x_node, base_node], table, forward)
     }
 }
 
