@@ -47,7 +47,7 @@ fn interpolate_forward_kernel(
             }
         }
         if added {
-            total = base[unit] + total;
+            total += base[unit];
         }
         out[unit] = total;
     }
