@@ -15,13 +15,14 @@
 //!   many rows take longer chunks instead of more of them;
 //! - a reduction of fewer than two chunks' rows is one product.
 //!
-//! A bias gradient `Σ_rows G` is summed the same way ([`SplitK::column_sum`]): within the
-//! chunks, then over them.
+//! A bias gradient `Σ_rows G` is summed the same way, as the row of ones' part of the shared
+//! layers' gradient (`crate::shared_linear`).
 //!
-//! [`SplitK::plan`] pads the rows to whole chunks (the caller writes the zero rows, e.g. the
-//! shared layers' stacking launch); [`SplitK::plan_exact`] takes only chunk counts that divide
-//! the rows, for callers that cannot pad. The result is the gradient up to float summation
-//! order.
+//! [`SplitK::plan`] may leave the last chunk short ([`SplitK::padded_rows`] covers the rows; the
+//! shared layers' gradient kernel bounds each chunk by the rows, so nothing is padded);
+//! [`SplitK::plan_exact`] takes only chunk counts that divide the rows, for the products of
+//! [`SplitK::weight_gradient`], which reshape the rows into chunks. The result is the gradient
+//! up to float summation order.
 
 use std::cell::Cell;
 
@@ -95,8 +96,8 @@ impl SplitK {
         (most >= 2).then_some(most)
     }
 
-    /// The split of a `[rows, inputs]ᵀ·[rows, outputs]` product, its last chunk padded with
-    /// zero rows up to [`Self::padded_rows`] (module docs).
+    /// The split of a `[rows, inputs]ᵀ·[rows, outputs]` product, whose last chunk may be short:
+    /// its chunks cover [`Self::padded_rows`] (module docs).
     pub fn plan(rows: usize, inputs: usize, outputs: usize) -> Self {
         let Some(most) = Self::most_chunks(rows, inputs, outputs, true) else {
             return Self::whole(rows);
@@ -127,7 +128,7 @@ impl SplitK {
         }
     }
 
-    /// The rows after padding.
+    /// The rows the chunks cover: at least the rows planned for.
     pub fn padded_rows(self) -> usize {
         self.chunks * self.chunk_rows
     }
@@ -151,20 +152,6 @@ impl SplitK {
             chunked(g, outputs),
         );
         B::float_reshape(B::float_sum_dim(partial, 0), Shape::new([inputs, outputs]))
-    }
-
-    /// `Σ_rows g` `[out]` for `g` `[padded, out]` (rows past the data zero), a bias gradient:
-    /// sums within the chunks, then over them. One sum over all rows gives each output column
-    /// to one thread walking every row, the reduction's form of the weight gradient's problem.
-    pub fn column_sum<B: Backend>(self, g: FloatTensor<B>) -> FloatTensor<B> {
-        let outputs = g.shape()[1];
-        let sum = if self.chunks == 1 {
-            B::float_sum_dim(g, 0)
-        } else {
-            let chunked = B::float_reshape(g, Shape::new([self.chunks, self.chunk_rows, outputs]));
-            B::float_sum_dim(B::float_sum_dim(chunked, 1), 0)
-        };
-        B::float_reshape(sum, Shape::new([outputs]))
     }
 }
 

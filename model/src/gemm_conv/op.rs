@@ -212,7 +212,8 @@ impl<B: GemmConvOps + PatchKernels, C: CheckpointStrategy> GemmConvOps for Autod
         {
             OpsKind::Tracked(prep) => {
                 let x_shape = inputs.x.shape();
-                let columns_bytes = patches.columns_shape(&x_shape).num_elements() * 4;
+                let columns_bytes =
+                    patches.columns_shape(&x_shape).num_elements() * size_of::<f32>();
                 if columns_bytes > KEPT_BYTES.with(Cell::get) {
                     let out = B::gemm_conv2d(inputs.x.clone(), inputs.weight.clone(), patches);
                     return prep.finish(inputs, out);

@@ -447,10 +447,11 @@ fn product_backward<B: ProductKernels + ReluKernels>(
     let (dx, grad) = match (s.activated, x_node) {
         (None, Some(_)) => {
             let dx = B::linear_x_backward(s.weight.clone(), grad.clone());
-            (
-                Some(addend.map_or(dx.clone(), |a| B::float_add(dx, a))),
-                grad,
-            )
+            let dx = match addend {
+                Some(a) => B::float_add(dx, a),
+                None => dx,
+            };
+            (Some(dx), grad)
         }
         (None, None) => (None, grad),
         (Some(output), Some(_)) => {
