@@ -19,6 +19,8 @@
 //! (a read-back, which drains the stream) and files every launch under the stage the model was
 //! in when it was queued (`launches_per_step_by_stage`). The waits serialise the step, so its
 //! time is not the step's time, and fusion cannot fuse across a boundary (a few more launches).
+//! Under it each stage's launches are also split by kernel (`launches_per_step_by_stage_kernel`,
+//! keys `stage :: kernel`): where a kernel's count comes from is what picks the next change.
 //!
 //! ```no_run
 //! use lifegom_cli::launches::{KernelTiming, LaunchCounter};
@@ -96,6 +98,9 @@ pub struct LaunchTally {
     /// Launches per innermost `tracing` span open on the thread that issued them, or per model
     /// stage under a [`StageAttribution`].
     pub by_span: BTreeMap<String, u64>,
+    /// Launches per model stage and kernel short name, keyed `stage :: kernel`; empty unless a
+    /// [`StageAttribution`] was installed.
+    pub by_stage_kernel: BTreeMap<String, u64>,
     /// Device time of the timed launches per innermost span open when each was timed (empty
     /// unless timing was asked for). Burn's ops run on its fusion stream's thread, where no model
     /// span is open, also with `LIFEGOM_FUSION=off` (which removes the fusers, not the stream):
@@ -125,6 +130,9 @@ impl LaunchTally {
         }
         for (span, t) in &other.device_time_by_span {
             *self.device_time_by_span.entry(span.clone()).or_default() += *t;
+        }
+        for (key, n) in &other.by_stage_kernel {
+            *self.by_stage_kernel.entry(key.clone()).or_default() += n;
         }
     }
 
@@ -183,6 +191,17 @@ impl LaunchTally {
             "launches_per_step_by_span".into(),
             serde_json::Value::Object(by_span),
         );
+        if !sum.by_stage_kernel.is_empty() {
+            let by_stage_kernel: serde_json::Map<String, serde_json::Value> = sum
+                .by_stage_kernel
+                .iter()
+                .map(|(key, n)| (key.clone(), serde_json::json!(round2(*n as f64 / steps))))
+                .collect();
+            fields.insert(
+                "launches_per_step_by_stage_kernel".into(),
+                serde_json::Value::Object(by_stage_kernel),
+            );
+        }
         if timed {
             fields.insert(
                 "kernel_device_ms_per_step".into(),
@@ -309,6 +328,8 @@ struct Observer {
     /// Launches per innermost `tracing` span open on the issuing thread: which stage of the
     /// model issues them (the stage names of `train-bench`'s `stages_ms`).
     by_span: Mutex<BTreeMap<&'static str, u64>>,
+    /// Under a [`StageAttribution`]: launches per (stage, raw kernel name).
+    by_stage_kernel: Mutex<BTreeMap<(&'static str, &'static str), u64>>,
     /// Device time per innermost span open on the thread when the launch was timed: under
     /// [`TimingRequest::Resolved`] that is the issuing thread, right after the launch.
     time_by_span: Mutex<BTreeMap<&'static str, Duration>>,
@@ -343,6 +364,18 @@ impl LaunchObserver for Observer {
             .unwrap_or_else(PoisonError::into_inner)
             .entry(span)
             .or_default() += 1;
+        if MODEL_STAGE
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .is_some()
+        {
+            *self
+                .by_stage_kernel
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .entry((span, kernel))
+                .or_default() += 1;
+        }
     }
 
     fn timing(&self) -> TimingRequest {
@@ -414,6 +447,7 @@ impl LaunchCounter {
             timing,
             tally: Mutex::new(BTreeMap::new()),
             by_span: Mutex::new(BTreeMap::new()),
+            by_stage_kernel: Mutex::new(BTreeMap::new()),
             time_by_span: Mutex::new(BTreeMap::new()),
         });
         let _observation = LaunchObservation::new(observer.clone());
@@ -438,13 +472,20 @@ impl LaunchCounter {
             let name = type_name_format(kernel, TypeNameFormatLevel::Short);
             tally.kernels.entry(name).or_default().merge(&k);
         }
+        for ((stage, kernel), n) in drain(&self.observer.by_stage_kernel) {
+            let name = type_name_format(kernel, TypeNameFormatLevel::Short);
+            *tally
+                .by_stage_kernel
+                .entry(format!("{stage} :: {name}"))
+                .or_default() += n;
+        }
         tally
     }
 }
 
 /// Takes a shared map's entries, leaving it empty. A panic elsewhere while the lock was held
 /// leaves counts that are still counts.
-fn drain<V>(map: &Mutex<BTreeMap<&'static str, V>>) -> BTreeMap<&'static str, V> {
+fn drain<K: Ord, V>(map: &Mutex<BTreeMap<K, V>>) -> BTreeMap<K, V> {
     std::mem::take(&mut *map.lock().unwrap_or_else(PoisonError::into_inner))
 }
 
@@ -483,7 +524,7 @@ mod tests {
                 })
                 .collect(),
             by_span: [("fusion".to_owned(), pairs.iter().map(|(_, c)| c).sum())].into(),
-            device_time_by_span: BTreeMap::new(),
+            ..LaunchTally::default()
         };
         let steps = [
             step(&[("add", 10), ("mul", 5)]),
@@ -503,6 +544,7 @@ mod tests {
         );
         assert!(!fields.contains_key("kernel_device_ms_per_step"));
         assert!(!fields.contains_key("kernel_device_ms_per_step_by_span"));
+        assert!(!fields.contains_key("launches_per_step_by_stage_kernel"));
         assert!(LaunchTally::json_fields(&[], 3).is_empty());
     }
 
@@ -537,6 +579,7 @@ mod tests {
                 ("fusion".to_owned(), ms(add)),
             ]
             .into(),
+            by_stage_kernel: [("encoder :: conv".to_owned(), 1 + conv / 50)].into(),
         };
         let fields = LaunchTally::json_fields(&[step(30, 2), step(50, 4)], 1);
         assert_eq!(fields["top_kernels"][0]["kernel"], "conv");
@@ -544,6 +587,10 @@ mod tests {
         let by_span = &fields["kernel_device_ms_per_step_by_span"];
         assert_eq!(by_span["encoder"], serde_json::json!(40.0));
         assert_eq!(by_span["fusion"], serde_json::json!(3.0));
+        assert_eq!(
+            fields["launches_per_step_by_stage_kernel"]["encoder :: conv"],
+            serde_json::json!(1.5)
+        );
     }
 
     /// A stage attribution names the model thread's span path on every entry and exit, after
