@@ -62,7 +62,8 @@ use burn::tensor::{Device, Tensor, TensorData, s};
 
 use crate::activation::Activation::{self, Identity, Relu};
 use crate::channel_norm::ChannelNorm;
-use crate::gemm_conv::conv2d;
+use crate::conv_norm::ConvNorm;
+use crate::gemm_conv::{conv2d, kept_patches};
 use crate::norm_folds::NormFolds;
 use crate::sampling::{PreparedMaps, SamplingError};
 use crate::weights_file::WeightsFormat;
@@ -297,6 +298,42 @@ fn frozen_bn<'a>(
     }
 }
 
+/// What follows a convolution's BatchNorm: an activation, or a residual block's
+/// `relu(· + shortcut)`.
+enum Ending {
+    Activation(Activation),
+    ResidualRelu(Tensor<4>),
+}
+
+/// `ending(BN(conv(x)))`, the BatchNorm as [`frozen_bn`]. On CubeCL devices the convolution,
+/// the norm and the ending are one shared product per pass when the layer's patch columns fit
+/// what a node keeps ([`crate::conv_norm`], kept in `folds` for the other passes); larger layers
+/// run the convolution, then [`frozen_bn`].
+fn conv_bn<'a>(
+    folds: &NormFolds<'a>,
+    conv: &'a Conv2d,
+    bn: &'a BatchNorm,
+    x: Tensor<4>,
+    ending: Ending,
+) -> Tensor<4> {
+    if let Some(patches) = kept_patches(conv, &x) {
+        let device = x.device();
+        let layer = folds.keep(conv, "conv norm", || {
+            ConvNorm::new(conv, bn, patches, &device)
+        });
+        return match ending {
+            Ending::Activation(activation) => layer.apply(x, activation),
+            Ending::ResidualRelu(shortcut) => layer.apply_residual_relu(x, shortcut),
+        };
+    }
+    match ending {
+        Ending::Activation(activation) => frozen_bn(folds, bn, conv2d(conv, x), activation),
+        Ending::ResidualRelu(shortcut) => {
+            relu(frozen_bn(folds, bn, conv2d(conv, x), Identity) + shortcut)
+        }
+    }
+}
+
 impl BasicBlock {
     fn new(c_in: usize, c_out: usize, stride: usize, eps: f64, device: &Device) -> Self {
         let downsample = (stride != 1 || c_in != c_out).then(|| Downsample {
@@ -314,12 +351,23 @@ impl BasicBlock {
 
     fn forward<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<4>) -> Tensor<4> {
         let shortcut = match &self.downsample {
-            Some(d) => frozen_bn(folds, &d.bn, conv2d(&d.conv, x.clone()), Identity),
+            Some(d) => conv_bn(
+                folds,
+                &d.conv,
+                &d.bn,
+                x.clone(),
+                Ending::Activation(Identity),
+            ),
             None => x.clone(),
         };
-        let y = frozen_bn(folds, &self.bn1, conv2d(&self.conv1, x), Relu);
-        let y = frozen_bn(folds, &self.bn2, conv2d(&self.conv2, y), Identity);
-        relu(y + shortcut)
+        let y = conv_bn(folds, &self.conv1, &self.bn1, x, Ending::Activation(Relu));
+        conv_bn(
+            folds,
+            &self.conv2,
+            &self.bn2,
+            y,
+            Ending::ResidualRelu(shortcut),
+        )
     }
 
     #[cfg(test)]
@@ -438,7 +486,7 @@ impl ImageEncoder {
         );
         let x = Self::normalize(images);
         let rgb = self.rgb_embed.forward(x.clone());
-        let f0 = frozen_bn(&folds, &self.bn1, conv2d(&self.conv1, x), Relu);
+        let f0 = conv_bn(&folds, &self.conv1, &self.bn1, x, Ending::Activation(Relu));
         let run = |blocks: &[BasicBlock], x: Tensor<4>| {
             blocks.iter().fold(x, |x, b| b.forward(&folds, x))
         };
@@ -468,7 +516,13 @@ impl ImageEncoder {
             "ImageEncoder::encode: images must be [N, 3, H, W], got {dims:?}"
         );
         let x = Self::normalize(images);
-        let f0 = frozen_bn(folds, &self.bn1, conv2d(&self.conv1, x.clone()), Relu);
+        let f0 = conv_bn(
+            folds,
+            &self.conv1,
+            &self.bn1,
+            x.clone(),
+            Ending::Activation(Relu),
+        );
         let run =
             |blocks: &[BasicBlock], x: Tensor<4>| blocks.iter().fold(x, |x, b| b.forward(folds, x));
         let f1 = run(&self.layer1, self.maxpool.forward(f0.clone()));

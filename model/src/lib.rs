@@ -38,6 +38,7 @@
 //! |---|---|
 //! | [`encoder`] | ResNet-18 feature pyramid + 1×1 rgb embedding (1152 channels), torchvision/official weight import |
 //! | [`gemm_conv`] | the encoder's convolutions as patch columns and one product on devices |
+//! | [`conv_norm`] | a convolution and its BatchNorm as one shared product on devices |
 //! | [`sampling`] | projection of posed vertices and torch-exact bilinear feature sampling |
 //! | [`dropout`] | the fusion layers' dropout, with masks drawn on the host on CPU backends |
 //! | [`fusion`] | multi-source fusion: self-attention over views, cross-attention with a per-vertex query |
@@ -64,6 +65,7 @@ pub mod activation;
 pub mod avatar;
 pub mod channel_norm;
 pub mod checkpoint;
+pub mod conv_norm;
 pub mod dropout;
 pub mod encoder;
 pub mod error;

@@ -187,4 +187,8 @@ impl GemmConvOps for CubeBackend {
         let columns = Self::patch_columns(x, patches);
         super::op::columns_product::<Self>(columns, weight, out)
     }
+
+    fn conv_patches(x: FloatTensor<Self>, patches: Patches) -> FloatTensor<Self> {
+        Self::patch_columns(x, patches)
+    }
 }

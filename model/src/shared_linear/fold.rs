@@ -20,7 +20,7 @@ use crate::handoff::Handoff;
 
 /// `γ[c]/√(σ²[c]+ε)`.
 #[cube]
-fn channel_scale(gamma: &[f32], var: &[f32], c: usize, epsilon: f32) -> f32 {
+pub(super) fn channel_scale(gamma: &[f32], var: &[f32], c: usize, epsilon: f32) -> f32 {
     gamma[c] / f32::sqrt(var[c] + epsilon)
 }
 
@@ -78,6 +78,18 @@ impl SharedLinearOps for CubeBackend {
         _handoff: Handoff,
     ) -> FloatTensor<Self> {
         super::product::affine(x, weight, bias, Some(residual), Activation::Relu)
+    }
+
+    fn trained_fold(
+        weight: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        epsilon: f32,
+        _ledger: Ledger,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        super::trained_fold::trained_fold(weight, gamma, beta, mean, var, epsilon)
     }
 
     fn shared_fold(

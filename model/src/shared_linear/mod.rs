@@ -30,6 +30,7 @@ mod fold;
 mod gradient;
 pub mod op;
 mod product;
+mod trained_fold;
 
 use burn::backend::Dispatch;
 use burn::nn::{BatchNorm, Linear};
@@ -114,6 +115,42 @@ impl SharedLinear {
             bn.running_mean.value().to_device(device).into_dispatch(),
             bn.running_var.value().to_device(device).into_dispatch(),
             kind,
+            bn.epsilon as f32,
+            ledger.clone(),
+        );
+        Self {
+            weight: Tensor::from_dispatch(weight),
+            bias: Tensor::from_dispatch(bias),
+            ledger: Some(ledger),
+        }
+    }
+
+    /// `BN(x·Wᵀ)` for a bias-free layer whose weight `weight` is stored `[out, in]` (a
+    /// convolution's, [`crate::conv_norm`]) and a BatchNorm on its running statistics whose
+    /// `γ`, `β` train: `x·(Wᵀ·diag(s)) + (β − μ·s)`, `s = γ/√(σ²+ε)`. The fold is one launch per
+    /// reconstruction; the backward forms the passes' gradient once and turns it into `∂W`,
+    /// `∂γ`, `∂β` in one more ([`op::SharedLinearOps::trained_fold`]).
+    ///
+    /// # Panics
+    ///
+    /// On a CPU backend, or if the BN's width is not the layer's output width.
+    pub(crate) fn trained_fold(weight: Tensor<2>, bn: &BatchNorm, device: &Device) -> Self {
+        assert!(
+            !runs_on_host(device),
+            "the CPU backends compose the convolution and the BatchNorm"
+        );
+        assert_eq!(
+            bn.gamma.dims()[0],
+            weight.dims()[0],
+            "one BN channel per output"
+        );
+        let ledger = Ledger::default();
+        let (weight, bias) = <Dispatch as SharedLinearOps>::trained_fold(
+            weight.into_dispatch(),
+            bn.gamma.val().into_dispatch(),
+            bn.beta.val().into_dispatch(),
+            bn.running_mean.value().to_device(device).into_dispatch(),
+            bn.running_var.value().to_device(device).into_dispatch(),
             bn.epsilon as f32,
             ledger.clone(),
         );

@@ -44,6 +44,7 @@ use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, NodeGuard, Ops, OpsKind};
+use burn::backend::fusion::custom::TensorSpec;
 use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, AutodiffBackend, Backend, TensorMetadata, backend_extension};
@@ -93,6 +94,9 @@ struct LedgerState {
     /// Parameter nodes that have taken their gradient; the rows are freed when every seeded
     /// one has.
     delivered: [bool; 2],
+    /// Whether the gradient carries the bias row even when the bias takes none: a trained
+    /// fold's `∂γ` reads it ([`SharedLinearOps::trained_fold`]).
+    bias_row_always: bool,
 }
 
 /// The rows filed by the product nodes, and the parameters' gradient once formed.
@@ -213,6 +217,61 @@ impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
     }
 }
 
+/// What a backend implements so that `Autodiff<B>` can differentiate a trained fold
+/// ([`SharedLinearOps::trained_fold`]).
+#[doc(hidden)]
+pub trait FoldKernels: Backend {
+    /// `(∂W, ∂γ)`: `∂W` `[out, in]` as the weight is stored and `∂γ` `[out]`, from the passes'
+    /// unscaled gradient `formed` `[Xᵀ·G; Σ_rows G]` `[in + 1, out]`, the weight, and the
+    /// BatchNorm's `γ`, `μ`, `σ²` `[out]` and `ε` (the `trained_fold` module).
+    fn trained_fold_backward(
+        formed: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        epsilon: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>);
+}
+
+impl<B: FusionBackend + FoldKernels> FoldKernels for Fusion<B> {
+    fn trained_fold_backward(
+        formed: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        epsilon: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let specs = vec![
+            float_like::<B>(&weight, weight.shape()),
+            float_like::<B>(&gamma, gamma.shape()),
+        ];
+        let inputs = [formed, weight, gamma, mean, var]
+            .into_iter()
+            .map(Input::Float)
+            .collect();
+        let [weight_grad, gamma_grad] = array(deferred::<B, _>(
+            "trained_fold_backward",
+            inputs,
+            specs,
+            move |v| {
+                let [formed, weight, gamma, mean, var] = array(v);
+                let (weight_grad, gamma_grad) = B::trained_fold_backward(
+                    formed.float(),
+                    weight.float(),
+                    gamma.float(),
+                    mean.float(),
+                    var.float(),
+                    epsilon,
+                );
+                vec![Value::Float(weight_grad), Value::Float(gamma_grad)]
+            },
+        ));
+        (weight_grad, gamma_grad)
+    }
+}
+
 /// `x·W + b` for `x` `[.., in]`, `W` `[in, out]`, `b` `[out]`, with the parameters' gradient
 /// summed over every pass that reads them (see [`super`]).
 #[backend_extension(Cube, Fusion, Autodiff)]
@@ -244,6 +303,29 @@ pub trait SharedLinearOps: Backend {
         epsilon: f32,
         ledger: Ledger,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
+
+    /// The weight `[in, out]` and bias `[out]` of a bias-free layer whose weight is stored
+    /// `[out, in]` (a convolution's `[C_out, C·kh·kw]`), folded with the BatchNorm after it,
+    /// whose `γ` and `β` train while its statistics stay frozen (the image encoder's):
+    /// `Wᵀ·diag(s)` and `β − μ·s`, `s = γ/√(σ²+ε)`, in one launch. The parameter gradient is
+    /// formed from every pass's rows without a scale and turned into `∂W`, `∂γ`, `∂β` in one
+    /// launch ([`FoldKernels::trained_fold_backward`], the `trained_fold` module).
+    #[allow(clippy::too_many_arguments)]
+    #[fusion(meta = |weight, _gamma, beta, _mean, _var, _epsilon, _ledger| {
+        (
+            TensorSpec::new(Shape::new([weight.shape[1], weight.shape[0]]), weight.dtype),
+            beta.clone(),
+        )
+    })]
+    fn trained_fold(
+        weight: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        epsilon: f32,
+        ledger: Ledger,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
     /// One pass's product, `act(x·W + b)`; `∂x` adds the gradient `handoff` brings (a later
     /// residual layer's for the same `x`, [`Self::shared_linear_residual`]) in its launch.
@@ -483,6 +565,42 @@ fn product_backward<B: ProductKernels + ReluKernels>(
     grad
 }
 
+/// The layer's `[∂W; ∂b]` (module docs) and its input width `in`, for the parameter node in
+/// `slot` (0 the weight, 1 the bias): the first node to ask forms it from the ledger's rows,
+/// `scale` scaling `G`'s columns; the rows and the gradient are freed once every seeded node has
+/// had its part.
+fn delivered_gradient<B: GradientKernels>(
+    ledger: &Ledger,
+    slot: usize,
+    scale: Option<FloatTensor<B>>,
+) -> (FloatTensor<B>, usize) {
+    let mut ledger = ledger.lock();
+    ledger.delivered[slot] = true;
+    let done = (0..2).all(|i| !ledger.seeded[i] || ledger.delivered[i]);
+    // Both parameters take a gradient: one launch answers both (module docs).
+    let bias_row = ledger.seeded[1] || ledger.bias_row_always;
+    let rows = ledger.rows::<B>();
+    let (formed, inputs) = rows.formed.get_or_insert_with(|| {
+        let filled = rows.grads.iter().map(|g| g.shape()[0]).sum();
+        let outputs = rows.grads[0].shape()[1];
+        let inputs = rows.inputs.first().map_or(0, |x| x.shape()[1]);
+        let split = SplitK::plan(filled, inputs + usize::from(bias_row), outputs);
+        let formed = B::pass_gradient(ParameterRows {
+            inputs: std::mem::take(&mut rows.inputs),
+            grads: std::mem::take(&mut rows.grads),
+            scale,
+            bias_row,
+            chunk_rows: split.chunk_rows,
+        });
+        (formed, inputs)
+    });
+    let delivered = (formed.clone(), *inputs);
+    if done {
+        ledger.rows = None;
+    }
+    delivered
+}
+
 #[derive(Debug)]
 struct ParameterBackward;
 
@@ -505,37 +623,18 @@ impl<B: GradientKernels> Backward<B, 1> for ParameterBackward {
             role,
             scale,
         } = ops.state;
-        let mut ledger = ledger.lock();
         let slot = match role {
             Role::Weight => 0,
             Role::Bias => 1,
         };
-        ledger.delivered[slot] = true;
-        let done = (0..2).all(|i| !ledger.seeded[i] || ledger.delivered[i]);
-        // Both parameters take a gradient: one launch answers both (module docs).
-        let bias_row = ledger.seeded[1];
-        let rows = ledger.rows::<B>();
-        let (formed, inputs) = rows.formed.get_or_insert_with(|| {
-            let filled = rows.grads.iter().map(|g| g.shape()[0]).sum();
-            let outputs = rows.grads[0].shape()[1];
-            let inputs = rows.inputs.first().map_or(0, |x| x.shape()[1]);
-            let split = SplitK::plan(filled, inputs + usize::from(bias_row), outputs);
-            let formed = B::pass_gradient(ParameterRows {
-                inputs: std::mem::take(&mut rows.inputs),
-                grads: std::mem::take(&mut rows.grads),
-                scale,
-                bias_row,
-                chunk_rows: split.chunk_rows,
-            });
-            (formed, inputs)
-        });
+        let (formed, inputs) = delivered_gradient::<B>(&ledger, slot, scale);
         let outputs = formed.shape()[1];
         let (first, last) = match role {
-            Role::Weight => (0, *inputs),
-            Role::Bias => (*inputs, *inputs + 1),
+            Role::Weight => (0, inputs),
+            Role::Bias => (inputs, inputs + 1),
         };
         let grad = B::float_slice(
-            formed.clone(),
+            formed,
             &[
                 burn::tensor::Slice::from(first..last),
                 burn::tensor::Slice::from(0..outputs),
@@ -545,16 +644,57 @@ impl<B: GradientKernels> Backward<B, 1> for ParameterBackward {
             Role::Weight => grad,
             Role::Bias => B::float_reshape(grad, Shape::new([outputs])),
         };
-        if done {
-            ledger.rows = None;
-        }
-        drop(ledger);
         grads.register::<B>(parent.id, grad);
     }
 }
 
-impl<B: GradientKernels + ProductKernels + ReluKernels + SharedLinearOps, C: CheckpointStrategy>
-    SharedLinearOps for Autodiff<B, C>
+/// A trained fold's weight node's state: what `∂W` and `∂γ` are formed from
+/// ([`FoldKernels::trained_fold_backward`]).
+#[derive(Debug, Clone)]
+pub struct TrainedFold<B: Backend> {
+    ledger: Ledger,
+    /// `[out, in]`, as stored.
+    weight: FloatTensor<B>,
+    gamma: FloatTensor<B>,
+    mean: FloatTensor<B>,
+    var: FloatTensor<B>,
+    epsilon: f32,
+}
+
+/// The folded weight's node of a trained fold, with the weight and `γ` as parents: both
+/// gradients from the passes' unscaled `[∂W'; ∂b']` in one launch.
+#[derive(Debug)]
+struct TrainedWeightBackward;
+
+impl<B: GradientKernels + FoldKernels> Backward<B, 2> for TrainedWeightBackward {
+    type State = TrainedFold<B>;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 2>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        // The placeholder a product node registered.
+        let _ = grads.consume::<B>(&ops.node);
+        let [weight_parent, gamma_parent] = ops.parents;
+        let s = ops.state;
+        let (formed, _) = delivered_gradient::<B>(&s.ledger, 0, None);
+        let (weight_grad, gamma_grad) =
+            B::trained_fold_backward(formed, s.weight, s.gamma, s.mean, s.var, s.epsilon);
+        if let Some(parent) = weight_parent {
+            grads.register::<B>(parent.id, weight_grad);
+        }
+        if let Some(parent) = gamma_parent {
+            grads.register::<B>(parent.id, gamma_grad);
+        }
+    }
+}
+
+impl<
+    B: GradientKernels + FoldKernels + ProductKernels + ReluKernels + SharedLinearOps,
+    C: CheckpointStrategy,
+> SharedLinearOps for Autodiff<B, C>
 {
     fn shared_parameter(value: FloatTensor<Self>, ledger: Ledger, role: Role) -> FloatTensor<Self> {
         let (value, node) = value.into_parts();
@@ -620,6 +760,65 @@ impl<B: GradientKernels + ProductKernels + ReluKernels + SharedLinearOps, C: Che
         let w = node(w, weight_node, Role::Weight);
         let b = node(b, bias_node, Role::Bias);
         (w, b, Self::from_inner(scale))
+    }
+
+    fn trained_fold(
+        weight: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        epsilon: f32,
+        ledger: Ledger,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let (weight, weight_node) = weight.into_parts();
+        let (gamma, gamma_node) = gamma.into_parts();
+        let (beta, beta_node) = beta.into_parts();
+        let [mean, var] = [mean, var].map(|t| t.into_primitive());
+        let (w, b) = B::trained_fold(
+            weight.clone(),
+            gamma.clone(),
+            beta,
+            mean.clone(),
+            var.clone(),
+            epsilon,
+            ledger.clone(),
+        );
+        ledger.lock().bias_row_always = true;
+        let w = match TrainedWeightBackward
+            .prepare::<C>([weight_node, gamma_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(
+                TrainedFold {
+                    ledger: ledger.clone(),
+                    weight,
+                    gamma,
+                    mean,
+                    var,
+                    epsilon,
+                },
+                w,
+            ),
+            OpsKind::UnTracked(prep) => prep.finish(w),
+        };
+        let b = match ParameterBackward
+            .prepare::<C>([beta_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(
+                ParameterRole {
+                    ledger,
+                    role: Role::Bias,
+                    scale: None,
+                },
+                b,
+            ),
+            OpsKind::UnTracked(prep) => prep.finish(b),
+        };
+        (w, b)
     }
 
     fn shared_linear(
