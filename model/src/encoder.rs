@@ -300,6 +300,10 @@ fn frozen_bn<'a>(
 
 /// What follows a convolution's BatchNorm: an activation, or a residual block's
 /// `relu(· + shortcut)`.
+#[expect(
+    clippy::large_enum_variant,
+    reason = "made and taken apart within one call, never stored"
+)]
 enum Ending {
     Activation(Activation),
     ResidualRelu(Tensor<4>),

@@ -114,7 +114,7 @@ impl<'a> NormFolds<'a> {
     }
 
     /// `BN(Linear(·))` folded as a shared layer: on a CubeCL device with a frozen BN by
-    /// [`SharedLinear::folded`] (one launch, no backward of its own), else with the tensor ops
+    /// [`SharedLinear::folded`] (the norm in the product's launch), else with the tensor ops
     /// of [`Self::linear`].
     pub(crate) fn shared_fold(
         &self,

@@ -18,15 +18,15 @@
 //! The result is the same gradient up to float summation order. Cost: each pass's `gₜ` is held
 //! until the layer's parameters are differentiated, instead of being freed after its products.
 //!
-//! A layer that a frozen BatchNorm follows is folded with it in the same place
-//! (`SharedLinear::folded`): one launch makes the folded weight and bias, and the BN's scale
-//! enters the parameters' gradient where the rows are read, so the fold adds no launch to the
-//! backward (the `fold` module, [`op::SharedLinearOps::shared_fold`]).
+//! A layer that a frozen BatchNorm follows applies it in its product's launch
+//! (`SharedLinear::folded`, [`op::OutputMap`]): `(x·W + b)·s + t`, the BN's `s`, `t` made once
+//! per process; backward, the scale enters `∂x` where the product stages the gradient and the
+//! parameters' gradient where the rows are read, so the norm costs no launch of its own. (Until
+//! session 32 the layer was folded with it each step: a launch per layer.)
 //!
 //! On the CPU backends a shared layer is the layer it wraps ([`crate::linear_op::affine`]): their
 //! gradients stay the same to the bit.
 
-mod fold;
 mod gradient;
 pub mod op;
 mod product;
@@ -40,14 +40,19 @@ use lifegom_render::device::runs_on_host;
 use crate::activation::Activation;
 use crate::handoff::Handoff;
 use crate::linear_op;
-use op::{FoldBias, Ledger, Role, SharedLinearOps};
+use op::{Ledger, OutputMap, Role, SharedLinearOps};
 
 /// `x·W + b` over the last axis, with `W` `[in, out]` and `b` `[out]` read by several passes
-/// (module docs). Make one per layer and reconstruction, and use it for every pass.
+/// (module docs), or `(x·W + b)·s + t` with a frozen BatchNorm's `s`, `t` after it
+/// ([`Self::folded`]). Make one per layer and reconstruction, and use it for every pass.
 #[derive(Debug, Clone)]
 pub struct SharedLinear {
     weight: Tensor<2>,
+    /// The bias, or any `[out]` tensor where `map` reads none.
     bias: Tensor<1>,
+    /// A frozen BatchNorm's `s`, `t`, or any `[out]` tensors where `map` reads none.
+    norm: [Tensor<1>; 2],
+    map: OutputMap,
     /// `None` on the CPU backends.
     ledger: Option<Ledger>,
 }
@@ -64,28 +69,31 @@ impl SharedLinear {
             bias.dims()[0],
             "a shared layer's bias has one entry per output"
         );
+        let norm = [bias.clone(), bias.clone()];
         if runs_on_host(&weight.device()) {
             return Self {
                 weight,
                 bias,
+                norm,
+                map: OutputMap::Biased,
                 ledger: None,
             };
         }
         let ledger = Ledger::default();
-        let shared = |t: burn::backend::tensor::FloatTensor<Dispatch>, role| {
-            <Dispatch as SharedLinearOps>::shared_parameter(t, ledger.clone(), role)
-        };
         Self {
-            weight: Tensor::from_dispatch(shared(weight.into_dispatch(), Role::Weight)),
-            bias: Tensor::from_dispatch(shared(bias.into_dispatch(), Role::Bias)),
+            weight: shared(weight, &ledger, Role::Weight),
+            bias: shared(bias, &ledger, Role::Bias),
+            norm,
+            map: OutputMap::Biased,
             ledger: Some(ledger),
         }
     }
 
     /// `BN(linear(·))` for a BatchNorm on its running statistics whose `γ`, `β` take no
-    /// gradient, as one shared layer on a CubeCL device: `x·(W·diag(s)) + (b·s + t)` with
-    /// `s = γ/√(σ²+ε)`, `t = β − μ·s` (`b = 0` without a bias). The fold is one launch, and its
-    /// backward is folded into the parameters' gradient launch (module docs).
+    /// gradient, as one shared layer on a CubeCL device: `(x·W + b)·s + t` (`x·W·s + t` without
+    /// a bias) with `s = γ/√(σ²+ε)`, `t = β − μ·s`, made once per process
+    /// ([`crate::frozen_affine`]) and applied in the product's epilogue, forward and backward
+    /// (module docs): no launch of its own.
     ///
     /// The CPU backends fold with tensor ops and use [`Self::new`]
     /// ([`crate::norm_folds::NormFolds::shared_fold`]).
@@ -98,29 +106,19 @@ impl SharedLinear {
             !runs_on_host(device),
             "the CPU backends fold with tensor ops"
         );
-        let weight = linear.weight.val();
-        let d_out = weight.dims()[1];
+        let d_out = linear.weight.dims()[1];
         assert_eq!(bn.gamma.dims()[0], d_out, "one BN channel per output");
-        let beta = bn.beta.val();
-        let (bias, kind) = match &linear.bias {
-            Some(b) => (b.val(), FoldBias::Given),
-            None => (beta.clone(), FoldBias::Absent),
-        };
+        let (scale, shift) = crate::frozen_affine::frozen_affine(bn, device);
         let ledger = Ledger::default();
-        let (weight, bias, _scale) = <Dispatch as SharedLinearOps>::shared_fold(
-            weight.into_dispatch(),
-            bias.into_dispatch(),
-            bn.gamma.val().into_dispatch(),
-            beta.into_dispatch(),
-            bn.running_mean.value().to_device(device).into_dispatch(),
-            bn.running_var.value().to_device(device).into_dispatch(),
-            kind,
-            bn.epsilon as f32,
-            ledger.clone(),
-        );
+        let (bias, map) = match &linear.bias {
+            Some(b) => (shared(b.val(), &ledger, Role::Bias), OutputMap::NormedBias),
+            None => (shift.clone(), OutputMap::Normed),
+        };
         Self {
-            weight: Tensor::from_dispatch(weight),
-            bias: Tensor::from_dispatch(bias),
+            weight: shared(linear.weight.val(), &ledger, Role::Weight),
+            bias,
+            norm: [scale, shift],
+            map,
             ledger: Some(ledger),
         }
     }
@@ -154,9 +152,12 @@ impl SharedLinear {
             bn.epsilon as f32,
             ledger.clone(),
         );
+        let bias = Tensor::from_dispatch(bias);
         Self {
             weight: Tensor::from_dispatch(weight),
-            bias: Tensor::from_dispatch(bias),
+            norm: [bias.clone(), bias.clone()],
+            bias,
+            map: OutputMap::Biased,
             ledger: Some(ledger),
         }
     }
@@ -202,10 +203,14 @@ impl SharedLinear {
             out,
             "a residual has the layer's output shape"
         );
+        let [scale, shift] = self.norm.clone().map(Tensor::into_dispatch);
         Tensor::from_dispatch(<Dispatch as SharedLinearOps>::shared_linear_residual(
             x.into_dispatch(),
             self.weight.clone().into_dispatch(),
             self.bias.clone().into_dispatch(),
+            scale,
+            shift,
+            self.map,
             residual.into_dispatch(),
             ledger.clone(),
             handoff.clone(),
@@ -247,15 +252,28 @@ impl SharedLinear {
             self.weight.dims()[0],
             "input width of a shared layer"
         );
+        let [scale, shift] = self.norm.clone().map(Tensor::into_dispatch);
         Tensor::from_dispatch(<Dispatch as SharedLinearOps>::shared_linear(
             x.into_dispatch(),
             self.weight.clone().into_dispatch(),
             self.bias.clone().into_dispatch(),
+            scale,
+            shift,
+            self.map,
             ledger.clone(),
             activation,
             handoff.clone(),
         ))
     }
+}
+
+/// `value` as the parameter `role` of the layer whose passes `ledger` records (the `op` module).
+fn shared<const D: usize>(value: Tensor<D>, ledger: &Ledger, role: Role) -> Tensor<D> {
+    Tensor::from_dispatch(<Dispatch as SharedLinearOps>::shared_parameter(
+        value.into_dispatch(),
+        ledger.clone(),
+        role,
+    ))
 }
 
 #[cfg(test)]
@@ -279,11 +297,18 @@ mod tests {
         Composed,
     }
 
+    /// Whether a folded layer has a bias of its own.
+    #[derive(Debug, Clone, Copy, PartialEq)]
+    enum OwnBias {
+        Given,
+        Absent,
+    }
+
     /// Whether a frozen BatchNorm follows the layer, and if so whether the layer has a bias.
     #[derive(Debug, Clone, Copy, PartialEq)]
     enum Norm {
         None,
-        Folded(FoldBias),
+        Folded(OwnBias),
     }
 
     /// `passes` passes through one 6 → 6 layer, each pass's input the previous pass's output (as
@@ -353,7 +378,7 @@ mod tests {
         let linear = Linear {
             weight: Param::from_tensor(weight.clone()),
             bias: match norm {
-                Norm::Folded(FoldBias::Absent) => None,
+                Norm::Folded(OwnBias::Absent) => None,
                 _ => Some(Param::from_tensor(bias.clone())),
             },
         };
@@ -405,7 +430,7 @@ mod tests {
             read(x0.grad(&grads).expect("an input gradient")),
             read(weight.grad(&grads).expect("a weight gradient")),
         ];
-        if norm != Norm::Folded(FoldBias::Absent) {
+        if norm != Norm::Folded(OwnBias::Absent) {
             parts.push(read(bias.grad(&grads).expect("a bias gradient")));
         }
         parts
@@ -427,8 +452,8 @@ mod tests {
         for split in [None, Some(8)] {
             for norm in [
                 Norm::None,
-                Norm::Folded(FoldBias::Given),
-                Norm::Folded(FoldBias::Absent),
+                Norm::Folded(OwnBias::Given),
+                Norm::Folded(OwnBias::Absent),
             ] {
                 for passes in [1, 3, 6] {
                     let reference = run_passes(&flex, passes, Layer::Composed, norm);
@@ -466,7 +491,7 @@ mod tests {
         let ad = device.autodiff();
         let flex = DeviceChoice::Flex.device().autodiff();
         for (rows, width) in [(150, 70), (37, 6)] {
-            for norm in [Norm::None, Norm::Folded(FoldBias::Given)] {
+            for norm in [Norm::None, Norm::Folded(OwnBias::Given)] {
                 for passes in [1, 3] {
                     let size = Passes {
                         passes,
@@ -498,7 +523,7 @@ mod tests {
     fn host_layers_are_the_layer() {
         for choice in DeviceChoice::CPU {
             let device = choice.device().autodiff();
-            for norm in [Norm::None, Norm::Folded(FoldBias::Given)] {
+            for norm in [Norm::None, Norm::Folded(OwnBias::Given)] {
                 let a = run_passes(&device, 3, Layer::Shared, norm);
                 let b = run_passes(&device, 3, Layer::Composed, norm);
                 assert_eq!(a, b, "{norm:?}");

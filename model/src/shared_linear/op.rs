@@ -20,12 +20,16 @@
 //!   module): the kernel reads every pass's rows where they are, so `X` and `G` are never
 //!   stacked, and the bias's sum is the row of ones' (no launch of its own).
 //!
-//! A layer that a frozen BatchNorm follows is folded with it by [`SharedLinearOps::shared_fold`]:
-//! one launch makes `W·diag(s)` and `b·s + t` (`s = γ/√(σ²+ε)`, `t = β − μ·s`) from the
-//! parameters and the statistics (the `fold` module), and its two parameter nodes stand between
-//! `W`, `b` and the folded values. The BN's columns scale enter the gradient where the rows are
-//! read, `∂W = Xᵀ·(G·diag(s))` and `∂b = Σ_rows G·diag(s)`: the fold's backward costs no
-//! launch of its own.
+//! A layer that a frozen BatchNorm follows applies it in its product's epilogue
+//! ([`OutputMap`]): `(x·W + b)·s + t` with the BN's `s = γ/√(σ²+ε)`, `t = β − μ·s`, which
+//! never change and are made once per process (`crate::frozen_affine`), so nothing is folded
+//! per step. Backward, `∂x = (g·diag(s))·Wᵀ` scales `g`'s columns where the product stages
+//! them, and the parameters' gradient scales `G`'s where the rows are read, `∂W =
+//! Xᵀ·(G·diag(s))` and `∂b = Σ_rows G·diag(s)`: the norm costs no launch either way.
+//!
+//! A layer whose BatchNorm's `γ`, `β` train (the image encoder's convolutions,
+//! `crate::conv_norm`) is folded instead, once per reconstruction, by
+//! [`SharedLinearOps::trained_fold`].
 //!
 //! # Split-k
 //!
@@ -47,7 +51,7 @@ use burn::backend::autodiff::ops::{Backward, NodeGuard, Ops, OpsKind};
 use burn::backend::fusion::custom::TensorSpec;
 use burn::backend::fusion::{Fusion, FusionBackend};
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{Autodiff, AutodiffBackend, Backend, TensorMetadata, backend_extension};
+use burn::backend::{Autodiff, Backend, TensorMetadata, backend_extension};
 use burn::tensor::Shape;
 use lifegom_render::cube::deferred::float_like;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred};
@@ -63,14 +67,23 @@ pub enum Role {
     Bias,
 }
 
-/// Whether a folded layer has a bias of its own ([`SharedLinearOps::shared_fold`]).
+/// What a shared layer's product adds to `x·W` before its activation (module docs). The
+/// arguments a variant does not read may be any `[out]` tensor.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FoldBias {
-    /// The bias argument is the layer's bias `b`: the folded bias is `b·s + t`.
-    Given,
-    /// The layer has none and the bias argument is not read (pass any `[out]` tensor, e.g. the
-    /// BN's `β`): the folded bias is `t`.
-    Absent,
+pub enum OutputMap {
+    /// `x·W + b`.
+    Biased,
+    /// `(x·W + b)·s + t`: the layer's bias, then a frozen BatchNorm's `s`, `t`.
+    NormedBias,
+    /// `x·W·s + t`: a frozen BatchNorm after a layer without a bias.
+    Normed,
+}
+
+impl OutputMap {
+    /// Whether the map scales the product's columns.
+    fn normed(self) -> bool {
+        self != OutputMap::Biased
+    }
 }
 
 /// One layer's record of its passes' backward: the inputs and output gradients of every
@@ -105,6 +118,8 @@ struct Rows<B: Backend> {
     inputs: Vec<FloatTensor<B>>,
     /// `[rows, out]` per pass.
     grads: Vec<FloatTensor<B>>,
+    /// A frozen BatchNorm's `s` `[out]` that scales `G`'s columns ([`OutputMap`]).
+    scale: Option<FloatTensor<B>>,
     /// `[∂W; ∂b]` `[in + 1, out]` when both take a gradient, else the one that does (`∂b` as
     /// `[1, out]`), with `in` (module docs).
     formed: Option<(FloatTensor<B>, usize)>,
@@ -123,6 +138,7 @@ impl LedgerState {
                 Box::new(Rows::<B> {
                     inputs: Vec::new(),
                     grads: Vec::new(),
+                    scale: None,
                     formed: None,
                 })
             })
@@ -283,27 +299,6 @@ pub trait SharedLinearOps: Backend {
         value
     }
 
-    /// The weight `[in, out]` and bias `[out]` of a layer folded with the frozen BatchNorm that
-    /// follows it, as the parameters every pass's product reads (module docs): `W·diag(s)`,
-    /// `b·s + t` (or `t`, see [`FoldBias`]) and `s` itself, with `s = γ/√(σ²+ε)` and
-    /// `t = β − μ·s` from the BN's `γ`, `β`, running mean `μ` and variance `σ²`, each `[out]`.
-    /// The statistics and `γ`, `β` take no gradient.
-    #[allow(clippy::too_many_arguments)]
-    #[fusion(meta = |weight, bias, _gamma, _beta, _mean, _var, _kind, _epsilon, _ledger| {
-        (weight.clone(), bias.clone(), bias.clone())
-    })]
-    fn shared_fold(
-        weight: FloatTensor<Self>,
-        bias: FloatTensor<Self>,
-        gamma: FloatTensor<Self>,
-        beta: FloatTensor<Self>,
-        mean: FloatTensor<Self>,
-        var: FloatTensor<Self>,
-        kind: FoldBias,
-        epsilon: f32,
-        ledger: Ledger,
-    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
-
     /// The weight `[in, out]` and bias `[out]` of a bias-free layer whose weight is stored
     /// `[out, in]` (a convolution's `[C_out, C·kh·kw]`), folded with the BatchNorm after it,
     /// whose `γ` and `β` train while its statistics stay frozen (the image encoder's):
@@ -327,27 +322,36 @@ pub trait SharedLinearOps: Backend {
         ledger: Ledger,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
-    /// One pass's product, `act(x·W + b)`; `∂x` adds the gradient `handoff` brings (a later
-    /// residual layer's for the same `x`, [`Self::shared_linear_residual`]) in its launch.
+    /// One pass's product, `act(map(x·W))` with the bias `b` and a frozen BatchNorm's `s`, `t`
+    /// ([`OutputMap`]); `∂x` adds the gradient `handoff` brings (a later residual layer's for the
+    /// same `x`, [`Self::shared_linear_residual`]) in its launch.
+    #[allow(clippy::too_many_arguments)]
     #[fusion(dtype = x, shape = product_shape(x, weight))]
     fn shared_linear(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        shift: FloatTensor<Self>,
+        map: OutputMap,
         ledger: Ledger,
         activation: Activation,
         handoff: Handoff,
     ) -> FloatTensor<Self>;
 
     /// One pass's product with a residual `r` (`[.., out]`) added before a ReLU,
-    /// `relu(x·W + b + r)`: a residual block's last layer. The residual's gradient goes to
+    /// `relu(map(x·W) + r)`: a residual block's last layer. The residual's gradient goes to
     /// `handoff` when it joins a product that reads `r` as its input (the block's first
     /// layer), whose `∂x` then adds it ([`crate::handoff`]).
+    #[allow(clippy::too_many_arguments)]
     #[fusion(dtype = x, shape = product_shape(x, weight))]
     fn shared_linear_residual(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        shift: FloatTensor<Self>,
+        map: OutputMap,
         residual: FloatTensor<Self>,
         ledger: Ledger,
         handoff: Handoff,
@@ -363,59 +367,62 @@ fn product_shape(x: &Shape, weight: &Shape) -> Shape {
     Shape::from(dims)
 }
 
-/// What a backend implements so that `Autodiff<B>` can differentiate a shared layer through
-/// its ReLU in one launch.
+/// What a backend implements so that `Autodiff<B>` can differentiate a shared layer's `x` in
+/// one launch.
 #[doc(hidden)]
 pub trait ProductKernels: Backend {
-    /// `(∂x, g ⊙ [y > 0])` with `∂x = (g ⊙ [y > 0])·Wᵀ + a`, for the gradient `grad` `[.., out]`
-    /// of the layer's output `output` (same shape), its weight `[in, out]` and `addend` `a`
-    /// (`[.., in]`, none is zero). Burn's ReLU backward: the gradient is zeroed where the output
-    /// is `≤ 0`.
-    fn relu_product_backward(
+    /// `(∂x, g ⊙ [y > 0] when masked)` with `∂x = ((g ⊙ [y > 0])·diag(s))·Wᵀ + a`, for the
+    /// gradient `grad` `[.., out]` of the layer's output, that output `y` when a ReLU follows
+    /// (same shape; Burn's ReLU backward zeroes the gradient where it is `≤ 0`), the weight
+    /// `[in, out]`, a frozen BatchNorm's `s` `[out]` ([`OutputMap`]) and the `addend` `a`
+    /// (`[.., in]`); each optional one is absent from the formula when absent.
+    fn x_gradient(
         grad: FloatTensor<Self>,
-        output: FloatTensor<Self>,
+        output: Option<FloatTensor<Self>>,
         weight: FloatTensor<Self>,
+        scale: Option<FloatTensor<Self>>,
         addend: Option<FloatTensor<Self>>,
-    ) -> (FloatTensor<Self>, FloatTensor<Self>);
+    ) -> (FloatTensor<Self>, Option<FloatTensor<Self>>);
 }
 
 impl<B: FusionBackend + ProductKernels> ProductKernels for Fusion<B> {
-    fn relu_product_backward(
+    fn x_gradient(
         grad: FloatTensor<Self>,
-        output: FloatTensor<Self>,
+        output: Option<FloatTensor<Self>>,
         weight: FloatTensor<Self>,
+        scale: Option<FloatTensor<Self>>,
         addend: Option<FloatTensor<Self>>,
-    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        let specs = vec![
-            float_like::<B>(
-                &grad,
-                product_shape(&grad.shape(), &transposed(&weight.shape())),
-            ),
-            float_like::<B>(&grad, grad.shape()),
-        ];
-        let added = addend.is_some();
-        let inputs = [grad, output, weight]
+    ) -> (FloatTensor<Self>, Option<FloatTensor<Self>>) {
+        let (masked, scaled, added) = (output.is_some(), scale.is_some(), addend.is_some());
+        let mut specs = vec![float_like::<B>(
+            &grad,
+            product_shape(&grad.shape(), &transposed(&weight.shape())),
+        )];
+        if masked {
+            specs.push(float_like::<B>(&grad, grad.shape()));
+        }
+        let inputs = [grad, weight]
             .into_iter()
+            .chain(output)
+            .chain(scale)
             .chain(addend)
             .map(Input::Float)
             .collect();
-        let [dx, masked] = array(deferred::<B, _>(
-            "relu_product_backward",
-            inputs,
-            specs,
-            move |mut v| {
-                let addend = if added {
-                    v.pop().map(Value::float)
-                } else {
-                    None
-                };
-                let [grad, output, weight] = array(v);
-                let (dx, masked) =
-                    B::relu_product_backward(grad.float(), output.float(), weight.float(), addend);
-                vec![Value::Float(dx), Value::Float(masked)]
-            },
-        ));
-        (dx, masked)
+        let mut outputs = deferred::<B, _>("x_gradient", inputs, specs, move |v| {
+            let mut v = v.into_iter();
+            let mut next = |present: bool| present.then(|| v.next().map(Value::float)).flatten();
+            let grad = next(true).expect("the gradient");
+            let weight = next(true).expect("the weight");
+            let (output, scale, addend) = (next(masked), next(scaled), next(added));
+            let (dx, masked) = B::x_gradient(grad, output, weight, scale, addend);
+            std::iter::once(dx)
+                .chain(masked)
+                .map(Value::Float)
+                .collect()
+        })
+        .into_iter();
+        let dx = outputs.next().expect("∂x");
+        (dx, outputs.next())
     }
 }
 
@@ -431,6 +438,10 @@ pub struct ProductInputs<B: Backend> {
     weight: FloatTensor<B>,
     /// Also the bias node's placeholder.
     bias: FloatTensor<B>,
+    /// A frozen BatchNorm's `s`, `t` as `map` reads them.
+    scale: FloatTensor<B>,
+    shift: FloatTensor<B>,
+    map: OutputMap,
     ledger: Ledger,
     /// The layer's output, kept for a ReLU's mask.
     activated: Option<FloatTensor<B>>,
@@ -439,11 +450,12 @@ pub struct ProductInputs<B: Backend> {
 }
 
 impl<B: Backend> ProductInputs<B> {
-    /// The inputs, no output kept yet.
+    /// The inputs, no output kept yet; `[bias, scale, shift]` as `map` reads them.
     fn new(
         x: FloatTensor<B>,
         weight: FloatTensor<B>,
-        bias: FloatTensor<B>,
+        [bias, scale, shift]: [FloatTensor<B>; 3],
+        map: OutputMap,
         ledger: Ledger,
         handoff: Handoff,
     ) -> Self {
@@ -451,6 +463,9 @@ impl<B: Backend> ProductInputs<B> {
             x,
             weight,
             bias,
+            scale,
+            shift,
+            map,
             ledger,
             activated: None,
             handoff,
@@ -458,13 +473,11 @@ impl<B: Backend> ProductInputs<B> {
     }
 }
 
-/// A parameter node's state: its layer, its role, and the folded BN's scale `s` for a folded
-/// layer.
+/// A parameter node's state: its layer and its role.
 #[derive(Debug, Clone)]
-pub struct ParameterRole<B: Backend> {
+pub struct ParameterRole {
     ledger: Ledger,
     role: Role,
-    scale: Option<FloatTensor<B>>,
 }
 
 #[derive(Debug)]
@@ -525,9 +538,11 @@ fn product_backward<B: ProductKernels + ReluKernels>(
     grads: &mut Gradients,
 ) -> FloatTensor<B> {
     // Through a ReLU, `∂x`'s product masks the gradient and writes the masked gradient for the
-    // parameters in the same launch; without `∂x` the mask is a launch of its own.
+    // parameters in the same launch; without `∂x` the mask is a launch of its own. A frozen
+    // BatchNorm's scale enters `∂x` where the product stages the gradient.
+    let scale = s.map.normed().then_some(s.scale);
     let (dx, grad) = match (s.activated, x_node) {
-        (None, Some(_)) => {
+        (None, Some(_)) if scale.is_none() => {
             let dx = B::linear_x_backward(s.weight.clone(), grad.clone());
             let dx = match addend {
                 Some(a) => B::float_add(dx, a),
@@ -535,10 +550,19 @@ fn product_backward<B: ProductKernels + ReluKernels>(
             };
             (Some(dx), grad)
         }
+        (None, Some(_)) => {
+            let (dx, _) =
+                B::x_gradient(grad.clone(), None, s.weight.clone(), scale.clone(), addend);
+            (Some(dx), grad)
+        }
         (None, None) => (None, grad),
         (Some(output), Some(_)) => {
-            let (dx, masked) = B::relu_product_backward(grad, output, s.weight.clone(), addend);
-            (Some(dx), masked)
+            let (dx, masked) =
+                B::x_gradient(grad, Some(output), s.weight.clone(), scale.clone(), addend);
+            (
+                Some(dx),
+                masked.expect("a masked product writes its masked gradient"),
+            )
         }
         (Some(output), None) => (None, B::fused_relu_backward(output, grad)),
     };
@@ -562,18 +586,17 @@ fn product_backward<B: ProductKernels + ReluKernels>(
         rows.inputs.push(flatten::<B>(s.x));
     }
     rows.grads.push(flatten::<B>(grad.clone()));
+    if rows.scale.is_none() {
+        rows.scale = scale;
+    }
     grad
 }
 
 /// The layer's `[∂W; ∂b]` (module docs) and its input width `in`, for the parameter node in
 /// `slot` (0 the weight, 1 the bias): the first node to ask forms it from the ledger's rows,
-/// `scale` scaling `G`'s columns; the rows and the gradient are freed once every seeded node has
-/// had its part.
-fn delivered_gradient<B: GradientKernels>(
-    ledger: &Ledger,
-    slot: usize,
-    scale: Option<FloatTensor<B>>,
-) -> (FloatTensor<B>, usize) {
+/// a frozen BatchNorm's scale filed with them scaling `G`'s columns; the rows and the gradient
+/// are freed once every seeded node has had its part.
+fn delivered_gradient<B: GradientKernels>(ledger: &Ledger, slot: usize) -> (FloatTensor<B>, usize) {
     let mut ledger = ledger.lock();
     ledger.delivered[slot] = true;
     let done = (0..2).all(|i| !ledger.seeded[i] || ledger.delivered[i]);
@@ -588,7 +611,7 @@ fn delivered_gradient<B: GradientKernels>(
         let formed = B::pass_gradient(ParameterRows {
             inputs: std::mem::take(&mut rows.inputs),
             grads: std::mem::take(&mut rows.grads),
-            scale,
+            scale: rows.scale.take(),
             bias_row,
             chunk_rows: split.chunk_rows,
         });
@@ -605,7 +628,7 @@ fn delivered_gradient<B: GradientKernels>(
 struct ParameterBackward;
 
 impl<B: GradientKernels> Backward<B, 1> for ParameterBackward {
-    type State = ParameterRole<B>;
+    type State = ParameterRole;
 
     fn backward(
         self,
@@ -618,16 +641,12 @@ impl<B: GradientKernels> Backward<B, 1> for ParameterBackward {
         let [Some(parent)] = ops.parents else {
             return;
         };
-        let ParameterRole {
-            ledger,
-            role,
-            scale,
-        } = ops.state;
+        let ParameterRole { ledger, role } = ops.state;
         let slot = match role {
             Role::Weight => 0,
             Role::Bias => 1,
         };
-        let (formed, inputs) = delivered_gradient::<B>(&ledger, slot, scale);
+        let (formed, inputs) = delivered_gradient::<B>(&ledger, slot);
         let outputs = formed.shape()[1];
         let (first, last) = match role {
             Role::Weight => (0, inputs),
@@ -679,7 +698,7 @@ impl<B: GradientKernels + FoldKernels> Backward<B, 2> for TrainedWeightBackward 
         let _ = grads.consume::<B>(&ops.node);
         let [weight_parent, gamma_parent] = ops.parents;
         let s = ops.state;
-        let (formed, _) = delivered_gradient::<B>(&s.ledger, 0, None);
+        let (formed, _) = delivered_gradient::<B>(&s.ledger, 0);
         let (weight_grad, gamma_grad) =
             B::trained_fold_backward(formed, s.weight, s.gamma, s.mean, s.var, s.epsilon);
         if let Some(parent) = weight_parent {
@@ -703,63 +722,9 @@ impl<
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish(
-                ParameterRole {
-                    ledger,
-                    role,
-                    scale: None,
-                },
-                value,
-            ),
+            OpsKind::Tracked(prep) => prep.finish(ParameterRole { ledger, role }, value),
             OpsKind::UnTracked(prep) => prep.finish(value),
         }
-    }
-
-    fn shared_fold(
-        weight: FloatTensor<Self>,
-        bias: FloatTensor<Self>,
-        gamma: FloatTensor<Self>,
-        beta: FloatTensor<Self>,
-        mean: FloatTensor<Self>,
-        var: FloatTensor<Self>,
-        kind: FoldBias,
-        epsilon: f32,
-        ledger: Ledger,
-    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
-        let (weight, weight_node) = weight.into_parts();
-        let (bias, bias_node) = bias.into_parts();
-        // Without a bias of its own the argument is `β`, which takes no gradient: the folded
-        // bias's node is then untracked.
-        let [gamma, beta, mean, var] = [gamma, beta, mean, var].map(|t| t.into_primitive());
-        let (w, b, scale) = B::shared_fold(
-            weight,
-            bias,
-            gamma,
-            beta,
-            mean,
-            var,
-            kind,
-            epsilon,
-            ledger.clone(),
-        );
-        let node = |value: FloatTensor<B>, node, role| match ParameterBackward
-            .prepare::<C>([node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => prep.finish(
-                ParameterRole {
-                    ledger: ledger.clone(),
-                    role,
-                    scale: Some(scale.clone()),
-                },
-                value,
-            ),
-            OpsKind::UnTracked(prep) => prep.finish(value),
-        };
-        let w = node(w, weight_node, Role::Weight);
-        let b = node(b, bias_node, Role::Bias);
-        (w, b, Self::from_inner(scale))
     }
 
     fn trained_fold(
@@ -812,7 +777,6 @@ impl<
                 ParameterRole {
                     ledger,
                     role: Role::Bias,
-                    scale: None,
                 },
                 b,
             ),
@@ -825,6 +789,9 @@ impl<
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        shift: FloatTensor<Self>,
+        map: OutputMap,
         ledger: Ledger,
         activation: Activation,
         handoff: Handoff,
@@ -832,12 +799,18 @@ impl<
         let (x, x_node) = x.into_parts();
         let (weight, weight_node) = weight.into_parts();
         let (bias, bias_node) = bias.into_parts();
+        // A frozen BatchNorm's map takes no gradient.
+        let [scale, shift] = [scale, shift].map(|t| t.into_primitive());
         record_product::<B, C, _, 3>(
             ProductBackward,
             [x_node, weight_node, bias_node],
-            ProductInputs::new(x, weight, bias, ledger, handoff),
+            ProductInputs::new(x, weight, [bias, scale, shift], map, ledger, handoff),
             activation,
-            |s| B::shared_linear(s.x, s.weight, s.bias, s.ledger, activation, s.handoff),
+            |s| {
+                B::shared_linear(
+                    s.x, s.weight, s.bias, s.scale, s.shift, s.map, s.ledger, activation, s.handoff,
+                )
+            },
         )
     }
 
@@ -845,6 +818,9 @@ impl<
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        shift: FloatTensor<Self>,
+        map: OutputMap,
         residual: FloatTensor<Self>,
         ledger: Ledger,
         handoff: Handoff,
@@ -852,13 +828,18 @@ impl<
         let (x, x_node) = x.into_parts();
         let (weight, weight_node) = weight.into_parts();
         let (bias, bias_node) = bias.into_parts();
+        let [scale, shift] = [scale, shift].map(|t| t.into_primitive());
         let (residual, residual_node) = residual.into_parts();
         record_product::<B, C, _, 4>(
             ResidualProductBackward,
             [x_node, weight_node, bias_node, residual_node],
-            ProductInputs::new(x, weight, bias, ledger, handoff),
+            ProductInputs::new(x, weight, [bias, scale, shift], map, ledger, handoff),
             Activation::Relu,
-            |s| B::shared_linear_residual(s.x, s.weight, s.bias, residual, s.ledger, s.handoff),
+            |s| {
+                B::shared_linear_residual(
+                    s.x, s.weight, s.bias, s.scale, s.shift, s.map, residual, s.ledger, s.handoff,
+                )
+            },
         )
     }
 }

@@ -34,8 +34,9 @@ use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::tensor::CubeTensor;
 use lifegom_render::cube::host::{arg, cast_to, prepare, tensor_arg, tensor_f32};
 
-use super::op::ProductKernels;
+use super::op::{Ledger, OutputMap, ProductKernels, SharedLinearOps};
 use crate::activation::Activation;
+use crate::handoff::Handoff;
 
 /// Output rows and columns of a cube's block.
 pub(super) const TILE: usize = 64;
@@ -98,21 +99,28 @@ pub(super) fn multiply_staged(
 }
 
 /// `out = epilogue(A·B)` (module docs). `mask` and `masked_out` are read and written only when
-/// `masked`, `bias` only when `biased`, `residual` (`[rows, cols]`, added before the
-/// activation) only when `residual_added`.
+/// `masked`, `a_scale` (`[inner]`, scaling `A`'s columns where they are staged, after the mask)
+/// only when `a_scaled`, `bias` only when `biased`, `scale` and `shift` (`[cols]`, a frozen
+/// BatchNorm's map after the bias) only when `normed`, `residual` (`[rows, cols]`, added before
+/// the activation) only when `residual_added`.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 fn affine_product_kernel(
     a: &[f32],
     mask: &[f32],
+    a_scale: &[f32],
     b: &[f32],
     bias: &[f32],
+    scale: &[f32],
+    shift: &[f32],
     residual: &[f32],
     out: &mut [f32],
     masked_out: &mut [f32],
     dims: &ProductDims,
     #[comptime] masked: bool,
+    #[comptime] a_scaled: bool,
     #[comptime] biased: bool,
+    #[comptime] normed: bool,
     #[comptime] residual_added: bool,
     #[comptime] relu: bool,
 ) {
@@ -148,6 +156,9 @@ fn affine_product_kernel(
                         masked_out[at] = v;
                     }
                 }
+                if a_scaled {
+                    v *= a_scale[k];
+                }
             }
             a_tile[kk * A_STRIDE + r] = v;
         }
@@ -180,6 +191,9 @@ fn affine_product_kernel(
                 if biased {
                     v += bias[col];
                 }
+                if normed {
+                    v = v * scale[col] + shift[col];
+                }
                 if residual_added {
                     v += residual[row * dims.cols + col];
                 }
@@ -202,27 +216,42 @@ enum WeightSide {
     Transposed,
 }
 
+/// How `A` is read: through a ReLU's mask (its output, `[rows, inner]`), then scaled per
+/// column (`[inner]`); every tensor prepared.
+#[derive(Default)]
+struct Prologue<'t> {
+    mask: Option<&'t CubeTensor>,
+    scale: Option<&'t CubeTensor>,
+}
+
 /// What a product adds to `A·B` before its activation, and the activation; every tensor
 /// prepared.
 struct Epilogue<'t> {
     /// `[cols]`.
     bias: Option<&'t CubeTensor>,
+    /// A frozen BatchNorm's `(s, t)`, each `[cols]`: `v·s + t` after the bias.
+    norm: Option<(&'t CubeTensor, &'t CubeTensor)>,
     /// `[rows, cols]`.
     residual: Option<&'t CubeTensor>,
     activation: Activation,
 }
 
-/// `(epilogue(A·B), A ⊙ [mask > 0] when masked)` for `a` `[rows, inner]`, its `mask` of the
-/// same shape and the layer's weight, all prepared.
+/// `(epilogue(prologue(A)·B), A ⊙ [mask > 0] when masked)` for `a` `[rows, inner]` and the
+/// layer's weight, all prepared.
 fn launch_product(
     a: &CubeTensor,
-    mask: Option<&CubeTensor>,
+    prologue: Prologue<'_>,
     weight: &CubeTensor,
     side: WeightSide,
     epilogue: Epilogue<'_>,
 ) -> (CubeTensor, Option<CubeTensor>) {
+    let Prologue {
+        mask,
+        scale: a_scale,
+    } = prologue;
     let Epilogue {
         bias,
+        norm,
         residual,
         activation,
     } = epilogue;
@@ -257,14 +286,19 @@ fn launch_product(
             CubeDim::new_2d(SIDE as u32, SIDE as u32),
             tensor_arg(a),
             mask_arg,
+            tensor_arg(a_scale.unwrap_or(a)),
             tensor_arg(weight),
             tensor_arg(bias.unwrap_or(a)),
+            tensor_arg(norm.map_or(a, |(scale, _)| scale)),
+            tensor_arg(norm.map_or(a, |(_, shift)| shift)),
             tensor_arg(residual.unwrap_or(a)),
             arg(&out, rows * cols),
             masked_arg,
             ProductDimsLaunch::new(rows, inner, cols, b_inner_stride, b_col_stride),
             masked,
+            a_scale.is_some(),
             bias.is_some(),
+            norm.is_some(),
             residual.is_some(),
             activation == Activation::Relu,
         );
@@ -291,12 +325,17 @@ fn shaped(t: CubeTensor, shape: &Shape, last: usize, dtype: DType) -> CubeTensor
     cast_to(CubeBackend::float_reshape(t, Shape::from(dims)), dtype)
 }
 
-/// `act(x·W + b [+ r])` for `x` `[.., in]`, `W` `[in, out]`, `b` `[out]` and the residual `r`
-/// `[.., out]` when given → `[.., out]`.
-pub(super) fn affine(
+/// `act(map(x·W) [+ r])` for `x` `[.., in]`, `W` `[in, out]`, the bias `b` and a frozen
+/// BatchNorm's `s`, `t` (each `[out]`, read as `map` says) and the residual `r` `[.., out]` when
+/// given → `[.., out]`.
+#[allow(clippy::too_many_arguments)]
+fn affine(
     x: FloatTensor<CubeBackend>,
     weight: FloatTensor<CubeBackend>,
     bias: FloatTensor<CubeBackend>,
+    scale: FloatTensor<CubeBackend>,
+    shift: FloatTensor<CubeBackend>,
+    map: OutputMap,
     residual: Option<FloatTensor<CubeBackend>>,
     activation: Activation,
 ) -> FloatTensor<CubeBackend> {
@@ -304,44 +343,109 @@ pub(super) fn affine(
     let shape = x.shape();
     let a = rows_of(x);
     let weight = prepare(weight);
-    let bias = prepare(bias);
+    let biased = map != OutputMap::Normed;
+    let bias = biased.then(|| prepare(bias));
+    let norm = (map != OutputMap::Biased).then(|| (prepare(scale), prepare(shift)));
     let residual = residual.map(rows_of);
     let cols = weight.shape()[1];
     let epilogue = Epilogue {
-        bias: Some(&bias),
+        bias: bias.as_ref(),
+        norm: norm.as_ref().map(|(s, t)| (s, t)),
         residual: residual.as_ref(),
         activation,
     };
-    let (out, _) = launch_product(&a, None, &weight, WeightSide::AsStored, epilogue);
+    let (out, _) = launch_product(
+        &a,
+        Prologue::default(),
+        &weight,
+        WeightSide::AsStored,
+        epilogue,
+    );
     shaped(out, &shape, cols, dtype)
 }
 
-impl ProductKernels for CubeBackend {
-    fn relu_product_backward(
-        grad: FloatTensor<Self>,
-        output: FloatTensor<Self>,
+impl SharedLinearOps for CubeBackend {
+    fn shared_linear(
+        x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
-        addend: Option<FloatTensor<Self>>,
+        bias: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        shift: FloatTensor<Self>,
+        map: OutputMap,
+        _ledger: Ledger,
+        activation: Activation,
+        _handoff: Handoff,
+    ) -> FloatTensor<Self> {
+        affine(x, weight, bias, scale, shift, map, None, activation)
+    }
+
+    fn shared_linear_residual(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        shift: FloatTensor<Self>,
+        map: OutputMap,
+        residual: FloatTensor<Self>,
+        _ledger: Ledger,
+        _handoff: Handoff,
+    ) -> FloatTensor<Self> {
+        affine(
+            x,
+            weight,
+            bias,
+            scale,
+            shift,
+            map,
+            Some(residual),
+            Activation::Relu,
+        )
+    }
+
+    fn trained_fold(
+        weight: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        var: FloatTensor<Self>,
+        epsilon: f32,
+        _ledger: Ledger,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        super::trained_fold::trained_fold(weight, gamma, beta, mean, var, epsilon)
+    }
+}
+
+impl ProductKernels for CubeBackend {
+    fn x_gradient(
+        grad: FloatTensor<Self>,
+        output: Option<FloatTensor<Self>>,
+        weight: FloatTensor<Self>,
+        scale: Option<FloatTensor<Self>>,
+        addend: Option<FloatTensor<Self>>,
+    ) -> (FloatTensor<Self>, Option<FloatTensor<Self>>) {
         let dtype = grad.dtype();
         let shape = grad.shape();
         let g = rows_of(grad);
-        let mask = rows_of(output);
+        let mask = output.map(rows_of);
+        let scale = scale.map(prepare);
         let weight = prepare(weight);
         let addend = addend.map(rows_of);
         let d_in = weight.shape()[0];
+        let prologue = Prologue {
+            mask: mask.as_ref(),
+            scale: scale.as_ref(),
+        };
         let epilogue = Epilogue {
             bias: None,
+            norm: None,
             residual: addend.as_ref(),
             activation: Activation::Identity,
         };
-        let (dx, masked) =
-            launch_product(&g, Some(&mask), &weight, WeightSide::Transposed, epilogue);
-        let masked = masked.expect("a masked product writes its masked gradient");
+        let (dx, masked) = launch_product(&g, prologue, &weight, WeightSide::Transposed, epilogue);
         let out = shape[shape.num_dims() - 1];
         (
             shaped(dx, &shape, d_in, dtype),
-            shaped(masked, &shape, out, dtype),
+            masked.map(|m| shaped(m, &shape, out, dtype)),
         )
     }
 }

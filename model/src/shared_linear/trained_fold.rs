@@ -30,8 +30,13 @@ use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
 };
 
-use super::fold::channel_scale;
 use super::op::FoldKernels;
+
+/// `γ[c]/√(σ²[c]+ε)`.
+#[cube]
+fn channel_scale(gamma: &[f32], var: &[f32], c: usize, epsilon: f32) -> f32 {
+    gamma[c] / f32::sqrt(var[c] + epsilon)
+}
 
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
