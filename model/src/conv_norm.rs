@@ -10,23 +10,25 @@
 //! ```
 //!
 //! [`ConvNorm`] runs it so, with the ReLU after it, or a residual block's `relu(· + shortcut)`,
-//! in the product's launch: per pass the patch columns and one product, where the convolution
-//! and the norm as two ops take a third launch, and the block's sum a fourth. The fold is a
-//! [`SharedLinear`] made once per reconstruction and used by every encoder pass; `γ` and `β`
-//! train, so its backward turns the passes' unscaled weight gradient into `∂W`, `∂γ` and `∂β` in
-//! one launch ([`crate::shared_linear::op::SharedLinearOps::trained_fold`]).
+//! in one launch per pass: the product reads the patch columns from the image where it stages
+//! them (an implicit-GEMM convolution), so they are never written forward, where the convolution
+//! and the norm as two ops took a launch for the columns, one for the product and one for the
+//! norm, and the block's sum a fourth. The fold is a [`SharedLinear`] made once per
+//! reconstruction and used by every encoder pass; `γ` and `β` train, so its backward turns the
+//! passes' unscaled weight gradient into `∂W`, `∂γ` and `∂β` in one launch
+//! ([`crate::shared_linear::op::SharedLinearOps::trained_fold`]). A pass whose weights take a
+//! gradient makes its columns once, in its backward, for the weight gradient; the product node
+//! keeps the image, not the columns (`C·kh·kw` floats per output pixel: 0.5 GB for the stem at
+//! the paper's setting).
 //!
-//! The product keeps each pass's patch columns for the weight gradient: the encoder uses the op
-//! for layers whose columns fit [`crate::gemm_conv::op::KEPT_COLUMNS_BYTES`] (every layer at the
-//! quickstart's size) and keeps the convolution and [`crate::channel_norm`] for larger ones,
-//! which rebuild their columns in the backward instead. The CPU backends never use it.
+//! The CPU backends never use it, nor CubeCL devices running Burn's direct convolution
+//! (`LIFEGOM_CONV=direct`, [`crate::gemm_conv::ConvKernel`]).
 
 use burn::nn::BatchNorm;
 use burn::nn::conv::Conv2d;
 use burn::tensor::{Device, Tensor};
 
 use crate::activation::Activation;
-use crate::gemm_conv::conv_patches;
 use crate::gemm_conv::op::Patches;
 use crate::shared_linear::SharedLinear;
 
@@ -57,8 +59,11 @@ impl ConvNorm {
     /// `act(BN(conv(x)))` for `x` `[N, C, H, W]`: `[N, C_out, H_out, W_out]`, channels-last in
     /// memory as the convolutions answer.
     pub fn apply(&self, x: Tensor<4>, activation: Activation) -> Tensor<4> {
-        let (columns, grid) = self.columns(x);
-        self.image(self.layer.forward_with(columns, activation), grid)
+        let grid = self.grid(&x);
+        let rows = self
+            .layer
+            .forward_patches(x, self.patches, None, activation);
+        self.image(rows, grid)
     }
 
     /// `relu(BN(conv(x)) + shortcut)`, a residual block's end, with `shortcut` the output's
@@ -68,7 +73,7 @@ impl ConvNorm {
     ///
     /// If `shortcut` is not the output's shape.
     pub fn apply_residual_relu(&self, x: Tensor<4>, shortcut: Tensor<4>) -> Tensor<4> {
-        let (columns, grid) = self.columns(x);
+        let grid = self.grid(&x);
         let [n, c, h, w] = shortcut.dims();
         assert_eq!(
             [n, h, w],
@@ -76,17 +81,17 @@ impl ConvNorm {
             "a shortcut has the convolution's output shape"
         );
         let residual = shortcut.permute([0, 2, 3, 1]).reshape([n * h * w, c]);
-        let rows =
-            self.layer
-                .forward_residual_relu(columns, residual, &crate::handoff::Handoff::none());
+        let rows = self
+            .layer
+            .forward_patches(x, self.patches, Some(residual), Activation::Relu);
         self.image(rows, grid)
     }
 
-    /// The patch columns of `x` and the output grid `[N, H_out, W_out]`.
-    fn columns(&self, x: Tensor<4>) -> (Tensor<2>, [usize; 3]) {
+    /// The output grid `[N, H_out, W_out]` for `x`.
+    fn grid(&self, x: &Tensor<4>) -> [usize; 3] {
         let [n, _, h, w] = x.dims();
         let [h_out, w_out] = self.patches.output_size(h, w);
-        (conv_patches(x, self.patches), [n, h_out, w_out])
+        [n, h_out, w_out]
     }
 
     /// The product's rows `[(n, y, x), C_out]` as the NCHW view of channels-last memory.

@@ -63,7 +63,7 @@ use burn::tensor::{Device, Tensor, TensorData, s};
 use crate::activation::Activation::{self, Identity, Relu};
 use crate::channel_norm::ChannelNorm;
 use crate::conv_norm::ConvNorm;
-use crate::gemm_conv::{conv2d, kept_patches};
+use crate::gemm_conv::{conv2d, gemm_patches};
 use crate::norm_folds::NormFolds;
 use crate::sampling::{PreparedMaps, SamplingError};
 use crate::weights_file::WeightsFormat;
@@ -309,10 +309,10 @@ enum Ending {
     ResidualRelu(Tensor<4>),
 }
 
-/// `ending(BN(conv(x)))`, the BatchNorm as [`frozen_bn`]. On CubeCL devices the convolution,
-/// the norm and the ending are one shared product per pass when the layer's patch columns fit
-/// what a node keeps ([`crate::conv_norm`], kept in `folds` for the other passes); larger layers
-/// run the convolution, then [`frozen_bn`].
+/// `ending(BN(conv(x)))`, the BatchNorm as [`frozen_bn`]. On CubeCL devices whose convolutions
+/// are products ([`crate::gemm_conv::ConvKernel`]) the convolution, the norm and the ending are
+/// one shared product per pass ([`crate::conv_norm`], kept in `folds` for the other passes);
+/// elsewhere the convolution, then [`frozen_bn`].
 fn conv_bn<'a>(
     folds: &NormFolds<'a>,
     conv: &'a Conv2d,
@@ -320,7 +320,7 @@ fn conv_bn<'a>(
     x: Tensor<4>,
     ending: Ending,
 ) -> Tensor<4> {
-    if let Some(patches) = kept_patches(conv, &x) {
+    if let Some(patches) = gemm_patches(conv, &x) {
         let device = x.device();
         let layer = folds.keep(conv, "conv norm", || {
             ConvNorm::new(conv, bn, patches, &device)

@@ -206,7 +206,7 @@ enum Inputs {
     /// `x`, `W`, `b`.
     BurnLayer(Tensor<2>, Tensor<2>, Tensor<1>),
     /// `x` and the layer.
-    SharedLayer(Tensor<2>, SharedLinear),
+    SharedLayer(Tensor<2>, Box<SharedLinear>),
     /// Every pass's `x` `[m, k]`, `W`, `b` and the output weights `r` `[m, n]`, on the device
     /// with autodiff.
     LayerBackward {
@@ -246,7 +246,9 @@ impl Inputs {
                 let b = Tensor::random([n], normal, device);
                 match kernel {
                     LayerKernel::Burn => Inputs::BurnLayer(x, w, b),
-                    LayerKernel::Shared => Inputs::SharedLayer(x, SharedLinear::new(w, b)),
+                    LayerKernel::Shared => {
+                        Inputs::SharedLayer(x, Box::new(SharedLinear::new(w, b)))
+                    }
                 }
             }
             Form::LayerBackward { kernel } => {

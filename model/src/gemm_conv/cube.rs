@@ -23,9 +23,10 @@ use lifegom_render::cube::image::{ImageLayout, dense, image_layout};
 
 use super::op::{GemmConvOps, PatchKernels, Patches};
 
-/// The window and grid of one call, as the kernels read them.
+/// The window and grid of one call, as the kernels read them (also the shared layers' product
+/// when it reads its rows as patches, `crate::shared_linear`).
 #[derive(CubeLaunch, CubeType)]
-struct Grid {
+pub(crate) struct Grid {
     channels: usize,
     height: usize,
     width: usize,
@@ -49,29 +50,40 @@ fn patch_columns_kernel(
 ) {
     let e = ABSOLUTE_POS;
     if e < units {
-        let window = grid.kernel_y * grid.kernel_x;
-        let width = grid.channels * window;
-        let row = e / width;
-        let col = e % width;
-        let plane = grid.out_height * grid.out_width;
-        let n = row / plane;
-        let p = row % plane;
-        let c = col / window;
-        let k = col % window;
-        // Padded coordinates: the window's pixel is inside the image when both lie in
-        // `[pad, pad + size)`.
-        let y = (p / grid.out_width) * grid.stride_y + k / grid.kernel_x;
-        let x_ = (p % grid.out_width) * grid.stride_x + k % grid.kernel_x;
-        let mut value = 0.0f32;
-        if y >= grid.pad_y
-            && y < grid.pad_y + grid.height
-            && x_ >= grid.pad_x
-            && x_ < grid.pad_x + grid.width
-        {
-            value = x[x_layout.at(n, c, y - grid.pad_y, x_ - grid.pad_x)];
-        }
-        columns[e] = value;
+        let width = grid.channels * grid.kernel_y * grid.kernel_x;
+        columns[e] = patch_value(x, x_layout, &grid, e / width, e % width);
     }
+}
+
+/// Element `(row, col)` of the patch columns of `x`: output pixel `row = (n, y, x)`, window entry
+/// `col = (c, ky, kx)`, zero where the window reads the padding.
+#[cube]
+pub(crate) fn patch_value(
+    x: &[f32],
+    x_layout: &ImageLayout,
+    grid: &Grid,
+    row: usize,
+    col: usize,
+) -> f32 {
+    let window = grid.kernel_y * grid.kernel_x;
+    let plane = grid.out_height * grid.out_width;
+    let n = row / plane;
+    let p = row % plane;
+    let c = col / window;
+    let k = col % window;
+    // Padded coordinates: the window's pixel is inside the image when both lie in
+    // `[pad, pad + size)`.
+    let y = (p / grid.out_width) * grid.stride_y + k / grid.kernel_x;
+    let x_ = (p % grid.out_width) * grid.stride_x + k % grid.kernel_x;
+    let mut value = 0.0f32;
+    if y >= grid.pad_y
+        && y < grid.pad_y + grid.height
+        && x_ >= grid.pad_x
+        && x_ < grid.pad_x + grid.width
+    {
+        value = x[x_layout.at(n, c, y - grid.pad_y, x_ - grid.pad_x)];
+    }
+    value
 }
 
 // `%` rather than `is_multiple_of`, which CubeCL's kernel language does not have.
@@ -110,7 +122,8 @@ fn patch_columns_backward_kernel(columns_grad: &[f32], dx: &mut [f32], grid: Gri
     }
 }
 
-fn grid_arg(input: &Shape, patches: Patches) -> GridLaunch {
+/// The kernels' [`Grid`] for an input of shape `input`.
+pub(crate) fn grid_arg(input: &Shape, patches: Patches) -> GridLaunch {
     let [out_height, out_width] = patches.output_size(input[2], input[3]);
     GridLaunch::new(
         input[1],
@@ -186,9 +199,5 @@ impl GemmConvOps for CubeBackend {
         let out = patches.output_shape(&x.shape(), &weight.shape());
         let columns = Self::patch_columns(x, patches);
         super::op::columns_product::<Self>(columns, weight, out)
-    }
-
-    fn conv_patches(x: FloatTensor<Self>, patches: Patches) -> FloatTensor<Self> {
-        Self::patch_columns(x, patches)
     }
 }

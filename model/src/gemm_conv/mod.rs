@@ -24,14 +24,14 @@
 //! which is also what the op is tested against; so do CubeCL devices with
 //! `LIFEGOM_CONV=direct` ([`ConvKernel`]), for benchmarks to compare against.
 
-mod cube;
+pub(crate) mod cube;
 pub mod op;
 
 use burn::nn::PaddingConfig2d;
 use burn::nn::conv::Conv2d;
 use std::sync::OnceLock;
 
-use burn::tensor::{Device, Shape, Tensor};
+use burn::tensor::{Device, Tensor};
 use lifegom_render::device::{env_switch, runs_on_host};
 
 use op::{GemmConvOps, Patches};
@@ -90,27 +90,14 @@ pub fn conv2d(layer: &Conv2d, x: Tensor<4>) -> Tensor<4> {
     }
 }
 
-/// The window of `layer` for `x` when its patch columns run as an op of their own on this
-/// device and fit what a node keeps ([`op::KEPT_COLUMNS_BYTES`], or the calling thread's
-/// [`op::keep_columns_up_to`]): where the encoder runs the layer and its BatchNorm as one shared
-/// product ([`crate::conv_norm`]).
-pub(crate) fn kept_patches(layer: &Conv2d, x: &Tensor<4>) -> Option<Patches> {
+/// The window of `layer` when this device runs it as patch columns and a product
+/// ([`ConvKernel::Gemm`] on a CubeCL device) and the window fits `x`: where the encoder runs the
+/// layer and its BatchNorm as one shared product ([`crate::conv_norm`]).
+pub(crate) fn gemm_patches(layer: &Conv2d, x: &Tensor<4>) -> Option<Patches> {
     let patches = patches(layer)?;
     let dims = x.dims();
-    let columns = patches.columns_shape(&Shape::new(dims)).num_elements() * size_of::<f32>();
-    (ConvKernel::on_device(&x.device()) == Some(ConvKernel::Gemm)
-        && patches.fits(dims[2], dims[3])
-        && columns <= op::kept_columns_bytes())
-    .then_some(patches)
-}
-
-/// The patch columns of `x` `[N, C, H, W]`, `[N·H_out·W_out, C·kh·kw]` (module docs), with
-/// their gradient. CubeCL devices only; `patches` must fit `x`.
-pub(crate) fn conv_patches(x: Tensor<4>, patches: Patches) -> Tensor<2> {
-    Tensor::from_dispatch(<burn::backend::Dispatch as GemmConvOps>::conv_patches(
-        x.into_dispatch(),
-        patches,
-    ))
+    (ConvKernel::on_device(&x.device()) == Some(ConvKernel::Gemm) && patches.fits(dims[2], dims[3]))
+        .then_some(patches)
 }
 
 /// The layer's window when the op can run it.

@@ -77,12 +77,6 @@ pub trait GemmConvOps: Backend {
         weight: FloatTensor<Self>,
         patches: Patches,
     ) -> FloatTensor<Self>;
-
-    /// The patch columns of `x` ([`Patches::columns_shape`]) as an op of their own, whose
-    /// gradient is gathered back onto `x` ([`PatchKernels::patch_columns_backward`]): their
-    /// product with a weight is the convolution (`crate::conv_norm`).
-    #[fusion(dtype = x, shape = patches.columns_shape(x))]
-    fn conv_patches(x: FloatTensor<Self>, patches: Patches) -> FloatTensor<Self>;
 }
 
 /// What a backend implements so that the op and its autodiff node can run on it.
@@ -116,11 +110,6 @@ thread_local! {
 /// backward ([`KEPT_COLUMNS_BYTES`] by default; 0 rebuilds every layer's). For tests.
 pub fn keep_columns_up_to(bytes: usize) {
     KEPT_BYTES.with(|kept| kept.set(bytes));
-}
-
-/// The largest patch columns a node keeps on the calling thread ([`keep_columns_up_to`]).
-pub(crate) fn kept_columns_bytes() -> usize {
-    KEPT_BYTES.with(Cell::get)
 }
 
 /// The convolution's output `out` (`[N, C_out, H_out, W_out]`) from its patch columns and
@@ -202,44 +191,7 @@ impl<B: PatchKernels> Backward<B, 2> for ConvBackward {
     }
 }
 
-/// The patch columns' node: `x`'s shape and the window.
-#[derive(Debug)]
-struct PatchesBackward;
-
-impl<B: PatchKernels> Backward<B, 1> for PatchesBackward {
-    type State = (Shape, Patches);
-
-    fn backward(
-        self,
-        ops: Ops<Self::State, 1>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
-        let grad = grads.consume::<B>(&ops.node);
-        let [Some(parent)] = ops.parents else {
-            return;
-        };
-        let (input, patches) = ops.state;
-        grads.register::<B>(parent.id, B::patch_columns_backward(grad, input, patches));
-    }
-}
-
 impl<B: GemmConvOps + PatchKernels, C: CheckpointStrategy> GemmConvOps for Autodiff<B, C> {
-    fn conv_patches(x: FloatTensor<Self>, patches: Patches) -> FloatTensor<Self> {
-        let (x, node) = x.into_parts();
-        match PatchesBackward
-            .prepare::<C>([node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let input = x.shape();
-                prep.finish((input, patches), B::conv_patches(x, patches))
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::conv_patches(x, patches)),
-        }
-    }
-
     fn gemm_conv2d(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
@@ -262,7 +214,7 @@ impl<B: GemmConvOps + PatchKernels, C: CheckpointStrategy> GemmConvOps for Autod
                 let x_shape = inputs.x.shape();
                 let columns_bytes =
                     patches.columns_shape(&x_shape).num_elements() * size_of::<f32>();
-                if columns_bytes > kept_columns_bytes() {
+                if columns_bytes > KEPT_BYTES.with(Cell::get) {
                     let out = B::gemm_conv2d(inputs.x.clone(), inputs.weight.clone(), patches);
                     return prep.finish(inputs, out);
                 }

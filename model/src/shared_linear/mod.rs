@@ -38,13 +38,14 @@ use burn::tensor::{Device, Tensor};
 use lifegom_render::device::runs_on_host;
 
 use crate::activation::Activation;
+use crate::gemm_conv::op::Patches;
 use crate::handoff::Handoff;
 use crate::linear_op;
 use op::{Ledger, OutputMap, Role, SharedLinearOps};
 
 /// `x·W + b` over the last axis, with `W` `[in, out]` and `b` `[out]` read by several passes
 /// (module docs), or `(x·W + b)·s + t` with a frozen BatchNorm's `s`, `t` after it
-/// ([`Self::folded`]). Make one per layer and reconstruction, and use it for every pass.
+/// (`SharedLinear::folded`). Make one per layer and reconstruction, and use it for every pass.
 #[derive(Debug, Clone)]
 pub struct SharedLinear {
     weight: Tensor<2>,
@@ -206,6 +207,7 @@ impl SharedLinear {
         let [scale, shift] = self.norm.clone().map(Tensor::into_dispatch);
         Tensor::from_dispatch(<Dispatch as SharedLinearOps>::shared_linear_residual(
             x.into_dispatch(),
+            None,
             self.weight.clone().into_dispatch(),
             self.bias.clone().into_dispatch(),
             scale,
@@ -255,6 +257,7 @@ impl SharedLinear {
         let [scale, shift] = self.norm.clone().map(Tensor::into_dispatch);
         Tensor::from_dispatch(<Dispatch as SharedLinearOps>::shared_linear(
             x.into_dispatch(),
+            None,
             self.weight.clone().into_dispatch(),
             self.bias.clone().into_dispatch(),
             scale,
@@ -264,6 +267,72 @@ impl SharedLinear {
             activation,
             handoff.clone(),
         ))
+    }
+}
+
+impl SharedLinear {
+    /// `act(columns·W + b)` for the patch columns of the image `x` `[N, C, H, W]` under the
+    /// window `patches` (a convolution, [`crate::conv_norm`]): `[N·H_out·W_out, out]`. The
+    /// product reads the columns from the image where it stages them, so they are never written
+    /// forward; a pass whose weight takes a gradient makes them once in its backward. CubeCL
+    /// devices only.
+    ///
+    /// # Panics
+    ///
+    /// On a CPU backend, or if the window's width `C·kh·kw` is not the layer's input width.
+    pub(crate) fn forward_patches(
+        &self,
+        x: Tensor<4>,
+        patches: Patches,
+        residual: Option<Tensor<2>>,
+        activation: Activation,
+    ) -> Tensor<2> {
+        let ledger = self
+            .ledger
+            .as_ref()
+            .expect("the CPU backends run Burn's convolution");
+        let width = patches.columns_shape(&x.shape())[1];
+        assert_eq!(
+            width,
+            self.weight.dims()[0],
+            "input width of a shared layer"
+        );
+        let [scale, shift] = self.norm.clone().map(Tensor::into_dispatch);
+        let (x, weight, bias) = (
+            x.into_dispatch(),
+            self.weight.clone().into_dispatch(),
+            self.bias.clone().into_dispatch(),
+        );
+        let handoff = Handoff::none();
+        Tensor::from_dispatch(match residual {
+            Some(residual) => {
+                assert_eq!(activation, Activation::Relu, "a residual ends in a ReLU");
+                <Dispatch as SharedLinearOps>::shared_linear_residual(
+                    x,
+                    Some(patches),
+                    weight,
+                    bias,
+                    scale,
+                    shift,
+                    self.map,
+                    residual.into_dispatch(),
+                    ledger.clone(),
+                    handoff,
+                )
+            }
+            None => <Dispatch as SharedLinearOps>::shared_linear(
+                x,
+                Some(patches),
+                weight,
+                bias,
+                scale,
+                shift,
+                self.map,
+                ledger.clone(),
+                activation,
+                handoff,
+            ),
+        })
     }
 }
 

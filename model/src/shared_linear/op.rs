@@ -56,6 +56,7 @@ use burn::tensor::Shape;
 use lifegom_render::cube::deferred::float_like;
 use lifegom_render::cube::deferred::{Input, Value, array, deferred};
 
+use crate::gemm_conv::op::{PatchKernels, Patches};
 use crate::split_k::SplitK;
 
 /// Which parameter of the layer a [`SharedLinearOps::shared_parameter`] node stands for.
@@ -326,9 +327,10 @@ pub trait SharedLinearOps: Backend {
     /// ([`OutputMap`]); `∂x` adds the gradient `handoff` brings (a later residual layer's for the
     /// same `x`, [`Self::shared_linear_residual`]) in its launch.
     #[allow(clippy::too_many_arguments)]
-    #[fusion(dtype = x, shape = product_shape(x, weight))]
+    #[fusion(dtype = x, shape = layer_output_shape(x, weight, patches))]
     fn shared_linear(
         x: FloatTensor<Self>,
+        patches: Option<Patches>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
         scale: FloatTensor<Self>,
@@ -344,9 +346,10 @@ pub trait SharedLinearOps: Backend {
     /// `handoff` when it joins a product that reads `r` as its input (the block's first
     /// layer), whose `∂x` then adds it ([`crate::handoff`]).
     #[allow(clippy::too_many_arguments)]
-    #[fusion(dtype = x, shape = product_shape(x, weight))]
+    #[fusion(dtype = x, shape = layer_output_shape(x, weight, patches))]
     fn shared_linear_residual(
         x: FloatTensor<Self>,
+        patches: Option<Patches>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
         scale: FloatTensor<Self>,
@@ -356,6 +359,15 @@ pub trait SharedLinearOps: Backend {
         ledger: Ledger,
         handoff: Handoff,
     ) -> FloatTensor<Self>;
+}
+
+/// A layer's output shape: `[N·H_out·W_out, out]` for an image `x` read as its `patches`' columns,
+/// else [`product_shape`].
+fn layer_output_shape(x: &Shape, weight: &Shape, patches: &Option<Patches>) -> Shape {
+    match patches {
+        Some(patches) => Shape::new([patches.columns_shape(x)[0], weight[1]]),
+        None => product_shape(x, weight),
+    }
 }
 
 /// The shape of `x·W` for `x` `[.., in]` and `W` `[in, out]`: `x`'s with its last axis `out`.
@@ -435,6 +447,8 @@ fn transposed(weight: &Shape) -> Shape {
 #[derive(Debug, Clone)]
 pub struct ProductInputs<B: Backend> {
     x: FloatTensor<B>,
+    /// When `x` is an image read as the patch columns of this window.
+    patches: Option<Patches>,
     weight: FloatTensor<B>,
     /// Also the bias node's placeholder.
     bias: FloatTensor<B>,
@@ -452,7 +466,7 @@ pub struct ProductInputs<B: Backend> {
 impl<B: Backend> ProductInputs<B> {
     /// The inputs, no output kept yet; `[bias, scale, shift]` as `map` reads them.
     fn new(
-        x: FloatTensor<B>,
+        (x, patches): (FloatTensor<B>, Option<Patches>),
         weight: FloatTensor<B>,
         [bias, scale, shift]: [FloatTensor<B>; 3],
         map: OutputMap,
@@ -461,6 +475,7 @@ impl<B: Backend> ProductInputs<B> {
     ) -> Self {
         Self {
             x,
+            patches,
             weight,
             bias,
             scale,
@@ -483,7 +498,7 @@ pub struct ParameterRole {
 #[derive(Debug)]
 struct ProductBackward;
 
-impl<B: ProductKernels + ReluKernels> Backward<B, 3> for ProductBackward {
+impl<B: ProductKernels + ReluKernels + PatchKernels> Backward<B, 3> for ProductBackward {
     type State = ProductInputs<B>;
 
     fn backward(
@@ -506,7 +521,7 @@ impl<B: ProductKernels + ReluKernels> Backward<B, 3> for ProductBackward {
 #[derive(Debug)]
 struct ResidualProductBackward;
 
-impl<B: ProductKernels + ReluKernels> Backward<B, 4> for ResidualProductBackward {
+impl<B: ProductKernels + ReluKernels + PatchKernels> Backward<B, 4> for ResidualProductBackward {
     type State = ProductInputs<B>;
 
     fn backward(
@@ -530,7 +545,7 @@ impl<B: ProductKernels + ReluKernels> Backward<B, 4> for ResidualProductBackward
 /// A product node's backward (module docs): registers `∂x` (plus `addend`, another op's
 /// gradient for `x`), files the pass's rows with the layer, and returns the gradient at the
 /// activation's input (`grad` masked through a ReLU).
-fn product_backward<B: ProductKernels + ReluKernels>(
+fn product_backward<B: ProductKernels + ReluKernels + PatchKernels>(
     grad: FloatTensor<B>,
     [x_node, weight_node, bias_node]: [Option<NodeId>; 3],
     s: ProductInputs<B>,
@@ -542,6 +557,23 @@ fn product_backward<B: ProductKernels + ReluKernels>(
     // BatchNorm's scale enters `∂x` where the product stages the gradient.
     let scale = s.map.normed().then_some(s.scale);
     let (dx, grad) = match (s.activated, x_node) {
+        (activated, Some(_)) if s.patches.is_some() => {
+            // `∂x` of the patch columns, gathered back onto the image.
+            let (columns_grad, masked) = B::x_gradient(
+                grad.clone(),
+                activated,
+                s.weight.clone(),
+                scale.clone(),
+                None,
+            );
+            let patches = s.patches.expect("an image's window");
+            let dx = B::patch_columns_backward(columns_grad, s.x.shape(), patches);
+            let dx = match addend {
+                Some(a) => B::float_add(dx, a),
+                None => dx,
+            };
+            (Some(dx), masked.unwrap_or(grad))
+        }
         (None, Some(_)) if scale.is_none() => {
             let dx = B::linear_x_backward(s.weight.clone(), grad.clone());
             let dx = match addend {
@@ -583,7 +615,11 @@ fn product_backward<B: ProductKernels + ReluKernels>(
     }
     let rows = ledger.rows::<B>();
     if weight_node.is_some() {
-        rows.inputs.push(flatten::<B>(s.x));
+        // An image's patch columns are made again here rather than held from the forward.
+        rows.inputs.push(match s.patches {
+            Some(patches) => B::patch_columns(s.x, patches),
+            None => flatten::<B>(s.x),
+        });
     }
     rows.grads.push(flatten::<B>(grad.clone()));
     if rows.scale.is_none() {
@@ -711,7 +747,7 @@ impl<B: GradientKernels + FoldKernels> Backward<B, 2> for TrainedWeightBackward 
 }
 
 impl<
-    B: GradientKernels + FoldKernels + ProductKernels + ReluKernels + SharedLinearOps,
+    B: GradientKernels + FoldKernels + ProductKernels + ReluKernels + PatchKernels + SharedLinearOps,
     C: CheckpointStrategy,
 > SharedLinearOps for Autodiff<B, C>
 {
@@ -787,6 +823,7 @@ impl<
 
     fn shared_linear(
         x: FloatTensor<Self>,
+        patches: Option<Patches>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
         scale: FloatTensor<Self>,
@@ -804,11 +841,19 @@ impl<
         record_product::<B, C, _, 3>(
             ProductBackward,
             [x_node, weight_node, bias_node],
-            ProductInputs::new(x, weight, [bias, scale, shift], map, ledger, handoff),
+            ProductInputs::new(
+                (x, patches),
+                weight,
+                [bias, scale, shift],
+                map,
+                ledger,
+                handoff,
+            ),
             activation,
             |s| {
                 B::shared_linear(
-                    s.x, s.weight, s.bias, s.scale, s.shift, s.map, s.ledger, activation, s.handoff,
+                    s.x, s.patches, s.weight, s.bias, s.scale, s.shift, s.map, s.ledger,
+                    activation, s.handoff,
                 )
             },
         )
@@ -816,6 +861,7 @@ impl<
 
     fn shared_linear_residual(
         x: FloatTensor<Self>,
+        patches: Option<Patches>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
         scale: FloatTensor<Self>,
@@ -833,11 +879,19 @@ impl<
         record_product::<B, C, _, 4>(
             ResidualProductBackward,
             [x_node, weight_node, bias_node, residual_node],
-            ProductInputs::new(x, weight, [bias, scale, shift], map, ledger, handoff),
+            ProductInputs::new(
+                (x, patches),
+                weight,
+                [bias, scale, shift],
+                map,
+                ledger,
+                handoff,
+            ),
             Activation::Relu,
             |s| {
                 B::shared_linear_residual(
-                    s.x, s.weight, s.bias, s.scale, s.shift, s.map, residual, s.ledger, s.handoff,
+                    s.x, s.patches, s.weight, s.bias, s.scale, s.shift, s.map, residual, s.ledger,
+                    s.handoff,
                 )
             },
         )

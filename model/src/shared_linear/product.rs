@@ -33,6 +33,10 @@ use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::tensor::CubeTensor;
 use lifegom_render::cube::host::{arg, cast_to, prepare, tensor_arg, tensor_f32};
+use lifegom_render::cube::image::{ImageLayout, ImageLayoutLaunch, dense, image_layout};
+
+use crate::gemm_conv::cube::{Grid, GridLaunch, grid_arg, patch_value};
+use crate::gemm_conv::op::Patches;
 
 use super::op::{Ledger, OutputMap, ProductKernels, SharedLinearOps};
 use crate::activation::Activation;
@@ -98,7 +102,9 @@ pub(super) fn multiply_staged(
     }
 }
 
-/// `out = epilogue(A·B)` (module docs). `mask` and `masked_out` are read and written only when
+/// `out = epilogue(A·B)` (module docs). With `a_patches`, `A` is the patch columns of the image
+/// `a` (`a_layout`, `grid`), read where it is staged (`mask` is then not read). `mask` and
+/// `masked_out` are read and written only when
 /// `masked`, `a_scale` (`[inner]`, scaling `A`'s columns where they are staged, after the mask)
 /// only when `a_scaled`, `bias` only when `biased`, `scale` and `shift` (`[cols]`, a frozen
 /// BatchNorm's map after the bias) only when `normed`, `residual` (`[rows, cols]`, added before
@@ -107,6 +113,8 @@ pub(super) fn multiply_staged(
 #[allow(clippy::too_many_arguments)]
 fn affine_product_kernel(
     a: &[f32],
+    a_layout: &ImageLayout,
+    grid: &Grid,
     mask: &[f32],
     a_scale: &[f32],
     b: &[f32],
@@ -117,6 +125,7 @@ fn affine_product_kernel(
     out: &mut [f32],
     masked_out: &mut [f32],
     dims: &ProductDims,
+    #[comptime] a_patches: bool,
     #[comptime] masked: bool,
     #[comptime] a_scaled: bool,
     #[comptime] biased: bool,
@@ -148,12 +157,16 @@ fn affine_product_kernel(
             let (row, k) = (row0 + r, k0 + kk);
             let mut v = 0.0f32;
             if row < dims.rows && k < dims.inner {
-                let at = row * dims.inner + k;
-                v = a[at];
-                if masked {
-                    v = select(mask[at] <= 0.0f32, 0.0f32, v);
-                    if writes_masked {
-                        masked_out[at] = v;
+                if a_patches {
+                    v = patch_value(a, a_layout, grid, row, k);
+                } else {
+                    let at = row * dims.inner + k;
+                    v = a[at];
+                    if masked {
+                        v = select(mask[at] <= 0.0f32, 0.0f32, v);
+                        if writes_masked {
+                            masked_out[at] = v;
+                        }
                     }
                 }
                 if a_scaled {
@@ -216,10 +229,12 @@ enum WeightSide {
     Transposed,
 }
 
-/// How `A` is read: through a ReLU's mask (its output, `[rows, inner]`), then scaled per
-/// column (`[inner]`); every tensor prepared.
+/// How `A` is read: as the patch columns of an image `[N, C, H, W]` (`a` in its own layout,
+/// [`dense`]), or through a ReLU's mask (its output, `[rows, inner]`); then scaled per column
+/// (`[inner]`); every tensor prepared.
 #[derive(Default)]
 struct Prologue<'t> {
+    patches: Option<Patches>,
     mask: Option<&'t CubeTensor>,
     scale: Option<&'t CubeTensor>,
 }
@@ -246,6 +261,7 @@ fn launch_product(
     epilogue: Epilogue<'_>,
 ) -> (CubeTensor, Option<CubeTensor>) {
     let Prologue {
+        patches,
         mask,
         scale: a_scale,
     } = prologue;
@@ -256,7 +272,21 @@ fn launch_product(
         activation,
     } = epilogue;
     let (client, device) = (&a.client, &a.device);
-    let [rows, inner] = [a.shape()[0], a.shape()[1]];
+    let [rows, inner] = match patches {
+        Some(patches) => {
+            let columns = patches.columns_shape(&a.shape());
+            [columns[0], columns[1]]
+        }
+        None => [a.shape()[0], a.shape()[1]],
+    };
+    // Unused records are zeros, never read.
+    let (a_layout, grid) = match patches {
+        Some(patches) => (image_layout(a), grid_arg(&a.shape(), patches)),
+        None => (
+            ImageLayoutLaunch::new(0, 0, 0, 0),
+            GridLaunch::new(0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+        ),
+    };
     let [w_in, w_out] = [weight.shape()[0], weight.shape()[1]];
     let (cols, b_inner_stride, b_col_stride) = match side {
         WeightSide::AsStored => (w_out, w_out, 1),
@@ -285,6 +315,8 @@ fn launch_product(
             CubeCount::Static(blocks(cols), blocks(rows), 1),
             CubeDim::new_2d(SIDE as u32, SIDE as u32),
             tensor_arg(a),
+            a_layout,
+            grid,
             mask_arg,
             tensor_arg(a_scale.unwrap_or(a)),
             tensor_arg(weight),
@@ -295,6 +327,7 @@ fn launch_product(
             arg(&out, rows * cols),
             masked_arg,
             ProductDimsLaunch::new(rows, inner, cols, b_inner_stride, b_col_stride),
+            patches.is_some(),
             masked,
             a_scale.is_some(),
             bias.is_some(),
@@ -327,10 +360,12 @@ fn shaped(t: CubeTensor, shape: &Shape, last: usize, dtype: DType) -> CubeTensor
 
 /// `act(map(x·W) [+ r])` for `x` `[.., in]`, `W` `[in, out]`, the bias `b` and a frozen
 /// BatchNorm's `s`, `t` (each `[out]`, read as `map` says) and the residual `r` `[.., out]` when
-/// given → `[.., out]`.
+/// given → `[.., out]`; with `patches`, `x` is an image `[N, C, H, W]` whose patch columns are
+/// the rows (→ `[N·H_out·W_out, out]`).
 #[allow(clippy::too_many_arguments)]
 fn affine(
     x: FloatTensor<CubeBackend>,
+    patches: Option<Patches>,
     weight: FloatTensor<CubeBackend>,
     bias: FloatTensor<CubeBackend>,
     scale: FloatTensor<CubeBackend>,
@@ -340,9 +375,16 @@ fn affine(
     activation: Activation,
 ) -> FloatTensor<CubeBackend> {
     let dtype = x.dtype();
-    let shape = x.shape();
-    let a = rows_of(x);
     let weight = prepare(weight);
+    let shape = match patches {
+        Some(patches) => Shape::new([patches.columns_shape(&x.shape())[0], weight.shape()[1]]),
+        None => x.shape(),
+    };
+    // An image is read in the layout it comes in (the previous layer's is channels-last).
+    let a = match patches {
+        Some(_) => dense(x),
+        None => rows_of(x),
+    };
     let biased = map != OutputMap::Normed;
     let bias = biased.then(|| prepare(bias));
     let norm = (map != OutputMap::Biased).then(|| (prepare(scale), prepare(shift)));
@@ -354,19 +396,18 @@ fn affine(
         residual: residual.as_ref(),
         activation,
     };
-    let (out, _) = launch_product(
-        &a,
-        Prologue::default(),
-        &weight,
-        WeightSide::AsStored,
-        epilogue,
-    );
+    let prologue = Prologue {
+        patches,
+        ..Prologue::default()
+    };
+    let (out, _) = launch_product(&a, prologue, &weight, WeightSide::AsStored, epilogue);
     shaped(out, &shape, cols, dtype)
 }
 
 impl SharedLinearOps for CubeBackend {
     fn shared_linear(
         x: FloatTensor<Self>,
+        patches: Option<Patches>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
         scale: FloatTensor<Self>,
@@ -376,11 +417,14 @@ impl SharedLinearOps for CubeBackend {
         activation: Activation,
         _handoff: Handoff,
     ) -> FloatTensor<Self> {
-        affine(x, weight, bias, scale, shift, map, None, activation)
+        affine(
+            x, patches, weight, bias, scale, shift, map, None, activation,
+        )
     }
 
     fn shared_linear_residual(
         x: FloatTensor<Self>,
+        patches: Option<Patches>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
         scale: FloatTensor<Self>,
@@ -392,6 +436,7 @@ impl SharedLinearOps for CubeBackend {
     ) -> FloatTensor<Self> {
         affine(
             x,
+            patches,
             weight,
             bias,
             scale,
@@ -432,6 +477,7 @@ impl ProductKernels for CubeBackend {
         let addend = addend.map(rows_of);
         let d_in = weight.shape()[0];
         let prologue = Prologue {
+            patches: None,
             mask: mask.as_ref(),
             scale: scale.as_ref(),
         };
