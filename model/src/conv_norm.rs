@@ -16,10 +16,10 @@
 //! norm, and the block's sum a fourth. The fold is a [`SharedLinear`] made once per
 //! reconstruction and used by every encoder pass; `γ` and `β` train, so its backward turns the
 //! passes' unscaled weight gradient into `∂W`, `∂γ` and `∂β` in one launch
-//! ([`crate::shared_linear::op::SharedLinearOps::trained_fold`]). A pass whose weights take a
-//! gradient makes its columns once, in its backward, for the weight gradient; the product node
-//! keeps the image, not the columns (`C·kh·kw` floats per output pixel: 0.5 GB for the stem at
-//! the paper's setting).
+//! ([`crate::shared_linear::op::SharedLinearOps::trained_fold`]). The weight gradient's kernel
+//! reads the passes' patch columns from their images too, so the columns are never written; the
+//! product node keeps the image, not the columns (`C·kh·kw` floats per output pixel: 0.5 GB for
+//! the stem at the paper's setting).
 //!
 //! The CPU backends never use it, nor CubeCL devices running Burn's direct convolution
 //! (`LIFEGOM_CONV=direct`, [`crate::gemm_conv::ConvKernel`]).

@@ -8,7 +8,9 @@
 //! after the other; the kernel never forms them. A row's pass is found by comparing the row
 //! with the passes' end rows (up to [`PASS_PARTS`] passes per launch), and the ones and the
 //! scale are applied where the rows are staged, so the stacked copies of `X` and `G` that a
-//! library product needs are never written.
+//! library product needs are never written. A convolution's passes file their input images, and
+//! `X`'s rows are then the images' patch columns, read where they are staged as the forward
+//! product reads them (`crate::conv_norm`): the columns are never written at all.
 //!
 //! The reduction over rows is long (every pass's points) and the output small, so the rows
 //! are cut into chunks ([`crate::split_k`]): the cubes of chunk `z` write partial gradient
@@ -27,6 +29,10 @@ use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::tensor::CubeTensor;
 use lifegom_render::cube::host::{arg, cast_to, prepare, tensor_arg, tensor_f32};
+use lifegom_render::cube::image::{ImageLayout, ImageLayoutLaunch, dense, image_layout};
+
+use crate::gemm_conv::cube::{Grid, GridLaunch, grid_arg, patch_value};
+use crate::gemm_conv::op::Patches;
 
 use super::op::{GradientKernels, PASS_PARTS, ParameterRows};
 use super::product::{DEPTH, PER_THREAD, SIDE, THREADS, TILE, multiply_staged};
@@ -50,6 +56,43 @@ struct GradientDims {
     end0: usize,
     end1: usize,
     end2: usize,
+}
+
+/// Element `(row, col)` of the patch columns of images `p0…p3` (layouts `l0…l3`, one window
+/// `grid`), their rows one after the other.
+#[cube]
+#[allow(clippy::too_many_arguments, unused_assignments)]
+fn pass_patch(
+    p0: &[f32],
+    p1: &[f32],
+    p2: &[f32],
+    p3: &[f32],
+    layouts: &PassLayouts,
+    grid: &Grid,
+    row: usize,
+    col: usize,
+    dims: &GradientDims,
+) -> f32 {
+    let mut value = 0.0f32;
+    if row < dims.end0 {
+        value = patch_value(p0, &layouts.l0, grid, row, col);
+    } else if row < dims.end1 {
+        value = patch_value(p1, &layouts.l1, grid, row - dims.end0, col);
+    } else if row < dims.end2 {
+        value = patch_value(p2, &layouts.l2, grid, row - dims.end1, col);
+    } else {
+        value = patch_value(p3, &layouts.l3, grid, row - dims.end2, col);
+    }
+    value
+}
+
+/// The layouts of a launch's images, when `X` is their patch columns.
+#[derive(CubeType, CubeLaunch)]
+struct PassLayouts {
+    l0: ImageLayout,
+    l1: ImageLayout,
+    l2: ImageLayout,
+    l3: ImageLayout,
 }
 
 /// Element `(row, col)` of the rows of parts `p0…p3`, each `width` wide, one after the other.
@@ -80,7 +123,8 @@ fn pass_element(
 
 /// Partial gradient `CUBE_POS_Z` (module docs): `partials[z, i, j] = Σ_rows A[i, r]·B[r, j]` over
 /// the chunk's rows, with `A = [Xᵀ; 1ᵀ]` (the ones only when `bias_row`) and `B = G·diag(s)`
-/// (`scale` read only when `scaled`).
+/// (`scale` read only when `scaled`). With `x_patches`, `X`'s rows are the patch columns of the
+/// images `x0…x3` (`layouts`, `grid`), read where they are staged.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 fn pass_gradient_kernel(
@@ -95,6 +139,9 @@ fn pass_gradient_kernel(
     scale: &[f32],
     partials: &mut [f32],
     dims: &GradientDims,
+    layouts: &PassLayouts,
+    grid: &Grid,
+    #[comptime] x_patches: bool,
     #[comptime] scaled: bool,
     #[comptime] bias_row: bool,
 ) {
@@ -127,7 +174,11 @@ fn pass_gradient_kernel(
             let mut b = 0.0f32;
             if row < end {
                 if i < dims.inputs {
-                    a = pass_element(x0, x1, x2, x3, row, i, dims.inputs, dims);
+                    if x_patches {
+                        a = pass_patch(x0, x1, x2, x3, layouts, grid, row, i, dims);
+                    } else {
+                        a = pass_element(x0, x1, x2, x3, row, i, dims.inputs, dims);
+                    }
                 } else if bias_row && i == dims.inputs {
                     a = 1.0f32;
                 }
@@ -160,6 +211,14 @@ fn pass_gradient_kernel(
     }
 }
 
+/// `X`'s width for an input of shape `x`: its last axis, or an image's patch width.
+pub(super) fn input_width(x: &Shape, patches: Option<Patches>) -> usize {
+    match patches {
+        Some(patches) => patches.columns_shape(x)[1],
+        None => x[x.num_dims() - 1],
+    }
+}
+
 /// Chunks of `rows` rows at `chunk_rows` each; a group without rows still has one, which
 /// writes zeros.
 fn chunks_of(rows: usize, chunk_rows: usize) -> usize {
@@ -170,6 +229,7 @@ impl GradientKernels for CubeBackend {
     fn pass_gradient(rows: ParameterRows<Self>) -> FloatTensor<Self> {
         let ParameterRows {
             inputs: xs,
+            patches,
             grads: gs,
             scale,
             bias_row,
@@ -181,10 +241,20 @@ impl GradientKernels for CubeBackend {
         );
         let dtype = gs[0].dtype();
         let (client, device) = (gs[0].client.clone(), gs[0].device.clone());
-        let inputs = xs.first().map_or(0, |x| x.shape()[1]);
+        let inputs = xs.first().map_or(0, |x| input_width(&x.shape(), patches));
         let cols = gs[0].shape()[1];
         let out_rows = inputs + usize::from(bias_row);
-        let xs: Vec<CubeTensor> = xs.into_iter().map(prepare).collect();
+        // Images are read in the layout they come in (the previous layer's is channels-last).
+        let xs: Vec<CubeTensor> = match patches {
+            Some(_) => xs.into_iter().map(dense).collect(),
+            None => xs.into_iter().map(prepare).collect(),
+        };
+        // Unused records are zeros, never read.
+        let image = xs.first().map(|x| x.shape());
+        let grid = || match (patches, &image) {
+            (Some(patches), Some(image)) => grid_arg(image, patches),
+            _ => GridLaunch::new(0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+        };
         let gs: Vec<CubeTensor> = gs.into_iter().map(prepare).collect();
         // Without a scale or inputs the kernel reads none: the first gradient is bound instead.
         let scaled = scale.is_some();
@@ -221,8 +291,13 @@ impl GradientKernels for CubeBackend {
             }
             // Unused parts are bound to one of the group's and never read (the inputs'
             // stand-in, when the weight takes no gradient, is one tensor).
-            let part = |all: &[CubeTensor], i: usize| {
-                tensor_arg(&all[(parts.start + i).min(parts.end - 1).min(all.len() - 1)])
+            let index = |all: &[CubeTensor], i: usize| {
+                (parts.start + i).min(parts.end - 1).min(all.len() - 1)
+            };
+            let part = |all: &[CubeTensor], i: usize| tensor_arg(&all[index(all, i)]);
+            let layout = |i: usize| match patches {
+                Some(_) => image_layout(&xs[index(&xs, i)]),
+                None => ImageLayoutLaunch::new(0, 0, 0, 0),
             };
             if out_rows > 0 && cols > 0 {
                 pass_gradient_kernel::launch(
@@ -250,6 +325,9 @@ impl GradientKernels for CubeBackend {
                         ends[1],
                         ends[2],
                     ),
+                    PassLayoutsLaunch::new(layout(0), layout(1), layout(2), layout(3)),
+                    grid(),
+                    patches.is_some(),
                     scaled,
                     bias_row,
                 );

@@ -273,9 +273,8 @@ impl SharedLinear {
 impl SharedLinear {
     /// `act(columns·W + b)` for the patch columns of the image `x` `[N, C, H, W]` under the
     /// window `patches` (a convolution, [`crate::conv_norm`]): `[N·H_out·W_out, out]`. The
-    /// product reads the columns from the image where it stages them, so they are never written
-    /// forward; a pass whose weight takes a gradient makes them once in its backward. CubeCL
-    /// devices only.
+    /// product, and the weight gradient's kernel, read the columns from the image where they
+    /// stage them, so they are never written. CubeCL devices only.
     ///
     /// # Panics
     ///

@@ -115,8 +115,10 @@ struct LedgerState {
 
 /// The rows filed by the product nodes, and the parameters' gradient once formed.
 struct Rows<B: Backend> {
-    /// `[rows, in]` per pass, when the weight takes a gradient.
+    /// `[rows, in]` per pass, or images whose `patches` are the rows, when the weight takes a
+    /// gradient.
     inputs: Vec<FloatTensor<B>>,
+    patches: Option<Patches>,
     /// `[rows, out]` per pass.
     grads: Vec<FloatTensor<B>>,
     /// A frozen BatchNorm's `s` `[out]` that scales `G`'s columns ([`OutputMap`]).
@@ -138,6 +140,7 @@ impl LedgerState {
             .get_or_insert_with(|| {
                 Box::new(Rows::<B> {
                     inputs: Vec::new(),
+                    patches: None,
                     grads: Vec::new(),
                     scale: None,
                     formed: None,
@@ -165,8 +168,11 @@ pub const PASS_PARTS: usize = 4;
 /// What a layer's parameter gradient is formed from (module docs): every pass's rows as filed.
 #[doc(hidden)]
 pub struct ParameterRows<B: Backend> {
-    /// `[rows_t, in]` per pass, or none when the weight takes no gradient.
+    /// `[rows_t, in]` per pass, or none when the weight takes no gradient; with `patches`,
+    /// images `[N, C, H, W]` whose patch columns are the rows.
     pub inputs: Vec<FloatTensor<B>>,
+    /// The window when the inputs are images.
+    pub patches: Option<Patches>,
     /// `[rows_t, out]` per pass, at least one.
     pub grads: Vec<FloatTensor<B>>,
     /// A folded BatchNorm's `s` `[out]`, which scales `G`'s columns.
@@ -192,13 +198,16 @@ impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
     fn pass_gradient(rows: ParameterRows<Self>) -> FloatTensor<Self> {
         let ParameterRows {
             inputs,
+            patches,
             grads,
             scale,
             bias_row,
             chunk_rows,
         } = rows;
         let (passes, with_inputs, scaled) = (grads.len(), !inputs.is_empty(), scale.is_some());
-        let width = inputs.first().map_or(0, |x| x.shape()[1]);
+        let width = inputs
+            .first()
+            .map_or(0, |x| super::gradient::input_width(&x.shape(), patches));
         let spec = float_like::<B>(
             &grads[0],
             Shape::new([width + usize::from(bias_row), grads[0].shape()[1]]),
@@ -222,6 +231,7 @@ impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
                 let grads = v.split_off(if with_inputs { passes } else { 0 });
                 let rows = ParameterRows {
                     inputs: v.into_iter().map(Value::float).collect(),
+                    patches,
                     grads: grads.into_iter().map(Value::float).collect(),
                     scale,
                     bias_row,
@@ -615,11 +625,12 @@ fn product_backward<B: ProductKernels + ReluKernels + PatchKernels>(
     }
     let rows = ledger.rows::<B>();
     if weight_node.is_some() {
-        // An image's patch columns are made again here rather than held from the forward.
+        // An image is filed as it is: the gradient kernel reads its patch columns in place.
         rows.inputs.push(match s.patches {
-            Some(patches) => B::patch_columns(s.x, patches),
+            Some(_) => s.x,
             None => flatten::<B>(s.x),
         });
+        rows.patches = s.patches;
     }
     rows.grads.push(flatten::<B>(grad.clone()));
     if rows.scale.is_none() {
@@ -642,10 +653,13 @@ fn delivered_gradient<B: GradientKernels>(ledger: &Ledger, slot: usize) -> (Floa
     let (formed, inputs) = rows.formed.get_or_insert_with(|| {
         let filled = rows.grads.iter().map(|g| g.shape()[0]).sum();
         let outputs = rows.grads[0].shape()[1];
-        let inputs = rows.inputs.first().map_or(0, |x| x.shape()[1]);
+        let inputs = rows.inputs.first().map_or(0, |x| {
+            super::gradient::input_width(&x.shape(), rows.patches)
+        });
         let split = SplitK::plan(filled, inputs + usize::from(bias_row), outputs);
         let formed = B::pass_gradient(ParameterRows {
             inputs: std::mem::take(&mut rows.inputs),
+            patches: rows.patches,
             grads: std::mem::take(&mut rows.grads),
             scale: rows.scale.take(),
             bias_row,
