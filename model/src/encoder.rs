@@ -63,7 +63,7 @@ use burn::tensor::{Device, Tensor, TensorData, s};
 use crate::activation::Activation::{self, Identity, Relu};
 use crate::channel_norm::ChannelNorm;
 use crate::conv_norm::ConvNorm;
-use crate::gemm_conv::{conv2d, gemm_patches};
+use crate::gemm_conv::gemm_patches;
 use crate::norm_folds::NormFolds;
 use crate::sampling::{PreparedMaps, SamplingError};
 use crate::weights_file::WeightsFormat;
@@ -331,9 +331,9 @@ fn conv_bn<'a>(
         };
     }
     match ending {
-        Ending::Activation(activation) => frozen_bn(folds, bn, conv2d(conv, x), activation),
+        Ending::Activation(activation) => frozen_bn(folds, bn, conv.forward(x), activation),
         Ending::ResidualRelu(shortcut) => {
-            relu(frozen_bn(folds, bn, conv2d(conv, x), Identity) + shortcut)
+            relu(frozen_bn(folds, bn, conv.forward(x), Identity) + shortcut)
         }
     }
 }

@@ -1,14 +1,13 @@
-//! The patch columns on Burn's CubeCL backend, both ways, and the forward that multiplies them
-//! (see [`super`]); its output is an NCHW view of channels-last memory.
+//! The patch columns' arithmetic on Burn's CubeCL backend (see [`super`]).
 //!
-//! Forward: one thread per element of the columns `[N·H_out·W_out, C·kh·kw]`, consecutive
-//! threads along a row, so the writes are coalesced and the reads of one window row are
-//! neighbours. The input is read in the layout it comes in ([`lifegom_render::cube::image`]):
-//! the previous layer's output is a channels-last view, which a row-major copy would cost a
-//! launch per layer and pass, forward and in the backward's rebuild. Backward: one thread per input element; it visits the `kh·kw` window positions
-//! that could cover it and adds the column gradient of each output position whose window does
-//! (`y + py − ky` a multiple of the stride and inside the output), so no two threads write one
-//! element and no atomics are needed.
+//! [`patch_value`] is element `(row, col)` of the columns, read from the image in the layout it
+//! comes in ([`lifegom_render::cube::image`]: the previous layer's output is a channels-last
+//! view, which a row-major copy would cost a launch per layer and pass); the shared layers'
+//! product and gradient kernels call it where they stage their operands. The backward gathers
+//! the columns' gradient onto the image: one thread per input element visits the `kh·kw` window
+//! positions that could cover it and adds the column gradient of each output position whose
+//! window does (`y + py − ky` a multiple of the stride and inside the output), so no two
+//! threads write one element and no atomics are needed.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -19,9 +18,9 @@ use burn_cubecl::cubecl::prelude::*;
 use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
 };
-use lifegom_render::cube::image::{ImageLayout, dense, image_layout};
+use lifegom_render::cube::image::ImageLayout;
 
-use super::op::{GemmConvOps, PatchKernels, Patches};
+use super::op::{PatchKernels, Patches};
 
 /// The window and grid of one call, as the kernels read them (also the shared layers' product
 /// when it reads its rows as patches, `crate::shared_linear`).
@@ -38,21 +37,6 @@ pub(crate) struct Grid {
     stride_x: usize,
     pad_y: usize,
     pad_x: usize,
-}
-
-#[cube(launch)]
-fn patch_columns_kernel(
-    x: &[f32],
-    x_layout: &ImageLayout,
-    columns: &mut [f32],
-    grid: Grid,
-    units: usize,
-) {
-    let e = ABSOLUTE_POS;
-    if e < units {
-        let width = grid.channels * grid.kernel_y * grid.kernel_x;
-        columns[e] = patch_value(x, x_layout, &grid, e / width, e % width);
-    }
 }
 
 /// Element `(row, col)` of the patch columns of `x`: output pixel `row = (n, y, x)`, window entry
@@ -141,30 +125,6 @@ pub(crate) fn grid_arg(input: &Shape, patches: Patches) -> GridLaunch {
 }
 
 impl PatchKernels for CubeBackend {
-    fn patch_columns(x: FloatTensor<Self>, patches: Patches) -> FloatTensor<Self> {
-        let dtype = x.dtype();
-        let input = x.shape();
-        let shape = patches.columns_shape(&input);
-        let units = shape.num_elements();
-        let (client, device) = (x.client.clone(), x.device.clone());
-        // In the layout it comes in: the previous layer's output is channels-last.
-        let x = dense(x);
-        let out = client.empty(4 * units.max(1));
-        if units > 0 {
-            patch_columns_kernel::launch(
-                &client,
-                count_1d(units),
-                CubeDim::new_1d(THREADS_1D),
-                tensor_arg(&x),
-                image_layout(&x),
-                arg(&out, units),
-                grid_arg(&input, patches),
-                units,
-            );
-        }
-        cast_to(tensor_f32(&client, &device, out, &shape), dtype)
-    }
-
     fn patch_columns_backward(
         columns_grad: FloatTensor<Self>,
         input: Shape,
@@ -187,17 +147,5 @@ impl PatchKernels for CubeBackend {
             );
         }
         cast_to(tensor_f32(&client, &device, out, &input), dtype)
-    }
-}
-
-impl GemmConvOps for CubeBackend {
-    fn gemm_conv2d(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        patches: Patches,
-    ) -> FloatTensor<Self> {
-        let out = patches.output_shape(&x.shape(), &weight.shape());
-        let columns = Self::patch_columns(x, patches);
-        super::op::columns_product::<Self>(columns, weight, out)
     }
 }
