@@ -23,11 +23,14 @@
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
-use burn_cubecl::CubeBackend;
+use burn::tensor::DType;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::cubecl::server::Handle;
+use burn_cubecl::tensor::CubeTensor;
+use burn_cubecl::{CubeBackend, CubeDevice};
 use lifegom_render::cube::host::{
-    THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
+    ComputeClient, THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
 };
 
 use super::op::FoldKernels;
@@ -95,6 +98,63 @@ fn trained_fold_backward_kernel(
     }
 }
 
+/// The two outputs of a fold's launch, forward or backward: one the weight's size and one per
+/// output channel, and the sizes the kernels take (`weights = in·out`, `ins`, `outs`).
+struct FoldOutputs {
+    client: ComputeClient,
+    device: CubeDevice,
+    dtype: DType,
+    weights: usize,
+    ins: usize,
+    outs: usize,
+    weight: Handle,
+    channel: Handle,
+}
+
+impl FoldOutputs {
+    /// Buffers for a layer whose weight `like` is stored `[out, in]`.
+    fn for_weight(like: &CubeTensor) -> Self {
+        let shape = like.shape();
+        let (outs, ins) = (shape[0], shape[1]);
+        let client = like.client.clone();
+        Self {
+            weight: client.empty(4 * (ins * outs).max(1)),
+            channel: client.empty(4 * outs.max(1)),
+            device: like.device.clone(),
+            dtype: like.dtype(),
+            client,
+            weights: ins * outs,
+            ins,
+            outs,
+        }
+    }
+
+    /// One thread per weight element and one per channel.
+    fn units(&self) -> CubeCount {
+        count_1d(self.weights + self.outs)
+    }
+
+    /// The weight-sized output as `weight_shape` and the per-channel one.
+    fn finish(
+        self,
+        weight_shape: [usize; 2],
+    ) -> (FloatTensor<CubeBackend>, FloatTensor<CubeBackend>) {
+        let Self {
+            client,
+            device,
+            dtype,
+            weight,
+            channel,
+            outs,
+            ..
+        } = self;
+        (
+            cast_to(tensor_f32(&client, &device, weight, &weight_shape), dtype),
+            cast_to(tensor_f32(&client, &device, channel, &[outs]), dtype),
+        )
+    }
+}
+
 /// `(Wᵀ·diag(s), β − μ·s)` for `weight` `[out, in]` and `γ`, `β`, `μ`, `σ²` `[out]` (module
 /// docs): one launch.
 pub(super) fn trained_fold(
@@ -105,39 +165,28 @@ pub(super) fn trained_fold(
     var: FloatTensor<CubeBackend>,
     epsilon: f32,
 ) -> (FloatTensor<CubeBackend>, FloatTensor<CubeBackend>) {
-    let dtype = weight.dtype();
-    let shape = weight.shape();
-    let (outs, ins) = (shape[0], shape[1]);
-    let (client, device) = (weight.client.clone(), weight.device.clone());
     let [weight, gamma, beta, mean, var] = [weight, gamma, beta, mean, var].map(prepare);
-    let weights = ins * outs;
-    let weight_out = client.empty(4 * weights.max(1));
-    let bias_out = client.empty(4 * outs.max(1));
-    if weights + outs > 0 {
+    let out = FoldOutputs::for_weight(&weight);
+    if out.weights + out.outs > 0 {
         trained_fold_kernel::launch(
-            &client,
-            count_1d(weights + outs),
+            &out.client,
+            out.units(),
             CubeDim::new_1d(THREADS_1D),
             tensor_arg(&weight),
             tensor_arg(&gamma),
             tensor_arg(&beta),
             tensor_arg(&mean),
             tensor_arg(&var),
-            arg(&weight_out, weights),
-            arg(&bias_out, outs),
-            weights,
-            ins,
-            outs,
+            arg(&out.weight, out.weights),
+            arg(&out.channel, out.outs),
+            out.weights,
+            out.ins,
+            out.outs,
             epsilon,
         );
     }
-    (
-        cast_to(
-            tensor_f32(&client, &device, weight_out, &[ins, outs]),
-            dtype,
-        ),
-        cast_to(tensor_f32(&client, &device, bias_out, &[outs]), dtype),
-    )
+    let shape = [out.ins, out.outs];
+    out.finish(shape)
 }
 
 impl FoldKernels for CubeBackend {
@@ -149,43 +198,32 @@ impl FoldKernels for CubeBackend {
         var: FloatTensor<Self>,
         epsilon: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        let dtype = weight.dtype();
-        let shape = weight.shape();
-        let (outs, ins) = (shape[0], shape[1]);
+        let [formed, weight, gamma, mean, var] = [formed, weight, gamma, mean, var].map(prepare);
+        let out = FoldOutputs::for_weight(&weight);
         assert_eq!(
             formed.shape().dims::<2>(),
-            [ins + 1, outs],
+            [out.ins + 1, out.outs],
             "a trained fold's gradient carries its bias row"
         );
-        let (client, device) = (weight.client.clone(), weight.device.clone());
-        let [formed, weight, gamma, mean, var] = [formed, weight, gamma, mean, var].map(prepare);
-        let weights = ins * outs;
-        let weight_grad = client.empty(4 * weights.max(1));
-        let gamma_grad = client.empty(4 * outs.max(1));
-        if weights + outs > 0 {
+        if out.weights + out.outs > 0 {
             trained_fold_backward_kernel::launch(
-                &client,
-                count_1d(weights + outs),
+                &out.client,
+                out.units(),
                 CubeDim::new_1d(THREADS_1D),
                 tensor_arg(&formed),
                 tensor_arg(&weight),
                 tensor_arg(&gamma),
                 tensor_arg(&mean),
                 tensor_arg(&var),
-                arg(&weight_grad, weights),
-                arg(&gamma_grad, outs),
-                weights,
-                ins,
-                outs,
+                arg(&out.weight, out.weights),
+                arg(&out.channel, out.outs),
+                out.weights,
+                out.ins,
+                out.outs,
                 epsilon,
             );
         }
-        (
-            cast_to(
-                tensor_f32(&client, &device, weight_grad, &[outs, ins]),
-                dtype,
-            ),
-            cast_to(tensor_f32(&client, &device, gamma_grad, &[outs]), dtype),
-        )
+        let shape = [out.outs, out.ins];
+        out.finish(shape)
     }
 }
