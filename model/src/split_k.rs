@@ -7,7 +7,9 @@
 //! whole reduction, so a few cubes work while the card idles: 1.2 ms for
 //! `[144 × 3,687]·[3,687 × 144]` on an H200, where the same product over 128-row chunks, one
 //! batched product `[S, in, c]·[S, c, out]` and a sum over the `S` chunks, takes 0.06 ms
-//! (BENCHMARKS.md, `matmul-bench`). [`SplitK`] plans the chunks and forms the product so:
+//! (BENCHMARKS.md, `matmul-bench`). [`SplitK`] plans the chunks for the shared layers'
+//! gradient kernel (`crate::shared_linear`), whose cubes of chunk `z` write partial `z`, then
+//! one sum:
 //!
 //! - chunks are at least [`SPLIT_K_ROWS`] rows long, and there are at most [`MAX_CHUNKS`] of
 //!   them (the paper's widest layer was faster with 81 chunks of 512 rows than with 322 of 128);
@@ -19,16 +21,12 @@
 //! layers' gradient (`crate::shared_linear`).
 //!
 //! [`SplitK::plan`] may leave the last chunk short ([`SplitK::padded_rows`] covers the rows; the
-//! shared layers' gradient kernel bounds each chunk by the rows, so nothing is padded);
-//! [`SplitK::plan_exact`] takes only chunk counts that divide the rows, for the products of
-//! [`SplitK::weight_gradient`], which reshape the rows into chunks. The result is the gradient
-//! up to float summation order.
+//! gradient kernel bounds each chunk by the rows, so nothing is padded). The result is the
+//! gradient up to float summation order. (Until session 32 the convolutions' weight gradients
+//! were Burn's batched products over chunks that divide the rows; the convolutions are shared
+//! products now, `crate::conv_norm`.)
 
 use std::cell::Cell;
-
-use burn::backend::tensor::FloatTensor;
-use burn::backend::{Backend, TensorMetadata};
-use burn::tensor::Shape;
 
 /// The fewest rows a chunk has by default: the fastest of 128, 256 and 512 rows for every
 /// weight-gradient shape of the quickstart step on an H200.
@@ -73,9 +71,9 @@ impl SplitK {
         }
     }
 
-    /// The most chunks for a `[rows, inputs]ᵀ·[rows, outputs]` product, or `None` for one
-    /// product (module docs). `padded`: the last chunk may be short.
-    fn most_chunks(rows: usize, inputs: usize, outputs: usize, padded: bool) -> Option<usize> {
+    /// The most chunks for a `[rows, inputs]ᵀ·[rows, outputs]` product whose last chunk may be
+    /// short, or `None` for one product (module docs).
+    fn most_chunks(rows: usize, inputs: usize, outputs: usize) -> Option<usize> {
         let most = match FORCED_ROWS.with(Cell::get) {
             Some(0) => return None,
             Some(forced) => rows / forced,
@@ -83,12 +81,7 @@ impl SplitK {
             None if rows < 2 * SPLIT_K_ROWS => return None,
             None => {
                 let partial_bytes = (inputs * outputs * size_of::<f32>()).max(1);
-                let by_rows = if padded {
-                    rows.div_ceil(SPLIT_K_ROWS)
-                } else {
-                    rows / SPLIT_K_ROWS
-                };
-                by_rows
+                rows.div_ceil(SPLIT_K_ROWS)
                     .min(MAX_CHUNKS)
                     .min(MAX_PARTIAL_BYTES / partial_bytes)
             }
@@ -99,7 +92,7 @@ impl SplitK {
     /// The split of a `[rows, inputs]ᵀ·[rows, outputs]` product, whose last chunk may be short:
     /// its chunks cover [`Self::padded_rows`] (module docs).
     pub fn plan(rows: usize, inputs: usize, outputs: usize) -> Self {
-        let Some(most) = Self::most_chunks(rows, inputs, outputs, true) else {
+        let Some(most) = Self::most_chunks(rows, inputs, outputs) else {
             return Self::whole(rows);
         };
         let chunk_rows = match FORCED_ROWS.with(Cell::get) {
@@ -113,45 +106,9 @@ impl SplitK {
         Self { chunks, chunk_rows }
     }
 
-    /// The split of a `[rows, inputs]ᵀ·[rows, outputs]` product into chunks that divide the
-    /// rows: the most chunks the rule allows that divide them (one product when only 1 does).
-    pub fn plan_exact(rows: usize, inputs: usize, outputs: usize) -> Self {
-        let Some(most) = Self::most_chunks(rows, inputs, outputs, false) else {
-            return Self::whole(rows);
-        };
-        match (2..=most).rev().find(|s| rows.is_multiple_of(*s)) {
-            Some(chunks) => Self {
-                chunks,
-                chunk_rows: rows / chunks,
-            },
-            None => Self::whole(rows),
-        }
-    }
-
     /// The rows the chunks cover: at least the rows planned for.
     pub fn padded_rows(self) -> usize {
         self.chunks * self.chunk_rows
-    }
-
-    /// `xᵀ·g` `[in, out]` for `x` `[padded, in]`, `g` `[padded, out]` (rows past the data
-    /// zero): one batched product over the chunks (`x` read through a transposed view, as
-    /// Burn's autodiff reads a weight gradient's input) and a sum over them.
-    pub fn weight_gradient<B: Backend>(
-        self,
-        x: FloatTensor<B>,
-        g: FloatTensor<B>,
-    ) -> FloatTensor<B> {
-        let (inputs, outputs) = (x.shape()[1], g.shape()[1]);
-        if self.chunks == 1 {
-            return B::float_matmul(B::float_transpose(x), g);
-        }
-        let chunked =
-            |t, width| B::float_reshape(t, Shape::new([self.chunks, self.chunk_rows, width]));
-        let partial = B::float_matmul(
-            B::float_swap_dims(chunked(x, inputs), 1, 2),
-            chunked(g, outputs),
-        );
-        B::float_reshape(B::float_sum_dim(partial, 0), Shape::new([inputs, outputs]))
     }
 }
 
@@ -161,11 +118,6 @@ mod tests {
 
     fn plan(rows: usize, inputs: usize, outputs: usize) -> (usize, usize) {
         let p = SplitK::plan(rows, inputs, outputs);
-        (p.chunks, p.chunk_rows)
-    }
-
-    fn exact(rows: usize, inputs: usize, outputs: usize) -> (usize, usize) {
-        let p = SplitK::plan_exact(rows, inputs, outputs);
         (p.chunks, p.chunk_rows)
     }
 
@@ -192,9 +144,8 @@ mod tests {
     }
 
     /// The rule's promises over many shapes: whole chunks cover the rows with less than one
-    /// chunk of padding (or divide them exactly), chunks are at least [`SPLIT_K_ROWS`] rows
-    /// (whole multiples of it when padded), and neither [`MAX_CHUNKS`] nor
-    /// [`MAX_PARTIAL_BYTES`] is passed.
+    /// chunk of padding, chunks are whole multiples of [`SPLIT_K_ROWS`] rows, and neither
+    /// [`MAX_CHUNKS`] nor [`MAX_PARTIAL_BYTES`] is passed.
     #[test]
     fn plans_keep_their_bounds() {
         let widths = [
@@ -222,29 +173,7 @@ mod tests {
                     assert!(p.chunks <= MAX_CHUNKS, "{what}: chunks");
                     assert!(partial(p) <= MAX_PARTIAL_BYTES, "{what}: memory");
                 }
-                let e = SplitK::plan_exact(rows, inputs, outputs);
-                assert_eq!(e.padded_rows(), rows, "{what}: exact");
-                if e.chunks > 1 {
-                    assert!(e.chunk_rows >= SPLIT_K_ROWS, "{what}: exact chunk");
-                    assert!(e.chunks <= MAX_CHUNKS, "{what}: exact chunks");
-                    assert!(partial(e) <= MAX_PARTIAL_BYTES, "{what}: exact memory");
-                }
             }
         }
-    }
-
-    /// Chunk counts that divide the rows: the encoder's stem at 1024² (three views), its last
-    /// stage (bound by memory), a prime row count (one product), and a forced length.
-    #[test]
-    fn exact_plans() {
-        assert_eq!(exact(3 * 512 * 512, 147, 64), (128, 6144));
-        // 256 MiB / (4,608 · 512 · 4 B) = 28 chunks at most, 3,072 / 128 = 24: 24 divides.
-        assert_eq!(exact(3 * 32 * 32, 4608, 512), (24, 128));
-        assert_eq!(exact(1021, 8, 8), (1, 1021));
-        assert_eq!(exact(255, 8, 8), (1, 255));
-        force_split_k_rows(Some(8));
-        // 70 / 8 = 8 chunks at most; 7 divides 70.
-        assert_eq!(exact(70, 6, 6), (7, 10));
-        force_split_k_rows(None);
     }
 }
