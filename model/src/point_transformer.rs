@@ -976,8 +976,8 @@ impl PointTransformerLayer {
 
 /// Inverse-distance weights of the 3 nearest coarse points of every fine point.
 struct Interpolation {
-    /// `[n_fine·3]` indices into the coarse level.
-    idx: Tensor<1, Int>,
+    /// `[n_fine·3]` indices into the coarse level, and their inverse.
+    table: crate::interpolation::NeighbourTable,
     /// `[n_fine, 3]` normalised weights (no gradient, like the reference's).
     weights: Tensor<2>,
 }
@@ -995,8 +995,9 @@ impl Interpolation {
             let sum: f32 = row.iter().sum();
             row.iter_mut().for_each(|v| *v /= sum);
         }
+        let indices: Vec<i64> = nb.indices.iter().map(|&i| i64::from(i)).collect();
         Self {
-            idx: index_tensor(&nb.indices, &device),
+            table: crate::interpolation::NeighbourTable::new(&indices, coarse.n, &device),
             weights: Tensor::from_data(TensorData::new(w, [fine.n, INTERP_K]), &device),
         }
     }
@@ -1004,12 +1005,7 @@ impl Interpolation {
     /// `[n_coarse, c] → [n_fine, c]` ([`crate::interpolation::interpolate`]).
     /// `base + Σ_j w_ij·x[nbr_ij]`, the sum in the interpolation's launch on devices.
     fn apply_onto(&self, base: Tensor<2>, x: Tensor<2>) -> Tensor<2> {
-        crate::interpolation::interpolate_onto(
-            Some(base),
-            x,
-            self.idx.clone(),
-            self.weights.clone(),
-        )
+        crate::interpolation::interpolate_onto(Some(base), x, &self.table, self.weights.clone())
     }
 }
 

@@ -2,9 +2,10 @@
 //!
 //! - `interpolate_forward_kernel`, one thread per output element `(i, ch)`: the weighted sum of
 //!   the `K` neighbours' channel `ch`, in neighbour order.
-//! - `interpolate_backward_kernel`, one thread per `(i, ch)` over a zeroed `∂x`: adds
-//!   `w[i, j]·g[i, ch]` at each neighbour with float atomic adds
-//!   ([`lifegom_render::cube::atomic`]): the order of a row's sums is not fixed.
+//! - `interpolate_backward_kernel`, one thread per element `(p, ch)` of `∂x`: the sum of
+//!   `w[i, j]·g[i, ch]` over the slots `i·K + j` that name coarse point `p`, in slot order (the
+//!   table's inverse, `super::NeighbourTable`): every element written once, no zero-fill, no
+//!   atomics, and the same sum whatever the scheduling.
 //!
 //! A neighbour index outside `0..n` reads zero and receives nothing (the callers build them in
 //! range; this only keeps a bad index from reading out of bounds).
@@ -14,9 +15,8 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
-use lifegom_render::cube::atomic::{AtomicAddF32, use_native_float_atomics};
 use lifegom_render::cube::host::{
-    THREADS_1D, arg, cast_to, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32, zeros_f32,
+    THREADS_1D, arg, cast_to, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32,
 };
 
 use super::op::{Base, InterpolationKernels, InterpolationOps};
@@ -54,30 +54,29 @@ fn interpolate_forward_kernel(
 }
 
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
-fn interpolate_backward_kernel<A: AtomicAddF32>(
-    neighbours: &[i32],
+fn interpolate_backward_kernel(
+    readers: &[i32],
     weights: &[f32],
     grad: &[f32],
-    x_grad: &[Atomic<A>],
+    x_grad: &mut [f32],
     units: usize,
-    n: usize,
+    points: usize,
     k: usize,
     c: usize,
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
         let ch = unit % c;
-        let i = unit / c;
-        for j in 0..k {
-            let row = neighbours[i * k + j];
-            if row >= 0 && (row as usize) < n {
-                A::atomic_add_f32(
-                    &x_grad[row as usize * c + ch],
-                    weights[i * k + j] * grad[unit],
-                );
-            }
+        let p = unit / c;
+        let mut total = 0.0f32;
+        let end = readers[p + 1] as usize;
+        let mut e = readers[p] as usize;
+        while e < end {
+            let slot = readers[points + 1 + e] as usize;
+            total += weights[slot] * grad[(slot / k) * c + ch];
+            e += 1;
         }
+        x_grad[unit] = total;
     }
 }
 
@@ -85,6 +84,7 @@ impl InterpolationOps for CubeBackend {
     fn point_interpolation(
         x: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
+        _readers: IntTensor<Self>,
         weights: FloatTensor<Self>,
         base: FloatTensor<Self>,
         onto: Base,
@@ -126,42 +126,32 @@ impl InterpolationOps for CubeBackend {
 
 impl InterpolationKernels for CubeBackend {
     fn point_interpolation_backward(
-        neighbours: IntTensor<Self>,
+        readers: IntTensor<Self>,
         weights: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         points: usize,
     ) -> FloatTensor<Self> {
         let dtype = grad.dtype();
         let (client, device) = (grad.client.clone(), grad.device.clone());
-        let [m, c] = [grad.shape()[0], grad.shape()[1]];
+        let c = grad.shape()[1];
         let k = weights.shape()[1];
-        let (neighbours, weights, grad) =
-            (prepare_i32(neighbours), prepare(weights), prepare(grad));
-        let x_grad = zeros_f32(&client, &device, points * c);
-        let units = m * c;
+        let (readers, weights, grad) = (prepare_i32(readers), prepare(weights), prepare(grad));
+        let units = points * c;
+        let x_grad = client.empty(4 * units.max(1));
         if units > 0 {
-            macro_rules! launch {
-                ($slot:ty) => {
-                    interpolate_backward_kernel::launch::<$slot>(
-                        &client,
-                        count_1d(units),
-                        CubeDim::new_1d(THREADS_1D),
-                        tensor_arg(&neighbours),
-                        tensor_arg(&weights),
-                        tensor_arg(&grad),
-                        arg(&x_grad, points * c),
-                        units,
-                        points,
-                        k,
-                        c,
-                    )
-                };
-            }
-            if use_native_float_atomics(&client) {
-                launch!(f32);
-            } else {
-                launch!(u32);
-            }
+            interpolate_backward_kernel::launch(
+                &client,
+                count_1d(units),
+                CubeDim::new_1d(THREADS_1D),
+                tensor_arg(&readers),
+                tensor_arg(&weights),
+                tensor_arg(&grad),
+                arg(&x_grad, units),
+                units,
+                points,
+                k,
+                c,
+            );
         }
         cast_to(tensor_f32(&client, &device, x_grad, &[points, c]), dtype)
     }

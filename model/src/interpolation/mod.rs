@@ -5,26 +5,72 @@
 //! weights over the 3 nearest coarse points: `Σ_j w_ij·x[nbr_ij]`. Composed from tensor ops it is
 //! a gather, a broadcast product and a sum, and in the backward the product's and the sum's
 //! gradients and a zero-filled scatter: on a GPU about seven launches per level and pass.
-//! [`interpolate`] is one launch forward and a zero-fill and one launch backward (the `cube`
-//! module); [`interpolate_onto`] adds the transition-up's fine features in the same launch,
-//! their gradient the output's. The CPU backends keep the composition.
+//! [`interpolate`] is one launch each way (the `cube` module); [`interpolate_onto`] adds the
+//! transition-up's fine features in the same launch, their gradient the output's. The backward
+//! gathers rather than scatters: the table is planned on the host, which also lists, for each
+//! coarse point, the slots `i·K + j` that name it ([`NeighbourTable`]), so each coarse point's
+//! gradient is one thread's sum in a fixed order (no zero-fill, no atomics). The CPU backends
+//! keep the composition.
 
 mod cube;
 pub mod op;
 
-use burn::tensor::{Int, Tensor};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::select::select_rows;
 
-/// `Σ_j weights[i, j]·x[neighbours[i·K + j]]` as `[m, c]`, for `x` `[n, c]`, `neighbours`
-/// `[m·K]` and `weights` `[m, K]`: one op on CubeCL devices, the gather, product and sum on the
-/// CPU backends. The gradient reaches `x`; the table and the weights take none.
+/// An interpolation's neighbour table `[m·K]` (row `i`'s `K` coarse points), and its inverse
+/// for the backward: for each of the `n` coarse points, the slots `i·K + j` that name it, as
+/// `[offsets (n + 1) | slots]` (module docs). Built on the host, uploaded once.
+#[derive(Debug, Clone)]
+pub struct NeighbourTable {
+    neighbours: Tensor<1, Int>,
+    readers: Tensor<1, Int>,
+}
+
+impl NeighbourTable {
+    /// The table `neighbours` (`K` coarse indices per interpolated row) over `points` coarse
+    /// points, on `device`. An index outside `0..points` names no point (it reads zero and
+    /// receives nothing).
+    pub fn new(neighbours: &[i64], points: usize, device: &Device) -> Self {
+        let named = |&v: &i64| usize::try_from(v).ok().filter(|&p| p < points);
+        let mut offsets = vec![0i64; points + 1];
+        for p in neighbours.iter().filter_map(named) {
+            offsets[p + 1] += 1;
+        }
+        for p in 0..points {
+            offsets[p + 1] += offsets[p];
+        }
+        let mut next: Vec<i64> = offsets[..points].to_vec();
+        let mut slots = vec![0i64; neighbours.iter().filter_map(named).count()];
+        // Slots in increasing order within each point: a fixed summation order.
+        for (slot, p) in neighbours.iter().enumerate() {
+            if let Some(p) = named(p) {
+                slots[next[p] as usize] = slot as i64;
+                next[p] += 1;
+            }
+        }
+        let readers: Vec<i64> = offsets.into_iter().chain(slots).collect();
+        let len = readers.len();
+        Self {
+            neighbours: Tensor::from_data(
+                TensorData::new(neighbours.to_vec(), [neighbours.len()]),
+                device,
+            ),
+            readers: Tensor::from_data(TensorData::new(readers, [len]), device),
+        }
+    }
+}
+
+/// `Σ_j weights[i, j]·x[neighbours[i·K + j]]` as `[m, c]`, for `x` `[n, c]`, the `table`
+/// `[m·K]` over `n` points and `weights` `[m, K]`: one op on CubeCL devices, the gather, product
+/// and sum on the CPU backends. The gradient reaches `x`; the table and the weights take none.
 ///
 /// # Panics
 ///
-/// If `neighbours` does not hold `K` entries per row of `weights`.
-pub fn interpolate(x: Tensor<2>, neighbours: Tensor<1, Int>, weights: Tensor<2>) -> Tensor<2> {
-    interpolate_onto(None, x, neighbours, weights)
+/// If the table does not hold `K` entries per row of `weights`.
+pub fn interpolate(x: Tensor<2>, table: &NeighbourTable, weights: Tensor<2>) -> Tensor<2> {
+    interpolate_onto(None, x, table, weights)
 }
 
 /// `base + interpolate(x, neighbours, weights)` (`base` `[m, c]`, or none), the sum in the op's
@@ -37,9 +83,10 @@ pub fn interpolate(x: Tensor<2>, neighbours: Tensor<1, Int>, weights: Tensor<2>)
 pub fn interpolate_onto(
     base: Option<Tensor<2>>,
     x: Tensor<2>,
-    neighbours: Tensor<1, Int>,
+    table: &NeighbourTable,
     weights: Tensor<2>,
 ) -> Tensor<2> {
+    let neighbours = table.neighbours.clone();
     let [m, k] = weights.dims();
     assert_eq!(
         neighbours.dims()[0],
@@ -74,6 +121,7 @@ pub fn interpolate_onto(
         <burn::backend::Dispatch as op::InterpolationOps>::point_interpolation(
             x.into_dispatch(),
             neighbours.into_dispatch(),
+            table.readers.clone().into_dispatch(),
             weights.into_dispatch(),
             base.into_dispatch(),
             onto,
@@ -100,14 +148,14 @@ mod tests {
         let weights: Vec<f32> = (0..m * k).map(|_| rng.range_f32(0.0, 1.0)).collect();
         let probe: Vec<f32> = (0..m * c).map(|_| rng.range_f32(-1.0, 1.0)).collect();
         let x = Tensor::<2>::from_data(TensorData::new(x, [n, c]), &ad).require_grad();
-        let neighbours = Tensor::<1, Int>::from_data(TensorData::new(neighbours, [m * k]), &ad);
+        let table = NeighbourTable::new(&neighbours, n, &ad);
         let weights = Tensor::<2>::from_data(TensorData::new(weights, [m, k]), &ad);
         let base: Vec<f32> = (0..m * c).map(|_| rng.range_f32(-1.0, 1.0)).collect();
         let base = Tensor::<2>::from_data(TensorData::new(base, [m, c]), &ad).require_grad();
         let out = if onto {
-            interpolate_onto(Some(base.clone()), x.clone(), neighbours, weights)
+            interpolate_onto(Some(base.clone()), x.clone(), &table, weights)
         } else {
-            interpolate(x.clone(), neighbours, weights)
+            interpolate(x.clone(), &table, weights)
         };
         let probe = Tensor::<2>::from_data(TensorData::new(probe, [m, c]), &ad);
         let grads = (out.clone() * probe).sum().backward();

@@ -3,7 +3,8 @@
 //! Listed for `Cube`, `Fusion` and `Autodiff` only: the CPU backends keep the gather, product
 //! and sum, and the public function never routes them here. The index table and the weights take
 //! no gradient (the reference's `pointops` interpolation gives them none); the autodiff node
-//! keeps them and the number of coarse points.
+//! keeps the table's inverse (`super::NeighbourTable`), the weights and the number of coarse
+//! points.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -16,8 +17,9 @@ use lifegom_render::cube::deferred::{Input, Value, array, deferred, float_like};
 use lifegom_render::op_backward::{gradient_per_input, record};
 
 /// `Σ_j weights[i, j]·x[neighbours[i·K + j]]` as `[m, c]`, for `x` `[n, c]`, `neighbours`
-/// `[m·K]` (int) and `weights` `[m, K]`; with [`Base::Added`], `base` `[m, c]` plus that.
-/// Callers check shapes and ranges.
+/// `[m·K]` (int), its inverse `readers` (`[offsets (n + 1) | slots]`, `super::NeighbourTable`)
+/// and `weights` `[m, K]`; with [`Base::Added`], `base` `[m, c]` plus that. Callers check shapes
+/// and ranges.
 #[backend_extension(Cube, Fusion, Autodiff)]
 pub trait InterpolationOps: Backend {
     /// The interpolated rows, onto `base` when `onto` says so (else `base` is not read).
@@ -25,6 +27,7 @@ pub trait InterpolationOps: Backend {
     fn point_interpolation(
         x: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
+        readers: IntTensor<Self>,
         weights: FloatTensor<Self>,
         base: FloatTensor<Self>,
         onto: Base,
@@ -44,19 +47,21 @@ pub enum Base {
 /// What a backend implements so that `Autodiff<B>` can differentiate the op.
 #[doc(hidden)]
 pub trait InterpolationKernels: Backend {
-    /// `∂x` `[points, c]`: each output row's gradient, weighted, added at its neighbours.
+    /// `∂x` `[points, c]`: for each coarse point, the weighted gradients of the rows whose
+    /// slots `readers` lists for it, summed in slot order.
     fn point_interpolation_backward(
-        neighbours: IntTensor<Self>,
+        readers: IntTensor<Self>,
         weights: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         points: usize,
     ) -> FloatTensor<Self>;
 }
 
-/// The node's state: the table, the weights and the number of coarse points.
+/// The node's state: the table and its inverse, the weights and the number of coarse points.
 #[derive(Debug, Clone)]
 pub struct InterpolationTable<B: Backend> {
     neighbours: IntTensor<B>,
+    readers: IntTensor<B>,
     weights: FloatTensor<B>,
     points: usize,
 }
@@ -77,7 +82,7 @@ impl<B: InterpolationKernels> Backward<B, 2> for InterpolationBackward {
         // untracked and takes nothing.
         gradient_per_input::<B, _, 2>(ops, grads, |s, grad| {
             [
-                B::point_interpolation_backward(s.neighbours, s.weights, grad.clone(), s.points),
+                B::point_interpolation_backward(s.readers, s.weights, grad.clone(), s.points),
                 grad,
             ]
         });
@@ -90,6 +95,7 @@ impl<B: InterpolationOps + InterpolationKernels, C: CheckpointStrategy> Interpol
     fn point_interpolation(
         x: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
+        readers: IntTensor<Self>,
         weights: FloatTensor<Self>,
         base: FloatTensor<Self>,
         onto: Base,
@@ -102,6 +108,7 @@ impl<B: InterpolationOps + InterpolationKernels, C: CheckpointStrategy> Interpol
         let (base, base_node) = base.into_parts();
         let table = InterpolationTable {
             neighbours,
+            readers,
             weights,
             points,
         };
@@ -109,7 +116,7 @@ impl<B: InterpolationOps + InterpolationKernels, C: CheckpointStrategy> Interpol
         let forward = {
             let x = x.clone();
             move |s: InterpolationTable<B>| {
-                B::point_interpolation(x, s.neighbours, s.weights, base, onto)
+                B::point_interpolation(x, s.neighbours, s.readers, s.weights, base, onto)
             }
         };
         record::<B, C, _, _, 2>(InterpolationBackward, [x_node, base_node], table, forward)
@@ -118,7 +125,7 @@ impl<B: InterpolationOps + InterpolationKernels, C: CheckpointStrategy> Interpol
 
 impl<B: FusionBackend + InterpolationKernels> InterpolationKernels for Fusion<B> {
     fn point_interpolation_backward(
-        neighbours: IntTensor<Self>,
+        readers: IntTensor<Self>,
         weights: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         points: usize,
@@ -129,7 +136,7 @@ impl<B: FusionBackend + InterpolationKernels> InterpolationKernels for Fusion<B>
             burn::tensor::Shape::new([points, c]),
         )];
         let inputs = vec![
-            Input::Int(neighbours),
+            Input::Int(readers),
             Input::Float(weights),
             Input::Float(grad),
         ];
@@ -138,9 +145,9 @@ impl<B: FusionBackend + InterpolationKernels> InterpolationKernels for Fusion<B>
             inputs,
             specs,
             move |v| {
-                let [neighbours, weights, grad] = array(v);
+                let [readers, weights, grad] = array(v);
                 vec![Value::Float(B::point_interpolation_backward(
-                    neighbours.int(),
+                    readers.int(),
                     weights.float(),
                     grad.float(),
                     points,
