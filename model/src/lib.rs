@@ -77,6 +77,7 @@ pub mod handoff;
 pub mod heads;
 pub mod inputs;
 pub mod interpolation;
+mod inverse;
 pub mod knn;
 mod lanes;
 pub mod linear_op;

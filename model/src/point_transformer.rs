@@ -503,14 +503,19 @@ impl PointTransformer {
         ) {
             (Some(p_ref), Some(p_query)) if on_host => group_positions(nb, p_ref, p_query),
             _ => {
-                let input = |rows: &[u32]| -> Vec<u32> {
-                    rows.iter().map(|&r| reference.1[r as usize]).collect()
+                let input = |rows: &[u32]| -> Vec<i64> {
+                    rows.iter()
+                        .map(|&r| i64::from(reference.1[r as usize]))
+                        .collect()
                 };
-                let rel = crate::grouping::relative_positions(
-                    positions.clone(),
-                    index_tensor(&input(&nb.indices), &device),
-                    index_tensor(query.1, &device),
+                let centres: Vec<i64> = query.1.iter().map(|&r| i64::from(r)).collect();
+                let table = crate::grouping::GroupTable::new(
+                    &input(&nb.indices),
+                    &centres,
+                    positions.dims()[0],
+                    &device,
                 );
+                let rel = crate::grouping::relative_positions(positions.clone(), &table);
                 (index_tensor(&nb.indices, &device), rel)
             }
         };

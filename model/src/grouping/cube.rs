@@ -1,10 +1,11 @@
 //! [`super::relative_positions`] on Burn's CubeCL backend.
 //!
 //! - `relative_forward_kernel`, one thread per `(i, κ, axis)`: `p[nbr] − p[centre]`.
-//! - `relative_backward_kernel`, one thread per `(i, κ, axis)` over a zeroed `∂p`: adds the
-//!   offset's gradient at the neighbour; the thread with `κ = 0` also subtracts the sum of its
-//!   group's gradients at the centre, one atomic add per group instead of `k`. Float atomic adds
-//!   ([`lifegom_render::cube::atomic`]): the order of a point's sums is not fixed.
+//! - `relative_backward_kernel`, one thread per element `(q, axis)` of `∂p`: the gradients of the
+//!   slots that name `q` as a neighbour, minus the summed gradients of the groups centred on it,
+//!   both lists read from the tables' inverses (`super::GroupTable`, `crate::inverse`) in order:
+//!   every element written once, no zero-fill, no atomics, the same sum whatever the
+//!   scheduling.
 //!
 //! An index outside `0..n` reads zero and receives nothing (the callers build them in range;
 //! this only keeps a bad index from reading out of bounds).
@@ -14,9 +15,8 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
-use lifegom_render::cube::atomic::{AtomicAddF32, use_native_float_atomics};
 use lifegom_render::cube::host::{
-    THREADS_1D, arg, cast_to, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32, zeros_f32,
+    THREADS_1D, arg, cast_to, count_1d, prepare, prepare_i32, tensor_arg, tensor_f32,
 };
 
 use super::op::{GroupingKernels, GroupingOps};
@@ -51,35 +51,40 @@ fn relative_forward_kernel(
 }
 
 #[cube(launch)]
-fn relative_backward_kernel<A: AtomicAddF32>(
-    neighbours: &[i32],
-    centres: &[i32],
+fn relative_backward_kernel(
+    readers: &[i32],
     grad: &[f32],
-    p_grad: &[Atomic<A>],
+    p_grad: &mut [f32],
     units: usize,
-    n: usize,
+    points: usize,
+    slots: usize,
     k: usize,
 ) {
     let unit = ABSOLUTE_POS;
     if unit < units {
         let axis = unit % 3;
-        let slot = unit / 3;
-        let row = neighbours[slot];
-        if row >= 0 && (row as usize) < n {
-            A::atomic_add_f32(&p_grad[row as usize * 3 + axis], grad[unit]);
+        let q = unit / 3;
+        let mut total = 0.0f32;
+        // The slots naming `q` as a neighbour: `[offsets (points + 1) | slots]`.
+        let mut e = readers[q] as usize;
+        let end = readers[q + 1] as usize;
+        while e < end {
+            total += grad[readers[points + 1 + e] as usize * 3 + axis];
+            e += 1;
         }
-        // The group's first slot (CubeCL kernels have no `is_multiple_of`).
-        let group = slot / k;
-        if slot == group * k {
-            let centre = centres[group];
-            if centre >= 0 && (centre as usize) < n {
-                let mut total = 0.0f32;
-                for kk in 0..k {
-                    total += grad[(group * k + kk) * 3 + axis];
-                }
-                A::atomic_add_f32(&p_grad[centre as usize * 3 + axis], -total);
+        // The groups centred on `q`, after the neighbours' inverse.
+        let base = points + 1 + slots;
+        let mut centred = 0.0f32;
+        let mut e = readers[base + q] as usize;
+        let end = readers[base + q + 1] as usize;
+        while e < end {
+            let group = readers[base + points + 1 + e] as usize;
+            for kk in 0..k {
+                centred += grad[(group * k + kk) * 3 + axis];
             }
+            e += 1;
         }
+        p_grad[unit] = total - centred;
     }
 }
 
@@ -88,6 +93,7 @@ impl GroupingOps for CubeBackend {
         p: FloatTensor<Self>,
         neighbours: IntTensor<Self>,
         centres: IntTensor<Self>,
+        _readers: IntTensor<Self>,
     ) -> FloatTensor<Self> {
         let dtype = p.dtype();
         let (client, device) = (p.client.clone(), p.device.clone());
@@ -118,42 +124,30 @@ impl GroupingOps for CubeBackend {
 
 impl GroupingKernels for CubeBackend {
     fn relative_positions_backward(
-        neighbours: IntTensor<Self>,
-        centres: IntTensor<Self>,
+        readers: IntTensor<Self>,
         grad: FloatTensor<Self>,
         points: usize,
+        k: usize,
     ) -> FloatTensor<Self> {
         let dtype = grad.dtype();
         let (client, device) = (grad.client.clone(), grad.device.clone());
-        let m = centres.shape()[0];
-        let slots = neighbours.shape()[0];
-        let k = slots / m.max(1);
-        let (neighbours, centres, grad) =
-            (prepare_i32(neighbours), prepare_i32(centres), prepare(grad));
-        let p_grad = zeros_f32(&client, &device, points * 3);
-        let units = slots * 3;
+        let slots = grad.shape().num_elements() / 3;
+        let (readers, grad) = (prepare_i32(readers), prepare(grad));
+        let units = points * 3;
+        let p_grad = client.empty(4 * units.max(1));
         if units > 0 {
-            macro_rules! launch {
-                ($slot:ty) => {
-                    relative_backward_kernel::launch::<$slot>(
-                        &client,
-                        count_1d(units),
-                        CubeDim::new_1d(THREADS_1D),
-                        tensor_arg(&neighbours),
-                        tensor_arg(&centres),
-                        tensor_arg(&grad),
-                        arg(&p_grad, points * 3),
-                        units,
-                        points,
-                        k,
-                    )
-                };
-            }
-            if use_native_float_atomics(&client) {
-                launch!(f32);
-            } else {
-                launch!(u32);
-            }
+            relative_backward_kernel::launch(
+                &client,
+                count_1d(units),
+                CubeDim::new_1d(THREADS_1D),
+                tensor_arg(&readers),
+                tensor_arg(&grad),
+                arg(&p_grad, units),
+                units,
+                points,
+                slots,
+                k,
+            );
         }
         cast_to(tensor_f32(&client, &device, p_grad, &[points, 3]), dtype)
     }

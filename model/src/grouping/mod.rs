@@ -15,23 +15,50 @@
 mod cube;
 pub mod op;
 
-use burn::tensor::{Int, Tensor};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::select::select_rows;
 
-/// `p[neighbours[i·k + κ]] − p[centres[i]]` as `[m, k, 3]`, for `p` `[n, 3]`, `neighbours`
-/// `[m·k]` and `centres` `[m]`: one op on CubeCL devices, the gathers and subtraction on the
-/// CPU backends. The gradient reaches `p`; the tables take none.
+/// The tables of [`relative_positions`]: `neighbours` `[m·k]` and `centres` `[m]` (rows of
+/// `p`), and for the backward their inverses over the `n` points (`[offsets | slots]` of the
+/// neighbours, then of the centres; `crate::inverse`), built on the host and uploaded once.
+#[derive(Debug, Clone)]
+pub struct GroupTable {
+    neighbours: Tensor<1, Int>,
+    centres: Tensor<1, Int>,
+    readers: Tensor<1, Int>,
+}
+
+impl GroupTable {
+    /// The groups of `neighbours` (`k` per centre) around `centres`, rows of `points` points, on
+    /// `device`. An index outside `0..points` reads zero and receives nothing.
+    pub fn new(neighbours: &[i64], centres: &[i64], points: usize, device: &Device) -> Self {
+        let int = |v: Vec<i64>| {
+            let len = v.len();
+            Tensor::<1, Int>::from_data(TensorData::new(v, [len]), device)
+        };
+        let readers: Vec<i64> = crate::inverse::readers(neighbours, points)
+            .into_iter()
+            .chain(crate::inverse::readers(centres, points))
+            .collect();
+        Self {
+            neighbours: int(neighbours.to_vec()),
+            centres: int(centres.to_vec()),
+            readers: int(readers),
+        }
+    }
+}
+
+/// `p[neighbours[i·k + κ]] − p[centres[i]]` as `[m, k, 3]`, for `p` `[n, 3]` and the groups of
+/// `table`: one op on CubeCL devices, the gathers and subtraction on the CPU backends. The
+/// gradient reaches `p`; the tables take none.
 ///
 /// # Panics
 ///
-/// If `p` is not `[n, 3]` or `neighbours` is not a multiple of `centres` long.
-pub fn relative_positions(
-    p: Tensor<2>,
-    neighbours: Tensor<1, Int>,
-    centres: Tensor<1, Int>,
-) -> Tensor<3> {
+/// If `p` is not `[n, 3]` or the neighbours are not a multiple of the centres.
+pub fn relative_positions(p: Tensor<2>, table: &GroupTable) -> Tensor<3> {
     assert_eq!(p.dims()[1], 3, "positions are [n, 3]");
+    let (neighbours, centres) = (table.neighbours.clone(), table.centres.clone());
     let [slots] = neighbours.dims();
     let [m] = centres.dims();
     assert!(
@@ -47,6 +74,7 @@ pub fn relative_positions(
             p.into_dispatch(),
             neighbours.into_dispatch(),
             centres.into_dispatch(),
+            table.readers.clone().into_dispatch(),
         ),
     )
 }
@@ -68,11 +96,8 @@ mod tests {
         let centres: Vec<i64> = vec![0, 3, 3, 8];
         let weights: Vec<f32> = (0..m * k * 3).map(|_| rng.range_f32(-1.0, 1.0)).collect();
         let p = Tensor::<2>::from_data(TensorData::new(p, [n, 3]), &ad).require_grad();
-        let int = |v: Vec<i64>| {
-            let len = v.len();
-            Tensor::<1, Int>::from_data(TensorData::new(v, [len]), &ad)
-        };
-        let out = relative_positions(p.clone(), int(neighbours), int(centres));
+        let table = GroupTable::new(&neighbours, &centres, n, &ad);
+        let out = relative_positions(p.clone(), &table);
         let w = Tensor::<3>::from_data(TensorData::new(weights, [m, k, 3]), &ad);
         let grads = (out.clone() * w).sum().backward();
         (read(out), read(p.grad(&grads).expect("a gradient")))

@@ -33,24 +33,7 @@ impl NeighbourTable {
     /// points, on `device`. An index outside `0..points` names no point (it reads zero and
     /// receives nothing).
     pub fn new(neighbours: &[i64], points: usize, device: &Device) -> Self {
-        let named = |&v: &i64| usize::try_from(v).ok().filter(|&p| p < points);
-        let mut offsets = vec![0i64; points + 1];
-        for p in neighbours.iter().filter_map(named) {
-            offsets[p + 1] += 1;
-        }
-        for p in 0..points {
-            offsets[p + 1] += offsets[p];
-        }
-        let mut next: Vec<i64> = offsets[..points].to_vec();
-        let mut slots = vec![0i64; neighbours.iter().filter_map(named).count()];
-        // Slots in increasing order within each point: a fixed summation order.
-        for (slot, p) in neighbours.iter().enumerate() {
-            if let Some(p) = named(p) {
-                slots[next[p] as usize] = slot as i64;
-                next[p] += 1;
-            }
-        }
-        let readers: Vec<i64> = offsets.into_iter().chain(slots).collect();
+        let readers = crate::inverse::readers(neighbours, points);
         let len = readers.len();
         Self {
             neighbours: Tensor::from_data(
