@@ -9,8 +9,9 @@
 //! and an addition per level into the positions' gradient: on a GPU about 60 launches per
 //! network pass at the tiny preset. Every level's points are a subset of the input vertices, so
 //! the host composes the tables into indices of the input `p` and [`relative_positions`] reads
-//! `p` directly: one launch forward, and a zero-fill and one launch backward (the `cube`
-//! module). The CPU backends keep the composition.
+//! `p` directly: one launch each way (the `cube` module), the backward a gather over the
+//! tables' inverses that the host builds with them ([`GroupTable`]). The CPU backends keep the
+//! composition.
 
 mod cube;
 pub mod op;
