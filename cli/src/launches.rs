@@ -338,12 +338,16 @@ struct Observer {
 /// The model stage of a [`StageAttribution`] when one is installed, else the name of the
 /// innermost `tracing` span open on this thread.
 fn current_span() -> &'static str {
-    if let Some(stage) = *MODEL_STAGE.lock().unwrap_or_else(PoisonError::into_inner) {
-        return stage;
-    }
-    tracing::Span::current()
-        .metadata()
-        .map_or("(no span)", |m| m.name())
+    model_stage().unwrap_or_else(|| {
+        tracing::Span::current()
+            .metadata()
+            .map_or("(no span)", |m| m.name())
+    })
+}
+
+/// The model stage when a [`StageAttribution`] is installed.
+fn model_stage() -> Option<&'static str> {
+    *MODEL_STAGE.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 impl Observer {
@@ -357,18 +361,15 @@ impl Observer {
 impl LaunchObserver for Observer {
     fn launched(&self, kernel: &'static str) {
         self.with_kernel(kernel, |k| k.launches += 1);
-        let span = current_span();
+        let stage = model_stage();
+        let span = stage.unwrap_or_else(current_span);
         *self
             .by_span
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .entry(span)
             .or_default() += 1;
-        if MODEL_STAGE
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .is_some()
-        {
+        if stage.is_some() {
             *self
                 .by_stage_kernel
                 .lock()
@@ -430,10 +431,7 @@ impl LaunchCounter {
             serde_json::json!(self.observer.timing.name()),
         );
         // Under a stage attribution the tally's keys are model stages (module docs).
-        if MODEL_STAGE
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .is_some()
+        if model_stage().is_some()
             && let Some(stages) = fields.remove("launches_per_step_by_span")
         {
             fields.insert("launches_per_step_by_stage".into(), stages);

@@ -21,13 +21,14 @@ use lifegom_render::device::runs_on_host;
 use lifegom_render::select::select_rows;
 
 /// The tables of [`relative_positions`]: `neighbours` `[m·k]` and `centres` `[m]` (rows of
-/// `p`), and for the backward their inverses over the `n` points (`[offsets | slots]` of the
-/// neighbours, then of the centres; `crate::inverse`), built on the host and uploaded once.
+/// `p`), and on CubeCL devices, for the backward, their inverses over the `n` points
+/// (`[offsets | slots]` of the neighbours, then of the centres; `crate::inverse`; the CPU
+/// backends' composition does not read them), built on the host and uploaded once.
 #[derive(Debug, Clone)]
 pub struct GroupTable {
     neighbours: Tensor<1, Int>,
     centres: Tensor<1, Int>,
-    readers: Tensor<1, Int>,
+    readers: Option<Tensor<1, Int>>,
 }
 
 impl GroupTable {
@@ -38,14 +39,16 @@ impl GroupTable {
             let len = v.len();
             Tensor::<1, Int>::from_data(TensorData::new(v, [len]), device)
         };
-        let readers: Vec<i64> = crate::inverse::readers(neighbours, points)
-            .into_iter()
-            .chain(crate::inverse::readers(centres, points))
-            .collect();
+        let readers = (!runs_on_host(device)).then(|| {
+            int(crate::inverse::readers(neighbours, points)
+                .into_iter()
+                .chain(crate::inverse::readers(centres, points))
+                .collect())
+        });
         Self {
             neighbours: int(neighbours.to_vec()),
             centres: int(centres.to_vec()),
-            readers: int(readers),
+            readers,
         }
     }
 }
@@ -75,7 +78,11 @@ pub fn relative_positions(p: Tensor<2>, table: &GroupTable) -> Tensor<3> {
             p.into_dispatch(),
             neighbours.into_dispatch(),
             centres.into_dispatch(),
-            table.readers.clone().into_dispatch(),
+            table
+                .readers
+                .clone()
+                .expect("a device table has its inverse")
+                .into_dispatch(),
         ),
     )
 }

@@ -19,13 +19,14 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::select::select_rows;
 
-/// An interpolation's neighbour table `[m·K]` (row `i`'s `K` coarse points), and its inverse
-/// for the backward: for each of the `n` coarse points, the slots `i·K + j` that name it, as
-/// `[offsets (n + 1) | slots]` (module docs). Built on the host, uploaded once.
+/// An interpolation's neighbour table `[m·K]` (row `i`'s `K` coarse points), and on CubeCL
+/// devices its inverse for the backward: for each of the `n` coarse points, the slots `i·K + j`
+/// that name it, as `[offsets (n + 1) | slots]` (module docs; the CPU backends' composition
+/// does not read it). Built on the host, uploaded once.
 #[derive(Debug, Clone)]
 pub struct NeighbourTable {
     neighbours: Tensor<1, Int>,
-    readers: Tensor<1, Int>,
+    readers: Option<Tensor<1, Int>>,
 }
 
 impl NeighbourTable {
@@ -33,14 +34,14 @@ impl NeighbourTable {
     /// points, on `device`. An index outside `0..points` names no point (it reads zero and
     /// receives nothing).
     pub fn new(neighbours: &[i64], points: usize, device: &Device) -> Self {
-        let readers = crate::inverse::readers(neighbours, points);
-        let len = readers.len();
+        let int = |v: Vec<i64>| {
+            let len = v.len();
+            Tensor::<1, Int>::from_data(TensorData::new(v, [len]), device)
+        };
         Self {
-            neighbours: Tensor::from_data(
-                TensorData::new(neighbours.to_vec(), [neighbours.len()]),
-                device,
-            ),
-            readers: Tensor::from_data(TensorData::new(readers, [len]), device),
+            neighbours: int(neighbours.to_vec()),
+            readers: (!runs_on_host(device))
+                .then(|| int(crate::inverse::readers(neighbours, points))),
         }
     }
 }
@@ -104,7 +105,11 @@ pub fn interpolate_onto(
         <burn::backend::Dispatch as op::InterpolationOps>::point_interpolation(
             x.into_dispatch(),
             neighbours.into_dispatch(),
-            table.readers.clone().into_dispatch(),
+            table
+                .readers
+                .clone()
+                .expect("a device table has its inverse")
+                .into_dispatch(),
             weights.into_dispatch(),
             base.into_dispatch(),
             onto,
