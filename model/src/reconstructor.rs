@@ -504,9 +504,11 @@ impl Reconstructor {
             // The rendered branch carries no gradient into the encoder (design.md §7.3, §12).
             let feats_ren = {
                 let _span = tracing::debug_span!("encode_renders").entered();
-                self.encoder
-                    .encode_folded(&folds, renders.rgb.clone().detach())?
-                    .detach()
+                crate::shared_linear::detached_passes(|| {
+                    self.encoder
+                        .encode_folded(&folds, renders.rgb.clone().detach())
+                })?
+                .detach()
             };
             state = self.update(
                 subject,
@@ -591,9 +593,10 @@ impl Reconstructor {
             };
             let fused_ren = {
                 let _span = tracing::debug_span!("rendered").entered();
-                self.fusion
-                    .forward_folded(folds, ren, embed.clone())
-                    .detach()
+                crate::shared_linear::detached_passes(|| {
+                    self.fusion.forward_folded(folds, ren, embed.clone())
+                })
+                .detach()
             };
             return join_columns(vec![fused_src, fused_ren]);
         };

@@ -21,14 +21,16 @@
 //! of outputs in a fixed order, so results do not depend on scheduling.
 
 use burn::backend::TensorMetadata;
-use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::tensor::Shape;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::cubecl::server::Handle;
 use burn_cubecl::tensor::CubeTensor;
-use lifegom_render::cube::host::{arg, cast_to, prepare, tensor_arg, tensor_f32};
+use lifegom_render::cube::host::{
+    ComputeClient, THREADS_1D, arg, cast_to, prepare, tensor_arg, tensor_f32, u32_bytes,
+};
 use lifegom_render::cube::image::{ImageLayout, ImageLayoutLaunch, dense, image_layout};
 
 use crate::gemm_conv::cube::{Grid, GridLaunch, grid_arg, patch_value};
@@ -52,6 +54,8 @@ struct GradientDims {
     chunk_rows: usize,
     /// The launch's first chunk among all the layer's partial gradients.
     first_chunk: usize,
+    /// Where the layer's first partial gradient starts in the bound buffer (elements).
+    origin: usize,
     /// Rows end after passes 0, 1 and 2 (the last part takes the rest).
     end0: usize,
     end1: usize,
@@ -205,7 +209,7 @@ fn pass_gradient_kernel(
         for j in 0..PER_THREAD {
             let col = j0 + tx + j * SIDE;
             if row < dims.out_rows && col < dims.cols {
-                partials[(base + row) * dims.cols + col] = acc[i * PER_THREAD + j];
+                partials[dims.origin + (base + row) * dims.cols + col] = acc[i * PER_THREAD + j];
             }
         }
     }
@@ -225,8 +229,51 @@ fn chunks_of(rows: usize, chunk_rows: usize) -> usize {
     rows.div_ceil(chunk_rows.max(1)).max(1)
 }
 
-impl GradientKernels for CubeBackend {
-    fn pass_gradient(rows: ParameterRows<Self>) -> FloatTensor<Self> {
+/// Sums each chunked layer's partial gradients over its chunks, in chunk order: `table` holds
+/// per layer (`CUBE_POS_Y`) the origin of its partials, its chunks, its gradient's length and
+/// the gradient's origin in `output`.
+#[cube(launch)]
+fn chunk_sum_kernel(partials: &[f32], table: &[u32], output: &mut [f32]) {
+    let layer = CUBE_POS_Y as usize;
+    let origin = table[4 * layer] as usize;
+    let chunks = table[4 * layer + 1] as usize;
+    let len = table[4 * layer + 2] as usize;
+    let target = table[4 * layer + 3] as usize;
+    let stride = CUBE_COUNT_X as usize * CUBE_DIM_X as usize;
+    let mut e = CUBE_POS_X as usize * CUBE_DIM_X as usize + UNIT_POS_X as usize;
+    while e < len {
+        let mut sum = 0.0f32;
+        for z in 0..chunks {
+            sum += partials[origin + z * len + e];
+        }
+        output[target + e] = sum;
+        e += stride;
+    }
+}
+
+/// One layer's rows prepared for its launches ([`GradientKernels::pass_gradients`]).
+struct LayerRows {
+    xs: Vec<CubeTensor>,
+    gs: Vec<CubeTensor>,
+    /// A frozen BatchNorm's `s`, or a stand-in never read.
+    scale: CubeTensor,
+    scaled: bool,
+    patches: Option<Patches>,
+    bias_row: bool,
+    chunk_rows: usize,
+    /// `X`'s width, `G`'s width, and the gradient's rows.
+    inputs: usize,
+    cols: usize,
+    out_rows: usize,
+    /// Passes per launch: the first pass of each group of [`PASS_PARTS`].
+    groups: Vec<usize>,
+    /// Chunks over all the groups.
+    chunks: usize,
+    dtype: burn::tensor::DType,
+}
+
+impl LayerRows {
+    fn new(rows: ParameterRows<CubeBackend>) -> Self {
         let ParameterRows {
             inputs: xs,
             patches,
@@ -240,20 +287,12 @@ impl GradientKernels for CubeBackend {
             "every pass files its gradient, and its input when the weight takes a gradient"
         );
         let dtype = gs[0].dtype();
-        let (client, device) = (gs[0].client.clone(), gs[0].device.clone());
         let inputs = xs.first().map_or(0, |x| input_width(&x.shape(), patches));
         let cols = gs[0].shape()[1];
-        let out_rows = inputs + usize::from(bias_row);
         // Images are read in the layout they come in (the previous layer's is channels-last).
         let xs: Vec<CubeTensor> = match patches {
             Some(_) => xs.into_iter().map(dense).collect(),
             None => xs.into_iter().map(prepare).collect(),
-        };
-        // Unused records are zeros, never read.
-        let image = xs.first().map(|x| x.shape());
-        let grid = || match (patches, &image) {
-            (Some(patches), Some(image)) => grid_arg(image, patches),
-            _ => GridLaunch::new(0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
         };
         let gs: Vec<CubeTensor> = gs.into_iter().map(prepare).collect();
         // Without a scale or inputs the kernel reads none: the first gradient is bound instead.
@@ -265,23 +304,57 @@ impl GradientKernels for CubeBackend {
             xs
         };
         let groups: Vec<usize> = (0..gs.len()).step_by(PASS_PARTS).collect();
-        let group_rows = |g: usize| -> usize {
-            gs[g..(g + PASS_PARTS).min(gs.len())]
-                .iter()
-                .map(|t| t.shape()[0])
-                .sum()
+        let mut layer = Self {
+            xs,
+            gs,
+            scale,
+            scaled,
+            patches,
+            bias_row,
+            chunk_rows,
+            inputs,
+            cols,
+            out_rows: inputs + usize::from(bias_row),
+            groups,
+            chunks: 0,
+            dtype,
         };
-        let chunks: usize = groups
+        layer.chunks = layer
+            .groups
             .iter()
-            .map(|&g| chunks_of(group_rows(g), chunk_rows))
+            .map(|&g| chunks_of(layer.group_rows(g), chunk_rows))
             .sum();
-        let partials = client.empty(4 * (chunks * out_rows * cols).max(1));
+        layer
+    }
+
+    /// The gradient's elements.
+    fn len(&self) -> usize {
+        self.out_rows * self.cols
+    }
+
+    /// Rows of the passes launched with pass `g`.
+    fn group_rows(&self, g: usize) -> usize {
+        self.gs[g..(g + PASS_PARTS).min(self.gs.len())]
+            .iter()
+            .map(|t| t.shape()[0])
+            .sum()
+    }
+
+    /// Launches the layer's chunks, writing partial gradient `z` at `origin + z·len` of
+    /// `target` (`target_len` elements); one chunk writes the gradient itself.
+    fn launch(&self, client: &ComputeClient, target: &Handle, target_len: usize, origin: usize) {
+        let (xs, gs, patches) = (&self.xs, &self.gs, self.patches);
+        let image = xs.first().map(|x| x.shape());
+        let grid = || match (patches, &image) {
+            (Some(patches), Some(image)) => grid_arg(image, patches),
+            _ => GridLaunch::new(0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+        };
         let blocks = |n: usize| n.div_ceil(TILE) as u32;
         let mut first_chunk = 0;
-        for &g in &groups {
+        for &g in &self.groups {
             let parts = g..(g + PASS_PARTS).min(gs.len());
-            let filled = group_rows(g);
-            let group_chunks = chunks_of(filled, chunk_rows);
+            let filled = self.group_rows(g);
+            let group_chunks = chunks_of(filled, self.chunk_rows);
             // Rows end after each pass; the ends of unused parts are the last row's end.
             let mut ends = [filled; PASS_PARTS];
             let mut end = 0;
@@ -296,31 +369,36 @@ impl GradientKernels for CubeBackend {
             };
             let part = |all: &[CubeTensor], i: usize| tensor_arg(&all[index(all, i)]);
             let layout = |i: usize| match patches {
-                Some(_) => image_layout(&xs[index(&xs, i)]),
+                Some(_) => image_layout(&xs[index(xs, i)]),
                 None => ImageLayoutLaunch::new(0, 0, 0, 0),
             };
-            if out_rows > 0 && cols > 0 {
+            if self.out_rows > 0 && self.cols > 0 {
                 pass_gradient_kernel::launch(
-                    &client,
-                    CubeCount::Static(blocks(cols), blocks(out_rows), group_chunks as u32),
+                    client,
+                    CubeCount::Static(
+                        blocks(self.cols),
+                        blocks(self.out_rows),
+                        group_chunks as u32,
+                    ),
                     CubeDim::new_2d(SIDE as u32, SIDE as u32),
-                    part(&xs, 0),
-                    part(&xs, 1),
-                    part(&xs, 2),
-                    part(&xs, 3),
-                    part(&gs, 0),
-                    part(&gs, 1),
-                    part(&gs, 2),
-                    part(&gs, 3),
-                    tensor_arg(&scale),
-                    arg(&partials, chunks * out_rows * cols),
+                    part(xs, 0),
+                    part(xs, 1),
+                    part(xs, 2),
+                    part(xs, 3),
+                    part(gs, 0),
+                    part(gs, 1),
+                    part(gs, 2),
+                    part(gs, 3),
+                    tensor_arg(&self.scale),
+                    arg(target, target_len),
                     GradientDimsLaunch::new(
                         filled,
-                        inputs,
-                        out_rows,
-                        cols,
-                        chunk_rows.max(1),
+                        self.inputs,
+                        self.out_rows,
+                        self.cols,
+                        self.chunk_rows.max(1),
                         first_chunk,
+                        origin,
                         ends[0],
                         ends[1],
                         ends[2],
@@ -328,21 +406,80 @@ impl GradientKernels for CubeBackend {
                     PassLayoutsLaunch::new(layout(0), layout(1), layout(2), layout(3)),
                     grid(),
                     patches.is_some(),
-                    scaled,
-                    bias_row,
+                    self.scaled,
+                    self.bias_row,
                 );
             }
             first_chunk += group_chunks;
         }
-        let partials = tensor_f32(&client, &device, partials, &[chunks, out_rows, cols]);
-        let gradient = if chunks == 1 {
-            partials
-        } else {
-            Self::float_sum_dim(partials, 0)
+    }
+}
+
+impl GradientKernels for CubeBackend {
+    fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<FloatTensor<Self>> {
+        let layers: Vec<LayerRows> = layers.into_iter().map(LayerRows::new).collect();
+        let Some(first) = layers.first() else {
+            return Vec::new();
         };
-        cast_to(
-            Self::float_reshape(gradient, Shape::new([out_rows, cols])),
-            dtype,
-        )
+        let (client, device) = (first.gs[0].client.clone(), first.gs[0].device.clone());
+        // Every gradient is a view of one buffer, so each starts where a binding may.
+        let align = (client.properties().memory.alignment as usize / size_of::<f32>()).max(1);
+        let mut starts = Vec::with_capacity(layers.len());
+        let mut total: usize = 0;
+        for layer in &layers {
+            let start = total.next_multiple_of(align);
+            starts.push(start);
+            total = start + layer.len();
+        }
+        // Partial gradients of the layers with more than one chunk, one after the other.
+        let mut table = Vec::new();
+        let mut partial_total = 0;
+        for (layer, &start) in layers.iter().zip(&starts) {
+            if layer.chunks > 1 {
+                let len = layer.len();
+                table.extend([partial_total, layer.chunks, len, start].map(|v| v as u32));
+                partial_total += layer.chunks * len;
+            }
+        }
+        let output = client.empty(size_of::<f32>() * total.max(1));
+        let partials = client.empty(size_of::<f32>() * partial_total.max(1));
+        let mut partial_origin = 0;
+        for (layer, &start) in layers.iter().zip(&starts) {
+            if layer.chunks > 1 {
+                layer.launch(&client, &partials, partial_total, partial_origin);
+                partial_origin += layer.chunks * layer.len();
+            } else {
+                layer.launch(&client, &output, total, start);
+            }
+        }
+        let summed = table.len() / 4;
+        if summed > 0 {
+            let longest = table.chunks(4).map(|t| t[2] as usize).max().unwrap_or(1);
+            let cubes = longest.div_ceil(THREADS_1D as usize).clamp(1, 1 << 12) as u32;
+            let table = client.create_from_slice(&u32_bytes(&table));
+            chunk_sum_kernel::launch(
+                &client,
+                CubeCount::Static(cubes, summed as u32, 1),
+                CubeDim::new_1d(THREADS_1D),
+                arg(&partials, partial_total),
+                arg(&table, 4 * summed),
+                arg(&output, total),
+            );
+        }
+        layers
+            .iter()
+            .zip(&starts)
+            .map(|(layer, &start)| {
+                let len = layer.len();
+                let view = output
+                    .clone()
+                    .offset_start((size_of::<f32>() * start) as u64)
+                    .offset_end((size_of::<f32>() * (total - start - len)) as u64);
+                cast_to(
+                    tensor_f32(&client, &device, view, &[layer.out_rows, layer.cols]),
+                    layer.dtype,
+                )
+            })
+            .collect()
     }
 }

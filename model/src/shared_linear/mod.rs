@@ -29,6 +29,7 @@
 
 mod gradient;
 pub mod op;
+pub use op::filing::detached_passes;
 mod product;
 mod trained_fold;
 
@@ -540,6 +541,85 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    /// Two layers' gradients formed together (`op::filing`): passes through a 6 → 6 layer and a
+    /// 6 → 5 layer in turn, three of each, plus a pass of each inside [`detached_passes`] whose
+    /// output is detached (were they counted, neither layer would be complete before its own
+    /// parameter node, and each would form alone). With split-k in chunks of 8 rows both layers have several
+    /// chunks, and the first parameter node to run forms both, one sum over the chunks for the
+    /// two; each gradient is then a view of one buffer at an aligned offset. Outputs and every
+    /// gradient equal Flex's composition, where the detached pass is Burn's `linear` detached.
+    #[test]
+    fn layers_form_their_gradients_together_wgpu() {
+        let Some(device) = wgpu_test_device() else {
+            return;
+        };
+        let run = |device: &Device, layer: Layer| -> Vec<Vec<f32>> {
+            let mut rng = Rng::new(11);
+            let mut draw = |shape: [usize; 2]| {
+                let values: Vec<f32> = (0..shape[0] * shape[1])
+                    .map(|_| rng.range_f32(-1.0, 1.0))
+                    .collect();
+                Tensor::<2>::from_data(TensorData::new(values, shape), device)
+            };
+            let x0 = draw([37, 6]).require_grad();
+            let params = [(6, 6), (6, 5)].map(|(i, o)| {
+                let w = draw([i, o]).require_grad();
+                let b = draw([1, o]).reshape([o]).require_grad();
+                (w, b)
+            });
+            let shared = params
+                .clone()
+                .map(|(w, b)| SharedLinear::new(w.clone(), b.clone()));
+            let apply = |l: usize, x: Tensor<2>| match layer {
+                Layer::Shared => shared[l].forward(x),
+                Layer::Composed => {
+                    let (w, b) = &params[l];
+                    linear_op::affine(x, w.clone(), Some(b.clone()))
+                }
+            };
+            let mut x = x0.clone();
+            let mut total = x0.clone().sum() * 0.0;
+            for pass in 0..3 {
+                let hidden = apply(0, x.clone()).tanh();
+                let out = apply(1, hidden.clone());
+                total = total + out.clone().sum() * (0.5 + pass as f32 / 4.0);
+                // A pass of each layer whose output is detached: it reaches no gradient.
+                let detached = |l: usize| {
+                    match layer {
+                        Layer::Shared => detached_passes(|| apply(l, hidden.clone())),
+                        Layer::Composed => apply(l, hidden.clone()),
+                    }
+                    .detach()
+                };
+                total = total
+                    + (detached(0) * hidden.clone()).sum()
+                    + (detached(1) * out.clone()).sum();
+                x = hidden;
+            }
+            let grads = total.backward();
+            let mut parts = vec![read(x), read(x0.grad(&grads).expect("an input gradient"))];
+            for (w, b) in &params {
+                parts.push(read(w.grad(&grads).expect("a weight gradient")));
+                parts.push(read(b.grad(&grads).expect("a bias gradient")));
+            }
+            parts
+        };
+        let reference = run(&DeviceChoice::Flex.device().autodiff(), Layer::Composed);
+        force_split_k_rows(Some(8));
+        op::filing::BATCHES.with_borrow_mut(Vec::clear);
+        let shared = run(&device.autodiff(), Layer::Shared);
+        let batches = op::filing::BATCHES.with_borrow_mut(std::mem::take);
+        force_split_k_rows(None);
+        assert_eq!(batches, [2], "both layers formed in one batch");
+        for (part, what) in shared
+            .iter()
+            .zip(&reference)
+            .zip(["output", "∂x", "∂W₀", "∂b₀", "∂W₁", "∂b₁"])
+        {
+            assert_close_to_scale(part.0, part.1, 1e-5, what);
         }
     }
 

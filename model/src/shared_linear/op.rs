@@ -16,7 +16,7 @@
 //!   runs after all of them, since Burn's autodiff runs nodes deepest first and each product
 //!   node is deeper than the parameter nodes it reads. It drops the placeholder and registers
 //!   its part of `[Xᵀ; 1ᵀ]·G = [∂W; ∂b]`, which the first of the two to run forms for both from
-//!   the ledger's rows in one launch ([`GradientKernels::pass_gradient`], the `gradient`
+//!   the ledger's rows in one launch ([`GradientKernels::pass_gradients`], the `gradient`
 //!   module): the kernel reads every pass's rows where they are, so `X` and `G` are never
 //!   stacked, and the bias's sum is the row of ones' (no launch of its own).
 //!
@@ -35,7 +35,10 @@
 //!
 //! `∂W = Xᵀ·G` is a small output over a long reduction (every pass's rows), so the rows are cut
 //! into chunks ([`crate::split_k`]): each chunk's cubes write a partial gradient and a sum over
-//! the chunks follows, one more launch per layer.
+//! the chunks follows. The parameter nodes of most layers run one after another at the end of
+//! the backward, so the first of them forms the gradients of every layer whose passes have all
+//! filed their rows (the `filing` module): one sum over the chunks for all of them, in one
+//! launch, instead of one per layer.
 
 use std::any::Any;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -43,6 +46,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 use crate::activation::Activation;
 use crate::activation::op::ReluKernels;
 use crate::handoff::Handoff;
+use burn::backend::AutodiffBackend;
 use burn::backend::autodiff::NodeId;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -111,6 +115,12 @@ struct LedgerState {
     /// Whether the gradient carries the bias row even when the bias takes none: a trained
     /// fold's `∂γ` reads it ([`SharedLinearOps::trained_fold`]).
     bias_row_always: bool,
+    /// Whether the weight or the bias takes a gradient (its parameter node is tracked).
+    tracked: bool,
+    /// Passes recorded in the forward while `tracked`: as many product nodes will file rows.
+    expected: usize,
+    /// Passes whose product node has filed its rows.
+    filed: usize,
 }
 
 /// The rows filed by the product nodes, and the parameters' gradient once formed.
@@ -135,6 +145,18 @@ impl Ledger {
 }
 
 impl LedgerState {
+    /// Whether every pass recorded has filed and nothing is formed yet: the layer's gradient
+    /// can be formed with another's (see [`delivered_gradient`]).
+    fn complete<B: Backend>(&mut self) -> bool {
+        self.filed > 0
+            && self.filed == self.expected
+            && self
+                .rows
+                .as_mut()
+                .and_then(|rows| rows.downcast_mut::<Rows<B>>())
+                .is_some_and(|rows| rows.formed.is_none())
+    }
+
     fn rows<B: Backend>(&mut self) -> &mut Rows<B> {
         self.rows
             .get_or_insert_with(|| {
@@ -161,7 +183,7 @@ fn flatten<B: Backend>(t: FloatTensor<B>) -> FloatTensor<B> {
     B::float_reshape(t, Shape::new([shape.num_elements() / c, c]))
 }
 
-/// Passes whose rows one launch of [`GradientKernels::pass_gradient`] reads; more take a
+/// Passes whose rows one launch of [`GradientKernels::pass_gradients`] reads; more take a
 /// launch per this many.
 pub const PASS_PARTS: usize = 4;
 
@@ -183,64 +205,87 @@ pub struct ParameterRows<B: Backend> {
     pub chunk_rows: usize,
 }
 
-/// What a backend implements so that `Autodiff<B>` can form a shared layer's parameter
-/// gradient.
+/// What a backend implements so that `Autodiff<B>` can form shared layers' parameter
+/// gradients.
 #[doc(hidden)]
 pub trait GradientKernels: Backend {
-    /// `[Xᵀ; 1ᵀ]·(G·diag(s))` `[in + 1, out]` (the row of ones only with `bias_row`, `in` = 0
-    /// without inputs), `X` and `G` every pass's rows one after the other, summed over chunks
-    /// of `chunk_rows` rows: one launch per [`PASS_PARTS`] passes, and a sum when there is
-    /// more than one chunk.
-    fn pass_gradient(rows: ParameterRows<Self>) -> FloatTensor<Self>;
+    /// Per layer, `[Xᵀ; 1ᵀ]·(G·diag(s))` `[in + 1, out]` (the row of ones only with
+    /// `bias_row`, `in` = 0 without inputs), `X` and `G` every pass's rows one after the
+    /// other, summed over chunks of `chunk_rows` rows: one launch per layer and
+    /// [`PASS_PARTS`] passes, and one sum over the chunks for all the layers that have more
+    /// than one.
+    fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<FloatTensor<Self>>;
+}
+
+/// What the deferred op needs to rebuild a layer's [`ParameterRows`] from its flat inputs.
+#[derive(Clone, Copy)]
+struct RowsLayout {
+    passes: usize,
+    with_inputs: bool,
+    scaled: bool,
+    patches: Option<Patches>,
+    bias_row: bool,
+    chunk_rows: usize,
 }
 
 impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
-    fn pass_gradient(rows: ParameterRows<Self>) -> FloatTensor<Self> {
-        let ParameterRows {
-            inputs,
-            patches,
-            grads,
-            scale,
-            bias_row,
-            chunk_rows,
-        } = rows;
-        let (passes, with_inputs, scaled) = (grads.len(), !inputs.is_empty(), scale.is_some());
-        let width = inputs
-            .first()
-            .map_or(0, |x| super::gradient::input_width(&x.shape(), patches));
-        let spec = float_like::<B>(
-            &grads[0],
-            Shape::new([width + usize::from(bias_row), grads[0].shape()[1]]),
-        );
-        let tensors = inputs
-            .into_iter()
-            .chain(grads)
-            .chain(scale)
-            .map(Input::Float)
-            .collect();
-        let [gradient] = array(deferred::<B, _>(
-            "pass_gradient",
-            tensors,
-            vec![spec],
-            move |mut v| {
-                let scale = if scaled {
-                    v.pop().map(Value::float)
-                } else {
-                    None
-                };
-                let grads = v.split_off(if with_inputs { passes } else { 0 });
-                let rows = ParameterRows {
-                    inputs: v.into_iter().map(Value::float).collect(),
-                    patches,
-                    grads: grads.into_iter().map(Value::float).collect(),
-                    scale,
-                    bias_row,
-                    chunk_rows,
-                };
-                vec![Value::Float(B::pass_gradient(rows))]
-            },
-        ));
-        gradient
+    fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<FloatTensor<Self>> {
+        let mut layouts = Vec::with_capacity(layers.len());
+        let mut specs = Vec::with_capacity(layers.len());
+        let mut tensors = Vec::new();
+        for rows in layers {
+            let ParameterRows {
+                inputs,
+                patches,
+                grads,
+                scale,
+                bias_row,
+                chunk_rows,
+            } = rows;
+            let width = inputs
+                .first()
+                .map_or(0, |x| super::gradient::input_width(&x.shape(), patches));
+            specs.push(float_like::<B>(
+                &grads[0],
+                Shape::new([width + usize::from(bias_row), grads[0].shape()[1]]),
+            ));
+            layouts.push(RowsLayout {
+                passes: grads.len(),
+                with_inputs: !inputs.is_empty(),
+                scaled: scale.is_some(),
+                patches,
+                bias_row,
+                chunk_rows,
+            });
+            tensors.extend(
+                inputs
+                    .into_iter()
+                    .chain(grads)
+                    .chain(scale)
+                    .map(Input::Float),
+            );
+        }
+        deferred::<B, _>("pass_gradients", tensors, specs, move |values| {
+            let mut values = values.into_iter().map(Value::float);
+            let layers = layouts
+                .iter()
+                .map(|l| ParameterRows {
+                    inputs: values
+                        .by_ref()
+                        .take(if l.with_inputs { l.passes } else { 0 })
+                        .collect(),
+                    patches: l.patches,
+                    grads: values.by_ref().take(l.passes).collect(),
+                    scale: if l.scaled { values.next() } else { None },
+                    bias_row: l.bias_row,
+                    chunk_rows: l.chunk_rows,
+                })
+                .collect();
+            B::pass_gradients(layers)
+                .into_iter()
+                .map(Value::Float)
+                .collect()
+        })
     }
 }
 
@@ -624,6 +669,11 @@ fn product_backward<B: ProductKernels + ReluKernels + PatchKernels>(
         }
     }
     let rows = ledger.rows::<B>();
+    assert!(
+        rows.formed.is_none(),
+        "a pass filed rows after its layer's gradient was formed: a pass marked detached \
+         (`detached_passes`) reached the loss"
+    );
     if weight_node.is_some() {
         // An image is filed as it is: the gradient kernel reads its patch columns in place.
         rows.inputs.push(match s.patches {
@@ -636,42 +686,171 @@ fn product_backward<B: ProductKernels + ReluKernels + PatchKernels>(
     if rows.scale.is_none() {
         rows.scale = scale;
     }
+    ledger.filed += 1;
+    if ledger.filed == 1 {
+        filing::register(&s.ledger);
+    }
     grad
 }
 
 /// The layer's `[∂W; ∂b]` (module docs) and its input width `in`, for the parameter node in
 /// `slot` (0 the weight, 1 the bias): the first node to ask forms it from the ledger's rows,
-/// a frozen BatchNorm's scale filed with them scaling `G`'s columns; the rows and the gradient
-/// are freed once every seeded node has had its part.
+/// a frozen BatchNorm's scale filed with them scaling `G`'s columns, together with every other
+/// layer whose passes have all filed (one sum over the chunks for all of them, see
+/// [`filing`]); the rows and the gradient are freed once every seeded node has had its part.
 fn delivered_gradient<B: GradientKernels>(ledger: &Ledger, slot: usize) -> (FloatTensor<B>, usize) {
-    let mut ledger = ledger.lock();
-    ledger.delivered[slot] = true;
-    let done = (0..2).all(|i| !ledger.seeded[i] || ledger.delivered[i]);
-    // Both parameters take a gradient: one launch answers both (module docs).
-    let bias_row = ledger.seeded[1] || ledger.bias_row_always;
-    let rows = ledger.rows::<B>();
-    let (formed, inputs) = rows.formed.get_or_insert_with(|| {
-        let filled = rows.grads.iter().map(|g| g.shape()[0]).sum();
-        let outputs = rows.grads[0].shape()[1];
-        let inputs = rows.inputs.first().map_or(0, |x| {
-            super::gradient::input_width(&x.shape(), rows.patches)
-        });
-        let split = SplitK::plan(filled, inputs + usize::from(bias_row), outputs);
-        let formed = B::pass_gradient(ParameterRows {
-            inputs: std::mem::take(&mut rows.inputs),
-            patches: rows.patches,
-            grads: std::mem::take(&mut rows.grads),
-            scale: rows.scale.take(),
-            bias_row,
-            chunk_rows: split.chunk_rows,
-        });
-        (formed, inputs)
-    });
+    let mut state = ledger.lock();
+    state.delivered[slot] = true;
+    let done = (0..2).all(|i| !state.seeded[i] || state.delivered[i]);
+    if state.rows::<B>().formed.is_none() {
+        let others = filing::complete_besides::<B>(ledger);
+        let mut others: Vec<_> = others.iter().map(Ledger::lock).collect();
+        let mut batch: Vec<&mut LedgerState> = vec![&mut state];
+        batch.extend(others.iter_mut().map(|guard| &mut **guard));
+        // Partial gradients of a batch stay under split-k's bound for one layer's (the
+        // first layer's own may exceed it alone).
+        let mut partial_bytes = 0;
+        let mut formed = Vec::new();
+        let mut layers = Vec::new();
+        for (i, layer) in batch.iter_mut().enumerate() {
+            let (rows, inputs, bytes) = parameter_rows::<B>(layer);
+            if i > 0 && partial_bytes + bytes > crate::split_k::MAX_PARTIAL_BYTES {
+                continue;
+            }
+            partial_bytes += bytes;
+            formed.push((i, inputs));
+            layers.push(rows);
+        }
+        #[cfg(test)]
+        filing::BATCHES.with_borrow_mut(|b| b.push(layers.len()));
+        let gradients = B::pass_gradients(layers);
+        for ((i, inputs), gradient) in formed.into_iter().zip(gradients) {
+            batch[i].rows::<B>().formed = Some((gradient, inputs));
+        }
+    }
+    let rows = state.rows::<B>();
+    let (formed, inputs) = rows.formed.as_ref().expect("formed above");
     let delivered = (formed.clone(), *inputs);
     if done {
-        ledger.rows = None;
+        state.rows = None;
     }
     delivered
+}
+
+/// A layer's filed rows as the gradient kernels take them (its `bias_row` and split-k plan),
+/// its input width, and the bytes of its partial gradients. Takes the rows of an unformed
+/// layer (the caller forms it).
+fn parameter_rows<B: Backend>(state: &mut LedgerState) -> (ParameterRows<B>, usize, usize) {
+    // Both parameters take a gradient: one launch answers both (module docs).
+    let bias_row = state.seeded[1] || state.bias_row_always;
+    let rows = state.rows::<B>();
+    let filled = rows.grads.iter().map(|g| g.shape()[0]).sum();
+    let outputs = rows.grads[0].shape()[1];
+    let inputs = rows.inputs.first().map_or(0, |x| {
+        super::gradient::input_width(&x.shape(), rows.patches)
+    });
+    let out_rows = inputs + usize::from(bias_row);
+    let split = SplitK::plan(filled, out_rows, outputs);
+    let bytes = if split.chunks > 1 {
+        split.chunks * out_rows * outputs * size_of::<f32>()
+    } else {
+        0
+    };
+    let rows = ParameterRows {
+        inputs: std::mem::take(&mut rows.inputs),
+        patches: rows.patches,
+        grads: std::mem::take(&mut rows.grads),
+        scale: rows.scale.take(),
+        bias_row,
+        chunk_rows: split.chunk_rows,
+    };
+    (rows, inputs, bytes)
+}
+
+/// The layers whose product nodes have filed rows in the backward running on this thread.
+///
+/// A parameter node runs after every product node of its own layer (Burn runs deeper nodes
+/// first), but other layers' parameter nodes follow at once in the tape's last levels, each
+/// forming its gradient with a sum over chunks of its own. The first of them forms, with its
+/// own, every layer that is *complete*, whose every pass recorded in the forward has filed its
+/// rows (`expected` counted in the forward, `filed` in the backward), so that their chunks are
+/// summed in one launch. A layer with a pass that the backward never reaches is never complete
+/// and forms its gradient alone when its own parameter node asks, as before.
+pub(crate) mod filing {
+    use std::cell::{Cell, RefCell};
+    use std::sync::{Mutex, Weak};
+
+    use burn::backend::Backend;
+
+    use super::{Ledger, LedgerState};
+
+    thread_local! {
+        static FILED: RefCell<Vec<Weak<Mutex<LedgerState>>>> = const { RefCell::new(Vec::new()) };
+        /// Open [`detached_passes`] scopes on this thread.
+        static DETACHED: Cell<usize> = const { Cell::new(0) };
+        /// The layers formed together by each formation on this thread, for the tests.
+        #[cfg(test)]
+        pub(crate) static BATCHES: RefCell<Vec<usize>> = const { RefCell::new(Vec::new()) };
+    }
+
+    /// Runs `f`, whose shared layers' outputs the caller detaches from the graph (the
+    /// reconstruction's rendered branch): their products record no node, keep nothing for a
+    /// backward, and are not passes a layer waits for (a pass that never files would keep its
+    /// layer from ever being complete). Outputs of `f` carry no gradient into the layers;
+    /// other ops inside `f` are recorded as usual.
+    pub fn detached_passes<T>(f: impl FnOnce() -> T) -> T {
+        struct Scope;
+        impl Drop for Scope {
+            fn drop(&mut self) {
+                DETACHED.with(|d| d.set(d.get() - 1));
+            }
+        }
+        DETACHED.with(|d| d.set(d.get() + 1));
+        let _scope = Scope;
+        f()
+    }
+
+    /// Whether a [`detached_passes`] scope is open on this thread.
+    pub(super) fn detached() -> bool {
+        DETACHED.with(|d| d.get() > 0)
+    }
+
+    /// Lists `ledger`, whose first pass has just filed its rows.
+    pub(super) fn register(ledger: &Ledger) {
+        FILED.with_borrow_mut(|filed| {
+            filed.retain(|l| l.strong_count() > 0);
+            filed.push(std::sync::Arc::downgrade(&ledger.0));
+        });
+    }
+
+    /// The listed layers other than `ledger` that are complete (module docs), taken off the
+    /// list; the rest stay listed.
+    pub(super) fn complete_besides<B: Backend>(ledger: &Ledger) -> Vec<Ledger> {
+        FILED.with_borrow_mut(|filed| {
+            let mut complete = Vec::new();
+            filed.retain(|weak| {
+                let Some(other) = weak.upgrade() else {
+                    return false;
+                };
+                if std::sync::Arc::ptr_eq(&other, &ledger.0) {
+                    return false;
+                }
+                // A ledger locked elsewhere is not this backward's to form.
+                let Ok(mut state) = other.try_lock() else {
+                    return true;
+                };
+
+                if state.complete::<B>() {
+                    drop(state);
+                    complete.push(Ledger(other));
+                    false
+                } else {
+                    true
+                }
+            });
+            complete
+        })
+    }
 }
 
 #[derive(Debug)]
@@ -772,7 +951,10 @@ impl<
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish(ParameterRole { ledger, role }, value),
+            OpsKind::Tracked(prep) => {
+                ledger.lock().tracked = true;
+                prep.finish(ParameterRole { ledger, role }, value)
+            }
             OpsKind::UnTracked(prep) => prep.finish(value),
         }
     }
@@ -805,17 +987,20 @@ impl<
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish(
-                TrainedFold {
-                    ledger: ledger.clone(),
-                    weight,
-                    gamma,
-                    mean,
-                    var,
-                    epsilon,
-                },
-                w,
-            ),
+            OpsKind::Tracked(prep) => {
+                ledger.lock().tracked = true;
+                prep.finish(
+                    TrainedFold {
+                        ledger: ledger.clone(),
+                        weight,
+                        gamma,
+                        mean,
+                        var,
+                        epsilon,
+                    },
+                    w,
+                )
+            }
             OpsKind::UnTracked(prep) => prep.finish(w),
         };
         let b = match ParameterBackward
@@ -823,13 +1008,16 @@ impl<
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish(
-                ParameterRole {
-                    ledger,
-                    role: Role::Bias,
-                },
-                b,
-            ),
+            OpsKind::Tracked(prep) => {
+                ledger.lock().tracked = true;
+                prep.finish(
+                    ParameterRole {
+                        ledger,
+                        role: Role::Bias,
+                    },
+                    b,
+                )
+            }
             OpsKind::UnTracked(prep) => prep.finish(b),
         };
         (w, b)
@@ -847,6 +1035,14 @@ impl<
         activation: Activation,
         handoff: Handoff,
     ) -> FloatTensor<Self> {
+        if filing::detached() {
+            let [x, weight, bias, scale, shift] =
+                [x, weight, bias, scale, shift].map(|t| t.into_primitive());
+            return <Self as AutodiffBackend>::from_inner(B::shared_linear(
+                x, patches, weight, bias, scale, shift, map, ledger, activation, handoff,
+            ));
+        }
+        expect_rows(&ledger);
         let (x, x_node) = x.into_parts();
         let (weight, weight_node) = weight.into_parts();
         let (bias, bias_node) = bias.into_parts();
@@ -885,6 +1081,14 @@ impl<
         ledger: Ledger,
         handoff: Handoff,
     ) -> FloatTensor<Self> {
+        if filing::detached() {
+            let [x, weight, bias, scale, shift, residual] =
+                [x, weight, bias, scale, shift, residual].map(|t| t.into_primitive());
+            return <Self as AutodiffBackend>::from_inner(B::shared_linear_residual(
+                x, patches, weight, bias, scale, shift, map, residual, ledger, handoff,
+            ));
+        }
+        expect_rows(&ledger);
         let (x, x_node) = x.into_parts();
         let (weight, weight_node) = weight.into_parts();
         let (bias, bias_node) = bias.into_parts();
@@ -909,6 +1113,15 @@ impl<
                 )
             },
         )
+    }
+}
+
+/// Counts a pass whose product node will file rows: one whose weight or bias takes a gradient
+/// (see [`filing`]).
+fn expect_rows(ledger: &Ledger) {
+    let mut state = ledger.lock();
+    if state.tracked {
+        state.expected += 1;
     }
 }
 
