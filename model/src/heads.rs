@@ -183,20 +183,29 @@ impl UpdateHeads {
         let device = corners.device();
         let init = GomParams::init(f, &device);
         let heads = [&self.so3, &self.scale, &self.offset, &self.rgb];
-        let (weight, bias) = folds.keep(&self.so3.l0, "heads: first layers", || {
+        let (w_corners, w_images, bias) = folds.keep(&self.so3.l0, "heads: first layers", || {
             let weight = lifegom_render::split::join_columns(
                 heads.iter().map(|m| m.l0.weight.val()).collect(),
             );
+            // The corner rows and the image rows, split once per reconstruction: rows of a
+            // row-major `[G, O]` are column blocks of its `[1, G·O]` view, and one split's
+            // backward is one join, where a row slice per feedback step costs a zero fill, a
+            // slice-assign and a sum each.
+            let [g, o] = weight.dims();
+            let mut rows = lifegom_render::split::split_columns(
+                weight.reshape([1, g * o]),
+                &[corner_width * o, (g - corner_width) * o],
+            )
+            .into_iter();
+            let mut next = |height: usize| rows.next().expect("two blocks").reshape([height, o]);
+            let (w_corners, w_images) = (next(corner_width), next(g - corner_width));
             let bias = heads
                 .iter()
                 .map(|m| m.l0.bias.as_ref().map(|b| b.val()))
                 .collect::<Option<Vec<_>>>()
                 .map(lifegom_render::split::join_columns);
-            (weight, bias)
+            (w_corners, w_images, bias)
         });
-        let [g, _] = weight.dims();
-        let w_corners = weight.clone().narrow(0, 0, corner_width);
-        let w_images = weight.narrow(0, corner_width, g - corner_width);
         let first = match images {
             // The image block is the large product: on the CPU backends it runs as the Linear op.
             FaceImages::Dense(images) => {
