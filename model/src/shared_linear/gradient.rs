@@ -36,7 +36,7 @@ use lifegom_render::cube::image::{ImageLayout, ImageLayoutLaunch, dense, image_l
 use crate::gemm_conv::cube::{Grid, GridLaunch, grid_arg, patch_value};
 use crate::gemm_conv::op::Patches;
 
-use super::op::{GradientKernels, PASS_PARTS, ParameterRows};
+use super::op::{GradientKernels, PASS_PARTS, ParameterRows, VIEW_ALIGN, bias_row_at, formed_rows};
 use super::product::{DEPTH, PER_THREAD, SIDE, THREADS, TILE, multiply_staged};
 
 /// The sizes of one launch: its passes' rows, the widths and the chunks.
@@ -56,6 +56,9 @@ struct GradientDims {
     first_chunk: usize,
     /// Where the layer's first partial gradient starts in the bound buffer (elements).
     origin: usize,
+    /// The row the bias row is written at (`inputs`, or further on in a gradient whose bias
+    /// row starts where a binding may).
+    bias_at: usize,
     /// Rows end after passes 0, 1 and 2 (the last part takes the rest).
     end0: usize,
     end1: usize,
@@ -209,7 +212,11 @@ fn pass_gradient_kernel(
         for j in 0..PER_THREAD {
             let col = j0 + tx + j * SIDE;
             if row < dims.out_rows && col < dims.cols {
-                partials[dims.origin + (base + row) * dims.cols + col] = acc[i * PER_THREAD + j];
+                let mut at = row;
+                if row == dims.inputs {
+                    at = dims.bias_at;
+                }
+                partials[dims.origin + (base + at) * dims.cols + col] = acc[i * PER_THREAD + j];
             }
         }
     }
@@ -229,16 +236,21 @@ fn chunks_of(rows: usize, chunk_rows: usize) -> usize {
     rows.div_ceil(chunk_rows.max(1)).max(1)
 }
 
+/// Entries per layer of [`chunk_sum_kernel`]'s table.
+const TABLE_ENTRIES: usize = 6;
+
 /// Sums each chunked layer's partial gradients over its chunks, in chunk order: `table` holds
-/// per layer (`CUBE_POS_Y`) the origin of its partials, its chunks, its gradient's length and
-/// the gradient's origin in `output`.
+/// per layer (`CUBE_POS_Y`) the origin of its partials, its chunks, a partial's length, the
+/// length of `∂W`'s part, and where `∂W` and the bias row go in `output`.
 #[cube(launch)]
 fn chunk_sum_kernel(partials: &[f32], table: &[u32], output: &mut [f32]) {
-    let layer = CUBE_POS_Y as usize;
-    let origin = table[4 * layer] as usize;
-    let chunks = table[4 * layer + 1] as usize;
-    let len = table[4 * layer + 2] as usize;
-    let target = table[4 * layer + 3] as usize;
+    let entry = TABLE_ENTRIES * CUBE_POS_Y as usize;
+    let origin = table[entry] as usize;
+    let chunks = table[entry + 1] as usize;
+    let len = table[entry + 2] as usize;
+    let weights = table[entry + 3] as usize;
+    let weight_at = table[entry + 4] as usize;
+    let bias_at = table[entry + 5] as usize;
     let stride = CUBE_COUNT_X as usize * CUBE_DIM_X as usize;
     let mut e = CUBE_POS_X as usize * CUBE_DIM_X as usize + UNIT_POS_X as usize;
     while e < len {
@@ -246,7 +258,11 @@ fn chunk_sum_kernel(partials: &[f32], table: &[u32], output: &mut [f32]) {
         for z in 0..chunks {
             sum += partials[origin + z * len + e];
         }
-        output[target + e] = sum;
+        if e < weights {
+            output[weight_at + e] = sum;
+        } else {
+            output[bias_at + e - weights] = sum;
+        }
         e += stride;
     }
 }
@@ -269,6 +285,9 @@ struct LayerRows {
     groups: Vec<usize>,
     /// Chunks over all the groups.
     chunks: usize,
+    /// The row of the bias row in the layer's gradient as handed over: `inputs`, or the first
+    /// row after it that starts where a binding may (see [`GradientKernels::pass_gradients`]).
+    bias_at: usize,
     dtype: burn::tensor::DType,
 }
 
@@ -317,6 +336,7 @@ impl LayerRows {
             out_rows: inputs + usize::from(bias_row),
             groups,
             chunks: 0,
+            bias_at: bias_row_at(inputs, cols),
             dtype,
         };
         layer.chunks = layer
@@ -327,9 +347,14 @@ impl LayerRows {
         layer
     }
 
-    /// The gradient's elements.
+    /// The gradient's elements, without the bias row's padding.
     fn len(&self) -> usize {
         self.out_rows * self.cols
+    }
+
+    /// The rows of the gradient as handed over: `∂W`'s, then the bias row at `bias_at`.
+    fn handed_rows(&self) -> usize {
+        formed_rows(self.inputs, self.cols, self.bias_row)
     }
 
     /// Rows of the passes launched with pass `g`.
@@ -341,8 +366,16 @@ impl LayerRows {
     }
 
     /// Launches the layer's chunks, writing partial gradient `z` at `origin + z·len` of
-    /// `target` (`target_len` elements); one chunk writes the gradient itself.
-    fn launch(&self, client: &ComputeClient, target: &Handle, target_len: usize, origin: usize) {
+    /// `target` (`target_len` elements), the bias row at row `bias_at`; one chunk writes the
+    /// gradient as handed over (`bias_at` = [`Self::bias_at`]), several their partials
+    /// (`bias_at` = `inputs`).
+    fn launch(
+        &self,
+        client: &ComputeClient,
+        (target, target_len): (&Handle, usize),
+        origin: usize,
+        bias_at: usize,
+    ) {
         let (xs, gs, patches) = (&self.xs, &self.gs, self.patches);
         let image = xs.first().map(|x| x.shape());
         let grid = || match (patches, &image) {
@@ -399,6 +432,7 @@ impl LayerRows {
                         self.chunk_rows.max(1),
                         first_chunk,
                         origin,
+                        bias_at,
                         ends[0],
                         ends[1],
                         ends[2],
@@ -417,27 +451,34 @@ impl LayerRows {
 
 impl GradientKernels for CubeBackend {
     fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<FloatTensor<Self>> {
-        let layers: Vec<LayerRows> = layers.into_iter().map(LayerRows::new).collect();
         let Some(first) = layers.first() else {
             return Vec::new();
         };
-        let (client, device) = (first.gs[0].client.clone(), first.gs[0].device.clone());
-        // Every gradient is a view of one buffer, so each starts where a binding may.
-        let align = (client.properties().memory.alignment as usize / size_of::<f32>()).max(1);
+        let client = first.grads[0].client.clone();
+        // Every gradient is a view of one buffer, so each starts where a binding may, and so
+        // does its bias row: the parameter nodes' slices are views too.
+        let align = (client.properties().memory.alignment as usize / size_of::<f32>())
+            .max(VIEW_ALIGN)
+            .next_power_of_two();
+        let layers: Vec<LayerRows> = layers.into_iter().map(LayerRows::new).collect();
+        let device = layers[0].gs[0].device.clone();
         let mut starts = Vec::with_capacity(layers.len());
         let mut total: usize = 0;
         for layer in &layers {
             let start = total.next_multiple_of(align);
             starts.push(start);
-            total = start + layer.len();
+            total = start + layer.handed_rows() * layer.cols;
         }
         // Partial gradients of the layers with more than one chunk, one after the other.
         let mut table = Vec::new();
         let mut partial_total = 0;
         for (layer, &start) in layers.iter().zip(&starts) {
             if layer.chunks > 1 {
-                let len = layer.len();
-                table.extend([partial_total, layer.chunks, len, start].map(|v| v as u32));
+                let (len, weights) = (layer.len(), layer.inputs * layer.cols);
+                let bias_at = start + layer.bias_at * layer.cols;
+                table.extend(
+                    [partial_total, layer.chunks, len, weights, start, bias_at].map(|v| v as u32),
+                );
                 partial_total += layer.chunks * len;
             }
         }
@@ -446,15 +487,20 @@ impl GradientKernels for CubeBackend {
         let mut partial_origin = 0;
         for (layer, &start) in layers.iter().zip(&starts) {
             if layer.chunks > 1 {
-                layer.launch(&client, &partials, partial_total, partial_origin);
+                let target = (&partials, partial_total);
+                layer.launch(&client, target, partial_origin, layer.inputs);
                 partial_origin += layer.chunks * layer.len();
             } else {
-                layer.launch(&client, &output, total, start);
+                layer.launch(&client, (&output, total), start, layer.bias_at);
             }
         }
-        let summed = table.len() / 4;
+        let summed = table.len() / TABLE_ENTRIES;
         if summed > 0 {
-            let longest = table.chunks(4).map(|t| t[2] as usize).max().unwrap_or(1);
+            let longest = table
+                .chunks(TABLE_ENTRIES)
+                .map(|t| t[2] as usize)
+                .max()
+                .unwrap_or(1);
             let cubes = longest.div_ceil(THREADS_1D as usize).clamp(1, 1 << 12) as u32;
             let table = client.create_from_slice(&u32_bytes(&table));
             chunk_sum_kernel::launch(
@@ -462,7 +508,7 @@ impl GradientKernels for CubeBackend {
                 CubeCount::Static(cubes, summed as u32, 1),
                 CubeDim::new_1d(THREADS_1D),
                 arg(&partials, partial_total),
-                arg(&table, 4 * summed),
+                arg(&table, TABLE_ENTRIES * summed),
                 arg(&output, total),
             );
         }
@@ -470,13 +516,13 @@ impl GradientKernels for CubeBackend {
             .iter()
             .zip(&starts)
             .map(|(layer, &start)| {
-                let len = layer.len();
+                let len = layer.handed_rows() * layer.cols;
                 let view = output
                     .clone()
                     .offset_start((size_of::<f32>() * start) as u64)
                     .offset_end((size_of::<f32>() * (total - start - len)) as u64);
                 cast_to(
-                    tensor_f32(&client, &device, view, &[layer.out_rows, layer.cols]),
+                    tensor_f32(&client, &device, view, &[layer.handed_rows(), layer.cols]),
                     layer.dtype,
                 )
             })

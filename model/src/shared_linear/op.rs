@@ -205,15 +205,39 @@ pub struct ParameterRows<B: Backend> {
     pub chunk_rows: usize,
 }
 
+/// Floats between offsets where every runtime accepts a binding to start (WebGPU's limit is a
+/// power of two of at most 256 bytes): formed gradients and their bias rows start at multiples
+/// of it, so that the parameter nodes' slices are views, not copies.
+pub const VIEW_ALIGN: usize = 64;
+
+/// The rows of a formed gradient (see [`GradientKernels::pass_gradients`]) with `inputs` rows of
+/// `∂W`, `cols` columns and, with `bias_row`, the bias row: `inputs`, or `bias_row_at + 1`.
+pub fn formed_rows(inputs: usize, cols: usize, bias_row: bool) -> usize {
+    if bias_row {
+        bias_row_at(inputs, cols) + 1
+    } else {
+        inputs
+    }
+}
+
+/// The row of a formed gradient's bias row: the first at or after `inputs` whose offset is a
+/// multiple of [`VIEW_ALIGN`] floats.
+pub fn bias_row_at(inputs: usize, cols: usize) -> usize {
+    (inputs..=inputs + VIEW_ALIGN)
+        .find(|r| (r * cols).is_multiple_of(VIEW_ALIGN))
+        .unwrap_or(inputs)
+}
+
 /// What a backend implements so that `Autodiff<B>` can form shared layers' parameter
 /// gradients.
 #[doc(hidden)]
 pub trait GradientKernels: Backend {
-    /// Per layer, `[Xᵀ; 1ᵀ]·(G·diag(s))` `[in + 1, out]` (the row of ones only with
-    /// `bias_row`, `in` = 0 without inputs), `X` and `G` every pass's rows one after the
-    /// other, summed over chunks of `chunk_rows` rows: one launch per layer and
-    /// [`PASS_PARTS`] passes, and one sum over the chunks for all the layers that have more
-    /// than one.
+    /// Per layer, `[Xᵀ; 1ᵀ]·(G·diag(s))`, `X` and `G` every pass's rows one after the other,
+    /// summed over chunks of `chunk_rows` rows: one launch per layer and [`PASS_PARTS`]
+    /// passes, and one sum over the chunks for all the layers that have more than one. Each is
+    /// `[formed_rows(in, out, bias_row), out]`: `∂W`'s `in` rows (none without inputs), then,
+    /// with `bias_row`, the row of ones' `∂b` at [`bias_row_at`] (the rows between are not
+    /// written).
     fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<FloatTensor<Self>>;
 }
 
@@ -245,9 +269,10 @@ impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
             let width = inputs
                 .first()
                 .map_or(0, |x| super::gradient::input_width(&x.shape(), patches));
+            let cols = grads[0].shape()[1];
             specs.push(float_like::<B>(
                 &grads[0],
-                Shape::new([width + usize::from(bias_row), grads[0].shape()[1]]),
+                Shape::new([formed_rows(width, cols, bias_row), cols]),
             ));
             layouts.push(RowsLayout {
                 passes: grads.len(),
@@ -876,10 +901,11 @@ impl<B: GradientKernels> Backward<B, 1> for ParameterBackward {
             Role::Bias => 1,
         };
         let (formed, inputs) = delivered_gradient::<B>(&ledger, slot);
-        let outputs = formed.shape()[1];
+        let [rows, outputs] = formed.shape().dims::<2>();
+        // The bias row is the last (see `GradientKernels::pass_gradients`).
         let (first, last) = match role {
             Role::Weight => (0, inputs),
-            Role::Bias => (inputs, inputs + 1),
+            Role::Bias => (rows - 1, rows),
         };
         let grad = B::float_slice(
             formed,

@@ -80,6 +80,7 @@ fn trained_fold_backward_kernel(
     weights: usize,
     ins: usize,
     outs: usize,
+    bias_at: usize,
     epsilon: f32,
 ) {
     let e = ABSOLUTE_POS;
@@ -93,7 +94,7 @@ fn trained_fold_backward_kernel(
         for i in 0..ins {
             acc += weight[c * ins + i] * formed[i * outs + c];
         }
-        let bias_grad = formed[ins * outs + c];
+        let bias_grad = formed[bias_at * outs + c];
         gamma_grad[c] = (acc - mean[c] * bias_grad) / f32::sqrt(var[c] + epsilon);
     }
 }
@@ -200,9 +201,10 @@ impl FoldKernels for CubeBackend {
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let [formed, weight, gamma, mean, var] = [formed, weight, gamma, mean, var].map(prepare);
         let out = FoldOutputs::for_weight(&weight);
-        assert_eq!(
-            formed.shape().dims::<2>(),
-            [out.ins + 1, out.outs],
+        // The bias row is the last (`GradientKernels::pass_gradients` may pad before it).
+        let [rows, cols] = formed.shape().dims::<2>();
+        assert!(
+            rows > out.ins && cols == out.outs,
             "a trained fold's gradient carries its bias row"
         );
         if out.weights + out.outs > 0 {
@@ -220,6 +222,7 @@ impl FoldKernels for CubeBackend {
                 out.weights,
                 out.ins,
                 out.outs,
+                rows - 1,
                 epsilon,
             );
         }
