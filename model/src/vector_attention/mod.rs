@@ -23,7 +23,7 @@
 //! - [`aggregate_gathered`]: [`aggregate`] with the values `v_j + δ_ij` gathered inside.
 //!
 //! - [`position_encoding`]: `MLP_p`'s two layers, `δ = relu(rel·W₀ + b₀)·W₃ + b₃` (three hidden
-//!   units), as one forward and two backward launches per pass, plus one for the weights'
+//!   units), as one forward and one backward launch per pass, plus one for the weights'
 //!   gradient of all the passes that share a [`PositionWeights`] ([`position_op`]).
 //!
 //! The first two each replace two gathers, their scatter-add backwards and zero-fills, and the broadcast
@@ -608,10 +608,17 @@ mod tests {
 
     /// [`PositionWeights`] applied by 1, 3 and 6 passes (six: more than one launch adds the
     /// passes' partial sums) against the reference on Flex: values and the gradients of every
-    /// input, over more rows than one partial sum covers (the backward's two-stage sums), with
-    /// about half of the hidden units cut by the ReLU.
+    /// input, over more rows than one partial sum covers (the backward's two-stage sums, the
+    /// last chunk short), with about half of the hidden units cut by the ReLU; at 10 channels
+    /// and at 70, where the weights' gradient (292 elements) has more elements than a chunk's
+    /// cube has threads.
     fn check_position_encoding_matches_reference(device: &Device) {
-        let (n, k, c) = (97usize, 7usize, 10usize);
+        for (n, k, c) in [(97, 7, 10), (40, 8, 70)] {
+            check_position_encoding(device, n, k, c);
+        }
+    }
+
+    fn check_position_encoding(device: &Device, n: usize, k: usize, c: usize) {
         let mut rng = Rng::new(31);
         let mut uniform = |len: usize, lo: f32, hi: f32| -> Vec<f32> {
             (0..len).map(|_| rng.range_f32(lo, hi)).collect()

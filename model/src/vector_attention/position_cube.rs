@@ -6,13 +6,14 @@
 //! reading it from memory.
 //!
 //! - `position_forward_kernel`, one thread per `(row, ch)`.
-//! - `position_backward_rows_kernel`, one thread per row: `∂h = g·W₃ᵀ` through the ReLU (which
-//!   passes where its input is positive, as Burn's does), `∂rel = ∂h_pre·W₀ᵀ`, and the row's
-//!   hidden activations and `∂h_pre` into a scratch buffer `[m, 6]` for the weights' sums.
-//! - The weights' gradients are sums over all `m` rows: `position_partial_sums_kernel` sums
-//!   [`ROWS_PER_CHUNK`] rows for every output element (`W₃`, `b₃`, `W₀`, `b₀` in that order,
-//!   `4c + 12` in all), one thread per chunk and element, for each pass;
-//!   `position_chunk_totals_kernel` adds the chunks of up to four passes up in pass and chunk
+//! - `position_backward_kernel`, one cube per chunk of [`ROWS_PER_CHUNK`] rows: each thread does
+//!   one row, `∂h = g·W₃ᵀ` through the ReLU (which passes where its input is positive, as
+//!   Burn's does), `∂rel = ∂h_pre·W₀ᵀ`, and keeps the row's hidden activations and `∂h_pre` in
+//!   shared memory; then the cube sums its chunk's rows for every output element of the
+//!   weights' gradient (`W₃`, `b₃`, `W₀`, `b₀` in that order, `4c + 12` in all), one thread per
+//!   element, into the pass's partial sums. One launch per pass: the rows' scratch never goes
+//!   to memory.
+//! - `position_chunk_totals_kernel` adds the chunks of up to four passes up in pass and chunk
 //!   order, one thread per element, once for all passes (`super::position_op`). Fixed orders:
 //!   the sums are deterministic.
 
@@ -22,7 +23,7 @@ use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 use lifegom_render::cube::host::{
-    THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
+    THREADS_1D, arg, cast_to, count_1d, count_cubes, prepare, tensor_arg, tensor_f32,
 };
 
 use super::position_op::{
@@ -57,20 +58,56 @@ fn position_forward_kernel(rel: &[f32], p: &[f32], out: &mut [f32], units: usize
     }
 }
 
+/// Row `row`'s term of output element `o` (module docs' order); `local` is the row's slot in
+/// the chunk's `scratch` (its hidden activations, then its `∂h_pre`).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn weight_term(
+    rel: &[f32],
+    grad: &[f32],
+    scratch: &[f32],
+    row: usize,
+    local: usize,
+    o: usize,
+    c: usize,
+) -> f32 {
+    let mut term = 0.0f32;
+    if o < 3 * c {
+        term = scratch[local * 6 + o / c] * grad[row * c + o % c];
+    } else if o < 4 * c {
+        term = grad[row * c + o - 3 * c];
+    } else if o < 4 * c + 9 {
+        let j = o - 4 * c;
+        term = rel[row * 3 + j / 3] * scratch[local * 6 + 3 + j % 3];
+    } else if o < 4 * c + 12 {
+        term = scratch[local * 6 + 3 + o - 4 * c - 9];
+    }
+    term
+}
+
+/// One cube per chunk of [`ROWS_PER_CHUNK`] rows (module docs): each thread first does one
+/// row, `∂rel` and the row's hidden activations and `∂h_pre` into shared memory; then the
+/// threads sum the chunk's rows for the weights' outputs, one output at a time each.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn position_backward_rows_kernel(
+fn position_backward_kernel(
     rel: &[f32],
     p: &[f32],
     grad: &[f32],
     rel_grad: &mut [f32],
-    scratch: &mut [f32],
+    partial: &mut [f32],
     rows: usize,
+    chunks: usize,
+    outputs: usize,
     c: usize,
 ) {
-    let row = ABSOLUTE_POS;
-    if row < rows {
-        // ∂h_pre for the three hidden units, kept in the scratch row's last three slots.
+    let mut scratch = Shared::<[f32]>::new_slice(ROWS_PER_CHUNK * 6);
+    let chunk = CUBE_POS_Y as usize * CUBE_COUNT_X as usize + CUBE_POS_X as usize;
+    let local = UNIT_POS_X as usize;
+    let start = chunk * ROWS_PER_CHUNK;
+    let row = start + local;
+    if chunk < chunks && row < rows {
+        // ∂h_pre for the three hidden units, kept in the row's last three slots.
         for r in 0..3usize {
             let pre = hidden(rel, p, row, r, c);
             let mut gh = 0.0f32;
@@ -79,60 +116,29 @@ fn position_backward_rows_kernel(
                     gh += grad[row * c + ch] * p[r * c + ch];
                 }
             }
-            scratch[row * 6 + r] = f32::max(pre, 0.0);
-            scratch[row * 6 + 3 + r] = gh;
+            scratch[local * 6 + r] = f32::max(pre, 0.0);
+            scratch[local * 6 + 3 + r] = gh;
         }
         for a in 0..3usize {
             let mut g = 0.0f32;
             for r in 0..3usize {
-                g += scratch[row * 6 + 3 + r] * p[4 * c + a * 3 + r];
+                g += scratch[local * 6 + 3 + r] * p[4 * c + a * 3 + r];
             }
             rel_grad[row * 3 + a] = g;
         }
     }
-}
-
-/// Row `row`'s term of output element `o` (module docs' order).
-#[cube]
-fn weight_term(rel: &[f32], grad: &[f32], scratch: &[f32], row: usize, o: usize, c: usize) -> f32 {
-    let mut term = 0.0f32;
-    if o < 3 * c {
-        term = scratch[row * 6 + o / c] * grad[row * c + o % c];
-    } else if o < 4 * c {
-        term = grad[row * c + o - 3 * c];
-    } else if o < 4 * c + 9 {
-        let j = o - 4 * c;
-        term = rel[row * 3 + j / 3] * scratch[row * 6 + 3 + j % 3];
-    } else if o < 4 * c + 12 {
-        term = scratch[row * 6 + 3 + o - 4 * c - 9];
-    }
-    term
-}
-
-#[cube(launch)]
-#[allow(clippy::too_many_arguments)]
-fn position_partial_sums_kernel(
-    rel: &[f32],
-    grad: &[f32],
-    scratch: &[f32],
-    partial: &mut [f32],
-    units: usize,
-    rows: usize,
-    rows_per_chunk: usize,
-    outputs: usize,
-    c: usize,
-) {
-    let unit = ABSOLUTE_POS;
-    if unit < units {
-        let o = unit % outputs;
-        let chunk = unit / outputs;
-        let start = chunk * rows_per_chunk;
-        let end = usize::min(start + rows_per_chunk, rows);
-        let mut acc = 0.0f32;
-        for row in start..end {
-            acc += weight_term(rel, grad, scratch, row, o, c);
+    sync_cube();
+    if chunk < chunks {
+        let end = usize::min(start + ROWS_PER_CHUNK, rows);
+        let mut o = local;
+        while o < outputs {
+            let mut acc = 0.0f32;
+            for r in start..end {
+                acc += weight_term(rel, grad, &scratch, r, r - start, o, c);
+            }
+            partial[chunk * outputs + o] = acc;
+            o += ROWS_PER_CHUNK;
         }
-        partial[unit] = acc;
     }
 }
 
@@ -299,36 +305,21 @@ impl PositionEncodingKernels for CubeBackend {
         let (client, device) = (rel.client.clone(), rel.device.clone());
         let [rel, p, grad] = [rel, weights, grad].map(prepare);
         let rel_grad = client.empty(4 * (rows * 3).max(1));
-        let scratch = client.empty(4 * (rows * 6).max(1));
         let outputs = 4 * c + 12;
         let chunks = rows.div_ceil(ROWS_PER_CHUNK).max(1);
         let partial = client.empty(4 * chunks * outputs);
-        if rows > 0 {
-            position_backward_rows_kernel::launch(
-                &client,
-                count_1d(rows),
-                CubeDim::new_1d(THREADS_1D),
-                tensor_arg(&rel),
-                tensor_arg(&p),
-                tensor_arg(&grad),
-                arg(&rel_grad, rows * 3),
-                arg(&scratch, rows * 6),
-                rows,
-                c,
-            );
-        }
         // With no rows the partial sums are all empty: the kernel writes zeros.
-        position_partial_sums_kernel::launch(
+        position_backward_kernel::launch(
             &client,
-            count_1d(chunks * outputs),
-            CubeDim::new_1d(THREADS_1D),
+            count_cubes(chunks),
+            CubeDim::new_1d(ROWS_PER_CHUNK as u32),
             tensor_arg(&rel),
+            tensor_arg(&p),
             tensor_arg(&grad),
-            arg(&scratch, rows * 6),
+            arg(&rel_grad, rows * 3),
             arg(&partial, chunks * outputs),
-            chunks * outputs,
             rows,
-            ROWS_PER_CHUNK,
+            chunks,
             outputs,
             c,
         );
