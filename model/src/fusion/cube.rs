@@ -1,16 +1,16 @@
 //! The residual LayerNorm `LN(x + r)·γ + β` on Burn's CubeCL backend (design.md §7.4): the same
-//! formulas as the CPU slice code (`super::kernels`) in `f32`, in four kernels.
+//! formulas as the CPU slice code (`super::kernels`) in `f32`, in three kernels.
 //!
 //! - `residual_layer_norm_kernel`: one cube per row. Its threads stride over the channels
 //!   (neighbouring threads read neighbouring channels) and reduce the row's sums in shared memory:
 //!   the mean and `1/√(var + ε)` of `z = x + r`, then every thread writes its channels of the
 //!   normalised, scaled and shifted row.
-//! - `layer_norm_rows_backward_kernel`: one cube per row recomputes its statistics the same way,
-//!   writes them for the next kernels and writes `∂z = rstd·(a − mean(a) − x̂·mean(a·x̂))` with
-//!   `a = g·γ`.
-//! - `layer_norm_column_chunks_kernel`: one thread per channel and chunk of rows sums `g·x̂` and `g`
-//!   over its rows; `layer_norm_columns_total_kernel` adds the chunks' sums in order: `∂γ` and `∂β`,
-//!   with no atomics.
+//! - `layer_norm_backward_kernel`: one cube per chunk of rows walks its rows in order; for each it
+//!   recomputes the statistics the same way and writes `∂z = rstd·(a − mean(a) − x̂·mean(a·x̂))`
+//!   with `a = g·γ`, and each thread adds `g·x̂` and `g` of its channels onto the chunk's sums;
+//!   `layer_norm_columns_total_kernel` adds the chunks' sums in order: `∂γ` and `∂β`, with no
+//!   atomics. (Until session 33 a kernel of its own, one thread per channel and chunk, formed
+//!   the chunks' sums from statistics the rows' kernel wrote: one launch more per call.)
 //!
 //! An earlier version ran one thread per row (forward) and one per channel (the column sums):
 //! a thread per row reads its row alone, so a warp's loads touch as many cache lines as it has
@@ -36,7 +36,7 @@ use super::op::{AddLayerNormOps, LayerNormEpsilon, LayerNormInputs, LayerNormKer
 /// Threads of a row kernel's cube (a power of two: the shared-memory sum halves it).
 const ROW_THREADS: u32 = 64;
 
-/// Rows one thread of the column kernel sums before the chunks' sums are added.
+/// Rows of one chunk of the backward, whose column sums are added up afterwards.
 const ROWS_PER_CHUNK: usize = 64;
 
 /// The row a row kernel's cube works on (launched with [`count_cubes`]`(rows)`).
@@ -135,85 +135,65 @@ fn residual_layer_norm_kernel(
     }
 }
 
-/// One cube of [`ROW_THREADS`] per row: `∂z` and the row's statistics (`stats[2·row]`,
-/// `stats[2·row + 1]`).
+/// One cube of [`ROW_THREADS`] per chunk of [`ROWS_PER_CHUNK`] rows, the rows in order: each
+/// row's statistics and `∂z` by the whole cube, and the chunk's `Σ g·x̂` and `Σ g` per channel
+/// (at `[chunk·d + c]` of `partial_gx` and `partial_g`), each channel's sums kept by the thread
+/// that handles the channel in every row.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-fn layer_norm_rows_backward_kernel(
+fn layer_norm_backward_kernel(
     x: &[f32],
     r: &[f32],
     gamma: &[f32],
     grad: &[f32],
     dz: &mut [f32],
-    stats_out: &mut [f32],
+    partial_gx: &mut [f32],
+    partial_g: &mut [f32],
     rows: usize,
+    chunks: usize,
     d: usize,
     epsilon: f32,
 ) {
     let mut shared = Shared::<[f32]>::new_slice(ROW_THREADS as usize);
-    let row = row_of_cube();
-    if row < rows {
-        let stats = row_stats(x, r, &mut shared, row, d, epsilon);
-        if UNIT_POS == 0 {
-            stats_out[2 * row] = stats.mean;
-            stats_out[2 * row + 1] = stats.rstd;
-        }
-        let base = row * d;
-        let step = CUBE_DIM as usize;
-        let mut sum_a = 0.0f32;
-        let mut sum_ax = 0.0f32;
-        let mut c = UNIT_POS as usize;
-        while c < d {
-            let xhat = (x[base + c] + r[base + c] - stats.mean) * stats.rstd;
-            let a = grad[base + c] * gamma[c];
-            sum_a += a;
-            sum_ax += a * xhat;
-            c += step;
-        }
-        let n = f32::cast_from(d);
-        let mean_a = cube_sum(&mut shared, sum_a) / n;
-        let mean_ax = cube_sum(&mut shared, sum_ax) / n;
-        c = UNIT_POS as usize;
-        while c < d {
-            let xhat = (x[base + c] + r[base + c] - stats.mean) * stats.rstd;
-            let a = grad[base + c] * gamma[c];
-            dz[base + c] = stats.rstd * (a - mean_a - xhat * mean_ax);
-            c += step;
-        }
-    }
-}
-
-/// One thread per `(chunk, channel)`: the chunk's `Σ g·x̂` and `Σ g` of the channel, at
-/// `[chunk·d + c]` of `partial_gx` and `partial_g`.
-#[cube(launch)]
-#[allow(clippy::too_many_arguments)]
-fn layer_norm_column_chunks_kernel(
-    x: &[f32],
-    r: &[f32],
-    grad: &[f32],
-    stats: &[f32],
-    partial_gx: &mut [f32],
-    partial_g: &mut [f32],
-    units: usize,
-    rows: usize,
-    d: usize,
-) {
-    let unit = ABSOLUTE_POS;
-    if unit < units {
-        let c = unit % d;
-        let chunk = unit / d;
+    let chunk = row_of_cube();
+    let step = CUBE_DIM as usize;
+    // The same for every thread of the cube, so the barriers inside are reached by all.
+    if chunk < chunks {
         let first = chunk * ROWS_PER_CHUNK;
         let last = min(first + ROWS_PER_CHUNK, rows);
-        let mut sum_gx = 0.0f32;
-        let mut sum_g = 0.0f32;
-        for row in first..last {
-            let i = row * d + c;
-            let xhat = (x[i] + r[i] - stats[2 * row]) * stats[2 * row + 1];
-            sum_gx += grad[i] * xhat;
-            sum_g += grad[i];
+        let sums = chunk * d;
+        let mut c = UNIT_POS as usize;
+        while c < d {
+            partial_gx[sums + c] = 0.0f32;
+            partial_g[sums + c] = 0.0f32;
+            c += step;
         }
-        partial_gx[unit] = sum_gx;
-        partial_g[unit] = sum_g;
+        for row in first..last {
+            let stats = row_stats(x, r, &mut shared, row, d, epsilon);
+            let base = row * d;
+            let mut sum_a = 0.0f32;
+            let mut sum_ax = 0.0f32;
+            c = UNIT_POS as usize;
+            while c < d {
+                let xhat = (x[base + c] + r[base + c] - stats.mean) * stats.rstd;
+                let a = grad[base + c] * gamma[c];
+                sum_a += a;
+                sum_ax += a * xhat;
+                c += step;
+            }
+            let n = f32::cast_from(d);
+            let mean_a = cube_sum(&mut shared, sum_a) / n;
+            let mean_ax = cube_sum(&mut shared, sum_ax) / n;
+            c = UNIT_POS as usize;
+            while c < d {
+                let xhat = (x[base + c] + r[base + c] - stats.mean) * stats.rstd;
+                let g = grad[base + c];
+                dz[base + c] = stats.rstd * (g * gamma[c] - mean_a - xhat * mean_ax);
+                partial_gx[sums + c] += g * xhat;
+                partial_g[sums + c] += g;
+                c += step;
+            }
+        }
     }
 }
 
@@ -311,44 +291,29 @@ fn cube_backward(
     let (client, d, rows, len) = (&p.client, p.d, p.rows, p.len);
     let grad = prepare(grad);
     let dz = client.empty(4 * len.max(1));
-    let stats = client.empty(4 * (2 * rows).max(1));
     let dgamma = client.empty(4 * d.max(1));
     let dbeta = client.empty(4 * d.max(1));
-    if rows > 0 && d > 0 {
-        layer_norm_rows_backward_kernel::launch(
-            client,
-            count_cubes(rows),
-            CubeDim::new_1d(ROW_THREADS),
-            tensor_arg(&p.x),
-            tensor_arg(&p.r),
-            tensor_arg(&p.gamma),
-            tensor_arg(&grad),
-            arg(&dz, len),
-            arg(&stats, 2 * rows),
-            rows,
-            d,
-            p.epsilon,
-        );
-    }
     if d > 0 {
         // With no rows there is one empty chunk, and the sums are zero.
         let chunks = rows.div_ceil(ROWS_PER_CHUNK).max(1);
         let units = chunks * d;
         let partial_gx = client.empty(4 * units);
         let partial_g = client.empty(4 * units);
-        layer_norm_column_chunks_kernel::launch(
+        layer_norm_backward_kernel::launch(
             client,
-            count_1d(units),
-            CubeDim::new_1d(THREADS_1D),
+            count_cubes(chunks),
+            CubeDim::new_1d(ROW_THREADS),
             tensor_arg(&p.x),
             tensor_arg(&p.r),
+            tensor_arg(&p.gamma),
             tensor_arg(&grad),
-            arg(&stats, 2 * rows),
+            arg(&dz, len),
             arg(&partial_gx, units),
             arg(&partial_g, units),
-            units,
             rows,
+            chunks,
             d,
+            p.epsilon,
         );
         layer_norm_columns_total_kernel::launch(
             client,
