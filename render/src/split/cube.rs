@@ -1,9 +1,12 @@
 //! The column split and its backward on Burn's CubeCL backend (see [`super`]): one thread per
 //! element of the source, which finds its block by comparing its column with the blocks' end
-//! columns, and copies one element into, or out of, that block.
+//! columns, and copies one element into, or out of, that block. A split of one row whose blocks
+//! all start where a binding may is views of the source instead, with no launch.
 
 use burn::backend::TensorMetadata;
+use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
+use burn::tensor::Slice;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
@@ -98,9 +101,29 @@ impl SplitOps for CubeBackend {
         assert_eq!(t.shape()[1], width, "the blocks tile the columns");
         let (client, device) = (t.client.clone(), t.device.clone());
         let t = prepare(t);
+        let [end0, end1, end2] = blocks.ends();
+        // One row: each block is a run of the buffer, a view where every block starts where a
+        // binding may (a weight's row blocks, seen as `[1, rows·cols]`): no launch.
+        let starts = [0, end0, end1, end2];
+        let alignment = client.properties().memory.alignment as usize;
+        if rows == 1
+            && (0..MAX_BLOCKS)
+                .all(|i| blocks.width(i) == 0 || (4 * starts[i]).is_multiple_of(alignment))
+        {
+            let mut views = (0..MAX_BLOCKS).map(|i| {
+                let view = if blocks.width(i) == 0 {
+                    tensor_f32(&client, &device, client.empty(4), &blocks.shape(rows, i))
+                } else {
+                    let end = starts[i] + blocks.width(i);
+                    Self::float_slice(t.clone(), &[Slice::from(0..1), Slice::from(starts[i]..end)])
+                };
+                cast_to(view, dtype)
+            });
+            let mut next = || views.next().expect("one view per slot");
+            return (next(), next(), next(), next());
+        }
         let sizes: [usize; MAX_BLOCKS] = std::array::from_fn(|i| rows * blocks.width(i));
         let outs = sizes.map(|n| client.empty(4 * n.max(1)));
-        let [end0, end1, end2] = blocks.ends();
         if rows * width > 0 {
             split_columns_kernel::launch(
                 &client,

@@ -119,9 +119,18 @@ mod tests {
     /// different way (some not at all, as a loss may leave the depth unused), and returns the
     /// blocks and the source's gradient.
     fn run(device: &Device, widths: &[usize], used: &[bool]) -> Vec<Vec<f32>> {
+        let width = widths.iter().sum();
+        // Sources one row long (a weight's row blocks) split into views of their buffer.
+        let shape = if width > 9 {
+            [1, 1, width]
+        } else {
+            [5, 4, width]
+        };
         let mut rng = Rng::new(5);
-        let values: Vec<f32> = (0..5 * 4 * 9).map(|_| rng.range_f32(-1.0, 1.0)).collect();
-        let t = Tensor::<3>::from_data(TensorData::new(values, [5, 4, 9]), device).require_grad();
+        let values: Vec<f32> = (0..shape.iter().product())
+            .map(|_| rng.range_f32(-1.0, 1.0))
+            .collect();
+        let t = Tensor::<3>::from_data(TensorData::new(values, shape), device).require_grad();
         let blocks = split_columns(t.clone(), widths);
         let mut loss = Tensor::<1>::zeros([1], device);
         for (i, (block, &use_it)) in blocks.iter().zip(used).enumerate() {
@@ -188,7 +197,9 @@ mod tests {
 
     /// On lavapipe the blocks and the source's gradient equal Burn's slices on Flex exactly
     /// (copies, and one addend per element), for two to four blocks, with blocks that take no
-    /// gradient.
+    /// gradient; and for sources of one row, whose blocks are views of the source where they
+    /// all start at multiples of 256 floats (a binding's alignment on every runtime divides
+    /// 1 KiB) and copies where one does not.
     #[test]
     fn split_matches_slices_wgpu() {
         let Some(device) = wgpu_test_device() else {
@@ -201,6 +212,8 @@ mod tests {
             (&[3, 1, 5], &[true, false, true]),
             (&[2, 2, 2, 3], &[false, true, true, true]),
             (&[8, 1], &[false, true]),
+            (&[256, 512, 3], &[true, true, true]),
+            (&[256, 5, 256], &[true, false, true]),
         ] {
             let gpu = run(&ad, widths, used);
             let cpu = run(&flex, widths, used);
