@@ -550,7 +550,8 @@ mod tests {
     /// parameter node, and each would form alone). With split-k in chunks of 8 rows both layers have several
     /// chunks, and the first parameter node to run forms both, one sum over the chunks for the
     /// two; each gradient is then a view of one buffer at an aligned offset. Outputs and every
-    /// gradient equal Flex's composition, where the detached pass is Burn's `linear` detached.
+    /// gradient equal Flex's composition, where the detached pass is Burn's `linear` detached;
+    /// also when the batch's bound on partial gradients leaves the second layer out.
     #[test]
     fn layers_form_their_gradients_together_wgpu() {
         let Some(device) = wgpu_test_device() else {
@@ -608,18 +609,24 @@ mod tests {
             parts
         };
         let reference = run(&DeviceChoice::Flex.device().autodiff(), Layer::Composed);
-        force_split_k_rows(Some(8));
-        op::filing::BATCHES.with_borrow_mut(Vec::clear);
-        let shared = run(&device.autodiff(), Layer::Shared);
-        let batches = op::filing::BATCHES.with_borrow_mut(std::mem::take);
-        force_split_k_rows(None);
-        assert_eq!(batches, [2], "both layers formed in one batch");
-        for (part, what) in shared
-            .iter()
-            .zip(&reference)
-            .zip(["output", "∂x", "∂W₀", "∂b₀", "∂W₁", "∂b₁"])
-        {
-            assert_close_to_scale(part.0, part.1, 1e-5, what);
+        // Then with a batch bound under the two layers' partial gradients: the second layer
+        // is left out of the first's batch, keeps its rows and forms them when it asks.
+        for (bound, want) in [(None, &[2][..]), (Some(1), &[1, 1])] {
+            force_split_k_rows(Some(8));
+            op::filing::BATCH_BYTES.set(bound);
+            op::filing::BATCHES.with_borrow_mut(Vec::clear);
+            let shared = run(&device.clone().autodiff(), Layer::Shared);
+            let batches = op::filing::BATCHES.with_borrow_mut(std::mem::take);
+            op::filing::BATCH_BYTES.set(None);
+            force_split_k_rows(None);
+            assert_eq!(batches, want, "layers formed per batch, bound {bound:?}");
+            for (part, what) in shared
+                .iter()
+                .zip(&reference)
+                .zip(["output", "∂x", "∂W₀", "∂b₀", "∂W₁", "∂b₁"])
+            {
+                assert_close_to_scale(part.0, part.1, 1e-5, &format!("{what}, bound {bound:?}"));
+            }
         }
     }
 

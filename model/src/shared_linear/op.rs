@@ -738,13 +738,14 @@ fn delivered_gradient<B: GradientKernels>(ledger: &Ledger, slot: usize) -> (Floa
         let mut formed = Vec::new();
         let mut layers = Vec::new();
         for (i, layer) in batch.iter_mut().enumerate() {
-            let (rows, inputs, bytes) = parameter_rows::<B>(layer);
-            if i > 0 && partial_bytes + bytes > crate::split_k::MAX_PARTIAL_BYTES {
+            let plan = GradientPlan::of::<B>(layer);
+            // A layer left out keeps its rows, and forms them when its own node asks.
+            if i > 0 && partial_bytes + plan.partial_bytes > filing::batch_bytes() {
                 continue;
             }
-            partial_bytes += bytes;
-            formed.push((i, inputs));
-            layers.push(rows);
+            partial_bytes += plan.partial_bytes;
+            formed.push((i, plan.inputs));
+            layers.push(plan.take_rows::<B>(layer));
         }
         #[cfg(test)]
         filing::BATCHES.with_borrow_mut(|b| b.push(layers.len()));
@@ -762,34 +763,52 @@ fn delivered_gradient<B: GradientKernels>(ledger: &Ledger, slot: usize) -> (Floa
     delivered
 }
 
-/// A layer's filed rows as the gradient kernels take them (its `bias_row` and split-k plan),
-/// its input width, and the bytes of its partial gradients. Takes the rows of an unformed
-/// layer (the caller forms it).
-fn parameter_rows<B: Backend>(state: &mut LedgerState) -> (ParameterRows<B>, usize, usize) {
-    // Both parameters take a gradient: one launch answers both (module docs).
-    let bias_row = state.seeded[1] || state.bias_row_always;
-    let rows = state.rows::<B>();
-    let filled = rows.grads.iter().map(|g| g.shape()[0]).sum();
-    let outputs = rows.grads[0].shape()[1];
-    let inputs = rows.inputs.first().map_or(0, |x| {
-        super::gradient::input_width(&x.shape(), rows.patches)
-    });
-    let out_rows = inputs + usize::from(bias_row);
-    let split = SplitK::plan(filled, out_rows, outputs);
-    let bytes = if split.chunks > 1 {
-        split.chunks * out_rows * outputs * size_of::<f32>()
-    } else {
-        0
-    };
-    let rows = ParameterRows {
-        inputs: std::mem::take(&mut rows.inputs),
-        patches: rows.patches,
-        grads: std::mem::take(&mut rows.grads),
-        scale: rows.scale.take(),
-        bias_row,
-        chunk_rows: split.chunk_rows,
-    };
-    (rows, inputs, bytes)
+/// How a layer's filed rows are formed: its `bias_row`, input width and split-k plan, and the
+/// bytes of its partial gradients.
+struct GradientPlan {
+    bias_row: bool,
+    inputs: usize,
+    split: SplitK,
+    partial_bytes: usize,
+}
+
+impl GradientPlan {
+    fn of<B: Backend>(state: &mut LedgerState) -> Self {
+        // Both parameters take a gradient: one launch answers both (module docs).
+        let bias_row = state.seeded[1] || state.bias_row_always;
+        let rows = state.rows::<B>();
+        let filled = rows.grads.iter().map(|g| g.shape()[0]).sum();
+        let outputs = rows.grads[0].shape()[1];
+        let inputs = rows.inputs.first().map_or(0, |x| {
+            super::gradient::input_width(&x.shape(), rows.patches)
+        });
+        let out_rows = inputs + usize::from(bias_row);
+        let split = SplitK::plan(filled, out_rows, outputs);
+        let partial_bytes = if split.chunks > 1 {
+            split.chunks * out_rows * outputs * size_of::<f32>()
+        } else {
+            0
+        };
+        Self {
+            bias_row,
+            inputs,
+            split,
+            partial_bytes,
+        }
+    }
+
+    /// The layer's rows as the gradient kernels take them (the caller forms them).
+    fn take_rows<B: Backend>(&self, state: &mut LedgerState) -> ParameterRows<B> {
+        let rows = state.rows::<B>();
+        ParameterRows {
+            inputs: std::mem::take(&mut rows.inputs),
+            patches: rows.patches,
+            grads: std::mem::take(&mut rows.grads),
+            scale: rows.scale.take(),
+            bias_row: self.bias_row,
+            chunk_rows: self.split.chunk_rows,
+        }
+    }
 }
 
 /// The layers whose product nodes have filed rows in the backward running on this thread.
@@ -816,6 +835,19 @@ pub(crate) mod filing {
         /// The layers formed together by each formation on this thread, for the tests.
         #[cfg(test)]
         pub(crate) static BATCHES: RefCell<Vec<usize>> = const { RefCell::new(Vec::new()) };
+        /// A tighter bound on a batch's partial gradients, for the tests.
+        #[cfg(test)]
+        pub(crate) static BATCH_BYTES: Cell<Option<usize>> = const { Cell::new(None) };
+    }
+
+    /// The most bytes a batch's partial gradients take together: split-k's bound for one
+    /// layer's ([`crate::split_k::MAX_PARTIAL_BYTES`]).
+    pub(super) fn batch_bytes() -> usize {
+        #[cfg(test)]
+        if let Some(bytes) = BATCH_BYTES.get() {
+            return bytes;
+        }
+        crate::split_k::MAX_PARTIAL_BYTES
     }
 
     /// Runs `f`, whose shared layers' outputs the caller detaches from the graph (the
