@@ -21,7 +21,6 @@
 //! of outputs in a fixed order, so results do not depend on scheduling.
 
 use burn::backend::TensorMetadata;
-use burn::backend::tensor::FloatTensor;
 use burn::tensor::Shape;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl;
@@ -36,7 +35,7 @@ use lifegom_render::cube::image::{ImageLayout, ImageLayoutLaunch, dense, image_l
 use crate::gemm_conv::cube::{Grid, GridLaunch, grid_arg, patch_value};
 use crate::gemm_conv::op::Patches;
 
-use super::op::{GradientKernels, PASS_PARTS, ParameterRows, VIEW_ALIGN, bias_row_at, formed_rows};
+use super::op::{Formed, GradientKernels, PASS_PARTS, ParameterRows};
 use super::product::{DEPTH, PER_THREAD, SIDE, THREADS, TILE, multiply_staged};
 
 /// The sizes of one launch: its passes' rows, the widths and the chunks.
@@ -236,6 +235,19 @@ fn chunks_of(rows: usize, chunk_rows: usize) -> usize {
     rows.div_ceil(chunk_rows.max(1)).max(1)
 }
 
+/// Floats between offsets where every runtime accepts a binding to start (WebGPU's limit is a
+/// power of two of at most 256 bytes): each layer's gradient and its bias row start at
+/// multiples of it, so that both are views of one buffer.
+const VIEW_ALIGN: usize = 64;
+
+/// The row of a layer's bias row in the buffer: the first at or after `inputs` whose offset is
+/// a multiple of [`VIEW_ALIGN`] floats.
+fn bias_row_at(inputs: usize, cols: usize) -> usize {
+    (inputs..=inputs + VIEW_ALIGN)
+        .find(|r| (r * cols).is_multiple_of(VIEW_ALIGN))
+        .unwrap_or(inputs)
+}
+
 /// Entries per layer of [`chunk_sum_kernel`]'s table.
 const TABLE_ENTRIES: usize = 6;
 
@@ -352,9 +364,13 @@ impl LayerRows {
         self.out_rows * self.cols
     }
 
-    /// The rows of the gradient as handed over: `∂W`'s, then the bias row at `bias_at`.
+    /// The rows the layer takes in the buffer: `∂W`'s, then the bias row at `bias_at`.
     fn handed_rows(&self) -> usize {
-        formed_rows(self.inputs, self.cols, self.bias_row)
+        if self.bias_row {
+            self.bias_at + 1
+        } else {
+            self.inputs
+        }
     }
 
     /// Rows of the passes launched with pass `g`.
@@ -450,7 +466,7 @@ impl LayerRows {
 }
 
 impl GradientKernels for CubeBackend {
-    fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<FloatTensor<Self>> {
+    fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<Formed<Self>> {
         let Some(first) = layers.first() else {
             return Vec::new();
         };
@@ -512,19 +528,29 @@ impl GradientKernels for CubeBackend {
                 arg(&output, total),
             );
         }
+        // `∂W` and the bias row as views of the buffer: each starts aligned, and a binding's
+        // end needs no alignment.
+        let view = |start: usize, shape: &[usize], dtype| {
+            let len: usize = shape.iter().product();
+            let handle = output
+                .clone()
+                .offset_start((size_of::<f32>() * start) as u64)
+                .offset_end((size_of::<f32>() * (total - start - len)) as u64);
+            cast_to(tensor_f32(&client, &device, handle, shape), dtype)
+        };
         layers
             .iter()
             .zip(&starts)
-            .map(|(layer, &start)| {
-                let len = layer.handed_rows() * layer.cols;
-                let view = output
-                    .clone()
-                    .offset_start((size_of::<f32>() * start) as u64)
-                    .offset_end((size_of::<f32>() * (total - start - len)) as u64);
-                cast_to(
-                    tensor_f32(&client, &device, view, &[layer.handed_rows(), layer.cols]),
-                    layer.dtype,
-                )
+            .map(|(layer, &start)| Formed {
+                weight: (layer.inputs > 0)
+                    .then(|| view(start, &[layer.inputs, layer.cols], layer.dtype)),
+                bias: layer.bias_row.then(|| {
+                    view(
+                        start + layer.bias_at * layer.cols,
+                        &[layer.cols],
+                        layer.dtype,
+                    )
+                }),
             })
             .collect()
     }

@@ -135,7 +135,7 @@ struct Rows<B: Backend> {
     scale: Option<FloatTensor<B>>,
     /// `[∂W; ∂b]` `[in + 1, out]` when both take a gradient, else the one that does (`∂b` as
     /// `[1, out]`), with `in` (module docs).
-    formed: Option<(FloatTensor<B>, usize)>,
+    formed: Option<Formed<B>>,
 }
 
 impl Ledger {
@@ -205,27 +205,15 @@ pub struct ParameterRows<B: Backend> {
     pub chunk_rows: usize,
 }
 
-/// Floats between offsets where every runtime accepts a binding to start (WebGPU's limit is a
-/// power of two of at most 256 bytes): formed gradients and their bias rows start at multiples
-/// of it, so that the parameter nodes' slices are views, not copies.
-pub const VIEW_ALIGN: usize = 64;
-
-/// The rows of a formed gradient (see [`GradientKernels::pass_gradients`]) with `inputs` rows of
-/// `∂W`, `cols` columns and, with `bias_row`, the bias row: `inputs`, or `bias_row_at + 1`.
-pub fn formed_rows(inputs: usize, cols: usize, bias_row: bool) -> usize {
-    if bias_row {
-        bias_row_at(inputs, cols) + 1
-    } else {
-        inputs
-    }
-}
-
-/// The row of a formed gradient's bias row: the first at or after `inputs` whose offset is a
-/// multiple of [`VIEW_ALIGN`] floats.
-pub fn bias_row_at(inputs: usize, cols: usize) -> usize {
-    (inputs..=inputs + VIEW_ALIGN)
-        .find(|r| (r * cols).is_multiple_of(VIEW_ALIGN))
-        .unwrap_or(inputs)
+/// A layer's formed parameter gradient ([`GradientKernels::pass_gradients`]): `∂W` `[in, out]`
+/// when the weight takes a gradient, and the row of ones' `Σ_rows G` `[out]` (`∂b`, or what a
+/// trained fold's `∂γ` reads) when the bias row was asked for.
+#[derive(Debug, Clone)]
+pub struct Formed<B: Backend> {
+    /// `Xᵀ·(G·diag(s))` `[in, out]`.
+    pub weight: Option<FloatTensor<B>>,
+    /// `Σ_rows G·diag(s)` `[out]`.
+    pub bias: Option<FloatTensor<B>>,
 }
 
 /// What a backend implements so that `Autodiff<B>` can form shared layers' parameter
@@ -234,11 +222,9 @@ pub fn bias_row_at(inputs: usize, cols: usize) -> usize {
 pub trait GradientKernels: Backend {
     /// Per layer, `[Xᵀ; 1ᵀ]·(G·diag(s))`, `X` and `G` every pass's rows one after the other,
     /// summed over chunks of `chunk_rows` rows: one launch per layer and [`PASS_PARTS`]
-    /// passes, and one sum over the chunks for all the layers that have more than one. Each is
-    /// `[formed_rows(in, out, bias_row), out]`: `∂W`'s `in` rows (none without inputs), then,
-    /// with `bias_row`, the row of ones' `∂b` at [`bias_row_at`] (the rows between are not
-    /// written).
-    fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<FloatTensor<Self>>;
+    /// passes, and one sum over the chunks for all the layers that have more than one; `∂W`'s
+    /// rows (when there are inputs) and the row of ones' (with `bias_row`) handed over apart.
+    fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<Formed<Self>>;
 }
 
 /// What the deferred op needs to rebuild a layer's [`ParameterRows`] from its flat inputs.
@@ -253,7 +239,7 @@ struct RowsLayout {
 }
 
 impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
-    fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<FloatTensor<Self>> {
+    fn pass_gradients(layers: Vec<ParameterRows<Self>>) -> Vec<Formed<Self>> {
         let mut layouts = Vec::with_capacity(layers.len());
         let mut specs = Vec::with_capacity(layers.len());
         let mut tensors = Vec::new();
@@ -270,10 +256,12 @@ impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
                 .first()
                 .map_or(0, |x| super::gradient::input_width(&x.shape(), patches));
             let cols = grads[0].shape()[1];
-            specs.push(float_like::<B>(
-                &grads[0],
-                Shape::new([formed_rows(width, cols, bias_row), cols]),
-            ));
+            if !inputs.is_empty() {
+                specs.push(float_like::<B>(&grads[0], Shape::new([width, cols])));
+            }
+            if bias_row {
+                specs.push(float_like::<B>(&grads[0], Shape::new([cols])));
+            }
             layouts.push(RowsLayout {
                 passes: grads.len(),
                 with_inputs: !inputs.is_empty(),
@@ -290,9 +278,10 @@ impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
                     .map(Input::Float),
             );
         }
-        deferred::<B, _>("pass_gradients", tensors, specs, move |values| {
+        let kept = layouts.clone();
+        let mut outputs = deferred::<B, _>("pass_gradients", tensors, specs, move |values| {
             let mut values = values.into_iter().map(Value::float);
-            let layers = layouts
+            let layers = kept
                 .iter()
                 .map(|l| ParameterRows {
                     inputs: values
@@ -308,9 +297,19 @@ impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
                 .collect();
             B::pass_gradients(layers)
                 .into_iter()
+                .flat_map(|formed| formed.weight.into_iter().chain(formed.bias))
                 .map(Value::Float)
                 .collect()
         })
+        .into_iter();
+        let mut next = |given: bool| given.then(|| outputs.next().expect("one output per part"));
+        layouts
+            .iter()
+            .map(|l| Formed {
+                weight: next(l.with_inputs),
+                bias: next(l.bias_row),
+            })
+            .collect()
     }
 }
 
@@ -319,10 +318,12 @@ impl<B: FusionBackend + GradientKernels> GradientKernels for Fusion<B> {
 #[doc(hidden)]
 pub trait FoldKernels: Backend {
     /// `(∂W, ∂γ)`: `∂W` `[out, in]` as the weight is stored and `∂γ` `[out]`, from the passes'
-    /// unscaled gradient `formed` `[Xᵀ·G; Σ_rows G]` `[in + 1, out]`, the weight, and the
-    /// BatchNorm's `γ`, `μ`, `σ²` `[out]` and `ε` (the `trained_fold` module).
+    /// unscaled gradient, `formed` `Xᵀ·G` `[in, out]` and `formed_bias` `Σ_rows G` `[out]`, the
+    /// weight, and the BatchNorm's `γ`, `μ`, `σ²` `[out]` and `ε` (the `trained_fold` module).
+    #[allow(clippy::too_many_arguments)]
     fn trained_fold_backward(
         formed: FloatTensor<Self>,
+        formed_bias: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
         mean: FloatTensor<Self>,
@@ -334,6 +335,7 @@ pub trait FoldKernels: Backend {
 impl<B: FusionBackend + FoldKernels> FoldKernels for Fusion<B> {
     fn trained_fold_backward(
         formed: FloatTensor<Self>,
+        formed_bias: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
         mean: FloatTensor<Self>,
@@ -344,7 +346,7 @@ impl<B: FusionBackend + FoldKernels> FoldKernels for Fusion<B> {
             float_like::<B>(&weight, weight.shape()),
             float_like::<B>(&gamma, gamma.shape()),
         ];
-        let inputs = [formed, weight, gamma, mean, var]
+        let inputs = [formed, formed_bias, weight, gamma, mean, var]
             .into_iter()
             .map(Input::Float)
             .collect();
@@ -353,9 +355,10 @@ impl<B: FusionBackend + FoldKernels> FoldKernels for Fusion<B> {
             inputs,
             specs,
             move |v| {
-                let [formed, weight, gamma, mean, var] = array(v);
+                let [formed, formed_bias, weight, gamma, mean, var] = array(v);
                 let (weight_grad, gamma_grad) = B::trained_fold_backward(
                     formed.float(),
+                    formed_bias.float(),
                     weight.float(),
                     gamma.float(),
                     mean.float(),
@@ -723,7 +726,7 @@ fn product_backward<B: ProductKernels + ReluKernels + PatchKernels>(
 /// a frozen BatchNorm's scale filed with them scaling `G`'s columns, together with every other
 /// layer whose passes have all filed (one sum over the chunks for all of them, see
 /// [`filing`]); the rows and the gradient are freed once every seeded node has had its part.
-fn delivered_gradient<B: GradientKernels>(ledger: &Ledger, slot: usize) -> (FloatTensor<B>, usize) {
+fn delivered_gradient<B: GradientKernels>(ledger: &Ledger, slot: usize) -> Formed<B> {
     let mut state = ledger.lock();
     state.delivered[slot] = true;
     let done = (0..2).all(|i| !state.seeded[i] || state.delivered[i]);
@@ -744,30 +747,28 @@ fn delivered_gradient<B: GradientKernels>(ledger: &Ledger, slot: usize) -> (Floa
                 continue;
             }
             partial_bytes += plan.partial_bytes;
-            formed.push((i, plan.inputs));
+            formed.push(i);
             layers.push(plan.take_rows::<B>(layer));
         }
         #[cfg(test)]
         filing::BATCHES.with_borrow_mut(|b| b.push(layers.len()));
         let gradients = B::pass_gradients(layers);
-        for ((i, inputs), gradient) in formed.into_iter().zip(gradients) {
-            batch[i].rows::<B>().formed = Some((gradient, inputs));
+        for (i, gradient) in formed.into_iter().zip(gradients) {
+            batch[i].rows::<B>().formed = Some(gradient);
         }
     }
     let rows = state.rows::<B>();
-    let (formed, inputs) = rows.formed.as_ref().expect("formed above");
-    let delivered = (formed.clone(), *inputs);
+    let delivered = rows.formed.clone().expect("formed above");
     if done {
         state.rows = None;
     }
     delivered
 }
 
-/// How a layer's filed rows are formed: its `bias_row`, input width and split-k plan, and the
-/// bytes of its partial gradients.
+/// How a layer's filed rows are formed: its `bias_row` and split-k plan, and the bytes of its
+/// partial gradients.
 struct GradientPlan {
     bias_row: bool,
-    inputs: usize,
     split: SplitK,
     partial_bytes: usize,
 }
@@ -791,7 +792,6 @@ impl GradientPlan {
         };
         Self {
             bias_row,
-            inputs,
             split,
             partial_bytes,
         }
@@ -932,24 +932,12 @@ impl<B: GradientKernels> Backward<B, 1> for ParameterBackward {
             Role::Weight => 0,
             Role::Bias => 1,
         };
-        let (formed, inputs) = delivered_gradient::<B>(&ledger, slot);
-        let [rows, outputs] = formed.shape().dims::<2>();
-        // The bias row is the last (see `GradientKernels::pass_gradients`).
-        let (first, last) = match role {
-            Role::Weight => (0, inputs),
-            Role::Bias => (rows - 1, rows),
-        };
-        let grad = B::float_slice(
-            formed,
-            &[
-                burn::tensor::Slice::from(first..last),
-                burn::tensor::Slice::from(0..outputs),
-            ],
-        );
+        let formed = delivered_gradient::<B>(&ledger, slot);
         let grad = match role {
-            Role::Weight => grad,
-            Role::Bias => B::float_reshape(grad, Shape::new([outputs])),
-        };
+            Role::Weight => formed.weight,
+            Role::Bias => formed.bias,
+        }
+        .expect("a seeded parameter's part is formed");
         grads.register::<B>(parent.id, grad);
     }
 }
@@ -985,9 +973,20 @@ impl<B: GradientKernels + FoldKernels> Backward<B, 2> for TrainedWeightBackward 
         let _ = grads.consume::<B>(&ops.node);
         let [weight_parent, gamma_parent] = ops.parents;
         let s = ops.state;
-        let (formed, _) = delivered_gradient::<B>(&s.ledger, 0);
-        let (weight_grad, gamma_grad) =
-            B::trained_fold_backward(formed, s.weight, s.gamma, s.mean, s.var, s.epsilon);
+        let formed = delivered_gradient::<B>(&s.ledger, 0);
+        let (weight_grad, gamma_grad) = B::trained_fold_backward(
+            formed
+                .weight
+                .expect("a trained fold's weight takes a gradient"),
+            formed
+                .bias
+                .expect("a trained fold's gradient carries its bias row"),
+            s.weight,
+            s.gamma,
+            s.mean,
+            s.var,
+            s.epsilon,
+        );
         if let Some(parent) = weight_parent {
             grads.register::<B>(parent.id, weight_grad);
         }

@@ -71,6 +71,7 @@ fn trained_fold_kernel(
 #[allow(clippy::too_many_arguments)]
 fn trained_fold_backward_kernel(
     formed: &[f32],
+    formed_bias: &[f32],
     weight: &[f32],
     gamma: &[f32],
     mean: &[f32],
@@ -80,7 +81,6 @@ fn trained_fold_backward_kernel(
     weights: usize,
     ins: usize,
     outs: usize,
-    bias_at: usize,
     epsilon: f32,
 ) {
     let e = ABSOLUTE_POS;
@@ -94,7 +94,7 @@ fn trained_fold_backward_kernel(
         for i in 0..ins {
             acc += weight[c * ins + i] * formed[i * outs + c];
         }
-        let bias_grad = formed[bias_at * outs + c];
+        let bias_grad = formed_bias[c];
         gamma_grad[c] = (acc - mean[c] * bias_grad) / f32::sqrt(var[c] + epsilon);
     }
 }
@@ -193,19 +193,20 @@ pub(super) fn trained_fold(
 impl FoldKernels for CubeBackend {
     fn trained_fold_backward(
         formed: FloatTensor<Self>,
+        formed_bias: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
         mean: FloatTensor<Self>,
         var: FloatTensor<Self>,
         epsilon: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        let [formed, weight, gamma, mean, var] = [formed, weight, gamma, mean, var].map(prepare);
+        let [formed, formed_bias, weight, gamma, mean, var] =
+            [formed, formed_bias, weight, gamma, mean, var].map(prepare);
         let out = FoldOutputs::for_weight(&weight);
-        // The bias row is the last (`GradientKernels::pass_gradients` may pad before it).
-        let [rows, cols] = formed.shape().dims::<2>();
         assert!(
-            rows > out.ins && cols == out.outs,
-            "a trained fold's gradient carries its bias row"
+            formed.shape().dims::<2>() == [out.ins, out.outs]
+                && formed_bias.shape().num_elements() == out.outs,
+            "a trained fold's gradient is `∂W'` [in, out] and its bias row [out]"
         );
         if out.weights + out.outs > 0 {
             trained_fold_backward_kernel::launch(
@@ -213,6 +214,7 @@ impl FoldKernels for CubeBackend {
                 out.units(),
                 CubeDim::new_1d(THREADS_1D),
                 tensor_arg(&formed),
+                tensor_arg(&formed_bias),
                 tensor_arg(&weight),
                 tensor_arg(&gamma),
                 tensor_arg(&mean),
@@ -222,7 +224,6 @@ impl FoldKernels for CubeBackend {
                 out.weights,
                 out.ins,
                 out.outs,
-                rows - 1,
                 epsilon,
             );
         }
