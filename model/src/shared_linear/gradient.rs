@@ -1,6 +1,6 @@
-//! A shared layer's parameter gradients on Burn's CubeCL backend, read straight from the rows
-//! its passes filed (see [`super`], design.md §7.5): one launch, plus a sum when the rows are
-//! split.
+//! Shared layers' parameter gradients on Burn's CubeCL backend, read straight from the rows
+//! their passes filed (see [`super`], design.md §7.5): one launch per layer, plus one sum over
+//! the chunks for all the layers formed together whose rows are split.
 //!
 //! The gradient is `[Xᵀ; 1ᵀ]·(G·diag(s))`: its first `in` rows are `∂W = Xᵀ·G`, its last, when
 //! the bias takes a gradient, `∂b = Σ_rows G` (a row of ones in `Xᵀ`), with `G`'s columns
@@ -14,7 +14,10 @@
 //!
 //! The reduction over rows is long (every pass's points) and the output small, so the rows
 //! are cut into chunks ([`crate::split_k`]): the cubes of chunk `z` write partial gradient
-//! `z`, and a sum over the chunks follows. Within a chunk the kernel is the forward product's
+//! `z`, and a sum over the chunks follows (`chunk_sum_kernel`, one launch for every chunked
+//! layer of the batch, each element's chunks added in order). The layers' gradients are
+//! written into one buffer, each `∂W` and bias row at an aligned offset, and handed over as
+//! views of it. Within a chunk the kernel is the forward product's
 //! (`super::product`): a cube of 16 × 16 threads owns a 64 × 64 block of the gradient and walks
 //! the chunk's rows 16 at a time, staging the slices of `X` and `G` in shared memory with
 //! neighbouring threads reading neighbouring columns of a row; each thread sums a 4 × 4 grid
@@ -471,8 +474,7 @@ impl GradientKernels for CubeBackend {
             return Vec::new();
         };
         let client = first.grads[0].client.clone();
-        // Every gradient is a view of one buffer, so each starts where a binding may, and so
-        // does its bias row: the parameter nodes' slices are views too.
+        // Every `∂W` and bias row is a view of one buffer, so each starts where a binding may.
         let align = (client.properties().memory.alignment as usize / size_of::<f32>())
             .max(VIEW_ALIGN)
             .next_power_of_two();
