@@ -81,6 +81,7 @@ mod inverse;
 pub mod knn;
 mod lanes;
 pub mod linear_op;
+pub mod neighbour_max;
 pub mod norm_folds;
 pub mod point_transformer;
 pub mod reconstructor;

@@ -723,8 +723,7 @@ impl TransitionDown {
             lifegom_render::split::join_columns(vec![rel, grouped]),
             Activation::Relu,
         );
-        let c = h.dims()[2];
-        h.max_dim(1).reshape([m, c])
+        crate::neighbour_max::max_over_neighbours(h)
     }
 }
 
