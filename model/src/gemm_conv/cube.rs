@@ -7,9 +7,12 @@
 //! the columns' gradient onto the image: one thread per input element visits the `kh·kw` window
 //! positions that could cover it and adds the column gradient of each output position whose
 //! window does (`y + py − ky` a multiple of the stride and inside the output), so no two
-//! threads write one element and no atomics are needed.
+//! threads write one element and no atomics are needed. It writes the image's gradient
+//! channels-last, as the products write their outputs, so that the previous layer's backward
+//! product reads it as rows without a copy.
 
 use burn::backend::TensorMetadata;
+use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::tensor::Shape;
 use burn_cubecl::CubeBackend;
@@ -78,12 +81,13 @@ fn patch_columns_backward_kernel(columns_grad: &[f32], dx: &mut [f32], grid: Gri
     if e < units {
         let window = grid.kernel_y * grid.kernel_x;
         let width = grid.channels * window;
-        let plane = grid.height * grid.width;
-        let n = e / (grid.channels * plane);
-        let c = (e / plane) % grid.channels;
+        // `∂x` is written channels-last, `e = ((n·H + y)·W + x)·C + c`.
+        let c = e % grid.channels;
+        let pixel = e / grid.channels;
+        let n = pixel / (grid.height * grid.width);
         // Padded coordinates of this input element.
-        let y = (e % plane) / grid.width + grid.pad_y;
-        let x_ = e % grid.width + grid.pad_x;
+        let y = (pixel / grid.width) % grid.height + grid.pad_y;
+        let x_ = pixel % grid.width + grid.pad_x;
         let mut sum = 0.0f32;
         for ky in 0..grid.kernel_y {
             if y >= ky && (y - ky) % grid.stride_y == 0 {
@@ -146,6 +150,10 @@ impl PatchKernels for CubeBackend {
                 units,
             );
         }
-        cast_to(tensor_f32(&client, &device, out, &input), dtype)
+        // Channels-last, answered as the `[N, C, H, W]` view (as the products answer their
+        // rows): the previous layer's `∂x` product then reads its gradient's rows in place.
+        let [n, c, h, w] = input.dims::<4>();
+        let rows = tensor_f32(&client, &device, out, &[n, h, w, c]);
+        cast_to(Self::float_permute(rows, &[0, 3, 1, 2]), dtype)
     }
 }
