@@ -1099,31 +1099,20 @@ impl<
                 x, patches, weight, bias, scale, shift, map, ledger, activation, handoff,
             ));
         }
-        expect_rows(&ledger);
-        let (x, x_node) = x.into_parts();
-        let (weight, weight_node) = weight.into_parts();
-        let (bias, bias_node) = bias.into_parts();
-        // A frozen BatchNorm's map takes no gradient.
-        let [scale, shift] = [scale, shift].map(|t| t.into_primitive());
-        record_product::<B, C, _, 3>(
-            ProductBackward,
-            [x_node, weight_node, bias_node],
-            ProductInputs::new(
-                (x, patches),
-                weight,
-                [bias, scale, shift],
-                map,
-                ledger,
-                handoff,
-            ),
-            activation,
-            |s| {
-                B::shared_linear(
-                    s.x, s.patches, s.weight, s.bias, s.scale, s.shift, s.map, s.ledger,
-                    activation, s.handoff,
-                )
-            },
-        )
+        let (nodes, inputs) = product_parts::<B, C>(
+            (x, patches),
+            weight,
+            [bias, scale, shift],
+            map,
+            ledger,
+            handoff,
+        );
+        record_product::<B, C, _, 3>(ProductBackward, nodes, inputs, activation, |s| {
+            B::shared_linear(
+                s.x, s.patches, s.weight, s.bias, s.scale, s.shift, s.map, s.ledger, activation,
+                s.handoff,
+            )
+        })
     }
 
     fn shared_linear_residual(
@@ -1145,23 +1134,19 @@ impl<
                 x, patches, weight, bias, scale, shift, map, residual, ledger, handoff,
             ));
         }
-        expect_rows(&ledger);
-        let (x, x_node) = x.into_parts();
-        let (weight, weight_node) = weight.into_parts();
-        let (bias, bias_node) = bias.into_parts();
-        let [scale, shift] = [scale, shift].map(|t| t.into_primitive());
         let (residual, residual_node) = residual.into_parts();
+        let ([x_node, weight_node, bias_node], inputs) = product_parts::<B, C>(
+            (x, patches),
+            weight,
+            [bias, scale, shift],
+            map,
+            ledger,
+            handoff,
+        );
         record_product::<B, C, _, 4>(
             ResidualProductBackward,
             [x_node, weight_node, bias_node, residual_node],
-            ProductInputs::new(
-                (x, patches),
-                weight,
-                [bias, scale, shift],
-                map,
-                ledger,
-                handoff,
-            ),
+            inputs,
             Activation::Relu,
             |s| {
                 B::shared_linear_residual(
@@ -1173,13 +1158,37 @@ impl<
     }
 }
 
-/// Counts a pass whose product node will file rows: one whose weight or bias takes a gradient
-/// (see [`filing`]).
-fn expect_rows(ledger: &Ledger) {
-    let mut state = ledger.lock();
-    if state.tracked {
-        state.expected += 1;
+/// A pass's inputs taken apart for its product node: the nodes of `x`, `W` and `b`, and the
+/// node's state (a frozen BatchNorm's map takes no gradient: its nodes are dropped). The pass
+/// is counted as one its layer waits for when the weight or bias takes a gradient (see
+/// [`filing`]).
+fn product_parts<B: Backend, C: CheckpointStrategy>(
+    (x, patches): (FloatTensor<Autodiff<B, C>>, Option<Patches>),
+    weight: FloatTensor<Autodiff<B, C>>,
+    [bias, scale, shift]: [FloatTensor<Autodiff<B, C>>; 3],
+    map: OutputMap,
+    ledger: Ledger,
+    handoff: Handoff,
+) -> ([NodeGuard; 3], ProductInputs<B>) {
+    {
+        let mut state = ledger.lock();
+        if state.tracked {
+            state.expected += 1;
+        }
     }
+    let (x, x_node) = x.into_parts();
+    let (weight, weight_node) = weight.into_parts();
+    let (bias, bias_node) = bias.into_parts();
+    let [scale, shift] = [scale, shift].map(|t| t.into_primitive());
+    let inputs = ProductInputs::new(
+        (x, patches),
+        weight,
+        [bias, scale, shift],
+        map,
+        ledger,
+        handoff,
+    );
+    ([x_node, weight_node, bias_node], inputs)
 }
 
 /// A product node over `nodes` (`x`, `W`, `b` and any residual): `forward` runs on the inner
