@@ -699,8 +699,8 @@ fn product_backward<B: ProductKernels + ReluKernels + PatchKernels>(
     let rows = ledger.rows::<B>();
     assert!(
         rows.formed.is_none(),
-        "a pass filed rows after its layer's gradient was formed: a pass marked detached \
-         (`detached_passes`) reached the loss"
+        "a pass filed rows after its layer's gradient was formed: the forward did not count it \
+         (its layer's weight and bias were not tracked when it ran)"
     );
     if weight_node.is_some() {
         // An image is filed as it is: the gradient kernel reads its patch columns in place.
