@@ -14,6 +14,18 @@
 //! 16-bit draws from the device's own RNG, so `Device::seed` (which the trainer sets per step)
 //! still fixes every mask. On CubeCL devices the mask is drawn on the device as Burn does (a host
 //! draw would cost an upload per call, and the GPU's generator is not the bottleneck there).
+//!
+//! **Masks drawn inside a kernel.** Where dropout feeds a residual LayerNorm on a CubeCL device
+//! (the fusion layers, `crate::fusion`), Burn's dropout is two launches per mask (its generator,
+//! then the compare and multiply) and one more backward. There the LayerNorm's kernels draw the
+//! mask themselves from a counter-based hash ([`kernel_mask_bits`]): element `e` of the dropped
+//! tensor is kept when `mix(mix(e) ⊕ key) < keep·2³²`, `key` being [`kernel_mask_key`] of one
+//! uniform draw from the device's RNG (a small `Tensor::random` per layer, so `Device::seed`
+//! still fixes every mask). The backward recomputes the same bits: nothing is stored. `mix` is
+//! a 32-bit integer finaliser (xor-shift, multiply, three rounds), a bijection whose output bits
+//! each depend on every input bit; the kept fraction and independence from the index are tested
+//! below. The host functions here are the kernels' reference (`crate::fusion::op`'s CPU
+//! implementation uses them).
 
 use burn::nn::Dropout;
 use burn::tensor::{Distribution, Tensor, TensorData};
@@ -96,6 +108,61 @@ pub fn dropout_with<const D: usize>(
     input * mask
 }
 
+/// Whether `layer` on `device` would draw a mask on a CubeCL device (Burn's rule: training flag,
+/// autodiff device, `prob > 0`); there a residual LayerNorm can draw it inside its kernel.
+pub fn draws_device_mask(layer: &Dropout, device: &burn::tensor::Device) -> bool {
+    layer.training.is_enabled() && device.is_autodiff() && layer.prob > 0.0 && !runs_on_host(device)
+}
+
+/// The threshold below which 32 random bits keep an element: `keep·2³²`, rounded, at most
+/// `u32::MAX`.
+pub fn keep_threshold(keep: f64) -> u32 {
+    (keep * 4_294_967_296.0).round().min(u32::MAX as f64) as u32
+}
+
+/// Draws scale to 24-bit keys: the uniform draws of Burn's generator are multiples of `2⁻²⁴`
+/// or finer, so `draw·2²⁴` keeps their leading 24 bits exactly.
+const DRAW_SCALE: f32 = 16_777_216.0;
+
+/// The key of a kernel-drawn mask seeded by the uniform draw `draw` in `[0, 1)` (module docs).
+pub fn kernel_mask_key(draw: f32) -> u32 {
+    mix32((draw * DRAW_SCALE) as u32)
+}
+
+/// The 32 random bits of element `index` of the mask with key `key` (module docs).
+pub fn kernel_mask_bits(key: u32, index: u32) -> u32 {
+    mix32(mix32(index) ^ key)
+}
+
+/// The 32-bit finaliser the kernel masks hash with (the "lowbias32" constants, public domain).
+/// The kernels in `crate::fusion::cube` repeat it in CubeCL.
+pub fn mix32(mut x: u32) -> u32 {
+    x ^= x >> 16;
+    x = x.wrapping_mul(0x7feb_352d);
+    x ^= x >> 15;
+    x = x.wrapping_mul(0x846c_a68b);
+    x ^ (x >> 16)
+}
+
+/// The `n` values of a kernel-drawn mask, `{0, 1/keep}`, on the host: the reference of the
+/// CubeCL kernels and the CPU implementation of their op.
+pub fn kernel_mask(n: usize, keep: f64, draw: f32) -> Vec<f32> {
+    let (key, threshold, scale) = (
+        kernel_mask_key(draw),
+        keep_threshold(keep),
+        (1.0 / keep) as f32,
+    );
+    (0..n)
+        .map(|e| {
+            if kernel_mask_bits(key, e as u32) < threshold {
+                scale
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
 /// Mask values per rayon task of [`host_mask`]: large enough to amortise a task, small enough
 /// that the fusion's ~0.5 M-element masks split over two cores.
 const MASK_VALUES_PER_TASK: usize = 1 << 15;
@@ -106,7 +173,7 @@ const MASK_VALUES_PER_TASK: usize = 1 << 15;
 /// their own copy of the stream at their first draw ([`Rng::skipped`]), so the mask is the same
 /// whatever the thread count: the one a single thread drawing in order makes.
 fn host_mask(n: usize, keep: f64, seed: u64) -> Vec<f32> {
-    let threshold = (keep * 4_294_967_296.0).round().min(u32::MAX as f64) as u32;
+    let threshold = keep_threshold(keep);
     let scale = (1.0 / keep) as f32;
     let stream = Rng::new(seed);
     let draw = |bits: u32| if bits < threshold { scale } else { 0.0 };
@@ -167,6 +234,34 @@ mod tests {
         let grads = y.clone().sum().backward();
         let g = read(x.grad(&grads).expect("x takes part"));
         assert_eq!(g, read(y), "d(x·m)/dx = m and x = 1");
+    }
+
+    /// A kernel mask keeps `keep` of its elements (within 5σ), in runs no longer than chance
+    /// makes them (neighbouring indices are not correlated), and two keys give different masks
+    /// that agree where independent masks would (within 5σ).
+    #[test]
+    fn kernel_masks_keep_their_fraction_independently() {
+        let (n, keep) = (1_000_000usize, 0.9);
+        let a = kernel_mask(n, keep, 0.25);
+        let b = kernel_mask(n, keep, 0.5);
+        let kept = |m: &[f32]| m.iter().filter(|&&v| v != 0.0).count() as f64 / n as f64;
+        let sigma = (keep * (1.0 - keep) / n as f64).sqrt();
+        for m in [&a, &b] {
+            assert!((kept(m) - keep).abs() < 5.0 * sigma, "kept {}", kept(m));
+        }
+        // Pairs of neighbours both dropped: (1 − keep)² of them if independent.
+        let both = a.windows(2).filter(|w| w[0] == 0.0 && w[1] == 0.0).count() as f64;
+        let expected = (1.0 - keep).powi(2) * (n - 1) as f64;
+        assert!(
+            (both - expected).abs() < 5.0 * expected.sqrt(),
+            "{both} vs {expected}"
+        );
+        let agree = a.iter().zip(&b).filter(|(x, y)| x == y).count() as f64 / n as f64;
+        let p = keep * keep + (1.0 - keep) * (1.0 - keep);
+        let sigma = (p * (1.0 - p) / n as f64).sqrt();
+        assert!((agree - p).abs() < 5.0 * sigma, "agreement {agree} vs {p}");
+        let scale = (1.0 / keep) as f32;
+        assert!(a.iter().all(|&v| v == 0.0 || v == scale));
     }
 
     /// The parallel draw is the single stream drawn in order, low half then high half of each

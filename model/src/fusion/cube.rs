@@ -19,6 +19,13 @@
 //! (BENCHMARKS.md, "On a GPU", session 19).
 //!
 //! Burn's `LayerNorm` composition is about ten launches forward and fifteen backward per call.
+//!
+//! With dropout on the residual (`LN(x + Dropout(r))`, [`super::op::AddDroppedLayerNormOps`]),
+//! every read of `r[e]` is multiplied by the mask's value at `e`, which the kernels hash from the
+//! element's index and a key made of one uniform draw ([`crate::dropout`], "masks drawn inside a
+//! kernel"); the backward recomputes it and writes `∂r = ∂z·m` beside `∂x = ∂z`. Two launches
+//! fewer per mask forward than Burn's dropout (its generator, then the multiply), and the
+//! multiply's backward is gone too.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -31,7 +38,10 @@ use lifegom_render::cube::host::{
     ComputeClient, THREADS_1D, arg, cast_to, count_1d, count_cubes, prepare, tensor_arg, tensor_f32,
 };
 
-use super::op::{AddLayerNormOps, LayerNormEpsilon, LayerNormInputs, LayerNormKernels};
+use super::op::{
+    AddDroppedLayerNormOps, AddLayerNormOps, DropoutSlot, KernelDropout, LayerNormEpsilon,
+    LayerNormGrads, LayerNormInputs, LayerNormKernels,
+};
 
 /// Threads of a row kernel's cube (a power of two: the shared-memory sum halves it).
 const ROW_THREADS: u32 = 64;
@@ -67,6 +77,65 @@ pub(super) fn cube_sum(shared: &mut Shared<[f32]>, value: f32) -> f32 {
     total
 }
 
+/// A kernel-drawn dropout mask's parameters (unused without dropout).
+#[derive(CubeType, CubeLaunch)]
+struct MaskParams {
+    /// The draw that seeds the mask.
+    slot: usize,
+    /// `keep·2³²`: bits below it keep the element.
+    threshold: u32,
+    /// `1/keep`.
+    scale: f32,
+}
+
+/// The 32-bit finaliser of [`crate::dropout::mix32`], in CubeCL.
+#[cube]
+fn mix32(value: u32) -> u32 {
+    let mut x = value;
+    x ^= x >> 16u32;
+    x *= 0x7feb_352du32;
+    x ^= x >> 15u32;
+    x *= 0x846c_a68bu32;
+    x ^ (x >> 16u32)
+}
+
+/// The mask's key ([`crate::dropout::kernel_mask_key`]); zero without dropout.
+#[cube]
+fn mask_key(draws: &[f32], mask: &MaskParams, #[comptime] dropped: bool) -> u32 {
+    let mut key = 0u32;
+    if comptime!(dropped) {
+        key = mix32(u32::cast_from(draws[mask.slot] * 16_777_216.0f32));
+    }
+    key
+}
+
+/// The mask's value at element `e`, `0` or `1/keep` ([`crate::dropout::kernel_mask`]); `1`
+/// without dropout.
+#[cube]
+fn mask_at(key: u32, e: usize, mask: &MaskParams, #[comptime] dropped: bool) -> f32 {
+    let mut value = 1.0f32;
+    if comptime!(dropped) {
+        value = 0.0f32;
+        if mix32(mix32(u32::cast_from(e)) ^ key) < mask.threshold {
+            value = mask.scale;
+        }
+    }
+    value
+}
+
+/// `z[e] = x[e] + r[e]·m[e]`.
+#[cube]
+fn summed(
+    x: &[f32],
+    r: &[f32],
+    e: usize,
+    key: u32,
+    mask: &MaskParams,
+    #[comptime] dropped: bool,
+) -> f32 {
+    x[e] + r[e] * mask_at(key, e, mask, dropped)
+}
+
 /// A row's mean and reciprocal standard deviation.
 #[derive(CubeType, Clone, Copy)]
 struct RowStats {
@@ -74,8 +143,9 @@ struct RowStats {
     rstd: f32,
 }
 
-/// The statistics of row `row` of `z = x + r`, computed by the whole cube.
+/// The statistics of row `row` of `z = x + r·m`, computed by the whole cube.
 #[cube]
+#[allow(clippy::too_many_arguments)]
 fn row_stats(
     x: &[f32],
     r: &[f32],
@@ -83,20 +153,23 @@ fn row_stats(
     row: usize,
     d: usize,
     epsilon: f32,
+    key: u32,
+    mask: &MaskParams,
+    #[comptime] dropped: bool,
 ) -> RowStats {
     let base = row * d;
     let step = CUBE_DIM as usize;
     let mut sum = 0.0f32;
     let mut c = UNIT_POS as usize;
     while c < d {
-        sum += x[base + c] + r[base + c];
+        sum += summed(x, r, base + c, key, mask, dropped);
         c += step;
     }
     let mean = cube_sum(shared, sum) / f32::cast_from(d);
     let mut deviation = 0.0f32;
     c = UNIT_POS as usize;
     while c < d {
-        let centred = x[base + c] + r[base + c] - mean;
+        let centred = summed(x, r, base + c, key, mask, dropped) - mean;
         deviation += centred * centred;
         c += step;
     }
@@ -115,20 +188,24 @@ fn residual_layer_norm_kernel(
     r: &[f32],
     gamma: &[f32],
     beta: &[f32],
+    draws: &[f32],
     out: &mut [f32],
     rows: usize,
     d: usize,
     epsilon: f32,
+    mask: &MaskParams,
+    #[comptime] dropped: bool,
 ) {
     let mut shared = Shared::<[f32]>::new_slice(ROW_THREADS as usize);
     let row = row_of_cube();
+    let key = mask_key(draws, mask, dropped);
     // The same for every thread of the cube, so the barriers inside are reached by all.
     if row < rows {
-        let stats = row_stats(x, r, &mut shared, row, d, epsilon);
+        let stats = row_stats(x, r, &mut shared, row, d, epsilon, key, mask, dropped);
         let base = row * d;
         let mut c = UNIT_POS as usize;
         while c < d {
-            let z = x[base + c] + r[base + c];
+            let z = summed(x, r, base + c, key, mask, dropped);
             out[base + c] = (z - stats.mean) * stats.rstd * gamma[c] + beta[c];
             c += CUBE_DIM as usize;
         }
@@ -136,9 +213,9 @@ fn residual_layer_norm_kernel(
 }
 
 /// One cube of [`ROW_THREADS`] per chunk of [`ROWS_PER_CHUNK`] rows, the rows in order: each
-/// row's statistics and `∂z` by the whole cube, and the chunk's `Σ g·x̂` and `Σ g` per channel
-/// (at `[chunk·d + c]` of `partial_gx` and `partial_g`), each channel's sums kept by the thread
-/// that handles the channel in every row.
+/// row's statistics and `∂z` by the whole cube (and `∂r = ∂z·m` with dropout), and the chunk's
+/// `Σ g·x̂` and `Σ g` per channel (at `[chunk·d + c]` of `partial_gx` and `partial_g`), each
+/// channel's sums kept by the thread that handles the channel in every row.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 fn layer_norm_backward_kernel(
@@ -146,17 +223,22 @@ fn layer_norm_backward_kernel(
     r: &[f32],
     gamma: &[f32],
     grad: &[f32],
+    draws: &[f32],
     dz: &mut [f32],
+    dr: &mut [f32],
     partial_gx: &mut [f32],
     partial_g: &mut [f32],
     rows: usize,
     chunks: usize,
     d: usize,
     epsilon: f32,
+    mask: &MaskParams,
+    #[comptime] dropped: bool,
 ) {
     let mut shared = Shared::<[f32]>::new_slice(ROW_THREADS as usize);
     let chunk = row_of_cube();
     let step = CUBE_DIM as usize;
+    let key = mask_key(draws, mask, dropped);
     // The same for every thread of the cube, so the barriers inside are reached by all.
     if chunk < chunks {
         let first = chunk * ROWS_PER_CHUNK;
@@ -169,13 +251,13 @@ fn layer_norm_backward_kernel(
             c += step;
         }
         for row in first..last {
-            let stats = row_stats(x, r, &mut shared, row, d, epsilon);
+            let stats = row_stats(x, r, &mut shared, row, d, epsilon, key, mask, dropped);
             let base = row * d;
             let mut sum_a = 0.0f32;
             let mut sum_ax = 0.0f32;
             c = UNIT_POS as usize;
             while c < d {
-                let xhat = (x[base + c] + r[base + c] - stats.mean) * stats.rstd;
+                let xhat = (summed(x, r, base + c, key, mask, dropped) - stats.mean) * stats.rstd;
                 let a = grad[base + c] * gamma[c];
                 sum_a += a;
                 sum_ax += a * xhat;
@@ -186,9 +268,15 @@ fn layer_norm_backward_kernel(
             let mean_ax = cube_sum(&mut shared, sum_ax) / n;
             c = UNIT_POS as usize;
             while c < d {
-                let xhat = (x[base + c] + r[base + c] - stats.mean) * stats.rstd;
-                let g = grad[base + c];
-                dz[base + c] = stats.rstd * (g * gamma[c] - mean_a - xhat * mean_ax);
+                let e = base + c;
+                let m = mask_at(key, e, mask, dropped);
+                let xhat = (x[e] + r[e] * m - stats.mean) * stats.rstd;
+                let g = grad[e];
+                let dz_e = stats.rstd * (g * gamma[c] - mean_a - xhat * mean_ax);
+                dz[e] = dz_e;
+                if comptime!(dropped) {
+                    dr[e] = dz_e * m;
+                }
                 partial_gx[sums + c] += g * xhat;
                 partial_g[sums + c] += g;
                 c += step;
@@ -223,11 +311,13 @@ fn layer_norm_columns_total_kernel(
 /// The inputs both directions share, in the kernels' layout (f32, contiguous), with the
 /// sizes: `rows` rows of `d` channels, `len = rows·d` elements.
 struct Prepared {
+    /// The dropout's draws and slot (`None`: no dropout).
+    dropout: Option<(CubeTensor, DropoutSlot)>,
     client: ComputeClient,
     device: CubeDevice,
     shape: Shape,
-    /// The dtype of `x` (and of `∂z`), `gamma`'s and `beta`'s.
-    dtypes: [DType; 3],
+    /// The dtype of `x` (and of `∂z`), `gamma`'s, `beta`'s and `residual`'s.
+    dtypes: [DType; 4],
     x: CubeTensor,
     r: CubeTensor,
     gamma: CubeTensor,
@@ -244,9 +334,15 @@ impl Prepared {
         let d = inputs.gamma.shape().num_elements();
         let len = shape.num_elements();
         Self {
+            dropout: inputs.dropout.map(|d| (prepare(d.draws), d.mask)),
             client: inputs.x.client.clone(),
             device: inputs.x.device.clone(),
-            dtypes: [inputs.x.dtype(), inputs.gamma.dtype(), inputs.beta.dtype()],
+            dtypes: [
+                inputs.x.dtype(),
+                inputs.gamma.dtype(),
+                inputs.beta.dtype(),
+                inputs.residual.dtype(),
+            ],
             shape,
             x: prepare(inputs.x),
             r: prepare(inputs.residual),
@@ -260,11 +356,35 @@ impl Prepared {
     }
 }
 
+impl Prepared {
+    /// The draws to bind (`gamma` stands in without dropout: the kernel never reads it then),
+    /// the mask's launch parameters, and whether there is a mask.
+    fn mask(&self) -> (BufferArg, MaskParamsLaunch, bool) {
+        match &self.dropout {
+            Some((draws, slot)) => (
+                tensor_arg(draws),
+                MaskParamsLaunch::new(
+                    slot.slot,
+                    crate::dropout::keep_threshold(slot.keep),
+                    (1.0 / slot.keep) as f32,
+                ),
+                true,
+            ),
+            None => (
+                tensor_arg(&self.gamma),
+                MaskParamsLaunch::new(0, 0, 1.0),
+                false,
+            ),
+        }
+    }
+}
+
 fn cube_forward(inputs: LayerNormInputs<CubeBackend>) -> FloatTensor<CubeBackend> {
     let _span = tracing::trace_span!("cube_add_layer_norm").entered();
     let p = Prepared::new(inputs);
     let out = p.client.empty(4 * p.len.max(1));
     if p.rows > 0 && p.d > 0 {
+        let (draws, mask, dropped) = p.mask();
         residual_layer_norm_kernel::launch(
             &p.client,
             count_cubes(p.rows),
@@ -273,10 +393,13 @@ fn cube_forward(inputs: LayerNormInputs<CubeBackend>) -> FloatTensor<CubeBackend
             tensor_arg(&p.r),
             tensor_arg(&p.gamma),
             tensor_arg(&p.beta),
+            draws,
             arg(&out, p.len),
             p.rows,
             p.d,
             p.epsilon,
+            mask,
+            dropped,
         );
     }
     cast_to(tensor_f32(&p.client, &p.device, out, &p.shape), p.dtypes[0])
@@ -285,12 +408,17 @@ fn cube_forward(inputs: LayerNormInputs<CubeBackend>) -> FloatTensor<CubeBackend
 fn cube_backward(
     inputs: LayerNormInputs<CubeBackend>,
     grad: FloatTensor<CubeBackend>,
-) -> [FloatTensor<CubeBackend>; 3] {
+) -> LayerNormGrads<CubeBackend> {
     let _span = tracing::trace_span!("cube_add_layer_norm_backward").entered();
     let p = Prepared::new(inputs);
     let (client, d, rows, len) = (&p.client, p.d, p.rows, p.len);
     let grad = prepare(grad);
     let dz = client.empty(4 * len.max(1));
+    // Without dropout `∂r` is `∂z`; the kernel then writes nothing into this one-element stand-in.
+    let dr = match p.dropout {
+        Some(_) => client.empty(4 * len.max(1)),
+        None => client.empty(4),
+    };
     let dgamma = client.empty(4 * d.max(1));
     let dbeta = client.empty(4 * d.max(1));
     if d > 0 {
@@ -299,6 +427,7 @@ fn cube_backward(
         let units = chunks * d;
         let partial_gx = client.empty(4 * units);
         let partial_g = client.empty(4 * units);
+        let (draws, mask, dropped) = p.mask();
         layer_norm_backward_kernel::launch(
             client,
             count_cubes(chunks),
@@ -307,13 +436,17 @@ fn cube_backward(
             tensor_arg(&p.r),
             tensor_arg(&p.gamma),
             tensor_arg(&grad),
+            draws,
             arg(&dz, len),
+            arg(&dr, if dropped { len } else { 1 }),
             arg(&partial_gx, units),
             arg(&partial_g, units),
             rows,
             chunks,
             d,
             p.epsilon,
+            mask,
+            dropped,
         );
         layer_norm_columns_total_kernel::launch(
             client,
@@ -327,9 +460,15 @@ fn cube_backward(
             d,
         );
     }
-    let [z_dtype, gamma_dtype, beta_dtype] = p.dtypes;
+    let [z_dtype, gamma_dtype, beta_dtype, _] = p.dtypes;
+    let dx = cast_to(tensor_f32(client, &p.device, dz, &p.shape), z_dtype);
+    let dr = match p.dropout {
+        Some(_) => cast_to(tensor_f32(client, &p.device, dr, &p.shape), p.dtypes[3]),
+        None => dx.clone(),
+    };
     [
-        cast_to(tensor_f32(client, &p.device, dz, &p.shape), z_dtype),
+        dx,
+        dr,
         cast_to(tensor_f32(client, &p.device, dgamma, &[d]), gamma_dtype),
         cast_to(tensor_f32(client, &p.device, dbeta, &[d]), beta_dtype),
     ]
@@ -349,6 +488,28 @@ impl AddLayerNormOps for CubeBackend {
             gamma,
             beta,
             epsilon: epsilon.0,
+            dropout: None,
+        })
+    }
+}
+
+impl AddDroppedLayerNormOps for CubeBackend {
+    fn add_dropped_layer_norm(
+        x: FloatTensor<Self>,
+        residual: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        draws: FloatTensor<Self>,
+        mask: DropoutSlot,
+        epsilon: LayerNormEpsilon,
+    ) -> FloatTensor<Self> {
+        cube_forward(LayerNormInputs {
+            x,
+            residual,
+            gamma,
+            beta,
+            epsilon: epsilon.0,
+            dropout: Some(KernelDropout { draws, mask }),
         })
     }
 }
@@ -361,7 +522,7 @@ impl LayerNormKernels for CubeBackend {
     fn layer_norm_backward(
         inputs: LayerNormInputs<Self>,
         grad: FloatTensor<Self>,
-    ) -> [FloatTensor<Self>; 3] {
+    ) -> LayerNormGrads<Self> {
         cube_backward(inputs, grad)
     }
 }

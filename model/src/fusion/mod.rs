@@ -28,15 +28,20 @@ use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::softmax;
-use burn::tensor::{Device, Int, Tensor, TensorData};
+use burn::tensor::{Device, Distribution, Int, Tensor, TensorData};
 use lifegom_render::select::select_rows;
 use lifegom_render::split::split_columns;
 
 use crate::activation::Activation;
-use crate::dropout::{MaskSeed, draw_seed, draws_host_mask, dropout_with, drops_nothing};
+use crate::dropout::{
+    MaskSeed, draw_seed, draws_device_mask, draws_host_mask, dropout_with, drops_nothing,
+};
 use crate::norm_folds::NormFolds;
 use lifegom_render::device::runs_on_host;
-use op::{AddLayerNormOps, AttentionHeads, FusionAttentionOps, LayerNormEpsilon};
+use op::{
+    AddDroppedLayerNormOps, AddLayerNormOps, AttentionHeads, DropoutSlot, FusionAttentionOps,
+    LayerNormEpsilon,
+};
 
 /// How the attention core and the residual LayerNorms are computed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -272,22 +277,84 @@ impl AttentionLayer {
         kernel: FusionKernel,
         masks: [MaskSeed; 2],
     ) -> Tensor<3> {
-        let x = self.add_norm(
-            &self.norm1,
-            query,
-            dropout_with(&self.dropout, attn, masks[0]),
-            kernel,
-        );
+        let drawn = self.kernel_draws(&query.device(), kernel, masks);
+        self.feed_drawn(folds, query, attn, kernel, masks, drawn)
+    }
+
+    /// Where [`Self::feed`]'s masks are drawn inside the LayerNorm's kernels
+    /// (`op::AddDroppedLayerNormOps`), the draws and the slot of each: on a CubeCL device, for
+    /// the masks Burn's dropout would draw there. One uniform draw per mask from the device's
+    /// RNG, both in one launch.
+    fn kernel_draws(
+        &self,
+        device: &Device,
+        kernel: FusionKernel,
+        masks: [MaskSeed; 2],
+    ) -> [Option<(Tensor<1>, usize)>; 2] {
+        let in_kernel = masks.map(|mask| {
+            kernel == FusionKernel::DeviceOps
+                && mask == MaskSeed::Device
+                && draws_device_mask(&self.dropout, device)
+        });
+        let draws = in_kernel
+            .contains(&true)
+            .then(|| Tensor::<1>::random([2], Distribution::Uniform(0.0, 1.0), device));
+        [0, 1].map(|slot| {
+            draws
+                .clone()
+                .filter(|_| in_kernel[slot])
+                .map(|draws| (draws, slot))
+        })
+    }
+
+    /// [`Self::feed`] with the masks listed in `drawn` drawn inside the LayerNorm's kernels, the
+    /// others by [`dropout_with`].
+    fn feed_drawn<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        query: Tensor<3>,
+        attn: Tensor<3>,
+        kernel: FusionKernel,
+        masks: [MaskSeed; 2],
+        drawn: [Option<(Tensor<1>, usize)>; 2],
+    ) -> Tensor<3> {
+        let [first, second] = drawn;
+        let x = self.add_dropped_norm(&self.norm1, query, attn, masks[0], first, kernel);
         let ff = folds.apply(
             &self.fc2,
             folds.apply_with(&self.fc1, x.clone(), Activation::Relu),
         );
-        self.add_norm(
-            &self.norm2,
-            x,
-            dropout_with(&self.dropout, ff, masks[1]),
-            kernel,
-        )
+        self.add_dropped_norm(&self.norm2, x, ff, masks[1], second, kernel)
+    }
+
+    /// `LN(x + Dropout(r))`: with `drawn = Some((draws, slot))` the mask is drawn inside the
+    /// LayerNorm's kernels from `draws[slot]`, else by [`dropout_with`] with `mask`.
+    fn add_dropped_norm(
+        &self,
+        norm: &LayerNorm,
+        x: Tensor<3>,
+        r: Tensor<3>,
+        mask: MaskSeed,
+        drawn: Option<(Tensor<1>, usize)>,
+        kernel: FusionKernel,
+    ) -> Tensor<3> {
+        match (drawn, &norm.beta) {
+            (Some((draws, slot)), Some(beta)) => Tensor::from_dispatch(
+                <burn::backend::Dispatch as AddDroppedLayerNormOps>::add_dropped_layer_norm(
+                    x.into_dispatch(),
+                    r.into_dispatch(),
+                    norm.gamma.val().into_dispatch(),
+                    beta.val().into_dispatch(),
+                    draws.into_dispatch(),
+                    DropoutSlot {
+                        slot,
+                        keep: 1.0 - self.dropout.prob,
+                    },
+                    LayerNormEpsilon(self.layer_norm_eps),
+                ),
+            ),
+            _ => self.add_norm(norm, x, dropout_with(&self.dropout, r, mask), kernel),
+        }
     }
 
     /// Scaled dot-product attention of projected `q` `[B, Lq, D]` over `k`, `v` `[B, Lk, D]`,
@@ -918,6 +985,74 @@ mod tests {
             assert_eq!(FusionKernel::for_device(&device), FusionKernel::DeviceOps);
             host_ops_equal_tensor_ops(&device);
         }
+    }
+
+    /// On wgpu, a training call's masks drawn inside the LayerNorm kernels from draws `[a, b]`
+    /// (`AttentionLayer::feed_drawn`) give the output and gradients of the tensor-op
+    /// composition with the host's masks ([`crate::dropout::kernel_mask`]): `a`'s after the
+    /// attention, `b`'s after the feed-forward block, each on the residual branch.
+    #[test]
+    fn masks_drawn_in_kernels_wgpu() {
+        let Some(device) = lifegom_render::testing::wgpu_test_device() else {
+            return;
+        };
+        let ad = device.autodiff();
+        let (b, l, d) = (40, 3, 24);
+        let keep = 0.75;
+        let layer = AttentionLayerConfig::new(d, 32, 3)
+            .with_dropout(1.0 - keep)
+            .init(&ad);
+        let mut rng = lifegom_render::rng::Rng::new(23);
+        let mut draw = |shape: [usize; 3]| {
+            let values: Vec<f32> = (0..shape.iter().product::<usize>())
+                .map(|_| rng.range_f32(-1.0, 1.0))
+                .collect();
+            Tensor::<3>::from_data(TensorData::new(values, shape), &ad).require_grad()
+        };
+        let (q, c, w) = (draw([b, l, d]), draw([b, l, d]), draw([b, l, d]).detach());
+        let draws = [0.375f32, 0.8125];
+        let mask = |draw: f32| {
+            let values = crate::dropout::kernel_mask(b * l * d, keep, draw);
+            Tensor::<3>::from_data(TensorData::new(values, [b, l, d]), &ad)
+        };
+        let folds = NormFolds::new();
+        let kernel = FusionKernel::DeviceOps;
+        let drawn = Tensor::<1>::from_floats(draws, &ad);
+        let attn = layer.attention_output(&folds, q.clone(), c.clone(), kernel);
+        let got = layer.feed_drawn(
+            &folds,
+            q.clone(),
+            attn,
+            kernel,
+            [MaskSeed::Device; 2],
+            [Some((drawn.clone(), 0)), Some((drawn, 1))],
+        );
+        let attn = layer.attention_output(&NormFolds::new(), q.clone(), c.clone(), kernel);
+        let x = layer.norm1.forward(q.clone() + attn * mask(draws[0]));
+        let ff = layer.fc2.forward(relu(layer.fc1.forward(x.clone())));
+        let want = layer.norm2.forward(x + ff * mask(draws[1]));
+        let gradients = |out: Tensor<3>| {
+            let grads = (out.clone() * w.clone()).sum().backward();
+            let mut all = vec![read(out)];
+            all.extend([&q, &c].map(|t| read(t.grad(&grads).expect("an input's gradient"))));
+            all
+        };
+        let (got, want) = (gradients(got), gradients(want));
+        for (what, (a, e)) in ["output", "∂query", "∂context"]
+            .iter()
+            .zip(got.iter().zip(&want))
+        {
+            let scale = e.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
+            for (i, (x, y)) in a.iter().zip(e).enumerate() {
+                assert!((x - y).abs() <= 1e-4 * scale, "{what}[{i}]: {x} vs {y}");
+            }
+        }
+        let dropped = read(mask(draws[0])).iter().filter(|&&m| m == 0.0).count();
+        assert!(
+            dropped > 0,
+            "the mask drops some of the {} elements",
+            b * l * d
+        );
     }
 
     /// A training call with given mask seeds computes the same on an inference copy of the

@@ -78,6 +78,44 @@ pub trait AddLayerNormOps: Backend {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LayerNormEpsilon(pub f64);
 
+/// `LayerNorm(x + Dropout(residual))·γ + β` over the last dimension, the dropout mask drawn
+/// inside the kernels from `draws[mask.slot]` ([`crate::dropout::kernel_mask`]): on a CubeCL
+/// device the mask costs no launch of its own, forward or backward (design.md §7.4).
+///
+/// Inputs as [`AddLayerNormOps`], plus `draws` (`[k]` uniform draws in `[0, 1)`, `slot < k`);
+/// gradients flow to `x`, `residual`, `gamma` and `beta`, not to `draws`.
+#[backend_extension(NdArray, Flex, Cube, Fusion, Autodiff)]
+pub trait AddDroppedLayerNormOps: Backend {
+    /// Normalises the residual sum with the residual dropped.
+    #[fusion(dtype = x, shape = x)]
+    fn add_dropped_layer_norm(
+        x: FloatTensor<Self>,
+        residual: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        draws: FloatTensor<Self>,
+        mask: DropoutSlot,
+        epsilon: LayerNormEpsilon,
+    ) -> FloatTensor<Self>;
+}
+
+/// Which of the `draws` seeds a kernel-drawn dropout mask, and the probability of keeping an
+/// element.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DropoutSlot {
+    /// The draw's index.
+    pub slot: usize,
+    /// `1 − p`, in `(0, 1]`.
+    pub keep: f64,
+}
+
+/// A kernel-drawn dropout mask on one backend's tensors.
+#[derive(Debug, Clone)]
+pub struct KernelDropout<B: Backend> {
+    pub(super) draws: FloatTensor<B>,
+    pub(super) mask: DropoutSlot,
+}
+
 /// The attention op's inputs on one backend: what the forward takes and the node keeps.
 #[derive(Debug, Clone)]
 pub struct AttentionInputs<B: Backend> {
@@ -95,7 +133,13 @@ pub struct LayerNormInputs<B: Backend> {
     pub(super) gamma: FloatTensor<B>,
     pub(super) beta: FloatTensor<B>,
     pub(super) epsilon: f64,
+    /// Dropout on `residual`, its mask drawn in the kernels; `None` for none.
+    pub(super) dropout: Option<KernelDropout<B>>,
 }
+
+/// The LayerNorm op's gradients: `[∂x, ∂residual, ∂γ, ∂β]` (the first two equal without
+/// dropout).
+pub type LayerNormGrads<B> = [FloatTensor<B>; 4];
 
 /// What a backend implements so that `Autodiff<B>` can differentiate the attention op.
 #[doc(hidden)]
@@ -114,11 +158,11 @@ pub trait AttentionKernels: Backend {
 pub trait LayerNormKernels: Backend {
     /// The LayerNorm forward.
     fn layer_norm_forward(inputs: LayerNormInputs<Self>) -> FloatTensor<Self>;
-    /// `[∂(x + residual), ∂γ, ∂β]`.
+    /// `[∂x, ∂residual, ∂γ, ∂β]`.
     fn layer_norm_backward(
         inputs: LayerNormInputs<Self>,
         grad: FloatTensor<Self>,
-    ) -> [FloatTensor<Self>; 3];
+    ) -> LayerNormGrads<Self>;
 }
 
 fn attention_shape<B: Backend>(inputs: &AttentionInputs<B>) -> AttentionShape {
@@ -198,32 +242,70 @@ fn cpu_layer_norm_forward_in<B: HostLend, T: Real + Element + Pod>(
     let r = B::lend_float::<T>("layer norm residual", &inputs.residual);
     let gamma = B::lend_float::<T>("layer norm gamma", &inputs.gamma);
     let beta = B::lend_float::<T>("layer norm beta", &inputs.beta);
-    let out = kernels::add_layer_norm_forward(&x, &r, &gamma, &beta, inputs.epsilon);
+    let out = match cpu_mask::<B, T>(&inputs) {
+        Some(mask) => {
+            let dropped: Vec<T> = r.iter().zip(&mask).map(|(&v, &m)| v * m).collect();
+            kernels::add_layer_norm_forward(&x, &dropped, &gamma, &beta, inputs.epsilon)
+        }
+        None => kernels::add_layer_norm_forward(&x, &r, &gamma, &beta, inputs.epsilon),
+    };
     cpu_float_from::<B, T>(out, shape, dtype, &device)
+}
+
+/// The kernel-drawn dropout mask of `inputs`, if any, on the host, in `T`
+/// ([`crate::dropout::kernel_mask`]).
+fn cpu_mask<B: HostLend, T: Real + Element + Pod>(inputs: &LayerNormInputs<B>) -> Option<Vec<T>> {
+    let dropout = inputs.dropout.as_ref()?;
+    let draws = B::lend_float::<f32>("dropout draws", &dropout.draws);
+    let n = inputs.residual.shape().num_elements();
+    let mask = crate::dropout::kernel_mask(n, dropout.mask.keep, draws[dropout.mask.slot]);
+    // `{0, 1/keep}` in f32, widened exactly to f64 in the precision tests.
+    Some(
+        mask.into_iter()
+            .map(|m| num_traits::cast::<f32, T>(m).unwrap_or_else(T::zero))
+            .collect(),
+    )
 }
 
 fn cpu_layer_norm_backward<B: HostLend>(
     inputs: LayerNormInputs<B>,
     grad: FloatTensor<B>,
-) -> [FloatTensor<B>; 3] {
+) -> LayerNormGrads<B> {
     in_precision!(inputs.x.dtype(), cpu_layer_norm_backward_in(inputs, grad))
 }
 
 fn cpu_layer_norm_backward_in<B: HostLend, T: Real + Element + Pod>(
     inputs: LayerNormInputs<B>,
     grad: FloatTensor<B>,
-) -> [FloatTensor<B>; 3] {
+) -> LayerNormGrads<B> {
     let device = inputs.x.device();
     let (x_shape, x_dtype) = (inputs.x.shape(), inputs.x.dtype());
+    let (r_shape, r_dtype) = (inputs.residual.shape(), inputs.residual.dtype());
     let (p_shape, p_dtype) = (inputs.gamma.shape(), inputs.gamma.dtype());
     let b_dtype = inputs.beta.dtype();
+    let mask = cpu_mask::<B, T>(&inputs);
     let g = B::lend_float::<T>("layer norm gradient", &grad);
     let x = B::lend_float::<T>("layer norm input", &inputs.x);
     let r = B::lend_float::<T>("layer norm residual", &inputs.residual);
     let gamma = B::lend_float::<T>("layer norm gamma", &inputs.gamma);
-    let (dz, dgamma, dbeta) = kernels::add_layer_norm_backward(&x, &r, &gamma, &g, inputs.epsilon);
+    let (dz, dgamma, dbeta) = match &mask {
+        Some(mask) => {
+            let dropped: Vec<T> = r.iter().zip(mask).map(|(&v, &m)| v * m).collect();
+            kernels::add_layer_norm_backward(&x, &dropped, &gamma, &g, inputs.epsilon)
+        }
+        None => kernels::add_layer_norm_backward(&x, &r, &gamma, &g, inputs.epsilon),
+    };
+    let dx = cpu_float_from::<B, T>(dz.clone(), x_shape, x_dtype, &device);
+    let dr = match mask {
+        Some(mask) => {
+            let dr = dz.iter().zip(&mask).map(|(&v, &m)| v * m).collect();
+            cpu_float_from::<B, T>(dr, r_shape, r_dtype, &device)
+        }
+        None => dx.clone(),
+    };
     [
-        cpu_float_from::<B, T>(dz, x_shape, x_dtype, &device),
+        dx,
+        dr,
         cpu_float_from::<B, T>(dgamma, p_shape.clone(), p_dtype, &device),
         cpu_float_from::<B, T>(dbeta, p_shape, b_dtype, &device),
     ]
@@ -262,6 +344,28 @@ macro_rules! cpu_fusion_backend {
                     gamma,
                     beta,
                     epsilon: epsilon.0,
+                    dropout: None,
+                })
+            }
+        }
+
+        impl AddDroppedLayerNormOps for $backend {
+            fn add_dropped_layer_norm(
+                x: FloatTensor<Self>,
+                residual: FloatTensor<Self>,
+                gamma: FloatTensor<Self>,
+                beta: FloatTensor<Self>,
+                draws: FloatTensor<Self>,
+                mask: DropoutSlot,
+                epsilon: LayerNormEpsilon,
+            ) -> FloatTensor<Self> {
+                cpu_layer_norm_forward::<Self>(LayerNormInputs {
+                    x,
+                    residual,
+                    gamma,
+                    beta,
+                    epsilon: epsilon.0,
+                    dropout: Some(KernelDropout { draws, mask }),
                 })
             }
         }
@@ -287,7 +391,7 @@ macro_rules! cpu_fusion_backend {
             fn layer_norm_backward(
                 inputs: LayerNormInputs<Self>,
                 grad: FloatTensor<Self>,
-            ) -> [FloatTensor<Self>; 3] {
+            ) -> LayerNormGrads<Self> {
                 cpu_layer_norm_backward::<Self>(inputs, grad)
             }
         }
@@ -352,24 +456,9 @@ impl<B: LayerNormKernels> Backward<B, 4> for LayerNormBackward {
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
-        let grad = grads.consume::<B>(&ops.node);
-        let [x_parent, r_parent, gamma_parent, beta_parent] = ops.parents;
-        let [dz, dgamma, dbeta] = B::layer_norm_backward(ops.state, grad);
-        // The residual sum's two terms share one gradient.
-        match (x_parent, r_parent) {
-            (Some(x), Some(r)) => {
-                grads.register::<B>(x.id, dz.clone());
-                grads.register::<B>(r.id, dz);
-            }
-            (Some(p), None) | (None, Some(p)) => grads.register::<B>(p.id, dz),
-            (None, None) => {}
-        }
-        if let Some(parent) = gamma_parent {
-            grads.register::<B>(parent.id, dgamma);
-        }
-        if let Some(parent) = beta_parent {
-            grads.register::<B>(parent.id, dbeta);
-        }
+        // Without dropout the residual sum's two terms share one gradient (two handles of one
+        // buffer).
+        gradient_per_input::<B, _, 4>(ops, grads, B::layer_norm_backward);
     }
 }
 
@@ -393,6 +482,42 @@ impl<B: AddLayerNormOps + LayerNormKernels, C: CheckpointStrategy> AddLayerNormO
             gamma,
             beta,
             epsilon: epsilon.0,
+            dropout: None,
+        };
+        record::<B, C, _, _, 4>(
+            LayerNormBackward,
+            [x_node, r_node, gamma_node, beta_node],
+            inputs,
+            B::layer_norm_forward,
+        )
+    }
+}
+
+impl<B: AddDroppedLayerNormOps + LayerNormKernels, C: CheckpointStrategy> AddDroppedLayerNormOps
+    for Autodiff<B, C>
+{
+    fn add_dropped_layer_norm(
+        x: FloatTensor<Self>,
+        residual: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        draws: FloatTensor<Self>,
+        mask: DropoutSlot,
+        epsilon: LayerNormEpsilon,
+    ) -> FloatTensor<Self> {
+        let (x, x_node) = x.into_parts();
+        let (residual, r_node) = residual.into_parts();
+        let (gamma, gamma_node) = gamma.into_parts();
+        let (beta, beta_node) = beta.into_parts();
+        // The draws take no gradient: their node is left out.
+        let (draws, _) = draws.into_parts();
+        let inputs = LayerNormInputs {
+            x,
+            residual,
+            gamma,
+            beta,
+            epsilon: epsilon.0,
+            dropout: Some(KernelDropout { draws, mask }),
         };
         record::<B, C, _, _, 4>(
             LayerNormBackward,
@@ -469,14 +594,14 @@ fn attention_values<B: FusionBackend>(values: Vec<Value<B>>, heads: usize) -> At
 impl<B: FusionBackend + LayerNormKernels> LayerNormKernels for Fusion<B> {
     fn layer_norm_forward(inputs: LayerNormInputs<Self>) -> FloatTensor<Self> {
         let spec = float_like::<B>(&inputs.x, inputs.x.shape());
-        let epsilon = inputs.epsilon;
+        let (epsilon, mask) = (inputs.epsilon, inputs.dropout.as_ref().map(|d| d.mask));
         let [out] = array(deferred::<B, _>(
             "layer_norm_forward",
             layer_norm_inputs(inputs),
             vec![spec],
             move |v| {
                 vec![Value::Float(B::layer_norm_forward(layer_norm_values(
-                    v, epsilon,
+                    v, epsilon, mask,
                 )))]
             },
         ));
@@ -486,37 +611,55 @@ impl<B: FusionBackend + LayerNormKernels> LayerNormKernels for Fusion<B> {
     fn layer_norm_backward(
         inputs: LayerNormInputs<Self>,
         grad: FloatTensor<Self>,
-    ) -> [FloatTensor<Self>; 3] {
-        let specs = vec![
-            float_like::<B>(&inputs.x, inputs.x.shape()),
-            float_like::<B>(&inputs.gamma, inputs.gamma.shape()),
-            float_like::<B>(&inputs.beta, inputs.beta.shape()),
-        ];
-        let epsilon = inputs.epsilon;
+    ) -> LayerNormGrads<Self> {
+        let (epsilon, mask) = (inputs.epsilon, inputs.dropout.as_ref().map(|d| d.mask));
+        let mut specs = vec![float_like::<B>(&inputs.x, inputs.x.shape())];
+        // Without dropout `∂residual` is `∂x`: one output for both.
+        if mask.is_some() {
+            specs.push(float_like::<B>(&inputs.residual, inputs.residual.shape()));
+        }
+        specs.push(float_like::<B>(&inputs.gamma, inputs.gamma.shape()));
+        specs.push(float_like::<B>(&inputs.beta, inputs.beta.shape()));
         let mut recorded = layer_norm_inputs(inputs);
         recorded.push(Input::Float(grad));
-        array(deferred::<B, _>(
-            "layer_norm_backward",
-            recorded,
-            specs,
-            move |mut v| {
-                let grad = v.pop().expect("the gradient was recorded last").float();
-                let grads = B::layer_norm_backward(layer_norm_values(v, epsilon), grad);
-                grads.into_iter().map(Value::Float).collect()
-            },
-        ))
+        let mut out = deferred::<B, _>("layer_norm_backward", recorded, specs, move |mut v| {
+            let grad = v.pop().expect("the gradient was recorded last").float();
+            let [dx, dr, dgamma, dbeta] =
+                B::layer_norm_backward(layer_norm_values(v, epsilon, mask), grad);
+            let mut grads = vec![Value::Float(dx)];
+            if mask.is_some() {
+                grads.push(Value::Float(dr));
+            }
+            grads.extend([Value::Float(dgamma), Value::Float(dbeta)]);
+            grads
+        });
+        if mask.is_none() {
+            let dx = out[0].clone();
+            out.insert(1, dx);
+        }
+        array(out)
     }
 }
 
-/// The LayerNorm op's four tensors, in the order [`layer_norm_values`] reads them back.
+/// The LayerNorm op's tensors (the draws last, with dropout), in the order
+/// [`layer_norm_values`] reads them back.
 fn layer_norm_inputs<B: FusionBackend>(inputs: LayerNormInputs<Fusion<B>>) -> Vec<Input<B>> {
     [inputs.x, inputs.residual, inputs.gamma, inputs.beta]
         .into_iter()
+        .chain(inputs.dropout.map(|d| d.draws))
         .map(Input::Float)
         .collect()
 }
 
-fn layer_norm_values<B: FusionBackend>(values: Vec<Value<B>>, epsilon: f64) -> LayerNormInputs<B> {
+fn layer_norm_values<B: FusionBackend>(
+    mut values: Vec<Value<B>>,
+    epsilon: f64,
+    mask: Option<DropoutSlot>,
+) -> LayerNormInputs<B> {
+    let dropout = mask.map(|mask| KernelDropout {
+        draws: values.pop().expect("the draws were recorded last").float(),
+        mask,
+    });
     let [x, residual, gamma, beta] = array(values);
     LayerNormInputs {
         x: x.float(),
@@ -524,6 +667,7 @@ fn layer_norm_values<B: FusionBackend>(values: Vec<Value<B>>, epsilon: f64) -> L
         gamma: gamma.float(),
         beta: beta.float(),
         epsilon,
+        dropout,
     }
 }
 
@@ -539,11 +683,21 @@ mod tests {
     /// `super::cube`, elsewhere the host kernels. The shapes cover a row shorter and longer than
     /// a row kernel's cube (64 threads), fewer and more rows than a column chunk (64), and more
     /// rows than one dispatch row of cubes holds (65,535).
+    ///
+    /// With dropout ([`AddDroppedLayerNormOps`], every shape a second time, slot 1 of two draws
+    /// and keep 0.7) the reference drops the residual with the host's mask
+    /// ([`crate::dropout::kernel_mask`]) and `∂residual = ∂z·m`: the kernels hash the same
+    /// bits as the host.
     fn add_layer_norm_matches_f64_definition(device: &burn::tensor::Device) {
         let ad = device.clone().autodiff();
         let mut rng = Rng::new(11);
         let eps = 1e-5;
-        for (rows, d) in [(1, 1), (5, 200), (150, 24), (130, 1152), (70_000, 3)] {
+        let (draws, keep) = ([0.3f32, 0.712_5], 0.7);
+        let shapes = [(1, 1), (5, 200), (150, 24), (130, 1152), (70_000, 3)];
+        for ((rows, d), dropped) in shapes
+            .into_iter()
+            .flat_map(|shape| [(shape, false), (shape, true)])
+        {
             // Values the f32 tensors hold exactly, so the f64 reference sees the same inputs.
             let mut draw = |n: usize| -> Vec<f64> {
                 (0..n)
@@ -568,20 +722,48 @@ mod tests {
                 Tensor::<1>::from_data(TensorData::new(f32s(v), [d]), &ad).require_grad()
             };
             let (xt, rt, gt, bt) = (matrix(&x), matrix(&r), vector(&gamma), vector(&beta));
-            let y = Tensor::<2>::from_dispatch(
-                <burn::backend::Dispatch as AddLayerNormOps>::add_layer_norm(
-                    xt.clone().into_dispatch(),
-                    rt.clone().into_dispatch(),
-                    gt.clone().into_dispatch(),
-                    bt.clone().into_dispatch(),
-                    LayerNormEpsilon(eps),
-                ),
-            );
+            let y = if dropped {
+                Tensor::<2>::from_dispatch(
+                    <burn::backend::Dispatch as AddDroppedLayerNormOps>::add_dropped_layer_norm(
+                        xt.clone().into_dispatch(),
+                        rt.clone().into_dispatch(),
+                        gt.clone().into_dispatch(),
+                        bt.clone().into_dispatch(),
+                        Tensor::<1>::from_floats(draws, &ad).into_dispatch(),
+                        DropoutSlot { slot: 1, keep },
+                        LayerNormEpsilon(eps),
+                    ),
+                )
+            } else {
+                Tensor::<2>::from_dispatch(
+                    <burn::backend::Dispatch as AddLayerNormOps>::add_layer_norm(
+                        xt.clone().into_dispatch(),
+                        rt.clone().into_dispatch(),
+                        gt.clone().into_dispatch(),
+                        bt.clone().into_dispatch(),
+                        LayerNormEpsilon(eps),
+                    ),
+                )
+            };
             let grads = (y.clone() * matrix(&w).detach()).sum().backward();
 
-            let want_y = kernels::add_layer_norm_forward(&x, &r, &gamma, &beta, eps);
+            let mask: Vec<f64> = if dropped {
+                crate::dropout::kernel_mask(rows * d, keep, draws[1])
+                    .into_iter()
+                    .map(f64::from)
+                    .collect()
+            } else {
+                vec![1.0; rows * d]
+            };
+            if dropped && rows * d > 1000 {
+                let kept = mask.iter().filter(|&&m| m != 0.0).count() as f64 / mask.len() as f64;
+                assert!((kept - keep).abs() < 0.05, "kept {kept} of {rows} × {d}");
+            }
+            let r_dropped: Vec<f64> = r.iter().zip(&mask).map(|(v, m)| v * m).collect();
+            let want_y = kernels::add_layer_norm_forward(&x, &r_dropped, &gamma, &beta, eps);
             let (want_dz, want_dgamma, want_dbeta) =
-                kernels::add_layer_norm_backward(&x, &r, &gamma, &w, eps);
+                kernels::add_layer_norm_backward(&x, &r_dropped, &gamma, &w, eps);
+            let want_dr: Vec<f64> = want_dz.iter().zip(&mask).map(|(g, m)| g * m).collect();
             // Within 1e-5 of the largest value; the column sums (f32 sums over up to 70,000 rows,
             // in another order than f64's) within 1e-5 of the row count times the largest `∂z`
             // (at least 1), a bound on their terms' magnitudes summed.
@@ -589,7 +771,7 @@ mod tests {
                 for (i, (&g, &e)) in got.iter().zip(want).enumerate() {
                     assert!(
                         (f64::from(g) - e).abs() <= 1e-5 * scale,
-                        "{what}[{i}] ({rows} × {d}): {g} vs {e}"
+                        "{what}[{i}] ({rows} × {d}, dropout {dropped}): {g} vs {e}"
                     );
                 }
             };
@@ -606,7 +788,7 @@ mod tests {
             check(
                 "dr",
                 read(rt.grad(&grads).expect("r gradient")),
-                &want_dz,
+                &want_dr,
                 dz_scale,
             );
             check(
