@@ -36,7 +36,7 @@ use lifegom_render::rasterizer::{Gaussians, RasterSettings, rasterize};
 use lifegom_render::readback;
 use lifegom_render::skeleton::Skeleton;
 use lifegom_render::skinning::skin_vertices;
-use lifegom_render::visibility::rasterize_on_device;
+use lifegom_render::visibility::{ViewSet, visibility_in_views};
 
 use crate::avatar::Avatar;
 use crate::encoder::{EncodedViews, ImageEncoder, ImageEncoderConfig};
@@ -699,34 +699,22 @@ impl Reconstructor {
         // Discrete visibility of the high-res mesh in each view (no gradient), computed on the
         // device the mesh lives on: the CPU reference on ndarray/Flex, the GPU kernels on wgpu.
         // A face counts as visible when all three of its corners are.
+        // The views' posed meshes side by side, `[V, 3n]`, subdivided in one gather.
         let tables = mesh.tables();
         let faces_flat = mesh.highres_faces().clone();
         let f = mesh.num_gaussians();
         let faces_hr = faces_flat.clone().reshape([f, 3]);
         let num_hr_vertices = mesh.subdivision.highres.num_vertices;
-        let posed_hr: Vec<Tensor<2>> = posed.iter().map(|p| tables.apply(p.clone())).collect();
+        let posed_hr = tables.apply_columns(join_columns(posed.clone()));
         drop(span);
         let (vis, face_vis) = {
             let _span = tracing::debug_span!("visibility").entered();
-            let mut vis_lowres = Vec::with_capacity(n);
-            let mut face_vis = Vec::with_capacity(n);
-            for (p, cam) in posed_hr.iter().zip(&sources.cameras) {
-                let ids = rasterize_on_device(p.clone().detach(), faces_hr.clone(), cam)?;
-                let visible = ids
-                    .visible_vertices(faces_hr.clone(), num_hr_vertices)
-                    .float();
-                vis_lowres.push(visible.clone().slice(0..v));
-                face_vis.push(
-                    visible
-                        .select(0, faces_flat.clone())
-                        .reshape([f, 3])
-                        .min_dim(1),
-                );
-            }
-            (
-                Tensor::stack::<2>(vis_lowres, 1).reshape([v, n, 1]),
-                Tensor::cat(face_vis, 1),
-            )
+            let views = ViewSet {
+                cameras: sources.cameras.clone(),
+                lowres: v,
+            };
+            let flags = visibility_in_views(posed_hr.clone().detach(), faces_hr, &views)?;
+            (flags.vertices.reshape([v, n, 1]), flags.faces)
         };
         // On the CPU backends, the source tokens of hidden (vertex, view) pairs are all e_vis:
         // 80–90 % of them at the small presets (BENCHMARKS.md, session 13), projected once in
@@ -782,7 +770,8 @@ impl Reconstructor {
         let span = tracing::debug_span!("face_sampling").entered();
         let uv_faces = {
             let _span = tracing::debug_span!("face_centroids").entered();
-            let proj_hr = project_points(Tensor::stack(posed_hr, 0), &sources.cameras)?;
+            let posed_hr = posed_hr.reshape([num_hr_vertices, n, 3]).swap_dims(0, 1);
+            let proj_hr = project_points(posed_hr, &sources.cameras)?;
             let centroids = select_rows(proj_hr.uv, 1, faces_flat.clone())
                 .reshape([n, f, 3, 2])
                 .mean_dim(2)

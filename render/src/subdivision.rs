@@ -211,11 +211,28 @@ impl SubdivisionTables {
             "SubdivisionTables::apply: `lowres` must be [{}, 3], got {dims:?}",
             self.num_lowres
         );
+        self.apply_columns(lowres)
+    }
+
+    /// [`Self::apply`] for any number of columns: `[Vh, C]` from `[V↓, C]`, every column
+    /// interpolated alike (several posed copies of the mesh side by side, `C = 3n`, in one
+    /// gather and one weighted sum).
+    ///
+    /// # Panics
+    ///
+    /// If `lowres` does not have `num_lowres` rows.
+    pub fn apply_columns(&self, lowres: Tensor<2>) -> Tensor<2> {
+        let [rows, columns] = lowres.dims();
+        assert_eq!(
+            rows, self.num_lowres,
+            "SubdivisionTables::apply_columns: `lowres` must have {} rows, got {rows}",
+            self.num_lowres
+        );
         let [vh, _] = self.weight.dims();
         let gathered =
-            crate::select::select_rows(lowres, 0, self.index.clone()).reshape([vh, 3, 3]);
+            crate::select::select_rows(lowres, 0, self.index.clone()).reshape([vh, 3, columns]);
         let weighted = gathered * self.weight.clone().reshape([vh, 3, 1]);
-        weighted.sum_dim(1).reshape([vh, 3])
+        weighted.sum_dim(1).reshape([vh, columns])
     }
 }
 

@@ -17,7 +17,9 @@ use lifegom_render::camera::{Camera, Intrinsics};
 use lifegom_render::subdivision::Subdivision;
 use lifegom_render::template::{BodyTemplate, lowres_template_path};
 use lifegom_render::testing::{octahedron, pixel_camera, wgpu_test_device};
-use lifegom_render::visibility::{rasterize_on_device, rasterize_triangle_ids, visible_vertices};
+use lifegom_render::visibility::{
+    ViewSet, rasterize_on_device, rasterize_triangle_ids, visibility_in_views, visible_vertices,
+};
 use lifegom_tests::{Rng, camera};
 
 /// How closely a backend must follow the CPU reference on a scene.
@@ -409,4 +411,128 @@ fn shape_errors_name_the_input() {
     let f4 = Tensor::<2, Int>::zeros([1, 4], &device);
     let err = rasterize_on_device(v, f4, &cam).unwrap_err().to_string();
     assert!(err.contains("faces"), "{err}");
+}
+
+/// `visibility_in_views` (every view in one set of launches on a CubeCL device) gives, view for
+/// view, the flags of one view at a time on the same device: a vertex visible when
+/// `visible_vertices` marks it, a face when its three corners are. The body template is posed
+/// differently per view (each view's copy moved and scaled), seen from four sides, one close
+/// enough to clip; `lowres` covers part of the vertices.
+fn assert_views_at_once_match_one_at_a_time(device: &Device) {
+    let body = BodyTemplate::load(lowres_template_path()).expect("template");
+    let k_cam = Intrinsics {
+        fx: 90.0,
+        fy: 90.0,
+        cx: 40.0,
+        cy: 48.0,
+    };
+    let eyes = [
+        Vec3::new(0.0, 0.2, 3.0),
+        Vec3::new(3.0, 0.5, 0.0),
+        Vec3::new(-2.0, -0.5, -2.0),
+        Vec3::new(0.05, 0.3, 0.15),
+    ];
+    let cameras: Vec<Camera> = eyes
+        .iter()
+        .map(|&eye| {
+            Camera::look_at(eye, Vec3::new(0.0, 0.1, 0.0), Vec3::Y, k_cam, 80, 96).expect("camera")
+        })
+        .collect();
+    let posed: Vec<Vec<Vec3>> = (0..cameras.len())
+        .map(|k| {
+            let (shift, scale) = (
+                Vec3::new(0.03 * k as f32, -0.02 * k as f32, 0.0),
+                1.0 + 0.05 * k as f32,
+            );
+            body.vertices.iter().map(|&v| v * scale + shift).collect()
+        })
+        .collect();
+    let n = cameras.len();
+    let rows = body.vertices.len();
+    let side_by_side: Vec<f32> = (0..rows)
+        .flat_map(|v| posed.iter().flat_map(move |p| p[v].to_array()))
+        .collect();
+    let faces = faces_tensor(&body.topology.faces, device);
+    let lowres = rows / 3;
+    let views = ViewSet {
+        cameras: cameras.clone(),
+        lowres,
+    };
+    let got = visibility_in_views(
+        Tensor::from_data(TensorData::new(side_by_side, [rows, 3 * n]), device),
+        faces.clone(),
+        &views,
+    )
+    .expect("valid views");
+    assert_eq!(got.vertices.dims(), [lowres, n]);
+    let num_faces = body.topology.faces.len();
+    assert_eq!(got.faces.dims(), [num_faces, n]);
+    let floats = |t: Tensor<2>| t.into_data().iter::<f32>().collect::<Vec<_>>();
+    let (vertex_flags, face_flags) = (floats(got.vertices), floats(got.faces));
+    let mut seen = [0usize; 2];
+    for (k, camera) in cameras.iter().enumerate() {
+        let ids = rasterize_on_device(vertices_tensor(&posed[k], device), faces.clone(), camera)
+            .expect("valid view");
+        let visible = ints(ids.visible_vertices(faces.clone(), rows));
+        for v in 0..lowres {
+            assert_eq!(
+                vertex_flags[v * n + k],
+                visible[v] as f32,
+                "vertex {v}, view {k}"
+            );
+        }
+        for (f, corners) in body.topology.faces.iter().enumerate() {
+            let want = corners.iter().all(|&c| visible[c as usize] == 1);
+            assert_eq!(
+                face_flags[f * n + k],
+                f32::from(u8::from(want)),
+                "face {f}, view {k}"
+            );
+            seen[usize::from(want)] += 1;
+        }
+    }
+    assert!(
+        seen[0] > 0 && seen[1] > 0,
+        "visible and hidden faces both occur: {seen:?}"
+    );
+}
+
+#[test]
+fn views_at_once_match_one_at_a_time() {
+    let mut devices = vec![Device::ndarray(), Device::flex(), Device::flex().autodiff()];
+    devices.extend(
+        wgpu_test_device()
+            .into_iter()
+            .flat_map(|d| [d.clone(), d.autodiff()]),
+    );
+    for device in &devices {
+        assert_views_at_once_match_one_at_a_time(device);
+    }
+}
+
+/// A call without views, with cameras of two sizes, or with vertices that are not `3n` wide is
+/// an error naming the input.
+#[test]
+fn views_at_once_name_bad_input() {
+    let device = Device::ndarray();
+    let faces = faces_tensor(&[[0, 1, 2]], &device);
+    let views = |cameras: Vec<Camera>| ViewSet { cameras, lowres: 3 };
+    let err = visibility_in_views(
+        Tensor::zeros([3, 3], &device),
+        faces.clone(),
+        &views(vec![]),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("cameras"), "{err}");
+    let two_sizes = views(vec![pixel_camera(4, 4), pixel_camera(4, 5)]);
+    let err = visibility_in_views(Tensor::zeros([3, 6], &device), faces.clone(), &two_sizes)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("cameras") && err.contains("size"), "{err}");
+    let two = views(vec![pixel_camera(4, 4), pixel_camera(4, 4)]);
+    let err = visibility_in_views(Tensor::zeros([3, 3], &device), faces, &two)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("vertices"), "{err}");
 }

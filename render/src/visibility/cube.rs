@@ -40,13 +40,15 @@ use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::cubecl::server::Handle;
 
+use burn_cubecl::tensor::CubeTensor;
+
+use super::ViewSet;
 use super::op::TriangleIdOps;
 use crate::camera::Camera;
-use crate::camera::ViewParams;
 use crate::cube::host::{
-    ComputeClient, THREADS_1D, arg, count_1d, empty_u32, prepare, prepare_i32, tensor_of,
+    ComputeClient, THREADS_1D, arg, count_1d, empty_u32, prepare, prepare_i32, tensor_of, u32_bytes,
 };
-use crate::cube::view::{ViewArgs, view_args};
+use crate::cube::view::ViewArgs;
 
 /// `ids` entry of a pixel no face covers.
 const EMPTY_ID: u32 = u32::MAX;
@@ -120,10 +122,11 @@ fn covered(e: &Edge, w: f32) -> bool {
     w > 0.0 || (w == 0.0 && e.owns_ties)
 }
 
-/// Camera-space position of vertex `v` (`[R | t]` applied to it).
+/// Camera-space position of vertex `v` (`[R | t]` applied to it), whose coordinates start at
+/// `v·stride + offset` of `vertices` (`stride = 3`, `offset = 0` for one view's `[V, 3]`).
 #[cube]
-fn to_camera(view: &ViewArgs, vertices: &[f32], v: u32) -> P3 {
-    let b = (3 * v) as usize;
+fn to_camera(view: &ViewArgs, vertices: &[f32], v: u32, stride: u32, offset: u32) -> P3 {
+    let b = (v * stride + offset) as usize;
     let x = vertices[b];
     let y = vertices[b + 1];
     let z = vertices[b + 2];
@@ -183,6 +186,7 @@ fn raster_screen_tri(
     ids: &[Atomic<u32>],
     width: u32,
     height: u32,
+    first_pixel_of_view: u32,
     #[comptime] ids_pass: bool,
 ) {
     let e0 = edge_new(p1, p2, p0);
@@ -212,7 +216,7 @@ fn raster_screen_tri(
                     let z = 1.0 / inv_z;
                     if z > 0.0 && z <= BIG {
                         let bits = u32::reinterpret(z);
-                        let pix = (j * width + i) as usize;
+                        let pix = (first_pixel_of_view + j * width + i) as usize;
                         if ids_pass {
                             if bits <= depth_bits[pix].load() {
                                 ids[pix].fetch_min(face);
@@ -227,32 +231,70 @@ fn raster_screen_tri(
     }
 }
 
-/// One thread per face: clip, project and rasterize it (see the module docs for the passes).
+/// Floats per camera in a camera table ([`camera_table`]): `[R | t]` row by row, `fx`, `fy`,
+/// `cx`, `cy`, width, height.
+const CAMERA_FLOATS: u32 = 18;
+
+/// Camera `view` of a camera table, as the kernels' camera record.
+#[cube]
+fn camera_of(cameras: &[f32], view: u32) -> ViewArgs {
+    let b = (view * CAMERA_FLOATS) as usize;
+    ViewArgs {
+        r00: cameras[b],
+        r01: cameras[b + 1],
+        r02: cameras[b + 2],
+        t0: cameras[b + 3],
+        r10: cameras[b + 4],
+        r11: cameras[b + 5],
+        r12: cameras[b + 6],
+        t1: cameras[b + 7],
+        r20: cameras[b + 8],
+        r21: cameras[b + 9],
+        r22: cameras[b + 10],
+        t2: cameras[b + 11],
+        fx: cameras[b + 12],
+        fy: cameras[b + 13],
+        cx: cameras[b + 14],
+        cy: cameras[b + 15],
+        width: u32::cast_from(cameras[b + 16]),
+        height: u32::cast_from(cameras[b + 17]),
+    }
+}
+
+/// One thread per (view, face): clip, project and rasterize the face in its view (see the
+/// module docs for the passes). View `k`'s vertex `v` is at `[v·3n + 3k]` of `vertices`, its
+/// camera row `k` of `cameras`, its pixels at `[k·H·W, (k + 1)·H·W)` of the buffers.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 fn raster_faces_kernel(
     vertices: &[f32],
     faces: &[i32],
-    view: &ViewArgs,
+    cameras: &[f32],
     depth_bits: &[Atomic<u32>],
     ids: &[Atomic<u32>],
     num_vertices: u32,
     num_faces: u32,
+    views: u32,
     #[comptime] ids_pass: bool,
 ) {
-    let face = ABSOLUTE_POS as u32;
-    let width = view.width;
-    let height = view.height;
-    if face < num_faces {
+    let face = ABSOLUTE_POS as u32 % num_faces;
+    let k = ABSOLUTE_POS as u32 / num_faces;
+    if k < views {
+        let view = camera_of(cameras, k);
+        let width = view.width;
+        let height = view.height;
+        let first_pixel_of_view = k * width * height;
+        let stride = 3 * views;
+        let offset = 3 * k;
         let f = (3 * face) as usize;
         let ia = faces[f];
         let ib = faces[f + 1];
         let ic = faces[f + 2];
         let nv = i32::cast_from(num_vertices);
         if ia >= 0 && ib >= 0 && ic >= 0 && ia < nv && ib < nv && ic < nv {
-            let a = to_camera(view, vertices, u32::cast_from(ia));
-            let b = to_camera(view, vertices, u32::cast_from(ib));
-            let c = to_camera(view, vertices, u32::cast_from(ic));
+            let a = to_camera(&view, vertices, u32::cast_from(ia), stride, offset);
+            let b = to_camera(&view, vertices, u32::cast_from(ib), stride, offset);
+            let c = to_camera(&view, vertices, u32::cast_from(ic), stride, offset);
             let finite = a.x.abs() <= BIG
                 && a.y.abs() <= BIG
                 && a.z.abs() <= BIG
@@ -267,11 +309,20 @@ fn raster_faces_kernel(
             let c_in = c.z >= NEAR;
             let n_in = u32::cast_from(a_in) + u32::cast_from(b_in) + u32::cast_from(c_in);
             if finite && n_in == 3 {
-                let sa = project(view, &a);
-                let sb = project(view, &b);
-                let sc = project(view, &c);
+                let sa = project(&view, &a);
+                let sb = project(&view, &b);
+                let sc = project(&view, &c);
                 raster_screen_tri(
-                    &sa, &sb, &sc, face, depth_bits, ids, width, height, ids_pass,
+                    &sa,
+                    &sb,
+                    &sc,
+                    face,
+                    depth_bits,
+                    ids,
+                    width,
+                    height,
+                    first_pixel_of_view,
+                    ids_pass,
                 );
             } else if finite && n_in == 2 {
                 // Rotate (keeping the winding) so that `r` is the corner behind the plane; the
@@ -281,15 +332,33 @@ fn raster_faces_kernel(
                 let r = choose(!a_in, &a, !b_in, &b, &c);
                 let qr = clip_point(&q, &r);
                 let pr = clip_point(&p, &r);
-                let sp = project(view, &p);
-                let sq = project(view, &q);
-                let sqr = project(view, &qr);
-                let spr = project(view, &pr);
+                let sp = project(&view, &p);
+                let sq = project(&view, &q);
+                let sqr = project(&view, &qr);
+                let spr = project(&view, &pr);
                 raster_screen_tri(
-                    &sp, &sq, &sqr, face, depth_bits, ids, width, height, ids_pass,
+                    &sp,
+                    &sq,
+                    &sqr,
+                    face,
+                    depth_bits,
+                    ids,
+                    width,
+                    height,
+                    first_pixel_of_view,
+                    ids_pass,
                 );
                 raster_screen_tri(
-                    &sp, &sqr, &spr, face, depth_bits, ids, width, height, ids_pass,
+                    &sp,
+                    &sqr,
+                    &spr,
+                    face,
+                    depth_bits,
+                    ids,
+                    width,
+                    height,
+                    first_pixel_of_view,
+                    ids_pass,
                 );
             } else if finite && n_in == 1 {
                 // Rotate so that `p` is the corner in front; the clipped polygon is a triangle.
@@ -298,11 +367,20 @@ fn raster_faces_kernel(
                 let r = choose(b_in, &a, c_in, &b, &c);
                 let pq = clip_point(&p, &q);
                 let pr = clip_point(&p, &r);
-                let sp = project(view, &p);
-                let spq = project(view, &pq);
-                let spr = project(view, &pr);
+                let sp = project(&view, &p);
+                let spq = project(&view, &pq);
+                let spr = project(&view, &pr);
                 raster_screen_tri(
-                    &sp, &spq, &spr, face, depth_bits, ids, width, height, ids_pass,
+                    &sp,
+                    &spq,
+                    &spr,
+                    face,
+                    depth_bits,
+                    ids,
+                    width,
+                    height,
+                    first_pixel_of_view,
+                    ids_pass,
                 );
             }
         }
@@ -387,6 +465,138 @@ fn mark_visible_kernel(
     }
 }
 
+/// The buffers' start: `depth_bits` and `ids` (`pixels` each) at `+inf` and "no face", and
+/// `visible` (`vertices`) at 0, in one launch over the longer.
+#[cube(launch)]
+fn start_views_kernel(
+    depth_bits: &mut [u32],
+    ids: &mut [u32],
+    visible: &mut [u32],
+    pixels: u32,
+    vertices: u32,
+) {
+    let i = ABSOLUTE_POS as u32;
+    if i < pixels {
+        depth_bits[i as usize] = INF_BITS;
+        ids[i as usize] = EMPTY_ID;
+    }
+    if i < vertices {
+        visible[i as usize] = 0u32;
+    }
+}
+
+/// Per pixel of every view (view `k`'s pixels at `[k·pixels_per_view, …)`): marks the three
+/// vertices of the owning face in the view's row of `visible` (`[views, num_vertices]`), reading
+/// the raw ID buffer (`EMPTY_ID` where no face). Every writer stores the same 1.
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn mark_views_kernel(
+    ids: &[u32],
+    faces: &[i32],
+    visible: &[Atomic<u32>],
+    pixels_per_view: u32,
+    views: u32,
+    num_faces: u32,
+    num_vertices: u32,
+) {
+    let p = ABSOLUTE_POS as u32;
+    if p < pixels_per_view * views {
+        let id = ids[p as usize];
+        if id < num_faces {
+            let row = (p / pixels_per_view) * num_vertices;
+            for k in 0..3u32 {
+                let v = faces[(3 * id + k) as usize];
+                if v >= 0 && v < i32::cast_from(num_vertices) {
+                    visible[(row + u32::cast_from(v)) as usize].store(1u32);
+                }
+            }
+        }
+    }
+}
+
+/// One thread per (row, view), `[row, view]` at `row·views + view`: the first `lowres` vertices'
+/// flags and every face's (1 when its three corners are visible in the view; 0 for a corner
+/// outside the vertices), as floats.
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn view_flags_kernel(
+    visible: &[u32],
+    faces: &[i32],
+    vertex_flags: &mut [f32],
+    face_flags: &mut [f32],
+    lowres: u32,
+    num_faces: u32,
+    num_vertices: u32,
+    views: u32,
+) {
+    let row = ABSOLUTE_POS as u32 / views;
+    let k = ABSOLUTE_POS as u32 % views;
+    let out = (row * views + k) as usize;
+    let visible_row = k * num_vertices;
+    if row < lowres {
+        vertex_flags[out] = f32::cast_from(visible[(visible_row + row) as usize]);
+    }
+    if row < num_faces {
+        let mut all = 1u32;
+        for c in 0..3u32 {
+            let v = faces[(3 * row + c) as usize];
+            if v >= 0 && v < i32::cast_from(num_vertices) {
+                all = min(all, visible[(visible_row + u32::cast_from(v)) as usize]);
+            } else {
+                all = 0u32;
+            }
+        }
+        face_flags[out] = f32::cast_from(all);
+    }
+}
+
+/// The cameras as the table [`camera_of`] reads, uploaded.
+fn camera_table(client: &ComputeClient, cameras: &[Camera]) -> Handle {
+    let mut bits = Vec::with_capacity(cameras.len() * CAMERA_FLOATS as usize);
+    for camera in cameras {
+        let k = camera.intrinsics;
+        bits.extend(camera.view_matrix().map(f32::to_bits));
+        bits.extend([k.fx, k.fy, k.cx, k.cy].map(f32::to_bits));
+        bits.extend([camera.width as f32, camera.height as f32].map(f32::to_bits));
+    }
+    client.create_from_slice(&u32_bytes(&bits))
+}
+
+/// Both passes of [`raster_faces_kernel`] over `views` views of `pixels` pixels each.
+#[allow(clippy::too_many_arguments)]
+fn raster_views(
+    client: &ComputeClient,
+    vertices: &CubeTensor,
+    faces: &CubeTensor,
+    cameras: &Handle,
+    depth_bits: &Handle,
+    ids: &Handle,
+    num_vertices: usize,
+    views: usize,
+    pixels: usize,
+) {
+    let num_faces = faces.shape().num_elements() / 3;
+    if num_faces == 0 || num_vertices == 0 || views == 0 {
+        return;
+    }
+    for ids_pass in [false, true] {
+        raster_faces_kernel::launch(
+            client,
+            count_1d(num_faces * views),
+            CubeDim::new_1d(THREADS_1D),
+            vertices.clone().into_buffer_arg(),
+            faces.clone().into_buffer_arg(),
+            arg(cameras, CAMERA_FLOATS as usize * views),
+            arg(depth_bits, pixels * views),
+            arg(ids, pixels * views),
+            num_vertices as u32,
+            num_faces as u32,
+            views as u32,
+            ids_pass,
+        );
+    }
+}
+
 fn fill(client: &ComputeClient, handle: &Handle, value: u32, len: usize) {
     fill_kernel::launch(
         client,
@@ -410,21 +620,10 @@ impl TriangleIdOps for CubeBackend {
         let client = vertices.client.clone();
         let device = vertices.device.clone();
         let num_vertices = vertices.shape().num_elements() / 3;
-        let num_faces = faces.shape().num_elements() / 3;
         let (width, height) = (camera.width, camera.height);
         let pixels = width as usize * height as usize;
 
-        let k = camera.intrinsics;
-        let view = ViewParams {
-            view: camera.view_matrix(),
-            fx: k.fx,
-            fy: k.fy,
-            cx: k.cx,
-            cy: k.cy,
-            width,
-            height,
-        };
-
+        let cameras = camera_table(&client, std::slice::from_ref(&camera));
         let depth_bits = empty_u32(&client, pixels);
         let ids = empty_u32(&client, pixels);
         fill_pair_kernel::launch(
@@ -437,23 +636,17 @@ impl TriangleIdOps for CubeBackend {
             EMPTY_ID,
             pixels as u32,
         );
-        if num_faces > 0 && num_vertices > 0 {
-            for ids_pass in [false, true] {
-                raster_faces_kernel::launch(
-                    &client,
-                    count_1d(num_faces),
-                    CubeDim::new_1d(THREADS_1D),
-                    vertices.clone().into_buffer_arg(),
-                    faces.clone().into_buffer_arg(),
-                    view_args(&view),
-                    arg(&depth_bits, pixels),
-                    arg(&ids, pixels),
-                    num_vertices as u32,
-                    num_faces as u32,
-                    ids_pass,
-                );
-            }
-        }
+        raster_views(
+            &client,
+            &vertices,
+            &faces,
+            &cameras,
+            &depth_bits,
+            &ids,
+            num_vertices,
+            1,
+            pixels,
+        );
         let face_ids = empty_u32(&client, pixels);
         let depth = empty_u32(&client, pixels);
         resolve_kernel::launch(
@@ -501,5 +694,87 @@ impl TriangleIdOps for CubeBackend {
             );
         }
         tensor_of(&client, &device, visible, &[num_vertices], DType::I32)
+    }
+
+    fn visibility_in_views(
+        vertices: FloatTensor<Self>,
+        faces: IntTensor<Self>,
+        views: ViewSet,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let _span = tracing::trace_span!("cube_visibility_in_views").entered();
+        let vertices = prepare(vertices);
+        let faces = prepare_i32(faces);
+        let client = vertices.client.clone();
+        let device = vertices.device.clone();
+        let n = views.cameras.len();
+        let num_vertices = vertices.shape().num_elements() / (3 * n).max(1);
+        let num_faces = faces.shape().num_elements() / 3;
+        let pixels = views
+            .cameras
+            .first()
+            .map_or(0, |c| c.width as usize * c.height as usize);
+        let (all_pixels, all_vertices) = (pixels * n, num_vertices * n);
+
+        let cameras = camera_table(&client, &views.cameras);
+        let depth_bits = empty_u32(&client, all_pixels);
+        let ids = empty_u32(&client, all_pixels);
+        let visible = empty_u32(&client, all_vertices);
+        start_views_kernel::launch(
+            &client,
+            count_1d(all_pixels.max(all_vertices)),
+            CubeDim::new_1d(THREADS_1D),
+            arg(&depth_bits, all_pixels),
+            arg(&ids, all_pixels),
+            arg(&visible, all_vertices),
+            all_pixels as u32,
+            all_vertices as u32,
+        );
+        raster_views(
+            &client,
+            &vertices,
+            &faces,
+            &cameras,
+            &depth_bits,
+            &ids,
+            num_vertices,
+            n,
+            pixels,
+        );
+        if all_pixels > 0 && num_faces > 0 && num_vertices > 0 {
+            mark_views_kernel::launch(
+                &client,
+                count_1d(all_pixels),
+                CubeDim::new_1d(THREADS_1D),
+                arg(&ids, all_pixels),
+                faces.clone().into_buffer_arg(),
+                arg(&visible, all_vertices),
+                pixels as u32,
+                n as u32,
+                num_faces as u32,
+                num_vertices as u32,
+            );
+        }
+        let lowres = views.lowres.min(num_vertices);
+        let vertex_flags = empty_u32(&client, lowres * n);
+        let face_flags = empty_u32(&client, num_faces * n);
+        if n > 0 && lowres.max(num_faces) > 0 {
+            view_flags_kernel::launch(
+                &client,
+                count_1d(lowres.max(num_faces) * n),
+                CubeDim::new_1d(THREADS_1D),
+                arg(&visible, all_vertices),
+                faces.into_buffer_arg(),
+                arg(&vertex_flags, lowres * n),
+                arg(&face_flags, num_faces * n),
+                lowres as u32,
+                num_faces as u32,
+                num_vertices as u32,
+                n as u32,
+            );
+        }
+        (
+            tensor_of(&client, &device, vertex_flags, &[lowres, n], DType::F32),
+            tensor_of(&client, &device, face_flags, &[num_faces, n], DType::F32),
+        )
     }
 }

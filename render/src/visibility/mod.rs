@@ -94,6 +94,76 @@ pub fn rasterize_on_device(
     })
 }
 
+/// The cameras of a [`visibility_in_views`] call, one per view (of one image size), and how
+/// many leading vertices (the low-res mesh's, of a subdivided one) have their flags returned.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewSet {
+    /// One camera per view.
+    pub cameras: Vec<Camera>,
+    /// Vertices whose flags are returned: the first `lowres`.
+    pub lowres: usize,
+}
+
+/// Per-view visibility flags of a mesh ([`visibility_in_views`]).
+#[derive(Debug, Clone)]
+pub struct ViewVisibility {
+    /// `[lowres, n]`: 1.0 where the vertex is a corner of a face owning a pixel of the view.
+    pub vertices: Tensor<2>,
+    /// `[F, n]`: 1.0 where the face's three corners are visible in the view.
+    pub faces: Tensor<2>,
+}
+
+/// The visibility of `faces` (`[F, 3]`) over a mesh posed once per view, `vertices` `[V, 3n]`
+/// (view `k`'s positions in columns `3k..3k + 3`), in each view's camera: on a CubeCL device
+/// all views in one set of launches (five, where a view at a time takes ten with the flags;
+/// design.md §6.7), on the CPU backends [`cpu`]'s rasterizer view by view. The same flags as
+/// [`rasterize_on_device`] and [`TriangleIds::visible_vertices`] per view. Errors name a bad
+/// camera, a shape that does not match the views, or cameras of different sizes.
+pub fn visibility_in_views(
+    vertices: Tensor<2>,
+    faces: Tensor<2, Int>,
+    views: &ViewSet,
+) -> Result<ViewVisibility> {
+    let _span = tracing::trace_span!("visibility_in_views", views = views.cameras.len()).entered();
+    let n = views.cameras.len();
+    let Some(first) = views.cameras.first() else {
+        return Err(RenderError::InvalidInput {
+            what: "cameras",
+            reason: "no view".into(),
+        });
+    };
+    for camera in &views.cameras {
+        camera.validate()?;
+        if (camera.width, camera.height) != (first.width, first.height) {
+            return Err(RenderError::InvalidInput {
+                what: "cameras",
+                reason: format!(
+                    "views of one call share an image size: {}×{} and {}×{}",
+                    first.width, first.height, camera.width, camera.height
+                ),
+            });
+        }
+    }
+    check_columns("vertices", vertices.dims(), 3 * n)?;
+    let [num_faces, _] = check_columns("faces", faces.dims(), 3)?;
+    if num_faces > i32::MAX as usize {
+        return Err(RenderError::InvalidInput {
+            what: "faces",
+            reason: format!("{num_faces} faces do not fit i32 face ids"),
+        });
+    }
+    let (vertex_flags, face_flags) =
+        <burn::backend::Dispatch as op::TriangleIdOps>::visibility_in_views(
+            vertices.into_dispatch(),
+            faces.into_dispatch(),
+            views.clone(),
+        );
+    Ok(ViewVisibility {
+        vertices: Tensor::from_dispatch(vertex_flags),
+        faces: Tensor::from_dispatch(face_flags),
+    })
+}
+
 impl TriangleIds {
     /// `[num_vertices]`: 1 for every vertex of a face (of `faces`, `[F, 3]`, the faces that were
     /// rasterized) that owns at least one pixel, else 0. For a subdivided mesh the first `V↓`

@@ -21,6 +21,7 @@ use burn::backend::{
 use burn::tensor::{DType, TensorData};
 use glam::Vec3;
 
+use super::ViewSet;
 use super::cpu::{self, TriangleIdBuffer};
 use crate::camera::Camera;
 use crate::readback;
@@ -50,6 +51,26 @@ pub trait TriangleIdOps: Backend {
         faces: IntTensor<Self>,
         num_vertices: usize,
     ) -> IntTensor<Self>;
+
+    /// The visibility of a mesh posed once per view (`vertices` `[V, 3n]`, view `k`'s positions
+    /// in columns `3k..3k + 3`), rasterized in each view's camera: `[lowres, n]` flags of the
+    /// first `views.lowres` vertices and `[F, n]` flags of the faces (1.0 visible, else 0.0). A
+    /// vertex is visible when it is a corner of a face that owns a pixel, a face when its three
+    /// corners are (super::visibility_in_views).
+    #[fusion(meta = |vertices, faces, views| {
+        let n = views.cameras.len();
+        let rows = vertices.shape.num_elements() / (3 * n).max(1);
+        let faces = faces.shape.num_elements() / 3;
+        (
+            TensorSpec::new(burn::tensor::Shape::new([views.lowres.min(rows), n]), DType::F32),
+            TensorSpec::new(burn::tensor::Shape::new([faces, n]), DType::F32),
+        )
+    })]
+    fn visibility_in_views(
+        vertices: FloatTensor<Self>,
+        faces: IntTensor<Self>,
+        views: ViewSet,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>);
 }
 
 /// Face triples from a flat index list; negative or oversized indices become `u32::MAX`, which
@@ -109,6 +130,54 @@ fn cpu_visible_vertices<B: Backend>(
     B::int_from_data(TensorData::new(visible, [num_vertices]), &device)
 }
 
+/// [`TriangleIdOps::visibility_in_views`] on the host: each view through [`cpu`]'s rasterizer.
+fn cpu_visibility_in_views<B: Backend>(
+    vertices: FloatTensor<B>,
+    faces: IntTensor<B>,
+    views: ViewSet,
+) -> (FloatTensor<B>, FloatTensor<B>) {
+    let device = vertices.device();
+    let n = views.cameras.len();
+    let coords = readback::cpu_float::<B>("vertices", vertices);
+    let rows = coords.len() / (3 * n).max(1);
+    let faces = face_triples(&readback::cpu_int::<B>("faces", faces));
+    let lowres = views.lowres.min(rows);
+    let mut vertex_flags = vec![0.0f32; lowres * n];
+    let mut face_flags = vec![0.0f32; faces.len() * n];
+    for (k, camera) in views.cameras.iter().enumerate() {
+        let points: Vec<Vec3> = (0..rows)
+            .map(|v| Vec3::from_slice(&coords[v * 3 * n + 3 * k..][..3]))
+            .collect();
+        let ids = cpu::rasterize_unchecked(&points, &faces, camera).face_ids;
+        let mut visible = vec![false; rows];
+        let mut face_seen = vec![false; faces.len()];
+        for id in ids {
+            let Ok(f) = usize::try_from(id) else { continue };
+            if f >= faces.len() || std::mem::replace(&mut face_seen[f], true) {
+                continue;
+            }
+            for &v in &faces[f] {
+                if let Some(slot) = visible.get_mut(v as usize) {
+                    *slot = true;
+                }
+            }
+        }
+        for v in 0..lowres {
+            vertex_flags[v * n + k] = f32::from(u8::from(visible[v]));
+        }
+        for (f, corners) in faces.iter().enumerate() {
+            let all = corners
+                .iter()
+                .all(|&v| visible.get(v as usize).copied().unwrap_or(false));
+            face_flags[f * n + k] = f32::from(u8::from(all));
+        }
+    }
+    (
+        B::float_from_data(TensorData::new(vertex_flags, [lowres, n]), &device),
+        B::float_from_data(TensorData::new(face_flags, [faces.len(), n]), &device),
+    )
+}
+
 macro_rules! cpu_triangle_id_backend {
     ($backend:ty) => {
         impl TriangleIdOps for $backend {
@@ -126,6 +195,14 @@ macro_rules! cpu_triangle_id_backend {
                 num_vertices: usize,
             ) -> IntTensor<Self> {
                 cpu_visible_vertices::<Self>(face_ids, faces, num_vertices)
+            }
+
+            fn visibility_in_views(
+                vertices: FloatTensor<Self>,
+                faces: IntTensor<Self>,
+                views: ViewSet,
+            ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+                cpu_visibility_in_views::<Self>(vertices, faces, views)
             }
         }
     };
@@ -150,5 +227,15 @@ impl<B: TriangleIdOps, C: CheckpointStrategy> TriangleIdOps for Autodiff<B, C> {
         num_vertices: usize,
     ) -> IntTensor<Self> {
         B::visible_vertices(face_ids, faces, num_vertices)
+    }
+
+    fn visibility_in_views(
+        vertices: FloatTensor<Self>,
+        faces: IntTensor<Self>,
+        views: ViewSet,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let (vertex_flags, face_flags) =
+            B::visibility_in_views(Self::inner(vertices), faces, views);
+        (Self::from_inner(vertex_flags), Self::from_inner(face_flags))
     }
 }
