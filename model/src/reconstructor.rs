@@ -32,7 +32,7 @@ use lifegom_render::camera::Camera;
 use lifegom_render::device::{on_pool_thread, runs_on_host};
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::mesh::MeshTopology;
-use lifegom_render::rasterizer::{Gaussians, RasterSettings, rasterize};
+use lifegom_render::rasterizer::{Gaussians, RasterSettings, rasterize, rasterize_views};
 use lifegom_render::readback;
 use lifegom_render::skeleton::Skeleton;
 use lifegom_render::skinning::skin_vertices;
@@ -350,6 +350,21 @@ pub fn render_views(
     background: [f32; 3],
 ) -> Result<SourceRenders> {
     let _span = tracing::debug_span!("render_views", views = cameras.len()).entered();
+    // On a CubeCL device, views of one pose in one call of the rasterizer (every stage one
+    // launch for all of them). The CPU backends keep a call per view: the same values, and the
+    // Gaussians' gradients summed in the order they always were.
+    let one_pose = skinning.windows(2).all(|pair| pair[0] == pair[1]);
+    if cameras.len() > 1 && one_pose && !runs_on_host(&state_xyz.device()) {
+        let posed = skin_vertices(state_xyz.clone(), subject.lbs_weights.clone(), &skinning[0])?;
+        let gaussians = mesh.gaussians(posed, faces);
+        let settings: Vec<RasterSettings> =
+            cameras.iter().map(|&c| RasterSettings::new(c)).collect();
+        let (rgb, alpha) = rasterize_views(&gaussians, &settings)?.composite_reference(background);
+        return Ok(SourceRenders {
+            rgb: rgb.permute([0, 3, 1, 2]),
+            alpha: alpha.permute([0, 3, 1, 2]),
+        });
+    }
     let mut rgb = Vec::with_capacity(cameras.len());
     let mut alpha = Vec::with_capacity(cameras.len());
     let mut posed_gaussians: Vec<(&[Affine3A], Gaussians)> = Vec::new();

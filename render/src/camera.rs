@@ -107,6 +107,20 @@ pub struct ViewParams {
 }
 
 impl Camera {
+    /// The flattened form the kernels take: `[R | t]`, intrinsics and image size.
+    pub fn view_params(&self) -> ViewParams {
+        let k = self.intrinsics;
+        ViewParams {
+            view: self.view_matrix(),
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            width: self.width,
+            height: self.height,
+        }
+    }
+
     /// Builds and validates a camera. Fails on a non-positive or non-finite focal length, a zero
     /// image size, a non-finite principal point, or an extrinsic whose linear part is not a
     /// rotation (determinant 1, orthonormal to 1e-3).

@@ -8,12 +8,15 @@
 
 #![allow(deprecated)] // Device::ndarray() is deprecated in Burn 0.22; it is the reference here.
 
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Tensor, TensorData};
 use lifegom_render::gom::{GomParams, gaussians_from_triangles};
-use lifegom_render::rasterizer::{AlphaCutoff, RasterSettings, rasterize};
+use lifegom_render::rasterizer::{
+    AlphaCutoff, Gaussians, RasterSettings, rasterize, rasterize_views,
+};
 use lifegom_render::testing::wgpu_test_device;
 use lifegom_tests::{
-    Rng, Scene, assert_parity, front_camera, random_scene, raster_hard_cases, read, tensor2,
+    PARITY_FORWARD_ABS, PARITY_GRAD_REL, Rng, Scene, assert_parity, front_camera, loss_weights,
+    random_scene, raster_hard_cases, read, tensor2,
 };
 
 /// Seeded random scenes: small ones, one with the depth channel, one with the smooth cutoff,
@@ -213,4 +216,129 @@ fn wgpu_select_rows_backward_with_many_indices() {
         worst < 1e-3,
         "select backward with {n} indices: worst error {worst}"
     );
+}
+
+/// `Σ w·image` over every view of `rasterize_views` on `device.autodiff()`, and the same loss
+/// summed over one `rasterize` per view: the images (view `k` of the first against the `k`-th
+/// render) and the four gradients (the views' sum) agree within the parity tolerances. Three
+/// cameras around the scene; the depth channel and the smooth cutoff in one of the scenes.
+fn assert_views_match_one_at_a_time(scene: &Scene, device: &Device, device_name: &str) {
+    let ad = device.clone().autodiff();
+    let settings: Vec<RasterSettings> = [(0.3, 0.2, 2.5), (-1.5, 0.4, 2.0), (2.0, -0.3, 1.2)]
+        .into_iter()
+        .map(|(x, y, z)| {
+            let (w, h) = (scene.settings.camera.width, scene.settings.camera.height);
+            RasterSettings {
+                camera: lifegom_tests::camera(glam::Vec3::new(x, y, z), w, h, 0.9 * w as f32),
+                ..scene.settings
+            }
+        })
+        .collect();
+    let run = |batched: bool| {
+        let g = Gaussians {
+            means: tensor2(scene.means.clone(), 3, &ad).require_grad(),
+            covariances: tensor2(scene.covariances.clone(), 6, &ad).require_grad(),
+            colors: tensor2(scene.colors.clone(), 3, &ad).require_grad(),
+            opacities: Tensor::<1>::from_floats(scene.opacities.as_slice(), &ad).require_grad(),
+        };
+        let images: Vec<Tensor<3>> = if batched {
+            let image = rasterize_views(&g, &settings).expect("valid views").image;
+            let dims = image.dims();
+            (0..dims[0])
+                .map(|k| {
+                    image
+                        .clone()
+                        .narrow(0, k, 1)
+                        .reshape([dims[1], dims[2], dims[3]])
+                })
+                .collect()
+        } else {
+            settings
+                .iter()
+                .map(|s| rasterize(&g, s).expect("valid view").image)
+                .collect()
+        };
+        let mut loss = None;
+        let mut pixels = Vec::new();
+        for image in images {
+            let len = image.dims().iter().product();
+            let weights =
+                Tensor::<3>::from_data(TensorData::new(loss_weights(len), image.dims()), &ad);
+            pixels.extend(read(image.clone()));
+            let term = (image * weights).sum();
+            loss = Some(match loss {
+                Some(l) => l + term,
+                None => term,
+            });
+        }
+        let grads = loss.expect("three views").backward();
+        let grad2 = |t: &Tensor<2>| read(t.grad(&grads).expect("a gradient"));
+        let grads = [
+            grad2(&g.means),
+            grad2(&g.covariances),
+            grad2(&g.colors),
+            read(g.opacities.grad(&grads).expect("a gradient")),
+        ];
+        (pixels, grads)
+    };
+    let (image, grads) = run(true);
+    let (want_image, want_grads) = run(false);
+    let case = format!("{device_name}/{} in three views", scene.name);
+    assert_eq!(image.len(), want_image.len(), "{case}: image size");
+    for (i, (got, want)) in image.iter().zip(&want_image).enumerate() {
+        assert!(
+            (got - want).abs() <= PARITY_FORWARD_ABS,
+            "{case}: image[{i}] = {got}, one view at a time gives {want}"
+        );
+    }
+    for (name, (got, want)) in ["means", "covariances", "colors", "opacities"]
+        .iter()
+        .zip(grads.iter().zip(&want_grads))
+    {
+        assert_eq!(got.len(), want.len(), "{case}: d/d{name} size");
+        let scale = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        assert!(scale > 0.0, "{case}: d/d{name} is not all zero");
+        for (i, (g, w)) in got.iter().zip(want).enumerate() {
+            let tol = PARITY_GRAD_REL * (w.abs() + 1e-2 * scale);
+            assert!(
+                (g - w).abs() <= tol,
+                "{case}: d/d{name}[{i}] = {g}, one view at a time gives {w} (tolerance {tol:e})"
+            );
+        }
+    }
+}
+
+/// The scenes of the several-views test: a plain one, one with depth and the smooth cutoff, and
+/// a dense one (tiles of more than one batch).
+fn view_scenes() -> Vec<Scene> {
+    let mut smooth = random_scene(4, 30, 40, 32);
+    smooth.settings = smooth
+        .settings
+        .with_cutoff(AlphaCutoff::Smooth)
+        .with_depth();
+    smooth.name += ", smooth cutoff, depth";
+    vec![
+        random_scene(1, 40, 64, 48),
+        smooth,
+        random_scene(5, 700, 32, 32),
+    ]
+}
+
+#[test]
+fn views_at_once_match_one_at_a_time_on_cpu() {
+    for (name, device) in lifegom_tests::cpu_devices() {
+        for scene in view_scenes() {
+            assert_views_match_one_at_a_time(&scene, &device, name);
+        }
+    }
+}
+
+#[test]
+fn views_at_once_match_one_at_a_time_on_wgpu() {
+    let Some(device) = wgpu_test_device() else {
+        return;
+    };
+    for scene in view_scenes() {
+        assert_views_match_one_at_a_time(&scene, &device, "wgpu");
+    }
 }

@@ -1,11 +1,12 @@
 //! The camera record of the CubeCL kernels: world-to-camera `[R | t]`, pinhole intrinsics and
 //! image size, the GPU twin of [`crate::camera::ViewParams`].
 //!
-//! [`ViewArgs`] is a `#[derive(CubeLaunch)]` struct: the host passes it by value
-//! ([`view_args`] builds its `ViewArgsLaunch`), CubeCL registers each field as a launch scalar,
-//! and kernels read named fields (`view.fx`, `view.r12`) instead of offsets into a flat
-//! 16-float buffer. The values reach the kernel bit for bit, exactly as a buffer read would
-//! give them.
+//! The host uploads the cameras of a call as a table, one row of [`CAMERA_FLOATS`] per view
+//! ([`camera_table`]), and a kernel builds the record of the view it works on from it
+//! ([`camera_of`]), then reads named fields (`view.fx`, `view.r12`) instead of offsets into the
+//! row. One kernel then serves one view or many (the rasterizer and the triangle-ID visibility
+//! render every view of a call in one launch per stage). The values reach the kernel bit for
+//! bit.
 //!
 //! The methods keep the expressions of the kernels they came from, term for term and in the
 //! same order, so that results do not move by a rounding.
@@ -13,11 +14,14 @@
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 
+use burn_cubecl::cubecl::server::Handle;
+
 use crate::camera::ViewParams;
+use crate::cube::host::{ComputeClient, u32_bytes};
 
 /// World-to-camera rotation `R` (`r{row}{col}`) and translation `t`, focal lengths and principal
 /// point in pixels, and the image size.
-#[derive(CubeLaunch, CubeType)]
+#[derive(CubeType)]
 pub(crate) struct ViewArgs {
     pub(crate) r00: f32,
     pub(crate) r01: f32,
@@ -37,31 +41,6 @@ pub(crate) struct ViewArgs {
     pub(crate) cy: f32,
     pub(crate) width: u32,
     pub(crate) height: u32,
-}
-
-/// The launch argument for `params` (its row-major `[R | t]` read row by row).
-pub(crate) fn view_args(params: &ViewParams) -> ViewArgsLaunch {
-    let m = &params.view;
-    ViewArgsLaunch::new(
-        m[0],
-        m[1],
-        m[2],
-        m[3],
-        m[4],
-        m[5],
-        m[6],
-        m[7],
-        m[8],
-        m[9],
-        m[10],
-        m[11],
-        params.fx,
-        params.fy,
-        params.cx,
-        params.cy,
-        params.width,
-        params.height,
-    )
 }
 
 #[cube]
@@ -103,4 +82,47 @@ impl ViewArgs {
             )
         }
     }
+}
+
+/// Floats per camera in a camera table ([`camera_table`]): `[R | t]` row by row, `fx`, `fy`,
+/// `cx`, `cy`, width, height. The kernels that see several views at once read their cameras
+/// from such a table ([`camera_of`]) rather than from launch scalars.
+pub(crate) const CAMERA_FLOATS: usize = 18;
+
+/// Camera `view` of a camera table, as the kernels' camera record.
+#[cube]
+pub(crate) fn camera_of(cameras: &[f32], view: u32) -> ViewArgs {
+    let b = view as usize * CAMERA_FLOATS;
+    ViewArgs {
+        r00: cameras[b],
+        r01: cameras[b + 1],
+        r02: cameras[b + 2],
+        t0: cameras[b + 3],
+        r10: cameras[b + 4],
+        r11: cameras[b + 5],
+        r12: cameras[b + 6],
+        t1: cameras[b + 7],
+        r20: cameras[b + 8],
+        r21: cameras[b + 9],
+        r22: cameras[b + 10],
+        t2: cameras[b + 11],
+        fx: cameras[b + 12],
+        fy: cameras[b + 13],
+        cx: cameras[b + 14],
+        cy: cameras[b + 15],
+        width: u32::cast_from(cameras[b + 16]),
+        height: u32::cast_from(cameras[b + 17]),
+    }
+}
+
+/// `views` as the table [`camera_of`] reads, uploaded (image sizes are below 2²⁴, exact in
+/// `f32`).
+pub(crate) fn camera_table(client: &ComputeClient, views: &[ViewParams]) -> Handle {
+    let mut bits = Vec::with_capacity(views.len() * CAMERA_FLOATS);
+    for params in views {
+        bits.extend(params.view.map(f32::to_bits));
+        bits.extend([params.fx, params.fy, params.cx, params.cy].map(f32::to_bits));
+        bits.extend([params.width as f32, params.height as f32].map(f32::to_bits));
+    }
+    client.create_from_slice(&u32_bytes(&bits))
 }

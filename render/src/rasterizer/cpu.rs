@@ -125,6 +125,45 @@ impl RasterConfig {
     }
 }
 
+/// [`RasterConfig`] for several views of one image size, rendered in one call
+/// ([`super::rasterize_views`]); the output is `[n, H, W, C]`. Not `Copy` (the views are a
+/// list); it crosses Burn's dispatch boundary as a clone.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewsConfig {
+    /// Camera and image size of each view, at least one; all of one size.
+    pub views: Vec<ViewParams>,
+    /// Output channels.
+    pub channels: Channels,
+    /// Alpha cutoff rule.
+    pub cutoff: AlphaCutoff,
+}
+
+impl ViewsConfig {
+    /// The output image's shape, `[n, H, W, C]`.
+    pub fn image_shape(&self) -> burn::tensor::Shape {
+        let one = self.view(0).image_shape();
+        burn::tensor::Shape::new([self.views.len(), one[0], one[1], one[2]])
+    }
+
+    /// View `k`'s single-view configuration.
+    ///
+    /// # Panics
+    ///
+    /// If `k` is not below the number of views.
+    pub fn view(&self, k: usize) -> RasterConfig {
+        RasterConfig {
+            view: self.views[k],
+            channels: self.channels,
+            cutoff: self.cutoff,
+        }
+    }
+
+    /// The first view's configuration and all views' cameras.
+    pub(crate) fn parts(&self) -> (RasterConfig, &[ViewParams]) {
+        (self.view(0), &self.views)
+    }
+}
+
 /// The Gaussians, as flat slices: means `[N,3]`, covariances `[N,6]` (xx, xy, xz, yy, yz, zz),
 /// colours `[N,3]`, opacities `[N]`.
 #[derive(Debug, Clone, Copy)]

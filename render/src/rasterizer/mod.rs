@@ -23,7 +23,7 @@ use std::sync::OnceLock;
 use burn::tensor::Tensor;
 
 pub use crate::camera::ViewParams;
-pub use cpu::{AlphaCutoff, Channels, RasterConfig};
+pub use cpu::{AlphaCutoff, Channels, RasterConfig, ViewsConfig};
 
 use crate::camera::Camera;
 use crate::error::{RenderError, Result, check_finite};
@@ -152,17 +152,8 @@ impl RasterSettings {
 
     /// The flattened form the kernels take.
     pub fn config(&self) -> RasterConfig {
-        let k = self.camera.intrinsics;
         RasterConfig {
-            view: ViewParams {
-                view: self.camera.view_matrix(),
-                fx: k.fx,
-                fy: k.fy,
-                cx: k.cx,
-                cy: k.cy,
-                width: self.camera.width,
-                height: self.camera.height,
-            },
+            view: self.camera.view_params(),
             channels: self.channels,
             cutoff: self.cutoff,
         }
@@ -250,6 +241,103 @@ pub fn rasterize(gaussians: &Gaussians, settings: &RasterSettings) -> Result<Ren
         image,
         channels: settings.channels,
         blocks: OnceLock::new(),
+    })
+}
+
+/// Several views of one set of Gaussians: `[n, H, W, C]`, premultiplied RGB, alpha, and depth
+/// if asked for ([`rasterize_views`]).
+#[derive(Debug, Clone)]
+pub struct RenderedViews {
+    /// The raw op output.
+    pub image: Tensor<4>,
+    /// Which channels `image` holds.
+    pub channels: Channels,
+}
+
+impl RenderedViews {
+    /// Colour and alpha, `[n, H, W, 3]` and `[n, H, W, 1]`: one split of the channels.
+    fn rgb_alpha(&self) -> (Tensor<4>, Tensor<4>) {
+        let widths: &[usize] = match self.channels {
+            Channels::RgbAlpha => &[3, 1],
+            Channels::RgbAlphaDepth => &[3, 1, 1],
+        };
+        let mut blocks = split_columns(self.image.clone(), widths).into_iter();
+        let rgb = blocks.next().expect("colour block");
+        (rgb, blocks.next().expect("alpha block"))
+    }
+
+    /// [`Rendered::composite_reference`] of every view, `[n, H, W, 3]`, and the alpha,
+    /// `[n, H, W, 1]`.
+    pub fn composite_reference(&self, background: [f32; 3]) -> (Tensor<4>, Tensor<4>) {
+        let device = self.image.device();
+        let bg = Tensor::<1>::from_floats(background, &device).reshape([1, 1, 1, 3]);
+        let (rgb, alpha) = self.rgb_alpha();
+        let composite = rgb * alpha.clone() + bg * (alpha.ones_like() - alpha.clone());
+        (composite, alpha)
+    }
+}
+
+/// Renders `gaussians` in every view of `settings`, differentiably, in one call: on a CubeCL
+/// device every stage is one launch for all the views (design.md §6.3), where a view at a time
+/// takes about ten launches forward and three backward per view. View `k` of the result equals
+/// [`rasterize`] with `settings[k]`; the Gaussians' gradients are the views' summed.
+///
+/// The views share one image size, channel set and cutoff; errors name a bad camera, views
+/// that differ in those, or (as [`rasterize`]) a bad Gaussian input.
+pub fn rasterize_views(
+    gaussians: &Gaussians,
+    settings: &[RasterSettings],
+) -> Result<RenderedViews> {
+    let _span = tracing::debug_span!(
+        "rasterize_views",
+        n = gaussians.len(),
+        views = settings.len()
+    )
+    .entered();
+    let Some(first) = settings.first() else {
+        return Err(RenderError::InvalidInput {
+            what: "cameras",
+            reason: "no view".into(),
+        });
+    };
+    for view in settings {
+        view.camera.validate()?;
+        let size = |s: &RasterSettings| (s.camera.width, s.camera.height);
+        if size(view) != size(first)
+            || view.channels != first.channels
+            || view.cutoff != first.cutoff
+        {
+            return Err(RenderError::InvalidInput {
+                what: "cameras",
+                reason: format!(
+                    "the views of one call share an image size, channels and cutoff: {:?} and {:?}",
+                    (size(first), first.channels, first.cutoff),
+                    (size(view), view.channels, view.cutoff)
+                ),
+            });
+        }
+    }
+    gaussians.check_shapes()?;
+    if settings.iter().any(|s| s.validation == Validation::Full) {
+        gaussians.check_values()?;
+    }
+    let config = ViewsConfig {
+        views: settings.iter().map(|s| s.camera.view_params()).collect(),
+        channels: first.channels,
+        cutoff: first.cutoff,
+    };
+    let image = Tensor::from_dispatch(
+        <burn::backend::Dispatch as op::GaussianRasterOps>::rasterize_gaussian_views(
+            gaussians.means.clone().into_dispatch(),
+            gaussians.covariances.clone().into_dispatch(),
+            gaussians.colors.clone().into_dispatch(),
+            gaussians.opacities.clone().into_dispatch(),
+            config,
+        ),
+    );
+    Ok(RenderedViews {
+        image,
+        channels: first.channels,
     })
 }
 

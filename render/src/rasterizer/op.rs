@@ -33,7 +33,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Flex, NdArray, backend_extension};
 use burn::tensor::{DType, TensorData};
 
-use super::cpu::{self, GaussianSlices, RasterConfig};
+use super::cpu::{self, GaussianSlices, RasterConfig, ViewsConfig};
 use crate::readback::{self, HostLend};
 
 /// The differentiable Gaussian rasterizer, as a Burn backend extension.
@@ -54,6 +54,20 @@ pub trait GaussianRasterOps: Backend {
         colors: FloatTensor<Self>,
         opacities: FloatTensor<Self>,
         config: RasterConfig,
+    ) -> FloatTensor<Self>;
+
+    /// Renders the Gaussians in every view of `config`: `[n, H, W, C]`, view `k` at `[k]` equal
+    /// to [`Self::rasterize_gaussians`] with `config.view(k)`; the gradients are the views'
+    /// summed in view order.
+    #[fusion(meta = |_means, _covariances, _colors, _opacities, config| {
+        TensorSpec::new(config.image_shape(), DType::F32)
+    })]
+    fn rasterize_gaussian_views(
+        means: FloatTensor<Self>,
+        covariances: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        config: ViewsConfig,
     ) -> FloatTensor<Self>;
 }
 
@@ -79,6 +93,15 @@ pub trait RasterKernels: Backend {
         config: RasterConfig,
     ) -> (FloatTensor<Self>, SavedRaster);
 
+    /// [`GaussianRasterOps::rasterize_gaussian_views`], also returning what the backward needs.
+    fn rasterize_views_saving(
+        means: FloatTensor<Self>,
+        covariances: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        config: ViewsConfig,
+    ) -> (FloatTensor<Self>, SavedRaster);
+
     /// Gradients w.r.t. `[means, covariances, colors, opacities]` given `dL/dimage`.
     fn rasterize_backward(
         saved: &SavedRaster,
@@ -93,7 +116,8 @@ struct CpuSaved {
     covariances: Vec<f32>,
     colors: Vec<f32>,
     opacities: Vec<f32>,
-    state: cpu::ForwardState,
+    /// One per view, in order.
+    states: Vec<cpu::ForwardState>,
 }
 
 impl CpuSaved {
@@ -105,6 +129,45 @@ impl CpuSaved {
             opacities: &self.opacities,
         }
     }
+}
+
+/// Every view of `config` rendered by [`cpu::forward`] in turn: `[n, H, W, C]`.
+fn cpu_views_forward<B: Backend>(
+    means: FloatTensor<B>,
+    covariances: FloatTensor<B>,
+    colors: FloatTensor<B>,
+    opacities: FloatTensor<B>,
+    config: &ViewsConfig,
+) -> (FloatTensor<B>, CpuSaved) {
+    let device = means.device();
+    let means = readback::cpu_float::<B>("means", means);
+    let covariances = readback::cpu_float::<B>("covariances", covariances);
+    let colors = readback::cpu_float::<B>("colors", colors);
+    let opacities = readback::cpu_float::<B>("opacities", opacities);
+    let slices = GaussianSlices {
+        means: &means,
+        covariances: &covariances,
+        colors: &colors,
+        opacities: &opacities,
+    };
+    let mut images = Vec::new();
+    let mut states = Vec::with_capacity(config.views.len());
+    for k in 0..config.views.len() {
+        let (image, state) = cpu::forward(&config.view(k), &slices);
+        images.extend(image);
+        states.push(state);
+    }
+    let saved = CpuSaved {
+        means,
+        covariances,
+        colors,
+        opacities,
+        states,
+    };
+    (
+        B::float_from_data(TensorData::new(images, config.image_shape()), &device),
+        saved,
+    )
 }
 
 fn cpu_forward<B: Backend>(
@@ -131,7 +194,7 @@ fn cpu_forward<B: Backend>(
         covariances,
         colors,
         opacities,
-        state,
+        states: vec![state],
     };
     let shape = [
         config.view.height as usize,
@@ -154,8 +217,27 @@ fn cpu_backward<B: HostLend>(
         .expect("CPU backward given a CPU forward state");
     let device = grad_image.device();
     let grad_image = B::lend_float::<f32>("grad_image", &grad_image);
-    let grads = cpu::backward(&saved.slices(), &saved.state, &grad_image);
-    let n = saved.state.num_gaussians;
+    // View `k`'s gradient is the `k`-th of equal blocks of `dL/dimage`; the views' Gaussian
+    // gradients are summed in view order (one view: its own, unchanged).
+    let per_view = grad_image.len() / saved.states.len().max(1);
+    let mut views = saved.states.iter().enumerate().map(|(k, state)| {
+        cpu::backward(
+            &saved.slices(),
+            state,
+            &grad_image[k * per_view..][..per_view],
+        )
+    });
+    let mut grads = views.next().expect("a forward renders at least one view");
+    for more in views {
+        let add = |total: &mut Vec<f32>, more: Vec<f32>| {
+            total.iter_mut().zip(more).for_each(|(t, m)| *t += m);
+        };
+        add(&mut grads.means, more.means);
+        add(&mut grads.covariances, more.covariances);
+        add(&mut grads.colors, more.colors);
+        add(&mut grads.opacities, more.opacities);
+    }
+    let n = saved.opacities.len();
     [
         B::float_from_data(TensorData::new(grads.means, [n, 3]), &device),
         B::float_from_data(TensorData::new(grads.covariances, [n, 6]), &device),
@@ -177,6 +259,16 @@ macro_rules! cpu_raster_backend {
             ) -> FloatTensor<Self> {
                 cpu_forward::<Self>(means, covariances, colors, opacities, config).0
             }
+
+            fn rasterize_gaussian_views(
+                means: FloatTensor<Self>,
+                covariances: FloatTensor<Self>,
+                colors: FloatTensor<Self>,
+                opacities: FloatTensor<Self>,
+                config: ViewsConfig,
+            ) -> FloatTensor<Self> {
+                cpu_views_forward::<Self>(means, covariances, colors, opacities, &config).0
+            }
         }
 
         impl RasterKernels for $backend {
@@ -189,6 +281,18 @@ macro_rules! cpu_raster_backend {
             ) -> (FloatTensor<Self>, SavedRaster) {
                 let (image, state) =
                     cpu_forward::<Self>(means, covariances, colors, opacities, config);
+                (image, SavedRaster(Arc::new(state)))
+            }
+
+            fn rasterize_views_saving(
+                means: FloatTensor<Self>,
+                covariances: FloatTensor<Self>,
+                colors: FloatTensor<Self>,
+                opacities: FloatTensor<Self>,
+                config: ViewsConfig,
+            ) -> (FloatTensor<Self>, SavedRaster) {
+                let (image, state) =
+                    cpu_views_forward::<Self>(means, covariances, colors, opacities, &config);
                 (image, SavedRaster(Arc::new(state)))
             }
 
@@ -256,6 +360,70 @@ impl<B: GaussianRasterOps + RasterKernels, C: CheckpointStrategy> GaussianRaster
             )),
         }
     }
+
+    fn rasterize_gaussian_views(
+        means: FloatTensor<Self>,
+        covariances: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        config: ViewsConfig,
+    ) -> FloatTensor<Self> {
+        let (means, means_node) = means.into_parts();
+        let (covariances, cov_node) = covariances.into_parts();
+        let (colors, colors_node) = colors.into_parts();
+        let (opacities, opacities_node) = opacities.into_parts();
+        match RasterBackward
+            .prepare::<C>([means_node, cov_node, colors_node, opacities_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let (image, saved) =
+                    B::rasterize_views_saving(means, covariances, colors, opacities, config);
+                prep.finish(saved, image)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::rasterize_gaussian_views(
+                means,
+                covariances,
+                colors,
+                opacities,
+                config,
+            )),
+        }
+    }
+}
+
+/// A saving forward recorded on the fusion stream: `run` renders the four inputs into an image
+/// of `shape` on the inner backend when the stream runs it, and its state fills the returned
+/// [`DeferredSaved`].
+fn deferred_saving<B: FusionBackend + RasterKernels>(
+    gaussians: [FloatTensor<Fusion<B>>; 4],
+    shape: burn::tensor::Shape,
+    run: impl Fn([FloatTensor<B>; 4]) -> (FloatTensor<B>, SavedRaster) + Send + Sync + 'static,
+) -> (FloatTensor<Fusion<B>>, SavedRaster) {
+    let count = gaussians[3].shape().num_elements();
+    let spec = Output::Float(TensorSpec::new(shape, DType::F32));
+    let inputs = gaussians.into_iter().map(Input::Float).collect();
+    let inner = Arc::new(OnceLock::new());
+    let filled = inner.clone();
+    let [image] = array(deferred::<B, _>(
+        "rasterize_saving",
+        inputs,
+        vec![spec],
+        move |v| {
+            let (image, saved) = run(array::<_, 4>(v).map(Value::float));
+            // The stream runs a recorded op once; a second run would find the cell full and
+            // keep the first state, which is the same.
+            let _ = filled.set(saved);
+            vec![Value::Float(image)]
+        },
+    ));
+    let saved = DeferredSaved::<B> {
+        inner,
+        image: image.clone(),
+        gaussians: count,
+    };
+    (image, SavedRaster(Arc::new(saved)))
 }
 
 /// The fusion backend's forward state. The forward is recorded, not run, so the inner backend's
@@ -276,39 +444,27 @@ impl<B: FusionBackend + RasterKernels> RasterKernels for Fusion<B> {
         opacities: FloatTensor<Self>,
         config: RasterConfig,
     ) -> (FloatTensor<Self>, SavedRaster) {
-        let gaussians = opacities.shape().num_elements();
-        let spec = Output::Float(TensorSpec::new(config.image_shape(), DType::F32));
-        let inputs = [means, covariances, colors, opacities]
-            .into_iter()
-            .map(Input::Float)
-            .collect();
-        let inner = Arc::new(OnceLock::new());
-        let filled = inner.clone();
-        let [image] = array(deferred::<B, _>(
-            "rasterize_saving",
-            inputs,
-            vec![spec],
-            move |v| {
-                let [means, covariances, colors, opacities] = array(v);
-                let (image, saved) = B::rasterize_saving(
-                    means.float(),
-                    covariances.float(),
-                    colors.float(),
-                    opacities.float(),
-                    config,
-                );
-                // The stream runs a recorded op once; a second run would find the cell full and
-                // keep the first state, which is the same.
-                let _ = filled.set(saved);
-                vec![Value::Float(image)]
-            },
-        ));
-        let saved = DeferredSaved::<B> {
-            inner,
-            image: image.clone(),
-            gaussians,
-        };
-        (image, SavedRaster(Arc::new(saved)))
+        let shape = config.image_shape();
+        deferred_saving::<B>(
+            [means, covariances, colors, opacities],
+            shape,
+            move |[m, c, col, o]| B::rasterize_saving(m, c, col, o, config),
+        )
+    }
+
+    fn rasterize_views_saving(
+        means: FloatTensor<Self>,
+        covariances: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        config: ViewsConfig,
+    ) -> (FloatTensor<Self>, SavedRaster) {
+        let shape = config.image_shape();
+        deferred_saving::<B>(
+            [means, covariances, colors, opacities],
+            shape,
+            move |[m, c, col, o]| B::rasterize_views_saving(m, c, col, o, config.clone()),
+        )
     }
 
     fn rasterize_backward(

@@ -44,11 +44,11 @@ use burn_cubecl::tensor::CubeTensor;
 
 use super::ViewSet;
 use super::op::TriangleIdOps;
-use crate::camera::Camera;
+use crate::camera::{Camera, ViewParams};
 use crate::cube::host::{
-    ComputeClient, THREADS_1D, arg, count_1d, empty_u32, prepare, prepare_i32, tensor_of, u32_bytes,
+    ComputeClient, THREADS_1D, arg, count_1d, empty_u32, prepare, prepare_i32, tensor_of,
 };
-use crate::cube::view::ViewArgs;
+use crate::cube::view::{CAMERA_FLOATS, ViewArgs, camera_of, camera_table};
 
 /// `ids` entry of a pixel no face covers.
 const EMPTY_ID: u32 = u32::MAX;
@@ -228,36 +228,6 @@ fn raster_screen_tri(
                 }
             }
         }
-    }
-}
-
-/// Floats per camera in a camera table ([`camera_table`]): `[R | t]` row by row, `fx`, `fy`,
-/// `cx`, `cy`, width, height.
-const CAMERA_FLOATS: u32 = 18;
-
-/// Camera `view` of a camera table, as the kernels' camera record.
-#[cube]
-fn camera_of(cameras: &[f32], view: u32) -> ViewArgs {
-    let b = (view * CAMERA_FLOATS) as usize;
-    ViewArgs {
-        r00: cameras[b],
-        r01: cameras[b + 1],
-        r02: cameras[b + 2],
-        t0: cameras[b + 3],
-        r10: cameras[b + 4],
-        r11: cameras[b + 5],
-        r12: cameras[b + 6],
-        t1: cameras[b + 7],
-        r20: cameras[b + 8],
-        r21: cameras[b + 9],
-        r22: cameras[b + 10],
-        t2: cameras[b + 11],
-        fx: cameras[b + 12],
-        fy: cameras[b + 13],
-        cx: cameras[b + 14],
-        cy: cameras[b + 15],
-        width: u32::cast_from(cameras[b + 16]),
-        height: u32::cast_from(cameras[b + 17]),
     }
 }
 
@@ -550,18 +520,6 @@ fn view_flags_kernel(
     }
 }
 
-/// The cameras as the table [`camera_of`] reads, uploaded.
-fn camera_table(client: &ComputeClient, cameras: &[Camera]) -> Handle {
-    let mut bits = Vec::with_capacity(cameras.len() * CAMERA_FLOATS as usize);
-    for camera in cameras {
-        let k = camera.intrinsics;
-        bits.extend(camera.view_matrix().map(f32::to_bits));
-        bits.extend([k.fx, k.fy, k.cx, k.cy].map(f32::to_bits));
-        bits.extend([camera.width as f32, camera.height as f32].map(f32::to_bits));
-    }
-    client.create_from_slice(&u32_bytes(&bits))
-}
-
 /// Both passes of [`raster_faces_kernel`] over `views` views of `pixels` pixels each.
 #[allow(clippy::too_many_arguments)]
 fn raster_views(
@@ -586,7 +544,7 @@ fn raster_views(
             CubeDim::new_1d(THREADS_1D),
             vertices.clone().into_buffer_arg(),
             faces.clone().into_buffer_arg(),
-            arg(cameras, CAMERA_FLOATS as usize * views),
+            arg(cameras, CAMERA_FLOATS * views),
             arg(depth_bits, pixels * views),
             arg(ids, pixels * views),
             num_vertices as u32,
@@ -623,7 +581,7 @@ impl TriangleIdOps for CubeBackend {
         let (width, height) = (camera.width, camera.height);
         let pixels = width as usize * height as usize;
 
-        let cameras = camera_table(&client, std::slice::from_ref(&camera));
+        let cameras = camera_table(&client, &[camera.view_params()]);
         let depth_bits = empty_u32(&client, pixels);
         let ids = empty_u32(&client, pixels);
         fill_pair_kernel::launch(
@@ -715,7 +673,8 @@ impl TriangleIdOps for CubeBackend {
             .map_or(0, |c| c.width as usize * c.height as usize);
         let (all_pixels, all_vertices) = (pixels * n, num_vertices * n);
 
-        let cameras = camera_table(&client, &views.cameras);
+        let params: Vec<ViewParams> = views.cameras.iter().map(Camera::view_params).collect();
+        let cameras = camera_table(&client, &params);
         let depth_bits = empty_u32(&client, all_pixels);
         let ids = empty_u32(&client, all_pixels);
         let visible = empty_u32(&client, all_vertices);

@@ -39,27 +39,33 @@ pub(crate) fn copy_one(data: &[u32], out: &mut [u32], at: u32) {
     }
 }
 
-/// One thread per Gaussian in depth order: writes `(tile id, gid)` for every tile of its
-/// rectangle at its scanned offset. Tiles within a Gaussian go in row-major order; the stable
-/// tile sort that follows keeps the depth order between Gaussians.
+/// One thread per splat in depth order: writes `(tile id, gid)` for every tile of its
+/// rectangle at its scanned offset. Tiles within a splat go in row-major order; the stable
+/// tile sort that follows keeps the depth order between splats. With several views, splat
+/// `gid` is Gaussian `gid % per_view` seen in view `gid / per_view`, whose tiles are numbered
+/// after the earlier views' `tiles_per_view`.
 #[cube(launch)]
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn map_intersections(
     gid_from_depth_rank: &[u32],
     rects: &[u32],
     isect_offsets: &[u32],
     tile_keys: &mut [u32],
     gid_from_isect: &mut [u32],
-    num_gaussians: u32,
+    num_splats: u32,
+    per_view: u32,
     tiles_x: u32,
+    tiles_per_view: u32,
 ) {
     let rank = ABSOLUTE_POS as u32;
-    if rank < num_gaussians {
+    if rank < num_splats {
         let gid = gid_from_depth_rank[rank as usize];
         let r = RECT_LANES * gid as usize;
+        let first_tile = (gid / per_view) * tiles_per_view;
         let mut at = isect_offsets[rank as usize];
         for ty in rects[r + RECT_Y0]..rects[r + RECT_Y1] {
             for tx in rects[r + RECT_X0]..rects[r + RECT_X1] {
-                tile_keys[at as usize] = ty * tiles_x + tx;
+                tile_keys[at as usize] = first_tile + ty * tiles_x + tx;
                 gid_from_isect[at as usize] = gid;
                 at += 1u32;
             }

@@ -69,14 +69,15 @@ use burn_cubecl::{CubeBackend, CubeDevice};
 use self::common::{GRAD_LANES, RECT_LANES, SPLAT_LANES, TILE_PIXELS, TILE_SIDE};
 use self::rasterize_backward::{BWD_BATCH, BWD_PIXEL_GROUPS};
 use self::sort::{bits_for, exclusive_scan, radix_sort_pairs};
-use super::cpu::{AlphaCutoff, RasterConfig, TILE};
+use super::cpu::{AlphaCutoff, RasterConfig, TILE, ViewsConfig};
 use super::op::{GaussianRasterOps, RasterKernels, SavedRaster};
+use crate::camera::ViewParams;
 use crate::cube::atomic::use_native_float_atomics;
 use crate::cube::host::{
     ComputeClient, THREADS_1D, arg, count_1d, empty_u32, prepare, read_u32, tensor_arg, tensor_f32,
     u32_bytes, zeros_f32,
 };
-use crate::cube::view::view_args;
+use crate::cube::view::{CAMERA_FLOATS, camera_table};
 use crate::error::RenderError;
 
 /// Pixel groups per tile forced by [`force_backward_pixel_groups`]; 0 for the default.
@@ -100,6 +101,9 @@ struct CubeSaved {
     client: ComputeClient,
     device: CubeDevice,
     cfg: RasterConfig,
+    /// The views rendered (`cfg.view` and more, of its size), and their camera table.
+    views: usize,
+    cameras: Handle,
     num_gaussians: usize,
     num_isects: usize,
     means: CubeTensor,
@@ -113,26 +117,37 @@ struct CubeSaved {
     last_contrib: Handle,
 }
 
+/// The forward of every view of `views` (one image size; `cfg.view` is the first): splats,
+/// tiles and pixels of view `k` follow those of the views before it, so each stage is one
+/// launch for all views (module docs, "Several views"). The image, `image_shape`, is `[H, W, C]`
+/// for one view and `[views, H, W, C]` for several.
 fn forward(
     means: FloatTensor<CubeBackend>,
     covariances: FloatTensor<CubeBackend>,
     colors: FloatTensor<CubeBackend>,
     opacities: FloatTensor<CubeBackend>,
     cfg: RasterConfig,
+    views: &[ViewParams],
+    image_shape: &[usize],
 ) -> (CubeTensor, CubeSaved) {
-    let _span = tracing::trace_span!("cube_rasterize").entered();
+    let _span = tracing::trace_span!("cube_rasterize", views = views.len()).entered();
     let (means, covariances) = (prepare(means), prepare(covariances));
     let (colors, opacities) = (prepare(colors), prepare(opacities));
     let client = means.client.clone();
     let device = means.device.clone();
-    let n = opacities.shape().num_elements();
+    let gaussians = opacities.shape().num_elements();
+    let num_views = views.len();
+    // Splat `k·gaussians + g` is Gaussian `g` in view `k`.
+    let n = gaussians * num_views;
     let v = &cfg.view;
     let (width, height) = (v.width, v.height);
     let channels = cfg.channels.count();
     let tiles_x = (width as usize).div_ceil(TILE);
     let tiles_y = (height as usize).div_ceil(TILE);
-    let num_tiles = tiles_x * tiles_y;
+    let tiles_per_view = tiles_x * tiles_y;
+    let num_tiles = tiles_per_view * num_views;
     let smooth = cfg.cutoff == AlphaCutoff::Smooth;
+    let cameras = camera_table(&client, views);
 
     let splats = client.empty(4 * (n * SPLAT_LANES).max(1));
     let tile_counts = empty_u32(&client, n);
@@ -152,12 +167,13 @@ fn forward(
             tensor_arg(&covariances),
             tensor_arg(&colors),
             tensor_arg(&opacities),
-            view_args(v),
+            arg(&cameras, CAMERA_FLOATS * num_views),
             arg(&splats, n * SPLAT_LANES),
             arg(&rect_buf, RECT_LANES * n),
             arg(&tile_counts, n),
             arg(&depth_keys, n),
-            n as u32,
+            gaussians as u32,
+            num_views as u32,
             smooth,
         );
         let ids: Vec<u32> = (0..n as u32).collect();
@@ -204,7 +220,9 @@ fn forward(
                 arg(&tile_keys, num_isects),
                 arg(&gids, num_isects),
                 n as u32,
+                gaussians as u32,
                 tiles_x as u32,
+                tiles_per_view as u32,
             );
             let bits = bits_for(num_tiles as u32 - 1);
             let (tile_keys, gids) = radix_sort_pairs(&client, tile_keys, gids, num_isects, bits);
@@ -226,9 +244,9 @@ fn forward(
         ),
     };
 
-    let pixels = width as usize * height as usize;
-    let image = client.empty(4 * pixels * channels);
-    let final_t = client.empty(4 * pixels);
+    let pixels = width as usize * height as usize * num_views;
+    let image = client.empty(4 * (pixels * channels).max(1));
+    let final_t = client.empty(4 * pixels.max(1));
     let last_contrib = empty_u32(&client, pixels);
     {
         let _span = tracing::trace_span!("blend").entered();
@@ -240,7 +258,7 @@ fn forward(
         };
         rasterize::rasterize_kernel::launch(
             &client,
-            CubeCount::Static(tiles_x as u32, tiles_y as u32, 1),
+            CubeCount::Static(tiles_x as u32, tiles_y as u32, num_views as u32),
             CubeDim::new_2d(TILE_SIDE, TILE_SIDE),
             arg(&splats, n * SPLAT_LANES),
             colors_arg,
@@ -252,21 +270,19 @@ fn forward(
             width,
             height,
             tiles_x as u32,
+            gaussians.max(1) as u32,
             channels as u32,
             smooth,
         );
     }
-    let image = tensor_f32(
-        &client,
-        &device,
-        image,
-        &[height as usize, width as usize, channels],
-    );
+    let image = tensor_f32(&client, &device, image, image_shape);
     let saved = CubeSaved {
         client,
         device,
         cfg,
-        num_gaussians: n,
+        views: num_views,
+        cameras,
+        num_gaussians: gaussians,
         num_isects,
         means,
         covariances,
@@ -284,20 +300,22 @@ fn forward(
 fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTensor; 4] {
     let _span = tracing::trace_span!("cube_rasterize_backward").entered();
     let (client, device) = (&saved.client, &saved.device);
-    let n = saved.num_gaussians;
+    let gaussians = saved.num_gaussians;
+    let num_views = saved.views;
+    let n = gaussians * num_views;
     let cfg = &saved.cfg;
     let (width, height) = (cfg.view.width, cfg.view.height);
     let channels = cfg.channels.count();
     let tiles_x = (width as usize).div_ceil(TILE);
     let tiles_y = (height as usize).div_ceil(TILE);
-    let num_tiles = tiles_x * tiles_y;
-    let pixels = width as usize * height as usize;
+    let num_tiles = tiles_x * tiles_y * num_views;
+    let pixels = width as usize * height as usize * num_views;
     let smooth = cfg.cutoff == AlphaCutoff::Smooth;
 
-    let d_means = client.empty(4 * (3 * n).max(1));
-    let d_covs = client.empty(4 * (6 * n).max(1));
-    let d_colors = client.empty(4 * (3 * n).max(1));
-    let d_opacities = client.empty(4 * n.max(1));
+    // Per splat; with several views summed per Gaussian afterwards into the `d_*` below.
+    let per_splat = |lanes: usize| client.empty(4 * (lanes * n).max(1));
+    let (s_means, s_covs, s_colors, s_opacities) =
+        (per_splat(3), per_splat(6), per_splat(3), per_splat(1));
     if n > 0 {
         let grad_image = prepare(grad_image);
         let grad_len = n * GRAD_LANES;
@@ -312,7 +330,7 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
             ($slot:ty) => {
                 rasterize_backward::rasterize_backward_kernel::launch::<$slot>(
                     client,
-                    CubeCount::Static(tiles_x as u32, tiles_y as u32, groups),
+                    CubeCount::Static(tiles_x as u32, tiles_y as u32, groups * num_views as u32),
                     CubeDim::new_1d(BWD_BATCH),
                     arg(&saved.splats, n * SPLAT_LANES),
                     tensor_arg(&saved.colors),
@@ -325,6 +343,7 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
                     width,
                     height,
                     tiles_x as u32,
+                    gaussians as u32,
                     channels as u32,
                     smooth,
                     TILE_PIXELS / groups,
@@ -342,22 +361,48 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
             CubeDim::new_1d(THREADS_1D),
             tensor_arg(&saved.means),
             tensor_arg(&saved.covariances),
-            view_args(&cfg.view),
+            arg(&saved.cameras, CAMERA_FLOATS * num_views),
             arg(&saved.splats, n * SPLAT_LANES),
             arg(&saved.tile_counts, n),
             arg(&grad2d, grad_len),
-            arg(&d_means, 3 * n),
-            arg(&d_covs, 6 * n),
-            arg(&d_colors, 3 * n),
-            arg(&d_opacities, n),
-            n as u32,
+            arg(&s_means, 3 * n),
+            arg(&s_covs, 6 * n),
+            arg(&s_colors, 3 * n),
+            arg(&s_opacities, n),
+            gaussians as u32,
+            num_views as u32,
         );
     }
+    if num_views == 1 || gaussians == 0 {
+        return [
+            tensor_f32(client, device, s_means, &[gaussians, 3]),
+            tensor_f32(client, device, s_covs, &[gaussians, 6]),
+            tensor_f32(client, device, s_colors, &[gaussians, 3]),
+            tensor_f32(client, device, s_opacities, &[gaussians]),
+        ];
+    }
+    let total = |lanes: usize| client.empty(4 * lanes * gaussians);
+    let (d_means, d_covs, d_colors, d_opacities) = (total(3), total(6), total(3), total(1));
+    project_backward::sum_views_kernel::launch(
+        client,
+        count_1d(gaussians),
+        CubeDim::new_1d(THREADS_1D),
+        arg(&s_means, 3 * n),
+        arg(&s_covs, 6 * n),
+        arg(&s_colors, 3 * n),
+        arg(&s_opacities, n),
+        arg(&d_means, 3 * gaussians),
+        arg(&d_covs, 6 * gaussians),
+        arg(&d_colors, 3 * gaussians),
+        arg(&d_opacities, gaussians),
+        gaussians as u32,
+        num_views as u32,
+    );
     [
-        tensor_f32(client, device, d_means, &[n, 3]),
-        tensor_f32(client, device, d_covs, &[n, 6]),
-        tensor_f32(client, device, d_colors, &[n, 3]),
-        tensor_f32(client, device, d_opacities, &[n]),
+        tensor_f32(client, device, d_means, &[gaussians, 3]),
+        tensor_f32(client, device, d_covs, &[gaussians, 6]),
+        tensor_f32(client, device, d_colors, &[gaussians, 3]),
+        tensor_f32(client, device, d_opacities, &[gaussians]),
     ]
 }
 
@@ -369,7 +414,29 @@ impl GaussianRasterOps for CubeBackend {
         opacities: FloatTensor<Self>,
         config: RasterConfig,
     ) -> FloatTensor<Self> {
-        forward(means, covariances, colors, opacities, config).0
+        let shape = config.image_shape().to_vec();
+        forward(
+            means,
+            covariances,
+            colors,
+            opacities,
+            config,
+            &[config.view],
+            &shape,
+        )
+        .0
+    }
+
+    fn rasterize_gaussian_views(
+        means: FloatTensor<Self>,
+        covariances: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        config: ViewsConfig,
+    ) -> FloatTensor<Self> {
+        let (first, views) = config.parts();
+        let shape = config.image_shape().to_vec();
+        forward(means, covariances, colors, opacities, first, views, &shape).0
     }
 }
 
@@ -381,7 +448,29 @@ impl RasterKernels for CubeBackend {
         opacities: FloatTensor<Self>,
         config: RasterConfig,
     ) -> (FloatTensor<Self>, SavedRaster) {
-        let (image, saved) = forward(means, covariances, colors, opacities, config);
+        let shape = config.image_shape().to_vec();
+        let (image, saved) = forward(
+            means,
+            covariances,
+            colors,
+            opacities,
+            config,
+            &[config.view],
+            &shape,
+        );
+        (image, SavedRaster(Arc::new(saved)))
+    }
+
+    fn rasterize_views_saving(
+        means: FloatTensor<Self>,
+        covariances: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        config: ViewsConfig,
+    ) -> (FloatTensor<Self>, SavedRaster) {
+        let (first, views) = config.parts();
+        let shape = config.image_shape().to_vec();
+        let (image, saved) = forward(means, covariances, colors, opacities, first, views, &shape);
         (image, SavedRaster(Arc::new(saved)))
     }
 

@@ -21,7 +21,7 @@ use super::common::{
     SPLAT_CONIC_C, SPLAT_DEPTH, SPLAT_LANES, SPLAT_LOG_CUTOFF, SPLAT_OPACITY, SPLAT_X, SPLAT_Y,
     TILE_SIDE,
 };
-use crate::cube::view::ViewArgs;
+use crate::cube::view::{ViewArgs, camera_of};
 use crate::rasterizer::cpu::{ALPHA_MIN, DILATION, FOV_CLAMP, NEAR_Z, SMOOTH_LO};
 
 /// Key of a culled Gaussian in the depth sort: sorts after every positive float's bits.
@@ -102,17 +102,21 @@ pub(crate) fn project_kernel(
     covs: &[f32],
     colors: &[f32],
     opacities: &[f32],
-    view: &ViewArgs,
+    cameras: &[f32],
     splats: &mut [f32],
     rects: &mut [u32],
     tile_counts: &mut [u32],
     depth_keys: &mut [u32],
     num_gaussians: u32,
+    views: u32,
     #[comptime] smooth: bool,
 ) {
-    let gid = ABSOLUTE_POS as u32;
-    if gid < num_gaussians {
-        let g = gid as usize;
+    // One thread per splat: Gaussian `g` seen in view `k`, at `k·num_gaussians + g` of the
+    // outputs.
+    let splat = ABSOLUTE_POS as u32;
+    if splat < num_gaussians * views {
+        let g = (splat % num_gaussians) as usize;
+        let view = camera_of(cameras, splat / num_gaussians);
         let mut visible = true;
         let cr = colors[3 * g];
         let cg = colors[3 * g + 1];
@@ -138,7 +142,7 @@ pub(crate) fn project_kernel(
         let sx = select(visible, tx, 0.0f32);
         let sy = select(visible, ty, 0.0f32);
         let sz = select(visible, tz, 1.0f32);
-        let e = ewa(view, sx, sy, sz);
+        let e = ewa(&view, sx, sy, sz);
         let base = COV_LANES * g;
         let s0x = sym_row(covs, base, 0u32, e.t0x, e.t0y, e.t0z);
         let s0y = sym_row(covs, base, 1u32, e.t0x, e.t0y, e.t0z);
@@ -189,8 +193,9 @@ pub(crate) fn project_kernel(
         if !(x1 > x0 && y1 > y0) {
             visible = false;
         }
-        let r = RECT_LANES * g;
-        let s = SPLAT_LANES * g;
+        let out = splat as usize;
+        let r = RECT_LANES * out;
+        let s = SPLAT_LANES * out;
         if visible {
             splats[s + SPLAT_X] = x;
             splats[s + SPLAT_Y] = y;
@@ -204,9 +209,9 @@ pub(crate) fn project_kernel(
             rects[r + RECT_Y0] = y0;
             rects[r + RECT_X1] = x1;
             rects[r + RECT_Y1] = y1;
-            tile_counts[g] = (x1 - x0) * (y1 - y0);
+            tile_counts[out] = (x1 - x0) * (y1 - y0);
             // Depth is > NEAR_Z > 0, so its bit pattern orders like the float.
-            depth_keys[g] = u32::reinterpret(tz);
+            depth_keys[out] = u32::reinterpret(tz);
         } else {
             for k in 0..SPLAT_LANES {
                 splats[s + k] = 0.0;
@@ -214,8 +219,8 @@ pub(crate) fn project_kernel(
             for k in 0..RECT_LANES {
                 rects[r + k] = 0u32;
             }
-            tile_counts[g] = 0u32;
-            depth_keys[g] = CULLED_KEY;
+            tile_counts[out] = 0u32;
+            depth_keys[out] = CULLED_KEY;
         }
     }
 }

@@ -10,7 +10,7 @@ use super::common::{
     GRAD_X, GRAD_Y, SPLAT_CONIC_A, SPLAT_CONIC_B, SPLAT_CONIC_C, SPLAT_LANES,
 };
 use super::project::{COV_LANES, ewa, sym_row};
-use crate::cube::view::ViewArgs;
+use crate::cube::view::camera_of;
 use crate::rasterizer::cpu::FOV_CLAMP;
 
 /// One thread per Gaussian: chains the 2D gradients back through the conic, the EWA Jacobian
@@ -21,7 +21,7 @@ use crate::rasterizer::cpu::FOV_CLAMP;
 pub(crate) fn project_backward_kernel(
     means: &[f32],
     covs: &[f32],
-    view: &ViewArgs,
+    cameras: &[f32],
     splats: &[f32],
     tile_counts: &[u32],
     grad2d: &[f32],
@@ -30,10 +30,15 @@ pub(crate) fn project_backward_kernel(
     d_colors: &mut [f32],
     d_opacities: &mut [f32],
     num_gaussians: u32,
+    views: u32,
 ) {
-    let gid = ABSOLUTE_POS as u32;
-    if gid < num_gaussians {
-        let i = gid as usize;
+    // One thread per splat (Gaussian `g` in view `k` at `i = k·num_gaussians + g`), its
+    // gradients at `i`: per view, summed over the views afterwards (`sum_views_kernel`).
+    let splat = ABSOLUTE_POS as u32;
+    if splat < num_gaussians * views {
+        let i = splat as usize;
+        let g = (splat % num_gaussians) as usize;
+        let view = camera_of(cameras, splat / num_gaussians);
         if tile_counts[i] == 0u32 {
             for c in 0..3u32 {
                 d_means[3 * i + c as usize] = 0.0;
@@ -56,15 +61,15 @@ pub(crate) fn project_backward_kernel(
             let dq2 = grad2d[gb + GRAD_CONIC_C];
             let d_depth = grad2d[gb + GRAD_DEPTH];
 
-            let mx = means[3 * i];
-            let my = means[3 * i + 1];
-            let mz = means[3 * i + 2];
+            let mx = means[3 * g];
+            let my = means[3 * g + 1];
+            let mz = means[3 * g + 2];
             let x = view.camera_x(mx, my, mz);
             let y = view.camera_y(mx, my, mz);
             let z = view.camera_z(mx, my, mz);
             let fx = view.fx;
             let fy = view.fy;
-            let e = ewa(view, x, y, z);
+            let e = ewa(&view, x, y, z);
 
             // Conic → 2D covariance: dL/dM = −Q·G·Q, G the symmetric gradient of Q.
             let s = SPLAT_LANES * i;
@@ -112,9 +117,10 @@ pub(crate) fn project_backward_kernel(
             // dL/dT = 2·dL/dM·T·Σ.
             let mut ts0 = Array::<f32>::new(3usize);
             let mut ts1 = Array::<f32>::new(3usize);
+            let input_cov = COV_LANES * g;
             for a in 0..3u32 {
-                ts0[a as usize] = sym_row(covs, cb, a, e.t0x, e.t0y, e.t0z);
-                ts1[a as usize] = sym_row(covs, cb, a, e.t1x, e.t1y, e.t1z);
+                ts0[a as usize] = sym_row(covs, input_cov, a, e.t0x, e.t0y, e.t0z);
+                ts1[a as usize] = sym_row(covs, input_cov, a, e.t1x, e.t1y, e.t1z);
             }
             let mut d_j00 = 0.0f32;
             let mut d_j02 = 0.0f32;
@@ -162,5 +168,44 @@ pub(crate) fn project_backward_kernel(
             d_means[3 * i + 1] = view.r01 * dvx + view.r11 * dvy + view.r21 * dvz;
             d_means[3 * i + 2] = view.r02 * dvx + view.r12 * dvy + view.r22 * dvz;
         }
+    }
+}
+
+/// `out[i] = Σ_k per_view[k·len + i]` for `i < len`, the views in order.
+#[cube]
+fn sum_over_views(per_view: &[f32], out: &mut [f32], i: u32, len: u32, views: u32) {
+    let mut sum = per_view[i as usize];
+    for k in 1..views {
+        sum += per_view[(k * len + i) as usize];
+    }
+    out[i as usize] = sum;
+}
+
+/// One thread per Gaussian: its four gradients summed over the views in order (the splats' of
+/// [`project_backward_kernel`], view after view).
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn sum_views_kernel(
+    s_means: &[f32],
+    s_covs: &[f32],
+    s_colors: &[f32],
+    s_opacities: &[f32],
+    d_means: &mut [f32],
+    d_covs: &mut [f32],
+    d_colors: &mut [f32],
+    d_opacities: &mut [f32],
+    num_gaussians: u32,
+    views: u32,
+) {
+    let g = ABSOLUTE_POS as u32;
+    if g < num_gaussians {
+        for c in 0..3u32 {
+            sum_over_views(s_means, d_means, 3 * g + c, 3 * num_gaussians, views);
+            sum_over_views(s_colors, d_colors, 3 * g + c, 3 * num_gaussians, views);
+        }
+        for c in 0..6u32 {
+            sum_over_views(s_covs, d_covs, 6 * g + c, 6 * num_gaussians, views);
+        }
+        sum_over_views(s_opacities, d_opacities, g, num_gaussians, views);
     }
 }

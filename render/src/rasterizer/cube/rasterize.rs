@@ -52,10 +52,14 @@ pub(crate) fn rasterize_kernel(
     width: u32,
     height: u32,
     tiles_x: u32,
+    num_gaussians: u32,
     #[comptime] channels: u32,
     #[comptime] smooth: bool,
 ) {
-    let tile = CUBE_POS_Y * tiles_x + CUBE_POS_X;
+    // One cube per tile of every view: view `CUBE_POS_Z`'s tiles follow the views before it.
+    let view = CUBE_POS_Z;
+    let tile = view * tiles_x * CUBE_COUNT_Y + CUBE_POS_Y * tiles_x + CUBE_POS_X;
+    let first_pixel_of_view = view * width * height;
     let px = CUBE_POS_X * TILE_SIDE + UNIT_POS_X;
     let py = CUBE_POS_Y * TILE_SIDE + UNIT_POS_Y;
     let lane = UNIT_POS;
@@ -111,9 +115,11 @@ pub(crate) fn rasterize_kernel(
             batch_conic[CONIC_LANES * l + 2] = splats[s + SPLAT_CONIC_C];
             batch_opacity[l] = splats[s + SPLAT_OPACITY];
             batch_cutoff[l] = splats[s + SPLAT_LOG_CUTOFF];
-            batch_feature[BATCH_FEATURE_LANES * l] = colors[(3 * gid) as usize];
-            batch_feature[BATCH_FEATURE_LANES * l + 1] = colors[(3 * gid + 1) as usize];
-            batch_feature[BATCH_FEATURE_LANES * l + 2] = colors[(3 * gid + 2) as usize];
+            // Splats are per (view, Gaussian); colours per Gaussian.
+            let g = gid % num_gaussians;
+            batch_feature[BATCH_FEATURE_LANES * l] = colors[(3 * g) as usize];
+            batch_feature[BATCH_FEATURE_LANES * l + 1] = colors[(3 * g + 1) as usize];
+            batch_feature[BATCH_FEATURE_LANES * l + 2] = colors[(3 * g + 2) as usize];
             batch_feature[BATCH_FEATURE_LANES * l + BATCH_DEPTH] = splats[s + SPLAT_DEPTH];
         }
         sync_cube();
@@ -157,7 +163,7 @@ pub(crate) fn rasterize_kernel(
     }
 
     if inside {
-        let pix = py * width + px;
+        let pix = first_pixel_of_view + py * width + px;
         for ch in 0..channels {
             image[(pix * channels + ch) as usize] = acc[ch as usize];
         }

@@ -84,14 +84,19 @@ pub(crate) fn rasterize_backward_kernel<A: AtomicAddF32>(
     width: u32,
     height: u32,
     tiles_x: u32,
+    num_gaussians: u32,
     #[comptime] channels: u32,
     #[comptime] smooth: bool,
     #[comptime] group_pixels: u32,
 ) {
-    let tile = CUBE_POS_Y * tiles_x + CUBE_POS_X;
+    // `CUBE_POS_Z` counts the pixel groups of view 0's tile, then view 1's, …
+    let groups = comptime!(TILE_PIXELS / group_pixels);
+    let view = CUBE_POS_Z / groups;
+    let tile = view * tiles_x * CUBE_COUNT_Y + CUBE_POS_Y * tiles_x + CUBE_POS_X;
+    let first_pixel_of_view = view * width * height;
     let x0 = CUBE_POS_X * TILE_SIDE;
     let y0 = CUBE_POS_Y * TILE_SIDE;
-    let first = CUBE_POS_Z * group_pixels;
+    let first = (CUBE_POS_Z % groups) * group_pixels;
     let lane = UNIT_POS;
     let group_len = comptime!(group_pixels as usize);
 
@@ -120,7 +125,7 @@ pub(crate) fn rasterize_backward_kernel<A: AtomicAddF32>(
             d_pix[FEATURE_LANES * pu + ch] = 0.0;
         }
         if px < width && py < height {
-            let pix = py * width + px;
+            let pix = first_pixel_of_view + py * width + px;
             trans[pu] = final_t[pix as usize];
             last[pu] = last_contrib[pix as usize];
             for ch in 0..channels {
@@ -146,7 +151,7 @@ pub(crate) fn rasterize_backward_kernel<A: AtomicAddF32>(
         let sp = load_splat(splats, gid);
         let mut f = Array::<f32>::new(FEATURE_LANES);
         for ch in 0..FEATURE_LANES {
-            f[ch] = feature(colors, gid, sp.depth, ch as u32);
+            f[ch] = feature(colors, gid % num_gaussians, sp.depth, ch as u32);
         }
         let mut g = Array::<f32>::new(GRAD_LANES);
         for c in 0..GRAD_LANES {
