@@ -311,12 +311,23 @@ pub struct SourceRenders {
     pub alpha: Tensor<4>,
 }
 
+/// Views rendered beside the source views for supervision only
+/// ([`Reconstructor::forward_with_targets`]): a camera and the skinning transforms of each.
+#[derive(Debug, Clone, Default)]
+pub struct TargetViews {
+    /// One camera per view (of the source views' image size).
+    pub cameras: Vec<Camera>,
+    /// Per view, one canonical-to-posed transform per joint.
+    pub skinning: Vec<Vec<Affine3A>>,
+}
+
 /// Everything a forward pass produces: the state after every step and its source renders.
 #[derive(Debug, Clone)]
 pub struct Reconstruction {
     /// `state_1 … state_T`.
     pub states: Vec<GomState>,
-    /// `R_1, M_1 … R_T, M_T` (for the training losses).
+    /// `R_1, M_1 … R_T, M_T` (for the training losses): each state rendered in the N source
+    /// views, then in the target views of [`Reconstructor::forward_with_targets`], `[N + M, …]`.
     pub renders: Vec<SourceRenders>,
     /// Host wall time of each stage: `encode_sources`, `render_init`, then `step_t` per
     /// feedback step (update + re-render). Meaningful on eager backends (ndarray, Flex); a lazy
@@ -350,19 +361,37 @@ pub fn render_views(
     background: [f32; 3],
 ) -> Result<SourceRenders> {
     let _span = tracing::debug_span!("render_views", views = cameras.len()).entered();
-    // On a CubeCL device, views of one pose in one call of the rasterizer (every stage one
-    // launch for all of them). The CPU backends keep a call per view: the same values, and the
-    // Gaussians' gradients summed in the order they always were.
-    let one_pose = skinning.windows(2).all(|pair| pair[0] == pair[1]);
-    if cameras.len() > 1 && one_pose && !runs_on_host(&state_xyz.device()) {
-        let posed = skin_vertices(state_xyz.clone(), subject.lbs_weights.clone(), &skinning[0])?;
-        let gaussians = mesh.gaussians(posed, faces);
-        let settings: Vec<RasterSettings> =
-            cameras.iter().map(|&c| RasterSettings::new(c)).collect();
-        let (rgb, alpha) = rasterize_views(&gaussians, &settings)?.composite_reference(background);
+    // On a CubeCL device, each run of consecutive views of one pose in one call of the
+    // rasterizer (every stage one launch for all of them). The CPU backends keep a call per view:
+    // the same values, and the Gaussians' gradients summed in the order they always were.
+    if cameras.len() > 1 && !runs_on_host(&state_xyz.device()) {
+        let mut runs = Vec::new();
+        let mut start = 0;
+        while start < cameras.len() {
+            let end = (start..cameras.len())
+                .find(|&k| skinning[k] != skinning[start])
+                .unwrap_or(cameras.len());
+            let posed = skin_vertices(
+                state_xyz.clone(),
+                subject.lbs_weights.clone(),
+                &skinning[start],
+            )?;
+            let gaussians = mesh.gaussians(posed, faces);
+            let settings: Vec<RasterSettings> = cameras[start..end]
+                .iter()
+                .map(|&c| RasterSettings::new(c))
+                .collect();
+            runs.push(rasterize_views(&gaussians, &settings)?.composite_reference(background));
+            start = end;
+        }
+        let (rgb, alpha): (Vec<_>, Vec<_>) = runs.into_iter().unzip();
+        let join = |mut parts: Vec<Tensor<4>>| match parts.len() {
+            1 => parts.pop().expect("one run"),
+            _ => Tensor::cat(parts, 0),
+        };
         return Ok(SourceRenders {
-            rgb: rgb.permute([0, 3, 1, 2]),
-            alpha: alpha.permute([0, 3, 1, 2]),
+            rgb: join(rgb).permute([0, 3, 1, 2]),
+            alpha: join(alpha).permute([0, 3, 1, 2]),
         });
     }
     let mut rgb = Vec::with_capacity(cameras.len());
@@ -446,17 +475,33 @@ impl Reconstructor {
         mesh: &GomMesh,
         sources: &SourceViews,
     ) -> Result<Reconstruction> {
+        self.forward_with_targets(subject, mesh, sources, &TargetViews::default())
+    }
+
+    /// [`Self::forward`], each state also rendered in the `targets` views, after the source
+    /// views in [`Reconstruction::renders`] (the training loss's target view). The feedback
+    /// reads the source views only; on a CubeCL device a target of the sources' pose is
+    /// rendered in the same rasterizer call as they are ([`render_views`]).
+    pub fn forward_with_targets(
+        &self,
+        subject: &CanonicalSubject,
+        mesh: &GomMesh,
+        sources: &SourceViews,
+        targets: &TargetViews,
+    ) -> Result<Reconstruction> {
         on_pool_thread(&subject.canonical_vertices.device(), |parent| {
-            self.forward_here(subject, mesh, sources, parent)
+            self.forward_here(subject, mesh, sources, targets, parent)
         })
     }
 
-    /// [`Reconstructor::forward`] on the calling thread; its span is a child of `parent`.
+    /// [`Reconstructor::forward_with_targets`] on the calling thread; its span is a child of
+    /// `parent`.
     fn forward_here(
         &self,
         subject: &CanonicalSubject,
         mesh: &GomMesh,
         sources: &SourceViews,
+        targets: &TargetViews,
         parent: &tracing::Span,
     ) -> Result<Reconstruction> {
         let _span = tracing::info_span!(
@@ -466,7 +511,22 @@ impl Reconstructor {
             steps = self.iterations
         )
         .entered();
-        sources.check(self.num_views)?;
+        let (width, height) = sources.check(self.num_views)?;
+        if targets.cameras.len() != targets.skinning.len()
+            || targets
+                .cameras
+                .iter()
+                .any(|c| (c.width, c.height) != (width, height))
+        {
+            return Err(ModelError::InvalidInput {
+                what: "targets",
+                reason: format!(
+                    "{} cameras and {} skinning sets; every target camera must be {width}×{height} like the sources",
+                    targets.cameras.len(),
+                    targets.skinning.len()
+                ),
+            });
+        }
         let [v, _] = subject.canonical_vertices.dims();
         if v != self.vertex_embed.dims()[0] || v != mesh.subdivision.lowres.num_vertices {
             return Err(ModelError::InvalidInput {
@@ -513,6 +573,29 @@ impl Reconstructor {
             renders: Vec::new(),
             timings: Vec::new(),
         };
+        // On a CubeCL device the targets are rendered with the sources, in one rasterizer call
+        // per pose; on the CPU backends after the feedback loop, one render per state, as the
+        // trainer rendered them before it passed its target here (the same ops in the same
+        // order: the same gradients to the bit).
+        let n = sources.cameras.len();
+        let targets_with_sources = !runs_on_host(&device) && !targets.cameras.is_empty();
+        let (cameras, skinning) = if targets_with_sources {
+            let cameras: Vec<Camera> = sources
+                .cameras
+                .iter()
+                .chain(&targets.cameras)
+                .copied()
+                .collect();
+            let skinning: Vec<Vec<Affine3A>> = sources
+                .skinning
+                .iter()
+                .chain(&targets.skinning)
+                .cloned()
+                .collect();
+            (cameras, skinning)
+        } else {
+            (sources.cameras.clone(), sources.skinning.clone())
+        };
         for step in 0..self.iterations {
             let _span = tracing::debug_span!("feedback_step", step).entered();
             let planned = self.plan_hierarchy_ahead(&state.xyz)?;
@@ -536,18 +619,41 @@ impl Reconstructor {
                 &folds,
                 planned,
             )?;
-            renders = render_views(
+            let all = render_views(
                 mesh,
                 &state.xyz,
                 &state.faces,
                 subject,
-                &sources.cameras,
-                &sources.skinning,
+                &cameras,
+                &skinning,
                 sources.background,
             )?;
+            renders = match targets_with_sources {
+                true => SourceRenders {
+                    rgb: all.rgb.clone().narrow(0, 0, n),
+                    alpha: all.alpha.clone().narrow(0, 0, n),
+                },
+                false => all.clone(),
+            };
             out.states.push(state.clone());
-            out.renders.push(renders.clone());
+            out.renders.push(all);
             lap(format!("step_{}", step + 1), &mut timings);
+        }
+        if !targets_with_sources && !targets.cameras.is_empty() {
+            let _span = tracing::debug_span!("target_renders").entered();
+            for (state, render) in out.states.iter().zip(&mut out.renders) {
+                let target = render_views(
+                    mesh,
+                    &state.xyz,
+                    &state.faces,
+                    subject,
+                    &targets.cameras,
+                    &targets.skinning,
+                    sources.background,
+                )?;
+                render.rgb = Tensor::cat(vec![render.rgb.clone(), target.rgb], 0);
+                render.alpha = Tensor::cat(vec![render.alpha.clone(), target.alpha], 0);
+            }
         }
         out.timings = timings;
         Ok(out)
@@ -1022,7 +1128,8 @@ mod tests {
 
     /// The whole reconstruction's backward on wgpu (every custom op, the layers the feedback
     /// steps share, Burn's fusion) against Flex with the same weights and images: two views,
-    /// two feedback steps, no dropout. Every trainable parameter's gradient agrees within 1e-3
+    /// two feedback steps, no dropout, two target views (one of the sources' pose, one of
+    /// another) rendered beside the sources. Every trainable parameter's gradient agrees within 1e-3
     /// of its largest magnitude plus 1e-6 of the largest gradient (float summation order,
     /// through two steps of rendering and feedback; measured: within 3e-5 of each tensor's
     /// scale), and the last renders within 1e-4.
@@ -1044,8 +1151,34 @@ mod tests {
         let model_wgpu = model_flex.clone().fork(&wgpu);
         let mut fx_wgpu = fixture(&wgpu, 32);
         fx_wgpu.sources.images = fx_flex.sources.images.clone().to_device(&wgpu);
+        // Two target views: one of the sources' pose (rendered with them on wgpu, in one
+        // rasterizer call, and after the feedback loop on Flex) and one of another pose (a call
+        // of its own on wgpu).
+        let body = BodyTemplate::load(lowres_template_path()).unwrap();
+        let mut pose = BodyPose::rest(body.num_joints());
+        pose.joint_rotations[1] = Vec3::new(0.0, 0.0, 0.6);
+        let targets = TargetViews {
+            cameras: [Vec3::new(1.5, 0.5, 2.0), Vec3::new(-2.0, 0.0, 1.0)]
+                .iter()
+                .map(|eye| {
+                    let k = fx_flex.sources.cameras[0].intrinsics;
+                    Camera::look_at(*eye, Vec3::new(0.0, 0.1, 0.0), Vec3::Y, k, 32, 32).unwrap()
+                })
+                .collect(),
+            skinning: vec![
+                fx_flex.sources.skinning[0].clone(),
+                body.skeleton.skinning_transforms(&pose).unwrap(),
+            ],
+        };
         let run = |model: &Reconstructor, fx: &Fixture| {
-            let rec = model.forward(&fx.subject, &fx.mesh, &fx.sources).unwrap();
+            let rec = model
+                .forward_with_targets(&fx.subject, &fx.mesh, &fx.sources, &targets)
+                .unwrap();
+            assert_eq!(
+                rec.renders[1].rgb.dims(),
+                [4, 3, 32, 32],
+                "sources, then targets"
+            );
             let renders = read(rec.renders[1].rgb.clone());
             let grads = test_loss(&rec).backward();
             (renders, crate::test_grads::parameter_grads(model, &grads))

@@ -28,7 +28,7 @@ use crate::adam::{AdamOptimizer, FusedAdamConfig, GradientWatch};
 use burn::tensor::{Bytes, Device, Tensor};
 use lifegom_data::dataset::Dataset;
 use lifegom_model::inputs::ModelInputs;
-use lifegom_model::reconstructor::{Reconstructor, ReconstructorConfig, render_views};
+use lifegom_model::reconstructor::{Reconstructor, ReconstructorConfig, TargetViews};
 use lifegom_model::trained::{self, TrainedError};
 use lifegom_render::device::on_pool_thread;
 use lifegom_render::device::runs_on_host;
@@ -686,27 +686,19 @@ impl Trainer {
         let inputs = sample.inputs;
         self.device
             .seed(derived_seed(self.seed, DROPOUT, sample.index));
-        let rec = self.model.forward(&inputs.subject, mesh, &inputs.sources)?;
-        let span = tracing::debug_span!("target_renders").entered();
+        // Every state rendered in the N source views and the target view, `[N + 1, …]`.
+        let targets = TargetViews {
+            cameras: vec![inputs.target_camera],
+            skinning: vec![inputs.target_skinning.clone()],
+        };
+        let rec =
+            self.model
+                .forward_with_targets(&inputs.subject, mesh, &inputs.sources, &targets)?;
         let t = rec.states.len();
-        let mut preds = Vec::with_capacity(t);
-        let mut alphas = Vec::with_capacity(t);
-        let mut last_target = None;
-        for (state, source) in rec.states.iter().zip(&rec.renders) {
-            let target = render_views(
-                mesh,
-                &state.xyz,
-                &state.faces,
-                &inputs.subject,
-                std::slice::from_ref(&inputs.target_camera),
-                std::slice::from_ref(&inputs.target_skinning),
-                inputs.sources.background,
-            )?;
-            last_target = Some(target.rgb.clone());
-            preds.push(Tensor::cat(vec![source.rgb.clone(), target.rgb], 0));
-            alphas.push(Tensor::cat(vec![source.alpha.clone(), target.alpha], 0));
-        }
-        drop(span);
+        let n = inputs.sources.cameras.len();
+        let preds: Vec<Tensor<4>> = rec.renders.iter().map(|r| r.rgb.clone()).collect();
+        let alphas: Vec<Tensor<4>> = rec.renders.iter().map(|r| r.alpha.clone()).collect();
+        let last_target = preds.last().map(|rgb| rgb.clone().narrow(0, n, 1));
         let span = tracing::debug_span!("losses").entered();
         let gt_rgb = Tensor::cat(
             vec![
