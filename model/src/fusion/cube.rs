@@ -39,8 +39,8 @@ use lifegom_render::cube::host::{
 };
 
 use super::op::{
-    AddDroppedLayerNormOps, AddLayerNormOps, DropoutSlot, KernelDropout, LayerNormEpsilon,
-    LayerNormGrads, LayerNormInputs, LayerNormKernels,
+    AddDroppedLayerNormOps, AddLayerNormOps, DropoutSlot, LayerNormEpsilon, LayerNormGrads,
+    LayerNormInputs, LayerNormKernels,
 };
 
 /// Threads of a row kernel's cube (a power of two: the shared-memory sum halves it).
@@ -482,14 +482,11 @@ impl AddLayerNormOps for CubeBackend {
         beta: FloatTensor<Self>,
         epsilon: LayerNormEpsilon,
     ) -> FloatTensor<Self> {
-        cube_forward(LayerNormInputs {
-            x,
-            residual,
-            gamma,
-            beta,
-            epsilon: epsilon.0,
-            dropout: None,
-        })
+        cube_forward(LayerNormInputs::new(
+            [x, residual, gamma, beta],
+            epsilon,
+            None,
+        ))
     }
 }
 
@@ -503,14 +500,11 @@ impl AddDroppedLayerNormOps for CubeBackend {
         mask: DropoutSlot,
         epsilon: LayerNormEpsilon,
     ) -> FloatTensor<Self> {
-        cube_forward(LayerNormInputs {
-            x,
-            residual,
-            gamma,
-            beta,
-            epsilon: epsilon.0,
-            dropout: Some(KernelDropout { draws, mask }),
-        })
+        cube_forward(LayerNormInputs::new(
+            [x, residual, gamma, beta],
+            epsilon,
+            Some((draws, mask)),
+        ))
     }
 }
 

@@ -137,6 +137,25 @@ pub struct LayerNormInputs<B: Backend> {
     pub(super) dropout: Option<KernelDropout<B>>,
 }
 
+impl<B: Backend> LayerNormInputs<B> {
+    /// The inputs `[x, residual, γ, β]`, with the residual dropped by the mask of `dropout`'s
+    /// draws and slot, if any.
+    pub(super) fn new(
+        [x, residual, gamma, beta]: [FloatTensor<B>; 4],
+        epsilon: LayerNormEpsilon,
+        dropout: Option<(FloatTensor<B>, DropoutSlot)>,
+    ) -> Self {
+        Self {
+            x,
+            residual,
+            gamma,
+            beta,
+            epsilon: epsilon.0,
+            dropout: dropout.map(|(draws, mask)| KernelDropout { draws, mask }),
+        }
+    }
+}
+
 /// The LayerNorm op's gradients: `[∂x, ∂residual, ∂γ, ∂β]` (the first two equal without
 /// dropout).
 pub type LayerNormGrads<B> = [FloatTensor<B>; 4];
@@ -338,14 +357,11 @@ macro_rules! cpu_fusion_backend {
                 beta: FloatTensor<Self>,
                 epsilon: LayerNormEpsilon,
             ) -> FloatTensor<Self> {
-                cpu_layer_norm_forward::<Self>(LayerNormInputs {
-                    x,
-                    residual,
-                    gamma,
-                    beta,
-                    epsilon: epsilon.0,
-                    dropout: None,
-                })
+                cpu_layer_norm_forward::<Self>(LayerNormInputs::new(
+                    [x, residual, gamma, beta],
+                    epsilon,
+                    None,
+                ))
             }
         }
 
@@ -359,14 +375,11 @@ macro_rules! cpu_fusion_backend {
                 mask: DropoutSlot,
                 epsilon: LayerNormEpsilon,
             ) -> FloatTensor<Self> {
-                cpu_layer_norm_forward::<Self>(LayerNormInputs {
-                    x,
-                    residual,
-                    gamma,
-                    beta,
-                    epsilon: epsilon.0,
-                    dropout: Some(KernelDropout { draws, mask }),
-                })
+                cpu_layer_norm_forward::<Self>(LayerNormInputs::new(
+                    [x, residual, gamma, beta],
+                    epsilon,
+                    Some((draws, mask)),
+                ))
             }
         }
 
@@ -462,6 +475,28 @@ impl<B: LayerNormKernels> Backward<B, 4> for LayerNormBackward {
     }
 }
 
+/// The residual LayerNorm on `Autodiff<B, C>`, with or without a kernel-drawn dropout on the
+/// residual: the node keeps the inputs (the draws take no gradient, and have no node here).
+fn record_layer_norm<B: LayerNormKernels, C: CheckpointStrategy>(
+    tensors: [FloatTensor<Autodiff<B, C>>; 4],
+    epsilon: LayerNormEpsilon,
+    dropout: Option<(FloatTensor<Autodiff<B, C>>, DropoutSlot)>,
+) -> FloatTensor<Autodiff<B, C>> {
+    let [
+        (x, x_node),
+        (residual, r_node),
+        (gamma, gamma_node),
+        (beta, beta_node),
+    ] = tensors.map(|t| t.into_parts());
+    let dropout = dropout.map(|(draws, mask)| (draws.into_parts().0, mask));
+    record::<B, C, _, _, 4>(
+        LayerNormBackward,
+        [x_node, r_node, gamma_node, beta_node],
+        LayerNormInputs::new([x, residual, gamma, beta], epsilon, dropout),
+        B::layer_norm_forward,
+    )
+}
+
 impl<B: AddLayerNormOps + LayerNormKernels, C: CheckpointStrategy> AddLayerNormOps
     for Autodiff<B, C>
 {
@@ -472,24 +507,7 @@ impl<B: AddLayerNormOps + LayerNormKernels, C: CheckpointStrategy> AddLayerNormO
         beta: FloatTensor<Self>,
         epsilon: LayerNormEpsilon,
     ) -> FloatTensor<Self> {
-        let (x, x_node) = x.into_parts();
-        let (residual, r_node) = residual.into_parts();
-        let (gamma, gamma_node) = gamma.into_parts();
-        let (beta, beta_node) = beta.into_parts();
-        let inputs = LayerNormInputs {
-            x,
-            residual,
-            gamma,
-            beta,
-            epsilon: epsilon.0,
-            dropout: None,
-        };
-        record::<B, C, _, _, 4>(
-            LayerNormBackward,
-            [x_node, r_node, gamma_node, beta_node],
-            inputs,
-            B::layer_norm_forward,
-        )
+        record_layer_norm::<B, C>([x, residual, gamma, beta], epsilon, None)
     }
 }
 
@@ -505,26 +523,7 @@ impl<B: AddDroppedLayerNormOps + LayerNormKernels, C: CheckpointStrategy> AddDro
         mask: DropoutSlot,
         epsilon: LayerNormEpsilon,
     ) -> FloatTensor<Self> {
-        let (x, x_node) = x.into_parts();
-        let (residual, r_node) = residual.into_parts();
-        let (gamma, gamma_node) = gamma.into_parts();
-        let (beta, beta_node) = beta.into_parts();
-        // The draws take no gradient: their node is left out.
-        let (draws, _) = draws.into_parts();
-        let inputs = LayerNormInputs {
-            x,
-            residual,
-            gamma,
-            beta,
-            epsilon: epsilon.0,
-            dropout: Some(KernelDropout { draws, mask }),
-        };
-        record::<B, C, _, _, 4>(
-            LayerNormBackward,
-            [x_node, r_node, gamma_node, beta_node],
-            inputs,
-            B::layer_norm_forward,
-        )
+        record_layer_norm::<B, C>([x, residual, gamma, beta], epsilon, Some((draws, mask)))
     }
 }
 
@@ -656,19 +655,12 @@ fn layer_norm_values<B: FusionBackend>(
     epsilon: f64,
     mask: Option<DropoutSlot>,
 ) -> LayerNormInputs<B> {
-    let dropout = mask.map(|mask| KernelDropout {
-        draws: values.pop().expect("the draws were recorded last").float(),
-        mask,
+    let dropout = mask.map(|mask| {
+        let draws = values.pop().expect("the draws were recorded last").float();
+        (draws, mask)
     });
-    let [x, residual, gamma, beta] = array(values);
-    LayerNormInputs {
-        x: x.float(),
-        residual: residual.float(),
-        gamma: gamma.float(),
-        beta: beta.float(),
-        epsilon,
-        dropout,
-    }
+    let tensors = array::<_, 4>(values).map(Value::float);
+    LayerNormInputs::new(tensors, LayerNormEpsilon(epsilon), dropout)
 }
 
 #[cfg(test)]

@@ -157,11 +157,6 @@ impl ViewsConfig {
             cutoff: self.cutoff,
         }
     }
-
-    /// The first view's configuration and all views' cameras.
-    pub(crate) fn parts(&self) -> (RasterConfig, &[ViewParams]) {
-        (self.view(0), &self.views)
-    }
 }
 
 /// The Gaussians, as flat slices: means `[N,3]`, covariances `[N,6]` (xx, xy, xz, yy, yz, zz),

@@ -327,6 +327,30 @@ impl<B: RasterKernels> Backward<B, 4> for RasterBackward {
     }
 }
 
+/// The rasterizer on `Autodiff<B, C>`, one view or several: the node keeps what
+/// `saving` returns when an input is tracked (for [`RasterKernels::rasterize_backward`]), else
+/// `plain` renders without saving anything.
+fn record_raster<B: RasterKernels, C: CheckpointStrategy>(
+    gaussians: [FloatTensor<Autodiff<B, C>>; 4],
+    saving: impl FnOnce([FloatTensor<B>; 4]) -> (FloatTensor<B>, SavedRaster),
+    plain: impl FnOnce([FloatTensor<B>; 4]) -> FloatTensor<B>,
+) -> FloatTensor<Autodiff<B, C>> {
+    let [(means, m), (covariances, c), (colors, col), (opacities, o)] =
+        gaussians.map(|t| t.into_parts());
+    let inputs = [means, covariances, colors, opacities];
+    match RasterBackward
+        .prepare::<C>([m, c, col, o])
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => {
+            let (image, saved) = saving(inputs);
+            prep.finish(saved, image)
+        }
+        OpsKind::UnTracked(prep) => prep.finish(plain(inputs)),
+    }
+}
+
 impl<B: GaussianRasterOps + RasterKernels, C: CheckpointStrategy> GaussianRasterOps
     for Autodiff<B, C>
 {
@@ -337,28 +361,11 @@ impl<B: GaussianRasterOps + RasterKernels, C: CheckpointStrategy> GaussianRaster
         opacities: FloatTensor<Self>,
         config: RasterConfig,
     ) -> FloatTensor<Self> {
-        let (means, means_node) = means.into_parts();
-        let (covariances, cov_node) = covariances.into_parts();
-        let (colors, colors_node) = colors.into_parts();
-        let (opacities, opacities_node) = opacities.into_parts();
-        match RasterBackward
-            .prepare::<C>([means_node, cov_node, colors_node, opacities_node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let (image, saved) =
-                    B::rasterize_saving(means, covariances, colors, opacities, config);
-                prep.finish(saved, image)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::rasterize_gaussians(
-                means,
-                covariances,
-                colors,
-                opacities,
-                config,
-            )),
-        }
+        record_raster::<B, C>(
+            [means, covariances, colors, opacities],
+            |[m, c, col, o]| B::rasterize_saving(m, c, col, o, config),
+            |[m, c, col, o]| B::rasterize_gaussians(m, c, col, o, config),
+        )
     }
 
     fn rasterize_gaussian_views(
@@ -368,28 +375,12 @@ impl<B: GaussianRasterOps + RasterKernels, C: CheckpointStrategy> GaussianRaster
         opacities: FloatTensor<Self>,
         config: ViewsConfig,
     ) -> FloatTensor<Self> {
-        let (means, means_node) = means.into_parts();
-        let (covariances, cov_node) = covariances.into_parts();
-        let (colors, colors_node) = colors.into_parts();
-        let (opacities, opacities_node) = opacities.into_parts();
-        match RasterBackward
-            .prepare::<C>([means_node, cov_node, colors_node, opacities_node])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let (image, saved) =
-                    B::rasterize_views_saving(means, covariances, colors, opacities, config);
-                prep.finish(saved, image)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::rasterize_gaussian_views(
-                means,
-                covariances,
-                colors,
-                opacities,
-                config,
-            )),
-        }
+        let plain = config.clone();
+        record_raster::<B, C>(
+            [means, covariances, colors, opacities],
+            |[m, c, col, o]| B::rasterize_views_saving(m, c, col, o, config),
+            |[m, c, col, o]| B::rasterize_gaussian_views(m, c, col, o, plain),
+        )
     }
 }
 

@@ -117,19 +117,51 @@ struct CubeSaved {
     last_contrib: Handle,
 }
 
-/// The forward of every view of `views` (one image size; `cfg.view` is the first): splats,
-/// tiles and pixels of view `k` follow those of the views before it, so each stage is one
-/// launch for all views (module docs, "Several views"). The image, `image_shape`, is `[H, W, C]`
-/// for one view and `[views, H, W, C]` for several.
+/// What one call renders: one view, `[H, W, C]`, or several of one size, `[n, H, W, C]`.
+enum Views<'a> {
+    One(RasterConfig),
+    Several(&'a ViewsConfig),
+}
+
+impl Views<'_> {
+    /// The first view's configuration (channels and cutoff are every view's).
+    fn first(&self) -> RasterConfig {
+        match self {
+            Views::One(config) => *config,
+            Views::Several(config) => config.view(0),
+        }
+    }
+
+    fn cameras(&self) -> &[ViewParams] {
+        match self {
+            Views::One(config) => std::slice::from_ref(&config.view),
+            Views::Several(config) => &config.views,
+        }
+    }
+
+    fn image_shape(&self) -> Vec<usize> {
+        match self {
+            Views::One(config) => config.image_shape().to_vec(),
+            Views::Several(config) => config.image_shape().to_vec(),
+        }
+    }
+}
+
+/// The forward of every view of `views` (one image size): splats, tiles and pixels of view `k`
+/// follow those of the views before it, so each stage is one launch for all views (module docs,
+/// "Several views").
 fn forward(
     means: FloatTensor<CubeBackend>,
     covariances: FloatTensor<CubeBackend>,
     colors: FloatTensor<CubeBackend>,
     opacities: FloatTensor<CubeBackend>,
-    cfg: RasterConfig,
-    views: &[ViewParams],
-    image_shape: &[usize],
+    rendering: Views<'_>,
 ) -> (CubeTensor, CubeSaved) {
+    let (cfg, views, image_shape) = (
+        rendering.first(),
+        rendering.cameras(),
+        rendering.image_shape(),
+    );
     let _span = tracing::trace_span!("cube_rasterize", views = views.len()).entered();
     let (means, covariances) = (prepare(means), prepare(covariances));
     let (colors, opacities) = (prepare(colors), prepare(opacities));
@@ -275,7 +307,7 @@ fn forward(
             smooth,
         );
     }
-    let image = tensor_f32(&client, &device, image, image_shape);
+    let image = tensor_f32(&client, &device, image, &image_shape);
     let saved = CubeSaved {
         client,
         device,
@@ -414,17 +446,7 @@ impl GaussianRasterOps for CubeBackend {
         opacities: FloatTensor<Self>,
         config: RasterConfig,
     ) -> FloatTensor<Self> {
-        let shape = config.image_shape().to_vec();
-        forward(
-            means,
-            covariances,
-            colors,
-            opacities,
-            config,
-            &[config.view],
-            &shape,
-        )
-        .0
+        forward(means, covariances, colors, opacities, Views::One(config)).0
     }
 
     fn rasterize_gaussian_views(
@@ -434,9 +456,14 @@ impl GaussianRasterOps for CubeBackend {
         opacities: FloatTensor<Self>,
         config: ViewsConfig,
     ) -> FloatTensor<Self> {
-        let (first, views) = config.parts();
-        let shape = config.image_shape().to_vec();
-        forward(means, covariances, colors, opacities, first, views, &shape).0
+        forward(
+            means,
+            covariances,
+            colors,
+            opacities,
+            Views::Several(&config),
+        )
+        .0
     }
 }
 
@@ -448,16 +475,7 @@ impl RasterKernels for CubeBackend {
         opacities: FloatTensor<Self>,
         config: RasterConfig,
     ) -> (FloatTensor<Self>, SavedRaster) {
-        let shape = config.image_shape().to_vec();
-        let (image, saved) = forward(
-            means,
-            covariances,
-            colors,
-            opacities,
-            config,
-            &[config.view],
-            &shape,
-        );
+        let (image, saved) = forward(means, covariances, colors, opacities, Views::One(config));
         (image, SavedRaster(Arc::new(saved)))
     }
 
@@ -468,9 +486,8 @@ impl RasterKernels for CubeBackend {
         opacities: FloatTensor<Self>,
         config: ViewsConfig,
     ) -> (FloatTensor<Self>, SavedRaster) {
-        let (first, views) = config.parts();
-        let shape = config.image_shape().to_vec();
-        let (image, saved) = forward(means, covariances, colors, opacities, first, views, &shape);
+        let rendering = Views::Several(&config);
+        let (image, saved) = forward(means, covariances, colors, opacities, rendering);
         (image, SavedRaster(Arc::new(saved)))
     }
 
