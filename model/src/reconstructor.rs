@@ -1333,6 +1333,29 @@ mod tests {
                 .init(fx.vertices, &device)
                 .is_err()
         );
+        // Target views: a camera without its skinning, or of another image size.
+        let model = ReconstructorConfig::tiny(2)
+            .with_iterations(1)
+            .init(fx.vertices, &device)
+            .unwrap();
+        let camera = fx.sources.cameras[0];
+        let other_size = Camera::new(camera.intrinsics, camera.cam_from_world, 32, 16).unwrap();
+        for targets in [
+            TargetViews {
+                cameras: vec![camera],
+                skinning: vec![],
+            },
+            TargetViews {
+                cameras: vec![other_size],
+                skinning: vec![fx.sources.skinning[0].clone()],
+            },
+        ] {
+            let err = model
+                .forward_with_targets(&fx.subject, &fx.mesh, &fx.sources, &targets)
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains("targets"), "{err}");
+        }
     }
 
     /// T = 3 with one view looking away from the body (it sees nothing) and every joint turned
