@@ -4,7 +4,9 @@
 //! this module reproduces its forward exactly (constants in [`cpu`]) and differentiates it
 //! exactly. [`rasterize`] is the entry point: it checks shapes and values at the boundary, then
 //! calls the custom Burn op [`op::GaussianRasterOps`], which runs on whichever backend the
-//! tensors live on and records a backward node when they require gradients.
+//! tensors live on and records a backward node when they require gradients. [`rasterize_views`]
+//! renders several views of the same Gaussians in one call (`[n, H, W, C]`), every GPU stage one
+//! launch for all of them.
 //!
 //! ```no_run
 //! # use lifegom_render::rasterizer::{Gaussians, RasterSettings, rasterize};

@@ -4,7 +4,11 @@
 //!
 //! The depth and ID buffers start at `+inf` and "no face" (`fill_pair_kernel`, one launch);
 //! then one thread per face, two passes over the same traversal (`raster_faces_kernel`, the pass is
-//! a comptime flag), then a per-pixel resolve:
+//! a comptime flag), then a per-pixel resolve. Several views run in the same launches
+//! (`visibility_in_views`): one thread per (view, face), each view's camera from a table and its
+//! pixels after the earlier views'; their buffers start with the visible-vertex flags
+//! (`start_views_kernel`), the raw ID buffer marks the vertices (`mark_views_kernel`) and one
+//! more launch writes the flags the model reads (`view_flags_kernel`):
 //!
 //! 1. **Depth pass**: transform the corners to camera space, clip against `z = NEAR`, project,
 //!    and walk the pixel centres of the (one or two) screen triangles' bounding box. A covered

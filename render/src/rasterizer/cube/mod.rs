@@ -47,6 +47,19 @@
 //!
 //! Everything the backward needs stays on the device in [`CubeSaved`]: nothing is recomputed.
 //! The kernels mirror [`super::cpu`] formula by formula; `tests` compare the two.
+//!
+//! # Several views
+//!
+//! One call renders `n` views of one set of `G` Gaussians (`super::rasterize_views`; one view is
+//! the case `n = 1`). Splat `k·G + g` is Gaussian `g` seen in view `k`: the projection reads
+//! camera `k` from a table ([`crate::cube::view::camera_of`]) and writes the splat's record, so
+//! every buffer above is per splat. View `k`'s tiles are numbered after the earlier views'
+//! (`k·tiles_per_view + tile`) and its pixels follow theirs, so the depth sort (over every splat;
+//! ties by splat index, which within a view is the Gaussian order), the binning, the tile sort
+//! (on the global tile id) and the tile ranges run once for all views, and the blend and its
+//! backward take the view from the cube's `z` (the backward's `z` counts pixel groups view after
+//! view). The projection's backward writes each splat's gradients; with several views
+//! `sum_views_kernel` then adds them per Gaussian, view after view.
 
 mod common;
 mod intersections;
