@@ -94,6 +94,14 @@ impl Channels {
             Channels::RgbAlphaDepth => 5,
         }
     }
+
+    /// The widths of the colour, alpha (and depth) blocks of the channels.
+    pub const fn block_widths(self) -> &'static [usize] {
+        match self {
+            Channels::RgbAlpha => &[3, 1],
+            Channels::RgbAlphaDepth => &[3, 1, 1],
+        }
+    }
 }
 
 /// Everything the op needs besides the Gaussians. Plain data, `Copy`, so it crosses Burn's

@@ -177,13 +177,8 @@ pub struct Rendered {
 
 impl Rendered {
     fn blocks(&self) -> &[Tensor<3>] {
-        self.blocks.get_or_init(|| {
-            let widths: &[usize] = match self.channels {
-                Channels::RgbAlpha => &[3, 1],
-                Channels::RgbAlphaDepth => &[3, 1, 1],
-            };
-            split_columns(self.image.clone(), widths)
-        })
+        self.blocks
+            .get_or_init(|| split_columns(self.image.clone(), self.channels.block_widths()))
     }
 
     /// Premultiplied RGB (over black), `[H, W, 3]`.
@@ -212,10 +207,7 @@ impl Rendered {
     /// The official code's compositing, `rgb·α + bg·(1 − α)` (design.md §6.5): the premultiplied
     /// colour is multiplied by alpha a second time, darkening soft edges by `α²`.
     pub fn composite_reference(&self, background: [f32; 3]) -> Tensor<3> {
-        let device = self.image.device();
-        let bg = Tensor::<1>::from_floats(background, &device).reshape([1, 1, 3]);
-        let alpha = self.alpha().unsqueeze_dim::<3>(2);
-        self.rgb() * alpha.clone() + bg * (alpha.ones_like() - alpha)
+        composite_reference(self.rgb(), self.alpha().unsqueeze_dim::<3>(2), background)
     }
 }
 
@@ -257,26 +249,28 @@ pub struct RenderedViews {
 }
 
 impl RenderedViews {
-    /// Colour and alpha, `[n, H, W, 3]` and `[n, H, W, 1]`: one split of the channels.
-    fn rgb_alpha(&self) -> (Tensor<4>, Tensor<4>) {
-        let widths: &[usize] = match self.channels {
-            Channels::RgbAlpha => &[3, 1],
-            Channels::RgbAlphaDepth => &[3, 1, 1],
-        };
-        let mut blocks = split_columns(self.image.clone(), widths).into_iter();
-        let rgb = blocks.next().expect("colour block");
-        (rgb, blocks.next().expect("alpha block"))
-    }
-
     /// [`Rendered::composite_reference`] of every view, `[n, H, W, 3]`, and the alpha,
     /// `[n, H, W, 1]`.
     pub fn composite_reference(&self, background: [f32; 3]) -> (Tensor<4>, Tensor<4>) {
-        let device = self.image.device();
-        let bg = Tensor::<1>::from_floats(background, &device).reshape([1, 1, 1, 3]);
-        let (rgb, alpha) = self.rgb_alpha();
-        let composite = rgb * alpha.clone() + bg * (alpha.ones_like() - alpha.clone());
-        (composite, alpha)
+        let mut blocks =
+            split_columns(self.image.clone(), self.channels.block_widths()).into_iter();
+        let rgb = blocks.next().expect("colour block");
+        let alpha = blocks.next().expect("alpha block");
+        (composite_reference(rgb, alpha.clone(), background), alpha)
     }
+}
+
+/// The official code's compositing `rgb·α + bg·(1 − α)` (design.md §6.5) of `rgb` `[.., 3]`
+/// and `alpha` `[.., 1]`.
+fn composite_reference<const D: usize>(
+    rgb: Tensor<D>,
+    alpha: Tensor<D>,
+    background: [f32; 3],
+) -> Tensor<D> {
+    let mut shape = [1usize; D];
+    shape[D - 1] = 3;
+    let bg = Tensor::<1>::from_floats(background, &rgb.device()).reshape(shape);
+    rgb * alpha.clone() + bg * (alpha.ones_like() - alpha)
 }
 
 /// Renders `gaussians` in every view of `settings`, differentiably, in one call: on a CubeCL

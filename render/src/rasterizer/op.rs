@@ -131,15 +131,15 @@ impl CpuSaved {
     }
 }
 
-/// Every view of `config` rendered by [`cpu::forward`] in turn: `[n, H, W, C]`.
-fn cpu_views_forward<B: Backend>(
-    means: FloatTensor<B>,
-    covariances: FloatTensor<B>,
-    colors: FloatTensor<B>,
-    opacities: FloatTensor<B>,
-    config: &ViewsConfig,
+/// The Gaussians rendered by [`cpu::forward`] in each of `views` in turn, the images one after
+/// the other in an output of `shape` (`[H, W, C]` for one view, `[n, H, W, C]` for several).
+fn cpu_render<B: Backend>(
+    gaussians: [FloatTensor<B>; 4],
+    views: &[RasterConfig],
+    shape: burn::tensor::Shape,
 ) -> (FloatTensor<B>, CpuSaved) {
-    let device = means.device();
+    let device = gaussians[0].device();
+    let [means, covariances, colors, opacities] = gaussians;
     let means = readback::cpu_float::<B>("means", means);
     let covariances = readback::cpu_float::<B>("covariances", covariances);
     let colors = readback::cpu_float::<B>("colors", colors);
@@ -151,9 +151,9 @@ fn cpu_views_forward<B: Backend>(
         opacities: &opacities,
     };
     let mut images = Vec::new();
-    let mut states = Vec::with_capacity(config.views.len());
-    for k in 0..config.views.len() {
-        let (image, state) = cpu::forward(&config.view(k), &slices);
+    let mut states = Vec::with_capacity(views.len());
+    for view in views {
+        let (image, state) = cpu::forward(view, &slices);
         images.extend(image);
         states.push(state);
     }
@@ -165,46 +165,25 @@ fn cpu_views_forward<B: Backend>(
         states,
     };
     (
-        B::float_from_data(TensorData::new(images, config.image_shape()), &device),
+        B::float_from_data(TensorData::new(images, shape), &device),
         saved,
     )
 }
 
+/// Every view of `config` rendered in turn: `[n, H, W, C]`.
+fn cpu_views_forward<B: Backend>(
+    gaussians: [FloatTensor<B>; 4],
+    config: &ViewsConfig,
+) -> (FloatTensor<B>, CpuSaved) {
+    let views: Vec<RasterConfig> = (0..config.views.len()).map(|k| config.view(k)).collect();
+    cpu_render::<B>(gaussians, &views, config.image_shape())
+}
+
 fn cpu_forward<B: Backend>(
-    means: FloatTensor<B>,
-    covariances: FloatTensor<B>,
-    colors: FloatTensor<B>,
-    opacities: FloatTensor<B>,
+    gaussians: [FloatTensor<B>; 4],
     config: RasterConfig,
 ) -> (FloatTensor<B>, CpuSaved) {
-    let device = means.device();
-    let means = readback::cpu_float::<B>("means", means);
-    let covariances = readback::cpu_float::<B>("covariances", covariances);
-    let colors = readback::cpu_float::<B>("colors", colors);
-    let opacities = readback::cpu_float::<B>("opacities", opacities);
-    let slices = GaussianSlices {
-        means: &means,
-        covariances: &covariances,
-        colors: &colors,
-        opacities: &opacities,
-    };
-    let (image, state) = cpu::forward(&config, &slices);
-    let saved = CpuSaved {
-        means,
-        covariances,
-        colors,
-        opacities,
-        states: vec![state],
-    };
-    let shape = [
-        config.view.height as usize,
-        config.view.width as usize,
-        config.channels.count(),
-    ];
-    (
-        B::float_from_data(TensorData::new(image, shape), &device),
-        saved,
-    )
+    cpu_render::<B>(gaussians, &[config], config.image_shape())
 }
 
 fn cpu_backward<B: HostLend>(
@@ -257,7 +236,7 @@ macro_rules! cpu_raster_backend {
                 opacities: FloatTensor<Self>,
                 config: RasterConfig,
             ) -> FloatTensor<Self> {
-                cpu_forward::<Self>(means, covariances, colors, opacities, config).0
+                cpu_forward::<Self>([means, covariances, colors, opacities], config).0
             }
 
             fn rasterize_gaussian_views(
@@ -267,7 +246,7 @@ macro_rules! cpu_raster_backend {
                 opacities: FloatTensor<Self>,
                 config: ViewsConfig,
             ) -> FloatTensor<Self> {
-                cpu_views_forward::<Self>(means, covariances, colors, opacities, &config).0
+                cpu_views_forward::<Self>([means, covariances, colors, opacities], &config).0
             }
         }
 
@@ -280,7 +259,7 @@ macro_rules! cpu_raster_backend {
                 config: RasterConfig,
             ) -> (FloatTensor<Self>, SavedRaster) {
                 let (image, state) =
-                    cpu_forward::<Self>(means, covariances, colors, opacities, config);
+                    cpu_forward::<Self>([means, covariances, colors, opacities], config);
                 (image, SavedRaster(Arc::new(state)))
             }
 
@@ -292,7 +271,7 @@ macro_rules! cpu_raster_backend {
                 config: ViewsConfig,
             ) -> (FloatTensor<Self>, SavedRaster) {
                 let (image, state) =
-                    cpu_views_forward::<Self>(means, covariances, colors, opacities, &config);
+                    cpu_views_forward::<Self>([means, covariances, colors, opacities], &config);
                 (image, SavedRaster(Arc::new(state)))
             }
 

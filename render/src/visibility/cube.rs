@@ -2,7 +2,7 @@
 //!
 //! # Algorithm
 //!
-//! The depth and ID buffers start at `+inf` and "no face" (`fill_pair_kernel`, one launch);
+//! The depth and ID buffers start at `+inf` and "no face" (`start_views_kernel`, one launch);
 //! then one thread per face, two passes over the same traversal (`raster_faces_kernel`, the pass is
 //! a comptime flag), then a per-pixel resolve. Several views run in the same launches
 //! (`visibility_in_views`): one thread per (view, face), each view's camera from a table and its
@@ -381,17 +381,6 @@ fn fill_kernel(data: &mut [u32], value: u32, n: u32) {
     }
 }
 
-/// `a[i] = a_value` and `b[i] = b_value` for `i < n`: the depth and ID buffers' initial values
-/// in one launch.
-#[cube(launch)]
-fn fill_pair_kernel(a: &mut [u32], a_value: u32, b: &mut [u32], b_value: u32, n: u32) {
-    let i = ABSOLUTE_POS as u32;
-    if i < n {
-        a[i as usize] = a_value;
-        b[i as usize] = b_value;
-    }
-}
-
 /// Per pixel: the public `-1` / `+inf` encoding of empty pixels.
 #[cube(launch)]
 fn resolve_kernel(
@@ -524,6 +513,27 @@ fn view_flags_kernel(
     }
 }
 
+/// [`start_views_kernel`] over `pixels` depth and ID slots and `vertices` vertex flags.
+fn start_views(
+    client: &ComputeClient,
+    depth_bits: &Handle,
+    ids: &Handle,
+    visible: &Handle,
+    pixels: usize,
+    vertices: usize,
+) {
+    start_views_kernel::launch(
+        client,
+        count_1d(pixels.max(vertices)),
+        CubeDim::new_1d(THREADS_1D),
+        arg(depth_bits, pixels),
+        arg(ids, pixels),
+        arg(visible, vertices),
+        pixels as u32,
+        vertices as u32,
+    );
+}
+
 /// Both passes of [`raster_faces_kernel`] over `views` views of `pixels` pixels each.
 #[allow(clippy::too_many_arguments)]
 fn raster_views(
@@ -588,15 +598,14 @@ impl TriangleIdOps for CubeBackend {
         let cameras = camera_table(&client, &[camera.view_params()]);
         let depth_bits = empty_u32(&client, pixels);
         let ids = empty_u32(&client, pixels);
-        fill_pair_kernel::launch(
+        // No vertex flags here: a one-element stand-in the start kernel leaves alone.
+        start_views(
             &client,
-            count_1d(pixels),
-            CubeDim::new_1d(THREADS_1D),
-            arg(&depth_bits, pixels),
-            INF_BITS,
-            arg(&ids, pixels),
-            EMPTY_ID,
-            pixels as u32,
+            &depth_bits,
+            &ids,
+            &empty_u32(&client, 1),
+            pixels,
+            0,
         );
         raster_views(
             &client,
@@ -682,15 +691,13 @@ impl TriangleIdOps for CubeBackend {
         let depth_bits = empty_u32(&client, all_pixels);
         let ids = empty_u32(&client, all_pixels);
         let visible = empty_u32(&client, all_vertices);
-        start_views_kernel::launch(
+        start_views(
             &client,
-            count_1d(all_pixels.max(all_vertices)),
-            CubeDim::new_1d(THREADS_1D),
-            arg(&depth_bits, all_pixels),
-            arg(&ids, all_pixels),
-            arg(&visible, all_vertices),
-            all_pixels as u32,
-            all_vertices as u32,
+            &depth_bits,
+            &ids,
+            &visible,
+            all_pixels,
+            all_vertices,
         );
         raster_views(
             &client,

@@ -107,6 +107,29 @@ fn cpu_rasterize<B: Backend>(
     )
 }
 
+/// The vertices of the faces that own a pixel of `face_ids`, leniently: an id or a corner out
+/// of range marks nothing (where [`cpu::visible_vertices`] panics).
+fn marked_vertices(
+    face_ids: impl IntoIterator<Item = i64>,
+    faces: &[[u32; 3]],
+    num_vertices: usize,
+) -> Vec<bool> {
+    let mut visible = vec![false; num_vertices];
+    let mut face_seen = vec![false; faces.len()];
+    for id in face_ids {
+        let Ok(f) = usize::try_from(id) else { continue };
+        if f >= faces.len() || std::mem::replace(&mut face_seen[f], true) {
+            continue;
+        }
+        for &v in &faces[f] {
+            if let Some(slot) = visible.get_mut(v as usize) {
+                *slot = true;
+            }
+        }
+    }
+    visible
+}
+
 fn cpu_visible_vertices<B: Backend>(
     face_ids: IntTensor<B>,
     faces: IntTensor<B>,
@@ -114,19 +137,11 @@ fn cpu_visible_vertices<B: Backend>(
 ) -> IntTensor<B> {
     let device = faces.device();
     let faces = face_triples(&readback::cpu_int::<B>("faces", faces));
-    let mut visible = vec![0i64; num_vertices];
-    let mut face_seen = vec![false; faces.len()];
-    for id in readback::cpu_int::<B>("face_ids", face_ids) {
-        let Ok(f) = usize::try_from(id) else { continue };
-        if f >= faces.len() || std::mem::replace(&mut face_seen[f], true) {
-            continue;
-        }
-        for &v in &faces[f] {
-            if let Some(slot) = visible.get_mut(v as usize) {
-                *slot = 1;
-            }
-        }
-    }
+    let ids = readback::cpu_int::<B>("face_ids", face_ids);
+    let visible: Vec<i64> = marked_vertices(ids, &faces, num_vertices)
+        .into_iter()
+        .map(i64::from)
+        .collect();
     B::int_from_data(TensorData::new(visible, [num_vertices]), &device)
 }
 
@@ -149,19 +164,7 @@ fn cpu_visibility_in_views<B: Backend>(
             .map(|v| Vec3::from_slice(&coords[v * 3 * n + 3 * k..][..3]))
             .collect();
         let ids = cpu::rasterize_unchecked(&points, &faces, camera).face_ids;
-        let mut visible = vec![false; rows];
-        let mut face_seen = vec![false; faces.len()];
-        for id in ids {
-            let Ok(f) = usize::try_from(id) else { continue };
-            if f >= faces.len() || std::mem::replace(&mut face_seen[f], true) {
-                continue;
-            }
-            for &v in &faces[f] {
-                if let Some(slot) = visible.get_mut(v as usize) {
-                    *slot = true;
-                }
-            }
-        }
+        let visible = marked_vertices(ids.into_iter().map(i64::from), &faces, rows);
         for v in 0..lowres {
             vertex_flags[v * n + k] = f32::from(u8::from(visible[v]));
         }
