@@ -427,15 +427,18 @@ pub fn face_corners(h_hr: Tensor<2>, faces: Tensor<1, Int>) -> Tensor<2> {
 
 /// Largest number of floats in one block's `[faces, N·D]` image features: the face stage
 /// (sampling, [`face_inputs`], [`UpdateHeads::faces`]) runs block after block of faces below
-/// it. A GPU buffer has a size limit (wgpu refused the 6 GB `[438,720, 3·1152]` features of the
-/// paper network at two subdivisions); every preset that trains on a CPU fits in one block, so
-/// its ops, and its numerics, are those of the unblocked stage.
+/// it, and below what one buffer of the device holds
+/// ([`lifegom_render::device::max_buffer_bytes`]: wgpu refused the 6 GB `[438,720, 3·1152]`
+/// features of the paper network at two subdivisions on an H100, lavapipe holds 128 MiB). Every
+/// preset that trains on a CPU fits in one block, so its ops, and its numerics, are those of
+/// the unblocked stage.
 pub const FACE_BLOCK_FLOATS: usize = 1 << 28;
 
 /// Faces per block of the face stage for `faces` faces of `width` image-feature floats each
-/// (see [`FACE_BLOCK_FLOATS`]); `faces` itself when they fit one block.
-pub fn faces_per_block(faces: usize, width: usize) -> usize {
-    (FACE_BLOCK_FLOATS / width.max(1)).clamp(1, faces.max(1))
+/// on `device`, with at most `cap` floats in one block's features besides
+/// [`FACE_BLOCK_FLOATS`]; `faces` itself when they fit one block.
+pub fn faces_per_block(device: &Device, faces: usize, width: usize, cap: usize) -> usize {
+    lifegom_render::device::rows_per_block(device, faces, width, cap.min(FACE_BLOCK_FLOATS))
 }
 
 #[cfg(test)]
@@ -646,9 +649,13 @@ mod tests {
             );
         }
         assert_eq!(read(whole.opacities), read(blocked.opacities));
-        assert_eq!(faces_per_block(f, 32), f);
-        assert_eq!(faces_per_block(10, FACE_BLOCK_FLOATS / 3), 3);
-        assert_eq!(faces_per_block(0, 32), 1);
+        assert_eq!(faces_per_block(device, f, 32, usize::MAX), f);
+        assert_eq!(
+            faces_per_block(device, 10, FACE_BLOCK_FLOATS / 3, usize::MAX),
+            3
+        );
+        assert_eq!(faces_per_block(device, 10, 8, 20), 2);
+        assert_eq!(faces_per_block(device, 0, 32, usize::MAX), 1);
     }
 
     /// The visible rows' layout gives the dense layout's face parameters and gradients (the

@@ -208,6 +208,30 @@ pub fn cube_runtime_name(device: &Device) -> Option<&'static str> {
     }
 }
 
+/// The largest buffer `device` can allocate, in bytes; `None` on the host backends, whose
+/// tensors are plain heap allocations. CubeCL puts each tensor in one buffer of at most the
+/// adapter's storage-binding size: 128 MiB on lavapipe (and on wgpu's WebGPU defaults), far more
+/// on a discrete card with 64-bit indexing.
+pub fn max_buffer_bytes(device: &Device) -> Option<u64> {
+    match device.as_dispatch().clone().inner() {
+        burn::backend::DispatchDevice::Cube(cube) => {
+            Some(cube.client().properties().memory.max_page_size)
+        }
+        _ => None,
+    }
+}
+
+/// Rows per block when a stage runs block after block of `rows` rows whose largest buffer
+/// holds `floats_per_row` f32 values per row: no block's buffer holds more than `cap` floats nor
+/// more than `device` can allocate ([`max_buffer_bytes`]). `rows` itself (one block, the
+/// unblocked stage) when they fit; at least one row.
+pub fn rows_per_block(device: &Device, rows: usize, floats_per_row: usize, cap: usize) -> usize {
+    let device_floats = max_buffer_bytes(device).map_or(usize::MAX, |bytes| {
+        usize::try_from(bytes / size_of::<f32>() as u64).unwrap_or(usize::MAX)
+    });
+    (cap.min(device_floats) / floats_per_row.max(1)).clamp(1, rows.max(1))
+}
+
 /// Whether `device` (or the device an autodiff device wraps) computes on the host: ndarray or
 /// Flex, where a host-side loop over a tensor's values costs no transfer. CubeCL devices (wgpu,
 /// and lavapipe on a CPU) answer false.
@@ -247,4 +271,42 @@ pub fn wait_for_values<const D: usize>(t: Tensor<D>) -> usize {
     let data = t.into_data();
     std::hint::black_box(data.as_bytes());
     data.num_elements()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Blocks stay under the cap on every backend, and under the device's buffer limit where it
+    /// has one (lavapipe's 128 MiB makes a block of a stage that fits a bigger card).
+    #[test]
+    fn blocks_fit_the_cap_and_the_device() {
+        for device in [Device::ndarray(), Device::flex()] {
+            assert_eq!(max_buffer_bytes(&device), None);
+            assert_eq!(rows_per_block(&device, 100, 8, 1 << 20), 100);
+            assert_eq!(rows_per_block(&device, 100, 8, 80), 10);
+            assert_eq!(rows_per_block(&device, 100, 8, 3), 1, "at least one row");
+            assert_eq!(rows_per_block(&device, 0, 8, 80), 1);
+        }
+        let Some(device) = crate::testing::wgpu_test_device() else {
+            return;
+        };
+        let bytes = max_buffer_bytes(&device).expect("a CubeCL device states its limit");
+        assert!(bytes >= 1 << 27, "{bytes} bytes");
+        let floats = usize::try_from(bytes / 4).unwrap_or(usize::MAX);
+        let width = floats / 4 + 1;
+        assert_eq!(rows_per_block(&device, 10, width, usize::MAX), 3);
+        assert_eq!(rows_per_block(&device, 10, 8, 80), 10);
+        // A block as large as the limit allows is allocated (where that is small enough to try).
+        if floats <= 1 << 26 {
+            let rows = rows_per_block(&device, usize::MAX, 1024, usize::MAX);
+            let t = Tensor::<2>::ones([rows, 1024], &device);
+            let sum: Vec<f32> = t.sum().into_data().to_vec().unwrap();
+            let expected = (rows * 1024) as f32;
+            assert!(
+                (sum[0] - expected).abs() <= 1e-5 * expected,
+                "{sum:?} vs {expected}"
+            );
+        }
+    }
 }

@@ -70,9 +70,14 @@ struct Args {
     /// Backend: ndarray or flex.
     #[arg(long, default_value = "flex")]
     device: DeviceChoice,
-    /// Timed runs (median reported), after one warm-up.
+    /// Timed runs (median reported), after the warm-up runs.
     #[arg(long, default_value_t = 3)]
     runs: usize,
+    /// Untimed runs first, which compile the kernels. 0 makes the first run the figure: enough
+    /// for a launch count (the same every run), where a run takes minutes (the paper network
+    /// on lavapipe).
+    #[arg(long, default_value_t = 1)]
+    warmup: usize,
     /// Only the JSON line.
     #[arg(long)]
     json: bool,
@@ -152,7 +157,7 @@ fn main() -> anyhow::Result<()> {
     let mut runs = Vec::new();
     let mut warmup_ms = f64::NAN;
     let mut spans: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
-    for run in 0..=args.runs.max(1) {
+    for run in 0..args.warmup + args.runs.max(1) {
         timer.take();
         let start = Instant::now();
         let rec = model.forward(&subject, &mesh, &sources)?;
@@ -160,12 +165,12 @@ fn main() -> anyhow::Result<()> {
         lifegom_render::device::wait_for_values(rec.last().faces.colors.clone());
         let total = start.elapsed().as_secs_f64() * 1e3;
         let tally = launches.as_ref().map(LaunchCounter::take);
-        if run == 0 {
+        if run == 0 && args.warmup > 0 {
             // The warm-up compiles every kernel (and, with autotune, would tune them): what a
             // process pays once, kept apart from the median.
             warmup_ms = total;
         }
-        if run > 0 {
+        if run >= args.warmup {
             run_launches.extend(tally);
             runs.push((total, rec.timings));
             for (path, t) in timer.take() {
@@ -221,6 +226,7 @@ fn main() -> anyhow::Result<()> {
         "conv_kernel": lifegom_model::gemm_conv::ConvKernel::on_device(&device).map(|k| k.name()),
         "hierarchy_planning": lifegom_model::point_transformer::HierarchyPlanning::on_device(&device).name(),
         "threads": rayon::current_num_threads(),
+        "max_buffer_bytes": lifegom_render::device::max_buffer_bytes(&device),
     });
     if let Some(counter) = &launches {
         for (key, value) in counter.json_fields(&run_launches, args.top_kernels) {
