@@ -16,7 +16,11 @@
 //! On a CubeCL device (wgpu) the line also has `kernel_launches` per reconstruction and
 //! `top_kernels` ([`lifegom_cli::launches`]); `--kernel-times` times every launch on the device
 //! too, which runs the kernels one at a time (the run's `total_ms` is then not the
-//! reconstruction's time).
+//! reconstruction's time). `max_buffer_bytes` is the device's largest buffer: where a stage's
+//! largest tensor would not fit it (the paper network on lavapipe's 128 MiB), the per-vertex
+//! and face stages run in blocks, each with its own launches; `--buffer-floats` forces smaller
+//! blocks, to count what one costs. `--warmup 0` makes the first run the figure: the first run
+//! also initialises the weights, so its launch count is higher.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -84,6 +88,11 @@ struct Args {
     /// On a CubeCL device, time every kernel launch too (module docs).
     #[arg(long)]
     kernel_times: bool,
+    /// Hold a buffer of the per-vertex and face stages to this many floats, so that they run
+    /// in more blocks (`Reconstructor::with_buffer_floats`): what a block costs. Unset, only
+    /// the device's own limit blocks them.
+    #[arg(long)]
+    buffer_floats: Option<usize>,
     /// How many kernels `top_kernels` lists.
     #[arg(long, default_value_t = 15)]
     top_kernels: usize,
@@ -110,6 +119,10 @@ fn main() -> anyhow::Result<()> {
     }
     .with_iterations(args.iterations);
     let model = cfg.init(body.num_vertices(), &device)?;
+    let model = match args.buffer_floats {
+        Some(floats) => model.with_buffer_floats(floats),
+        None => model,
+    };
     let params = model.num_params();
     let s = args.size;
     let k = Intrinsics {
@@ -227,6 +240,7 @@ fn main() -> anyhow::Result<()> {
         "hierarchy_planning": lifegom_model::point_transformer::HierarchyPlanning::on_device(&device).name(),
         "threads": rayon::current_num_threads(),
         "max_buffer_bytes": lifegom_render::device::max_buffer_bytes(&device),
+        "buffer_floats": args.buffer_floats,
     });
     if let Some(counter) = &launches {
         for (key, value) in counter.json_fields(&run_launches, args.top_kernels) {
