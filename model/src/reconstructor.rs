@@ -1137,7 +1137,9 @@ mod tests {
             + rec.last().xyz.clone().powi_scalar(2).mean()
     }
 
-    fn end_to_end(device: &Device) {
+    /// `device` with autodiff, seeded, the 32-pixel fixture on it, and the tiny network for its
+    /// two views with two feedback steps and no dropout.
+    fn seeded_tiny(device: &Device) -> (Device, Fixture, Reconstructor) {
         let ad = device.clone().autodiff();
         // A fixed seed for the random weights and images: at some draws the tiny network's
         // Point Transformer starts with a whole ReLU layer dead, which zeroes every gradient
@@ -1149,6 +1151,11 @@ mod tests {
             .with_dropout(0.0)
             .init(fx.vertices, &ad)
             .unwrap();
+        (ad, fx, model)
+    }
+
+    fn end_to_end(device: &Device) {
+        let (_, fx, model) = seeded_tiny(device);
         let rec = model.forward(&fx.subject, &fx.mesh, &fx.sources).unwrap();
         assert_eq!(rec.states.len(), 2);
         assert_eq!(rec.renders[1].rgb.dims(), [2, 3, 32, 32]);
@@ -1199,14 +1206,7 @@ mod tests {
         let Some(wgpu) = lifegom_render::testing::wgpu_test_device() else {
             return;
         };
-        let flex = Device::flex().autodiff();
-        flex.seed(3);
-        let fx_flex = fixture(&flex, 32);
-        let model_flex = ReconstructorConfig::tiny(2)
-            .with_iterations(2)
-            .with_dropout(0.0)
-            .init(fx_flex.vertices, &flex)
-            .unwrap();
+        let (_, fx_flex, model_flex) = seeded_tiny(&Device::flex());
         let wgpu = wgpu.autodiff();
         // `fork` keeps which parameters require a gradient; `to_device` does not.
         let model_wgpu = model_flex.clone().fork(&wgpu);
@@ -1293,14 +1293,7 @@ mod tests {
     /// inference (where a CubeCL device fuses both branches in one pass per block) the last
     /// state within 1e-5.
     fn blocked_stages_match_one_block(device: &Device) {
-        let ad = device.clone().autodiff();
-        ad.seed(3);
-        let fx = fixture(&ad, 32);
-        let model = ReconstructorConfig::tiny(2)
-            .with_iterations(2)
-            .with_dropout(0.0)
-            .init(fx.vertices, &ad)
-            .unwrap();
+        let (ad, fx, model) = seeded_tiny(device);
         let (v, f) = (fx.vertices, fx.mesh.num_gaussians());
         let d = model.visibility_embed.dims()[0];
         let blocks_of = |model: &Reconstructor, device: &Device| {
