@@ -888,7 +888,8 @@ impl Reconstructor {
         let per_vertex = self.fusion_floats_per_vertex(n, &device);
         let block = rows_per_block(&device, v, per_vertex, self.buffer_floats);
         let mut fused = Vec::with_capacity(v.div_ceil(block));
-        for start in (0..v).step_by(block) {
+        // At least one block, so that no vertices are the unblocked stage's ops too.
+        for start in (0..v.max(1)).step_by(block) {
             let len = block.min(v - start);
             let (uv, vis) = (
                 block_rows(&proj.uv, 1, start, len),
