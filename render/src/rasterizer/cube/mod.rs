@@ -418,13 +418,17 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
             num_views as u32,
         );
     }
+    // The four per-Gaussian gradients as tensors (∂means, ∂covariances, ∂colours, ∂opacities).
+    let gradients = |[m, c, col, o]: [Handle; 4]| {
+        [
+            tensor_f32(client, device, m, &[gaussians, 3]),
+            tensor_f32(client, device, c, &[gaussians, 6]),
+            tensor_f32(client, device, col, &[gaussians, 3]),
+            tensor_f32(client, device, o, &[gaussians]),
+        ]
+    };
     if num_views == 1 || gaussians == 0 {
-        return [
-            tensor_f32(client, device, s_means, &[gaussians, 3]),
-            tensor_f32(client, device, s_covs, &[gaussians, 6]),
-            tensor_f32(client, device, s_colors, &[gaussians, 3]),
-            tensor_f32(client, device, s_opacities, &[gaussians]),
-        ];
+        return gradients([s_means, s_covs, s_colors, s_opacities]);
     }
     let total = |lanes: usize| client.empty(4 * lanes * gaussians);
     let (d_means, d_covs, d_colors, d_opacities) = (total(3), total(6), total(3), total(1));
@@ -443,12 +447,7 @@ fn backward(saved: &CubeSaved, grad_image: FloatTensor<CubeBackend>) -> [CubeTen
         gaussians as u32,
         num_views as u32,
     );
-    [
-        tensor_f32(client, device, d_means, &[gaussians, 3]),
-        tensor_f32(client, device, d_covs, &[gaussians, 6]),
-        tensor_f32(client, device, d_colors, &[gaussians, 3]),
-        tensor_f32(client, device, d_opacities, &[gaussians]),
-    ]
+    gradients([d_means, d_covs, d_colors, d_opacities])
 }
 
 impl GaussianRasterOps for CubeBackend {
