@@ -1,4 +1,5 @@
-//! Kernel launches on the CubeCL devices (wgpu), counted at the launch site.
+//! Kernel launches on the CubeCL devices (wgpu), counted at the launch site, and the
+//! read-backs (syncs) between them.
 //!
 //! At the quickstart's size a GPU training step is bound by how many kernels it launches, not by
 //! what they compute (BENCHMARKS.md, "On a GPU"): the launch count is the figure to drive down,
@@ -107,6 +108,10 @@ pub struct LaunchTally {
     /// they are filed under `(no span)`, and the named spans hold the kernels launched on the
     /// model's thread, such as the autodiff backward's and the rasterizer's (design.md §1.4).
     pub device_time_by_span: BTreeMap<String, Duration>,
+    /// Read-backs from the device per tensor name
+    /// ([`lifegom_render::readback::take_device_reads`]): each a sync, after which the card
+    /// idles until the host queues more.
+    pub device_reads: BTreeMap<String, u64>,
 }
 
 impl LaunchTally {
@@ -134,11 +139,15 @@ impl LaunchTally {
         for (key, n) in &other.by_stage_kernel {
             *self.by_stage_kernel.entry(key.clone()).or_default() += n;
         }
+        for (tensor, n) in &other.device_reads {
+            *self.device_reads.entry(tensor.clone()).or_default() += n;
+        }
     }
 
     /// The benchmark JSON fields for `per_step` tallies (one per timed step):
-    /// `kernel_launches` (median per step), and `top_kernels`, the `top` kernels by launches
-    /// per step (with device milliseconds per step when they were timed).
+    /// `kernel_launches` (median per step), `top_kernels`, the `top` kernels by launches
+    /// per step (with device milliseconds per step when they were timed), `device_reads`
+    /// (median read-backs per step) and `device_reads_by_tensor` (per step).
     pub fn json_fields(
         per_step: &[LaunchTally],
         top: usize,
@@ -182,6 +191,24 @@ impl LaunchTally {
             })
             .collect();
         fields.insert("top_kernels".into(), serde_json::Value::Array(top_kernels));
+        let reads: Vec<f64> = per_step
+            .iter()
+            .map(|t| t.device_reads.values().sum::<u64>() as f64)
+            .collect();
+        let median_reads = crate::profile::median(&reads).unwrap_or(f64::NAN);
+        fields.insert(
+            "device_reads".into(),
+            serde_json::json!(median_reads.round()),
+        );
+        let reads_by_tensor: serde_json::Map<String, serde_json::Value> = sum
+            .device_reads
+            .iter()
+            .map(|(tensor, n)| (tensor.clone(), serde_json::json!(round2(*n as f64 / steps))))
+            .collect();
+        fields.insert(
+            "device_reads_by_tensor".into(),
+            serde_json::Value::Object(reads_by_tensor),
+        );
         let by_span: serde_json::Map<String, serde_json::Value> = sum
             .by_span
             .iter()
@@ -455,7 +482,8 @@ impl LaunchCounter {
         }
     }
 
-    /// The launches since the last call (or since installing), by short kernel name.
+    /// The launches since the last call (or since installing), by short kernel name, and the
+    /// device read-backs since then.
     ///
     /// Launches are counted when issued, so call this after the work's results were read back
     /// (the benchmarks' steps end in a read-back) to attribute them to the right stretch.
@@ -464,6 +492,7 @@ impl LaunchCounter {
         let mut tally = LaunchTally {
             by_span: owned_keys(drain(&self.observer.by_span)),
             device_time_by_span: owned_keys(drain(&self.observer.time_by_span)),
+            device_reads: owned_keys(lifegom_render::readback::take_device_reads()),
             ..LaunchTally::default()
         };
         for (kernel, k) in raw {
@@ -505,10 +534,10 @@ mod tests {
     use super::*;
 
     /// The JSON fields: the median of the per-step totals and the top kernels, ordered by
-    /// launches, then by name.
+    /// launches, then by name; the median read-backs per step and each tensor's mean.
     #[test]
     fn json_fields_median_and_top() {
-        let step = |pairs: &[(&str, u64)]| LaunchTally {
+        let step = |pairs: &[(&str, u64)], reads: u64| LaunchTally {
             kernels: pairs
                 .iter()
                 .map(|(n, c)| {
@@ -522,12 +551,13 @@ mod tests {
                 })
                 .collect(),
             by_span: [("fusion".to_owned(), pairs.iter().map(|(_, c)| c).sum())].into(),
+            device_reads: [("loss".to_owned(), 1), ("count".to_owned(), reads)].into(),
             ..LaunchTally::default()
         };
         let steps = [
-            step(&[("add", 10), ("mul", 5)]),
-            step(&[("add", 12), ("mul", 5), ("matmul", 1)]),
-            step(&[("add", 20), ("mul", 5)]),
+            step(&[("add", 10), ("mul", 5)], 3),
+            step(&[("add", 12), ("mul", 5), ("matmul", 1)], 1),
+            step(&[("add", 20), ("mul", 5)], 1),
         ];
         let fields = LaunchTally::json_fields(&steps, 2);
         assert_eq!(fields["kernel_launches"], serde_json::json!(18.0));
@@ -543,6 +573,15 @@ mod tests {
         assert!(!fields.contains_key("kernel_device_ms_per_step"));
         assert!(!fields.contains_key("kernel_device_ms_per_step_by_span"));
         assert!(!fields.contains_key("launches_per_step_by_stage_kernel"));
+        assert_eq!(fields["device_reads"], serde_json::json!(2.0));
+        assert_eq!(
+            fields["device_reads_by_tensor"]["count"],
+            serde_json::json!(1.67)
+        );
+        assert_eq!(
+            fields["device_reads_by_tensor"]["loss"],
+            serde_json::json!(1.0)
+        );
         assert!(LaunchTally::json_fields(&[], 3).is_empty());
     }
 
@@ -578,6 +617,7 @@ mod tests {
             ]
             .into(),
             by_stage_kernel: [("encoder :: conv".to_owned(), 1 + conv / 50)].into(),
+            device_reads: BTreeMap::new(),
         };
         let fields = LaunchTally::json_fields(&[step(30, 2), step(50, 4)], 1);
         assert_eq!(fields["top_kernels"][0]["kernel"], "conv");

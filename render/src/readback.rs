@@ -13,6 +13,12 @@
 //! - [`HostLend`] lends a CPU backend's primitive to a host kernel, in place where the backend
 //!   allows it (Flex), for the ops that run every step.
 //!
+//! On a CubeCL device (a GPU) a read-back is a sync: it waits for every kernel queued before
+//! it, and the card then idles until the host has queued more work. [`read`] and
+//! [`crate::cube::host::read_u32`] count the read-backs they make from such a device per tensor
+//! name ([`take_device_reads`]), so the benchmarks can report syncs per step beside kernel
+//! launches; the CPU backends' reads are not syncs and are not counted.
+//!
 //! ```
 //! use burn::tensor::{Device, Tensor};
 //! use lifegom_render::readback;
@@ -23,6 +29,8 @@
 //! ```
 
 use std::borrow::Cow;
+use std::collections::BTreeMap;
+use std::sync::{Mutex, PoisonError};
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::{FloatTensor, IntTensor};
@@ -41,12 +49,34 @@ pub struct ReadbackError {
     pub reason: String,
 }
 
+/// Device read-backs per tensor name not yet taken by [`take_device_reads`].
+static DEVICE_READS: Mutex<BTreeMap<&'static str, u64>> = Mutex::new(BTreeMap::new());
+
+/// Counts one read-back of `tensor` from a CubeCL device (module docs).
+pub(crate) fn note_device_read(tensor: &'static str) {
+    *DEVICE_READS
+        .lock()
+        .unwrap_or_else(PoisonError::into_inner)
+        .entry(tensor)
+        .or_default() += 1;
+}
+
+/// The read-backs from CubeCL devices since the last call (or since the process started), per
+/// tensor name: each one a sync of the device's queue (module docs). Process-wide, like CubeCL's
+/// launch observer: the benchmarks take it once per step.
+pub fn take_device_reads() -> BTreeMap<&'static str, u64> {
+    std::mem::take(&mut *DEVICE_READS.lock().unwrap_or_else(PoisonError::into_inner))
+}
+
 /// The values of `t` (float, int or bool) in row-major order, converted to `E` when its dtype
 /// differs.
 pub fn read<E: Element, const D: usize, K: Basic>(
     tensor: &'static str,
     t: Tensor<D, K>,
 ) -> Result<Vec<E>, ReadbackError> {
+    if !crate::device::runs_on_host(&t.device()) {
+        note_device_read(tensor);
+    }
     t.try_into_vec_as::<E>().map_err(|e| ReadbackError {
         tensor,
         reason: e.to_string(),
@@ -186,6 +216,35 @@ pub(crate) fn cpu_int<B: Backend>(tensor: &'static str, t: IntTensor<B>) -> Vec<
 mod tests {
     use super::*;
     use burn::tensor::{Device, Int};
+
+    /// A read from a CubeCL device is counted under its tensor's name, once per read; a read
+    /// from a CPU backend is not (it is no sync). This is the only test of the crate that
+    /// takes the process-wide counts, so other tests' reads only add other names.
+    #[test]
+    fn device_reads_are_counted_per_tensor() {
+        let counted = "readback counting test";
+        let values = [1.0f32, 2.0, 3.0];
+        let host = Tensor::<1>::from_floats(values, &Device::flex());
+        assert_eq!(read::<f32, 1, _>(counted, host).unwrap(), values);
+        assert_eq!(
+            take_device_reads().get(counted),
+            None,
+            "host reads are no syncs"
+        );
+        let Some(device) = crate::testing::wgpu_test_device() else {
+            return;
+        };
+        for _ in 0..2 {
+            let t = Tensor::<1>::from_floats(values, &device);
+            assert_eq!(read::<f32, 1, _>(counted, t).unwrap(), values);
+        }
+        assert_eq!(take_device_reads().get(counted), Some(&2));
+        assert_eq!(
+            take_device_reads().get(counted),
+            None,
+            "taking resets the count"
+        );
+    }
 
     /// Flex lends a contiguous buffer of the asked type in place; a strided view, another
     /// float type and wide indices are read back instead, with the same values as ndarray's

@@ -13,8 +13,10 @@
 //! parent including its children), the parameter count, and the setup. The paper's anchor is
 //! 907.92 ms for T = 3, 3 views, 1024², 2 subdivisions on one A100.
 //!
-//! On a CubeCL device (wgpu) the line also has `kernel_launches` per reconstruction and
-//! `top_kernels` ([`lifegom_cli::launches`]); `--kernel-times` times every launch on the device
+//! On a CubeCL device (wgpu) the line also has `kernel_launches` per reconstruction,
+//! `top_kernels`, and `device_reads` (read-backs, each a sync; per tensor in
+//! `device_reads_by_tensor`; the benchmark's own read of the result is not counted)
+//! ([`lifegom_cli::launches`]); `--kernel-times` times every launch on the device
 //! too, which runs the kernels one at a time (the run's `total_ms` is then not the
 //! reconstruction's time). `max_buffer_bytes` is the device's largest buffer: where a stage's
 //! largest tensor would not fit it (the paper network on lavapipe's 128 MiB), the per-vertex

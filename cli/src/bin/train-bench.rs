@@ -20,8 +20,9 @@
 //! Each step's wall time also goes to stderr as it ends.
 //!
 //! On a CubeCL device (wgpu) the line also has `kernel_launches`, the median kernel
-//! launches per step, and `top_kernels`, the kernels launched most per step
-//! ([`lifegom_cli::launches`]). With `--kernel-times` every launch is also timed on the device
+//! launches per step, `top_kernels`, the kernels launched most per step, and `device_reads`,
+//! the median read-backs per step (each a sync after which the card idles until the host queues
+//! more), per tensor in `device_reads_by_tensor` ([`lifegom_cli::launches`]). With `--kernel-times` every launch is also timed on the device
 //! and `top_kernels` is ordered by device time; the kernels then run one at a time, so the step
 //! times of such a run are not the step's time. With `--attribute-launches` the launches are
 //! also counted per model stage that queued them (`launches_per_step_by_stage`, e.g.

@@ -136,10 +136,12 @@ pub fn arg(handle: &Handle, len: usize) -> BufferArg {
     unsafe { BufferArg::from_raw_parts(handle.clone(), len.max(1)) }
 }
 
-/// Reads the first `u32` of `handle` back to the host: a device sync. `what` names the value
-/// for the panic message; the callers are backend-extension ops, which cannot return errors,
-/// and a failed read here means the device itself is gone.
-pub fn read_u32(client: &ComputeClient, handle: Handle, what: &str) -> u32 {
+/// Reads the first `u32` of `handle` back to the host: a device sync, counted under `what`
+/// ([`crate::readback::take_device_reads`]). `what` also names the value for the panic message;
+/// the callers are backend-extension ops, which cannot return errors, and a failed read here
+/// means the device itself is gone.
+pub fn read_u32(client: &ComputeClient, handle: Handle, what: &'static str) -> u32 {
+    crate::readback::note_device_read(what);
     let bytes = client
         .read_one(handle)
         .unwrap_or_else(|e| panic!("reading {what} back from the device: {e:?}"));
