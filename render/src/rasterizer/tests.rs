@@ -402,10 +402,27 @@ fn depth_channel_and_its_gradient(device: &Device) {
     );
 }
 
+/// The value checks on wgpu, where a one-scalar check on the device comes first
+/// ([`Gaussians::check_values`]).
+#[test]
+fn non_finite_inputs_are_rejected_on_wgpu() {
+    if let Some(device) = crate::testing::wgpu_test_device() {
+        non_finite_inputs_are_rejected(&device);
+    }
+}
+
 fn non_finite_inputs_are_rejected(device: &Device) {
     let cam = axis_camera(16, 16, 20.0);
     let mut rng = Rng::new(3);
     let scene = Scene::random(&mut rng, 4);
+    let bounds = Scene {
+        opacities: vec![0.0, 1.0, 0.5, 1.0],
+        ..scene.clone()
+    };
+    for good in [&scene, &bounds] {
+        assert!(!good.gaussians(device).any_bad_value().unwrap());
+        assert!(good.gaussians(device).check_values().is_ok());
+    }
     for (which, name) in ["means", "covariances", "colors", "opacities"]
         .iter()
         .enumerate()
@@ -418,6 +435,10 @@ fn non_finite_inputs_are_rejected(device: &Device) {
                 2 => s.colors[4] = bad,
                 _ => s.opacities[2] = bad,
             }
+            assert!(
+                s.gaussians(device).any_bad_value().unwrap(),
+                "{name} = {bad}"
+            );
             let err = rasterize(&s.gaussians(device), &RasterSettings::new(cam)).unwrap_err();
             let msg = err.to_string();
             assert!(msg.contains(name) && msg.contains("non-finite"), "{msg}");
@@ -447,6 +468,7 @@ fn non_finite_inputs_are_rejected(device: &Device) {
         opacities: vec![1.5, 0.5, 0.5, 0.5],
         ..scene.clone()
     };
+    assert!(out_of_range.gaussians(device).any_bad_value().unwrap());
     assert!(rasterize(&out_of_range.gaussians(device), &RasterSettings::new(cam)).is_err());
     let below_zero = Scene {
         opacities: vec![0.5, 0.5, -1e-7, 0.5],
