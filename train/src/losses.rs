@@ -376,14 +376,27 @@ pub struct WeightedLoss {
 impl WeightedLoss {
     /// Reads the total and the parts to the host (a device sync; do it at the logging interval).
     pub fn scalars(&self) -> Result<Vec<(&'static str, f64)>, ReadbackError> {
-        let read =
-            |name: &'static str, t: &Tensor<1>| -> Result<(&'static str, f64), ReadbackError> {
-                let v = readback::read::<f64, 1, _>(name, t.clone())?;
-                Ok((name, v.first().copied().unwrap_or(f64::NAN)))
-            };
-        std::iter::once(read("total", &self.total))
-            .chain(self.parts.iter().map(|(n, t)| read(n, t)))
-            .collect()
+        let (names, values) = self.scalars_with(&[])?;
+        Ok(names.into_iter().zip(values).collect())
+    }
+
+    /// The names of the total and the parts, and their values followed by those of `more`
+    /// (1-D tensors, flattened in order): one read-back for all of them, where one per tensor
+    /// would wait on the device once each (`readback::take_device_reads`).
+    pub fn scalars_with(
+        &self,
+        more: &[Tensor<1>],
+    ) -> Result<(Vec<&'static str>, Vec<f64>), ReadbackError> {
+        let names: Vec<&'static str> = std::iter::once("total")
+            .chain(self.parts.iter().map(|(name, _)| *name))
+            .collect();
+        let tensors: Vec<Tensor<1>> = std::iter::once(&self.total)
+            .chain(self.parts.iter().map(|(_, t)| t))
+            .chain(more)
+            .map(|t| t.clone().detach())
+            .collect();
+        let values = readback::read::<f64, 1, _>("loss statistics", Tensor::cat(tensors, 0))?;
+        Ok((names, values))
     }
 }
 
@@ -755,6 +768,14 @@ mod tests {
         let expect = [2.4, 0.1, 1.0, 0.3, 1.0];
         for ((_, got), e) in scalars.iter().zip(expect) {
             assert!((got - e).abs() < 1e-12, "{scalars:?}");
+        }
+        // More tensors ride on the same read-back, after the parts and in order.
+        let more = [t(0.5), tensor(vec![0.25, 0.125], [2], device)];
+        let (with_names, values) = out.scalars_with(&more).unwrap();
+        assert_eq!(with_names, names);
+        assert_eq!(values.len(), expect.len() + 3);
+        for (got, e) in values.iter().zip(expect.iter().chain(&[0.5, 0.25, 0.125])) {
+            assert!((got - e).abs() < 1e-12, "{values:?}");
         }
         // A non-zero LPIPS weight needs the term; with it, the term is added.
         let aist = LossWeights::new().with_mask(0.0).with_lpips(1.0);

@@ -16,7 +16,7 @@
 //! one on the same backend, whatever batch it resumes with. Checkpoints are written between
 //! steps only: a run stopped inside a batch redoes that batch when it resumes.
 
-use lifegom_render::readback::{self, ReadbackError};
+use lifegom_render::readback::ReadbackError;
 use std::time::Instant;
 
 use burn::module::{Module, ModuleVisitor, Param, ParamGroup};
@@ -268,13 +268,6 @@ fn learning_rates(
             .init()
             .map_err(TrainError::LearningRates)?;
     Ok(scheduler.step())
-}
-
-fn scalar(name: &'static str, t: Tensor<1>) -> Result<f64, ReadbackError> {
-    Ok(readback::read::<f64, 1, _>(name, t)?
-        .first()
-        .copied()
-        .unwrap_or(f64::NAN))
 }
 
 impl Trainer {
@@ -638,18 +631,17 @@ impl Trainer {
         target_render: &Tensor<3>,
         t: usize,
     ) -> Result<SampleRow, TrainError> {
-        let mse = scalar(
-            "target MSE",
-            (target_render.clone() - inputs.target_rgb.clone())
-                .powf_scalar(2.0)
-                .mean(),
-        )?;
-        let image_mse = readback::read::<f64, 1, _>("per-image MSE", image_mse)?;
+        let mse = (target_render.clone() - inputs.target_rgb.clone())
+            .powf_scalar(2.0)
+            .mean();
+        // One read-back for the losses, the target's MSE and the per-image MSEs.
+        let (names, mut values) = loss.scalars_with(&[mse, image_mse])?;
+        let image_mse = values.split_off(names.len());
+        let mse = image_mse.first().copied().unwrap_or(f64::NAN);
+        let image_mse = image_mse.get(1..).unwrap_or_default();
         let views = image_mse.len() / t.max(1);
         let psnr = |mse: f64| 10.0 * (1.0 / mse.max(1e-12)).log10();
         let per_step = image_mse.chunks(views.max(1));
-        let (names, mut values): (Vec<&'static str>, Vec<f64>) =
-            loss.scalars()?.into_iter().unzip();
         values.push(10.0 * (1.0 / mse).log10());
         values.extend(per_step.clone().map(|c| psnr(c[views - 1])));
         values.extend(
