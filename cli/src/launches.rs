@@ -156,14 +156,27 @@ impl LaunchTally {
         if per_step.is_empty() {
             return fields;
         }
-        let totals: Vec<f64> = per_step.iter().map(|t| t.total_launches() as f64).collect();
-        let median = crate::profile::median(&totals).unwrap_or(f64::NAN);
-        fields.insert("kernel_launches".into(), serde_json::json!(median.round()));
+        let round2 = |x: f64| (x * 100.0).round() / 100.0;
+        let median_per_step = |count: &dyn Fn(&LaunchTally) -> u64| {
+            let counts: Vec<f64> = per_step.iter().map(|t| count(t) as f64).collect();
+            serde_json::json!(crate::profile::median(&counts).unwrap_or(f64::NAN).round())
+        };
+        let steps = per_step.len() as f64;
+        let mean_per_step = |counts: &BTreeMap<String, u64>| {
+            let means: serde_json::Map<String, serde_json::Value> = counts
+                .iter()
+                .map(|(key, n)| (key.clone(), serde_json::json!(round2(*n as f64 / steps))))
+                .collect();
+            serde_json::Value::Object(means)
+        };
+        fields.insert(
+            "kernel_launches".into(),
+            median_per_step(&LaunchTally::total_launches),
+        );
         let mut sum = LaunchTally::default();
         for t in per_step {
             sum.add(t);
         }
-        let steps = per_step.len() as f64;
         let timed = sum.total_device_time() > Duration::ZERO;
         let mut kernels: Vec<(&String, &KernelTally)> = sum.kernels.iter().collect();
         let key = |k: &KernelTally| {
@@ -174,7 +187,6 @@ impl LaunchTally {
             }
         };
         kernels.sort_by(|a, b| key(b.1).total_cmp(&key(a.1)).then(a.0.cmp(b.0)));
-        let round2 = |x: f64| (x * 100.0).round() / 100.0;
         let top_kernels: Vec<serde_json::Value> = kernels
             .iter()
             .take(top)
@@ -191,42 +203,22 @@ impl LaunchTally {
             })
             .collect();
         fields.insert("top_kernels".into(), serde_json::Value::Array(top_kernels));
-        let reads: Vec<f64> = per_step
-            .iter()
-            .map(|t| t.device_reads.values().sum::<u64>() as f64)
-            .collect();
-        let median_reads = crate::profile::median(&reads).unwrap_or(f64::NAN);
         fields.insert(
             "device_reads".into(),
-            serde_json::json!(median_reads.round()),
+            median_per_step(&|t| t.device_reads.values().sum()),
         );
-        let reads_by_tensor: serde_json::Map<String, serde_json::Value> = sum
-            .device_reads
-            .iter()
-            .map(|(tensor, n)| (tensor.clone(), serde_json::json!(round2(*n as f64 / steps))))
-            .collect();
         fields.insert(
             "device_reads_by_tensor".into(),
-            serde_json::Value::Object(reads_by_tensor),
+            mean_per_step(&sum.device_reads),
         );
-        let by_span: serde_json::Map<String, serde_json::Value> = sum
-            .by_span
-            .iter()
-            .map(|(span, n)| (span.clone(), serde_json::json!(round2(*n as f64 / steps))))
-            .collect();
         fields.insert(
             "launches_per_step_by_span".into(),
-            serde_json::Value::Object(by_span),
+            mean_per_step(&sum.by_span),
         );
         if !sum.by_stage_kernel.is_empty() {
-            let by_stage_kernel: serde_json::Map<String, serde_json::Value> = sum
-                .by_stage_kernel
-                .iter()
-                .map(|(key, n)| (key.clone(), serde_json::json!(round2(*n as f64 / steps))))
-                .collect();
             fields.insert(
                 "launches_per_step_by_stage_kernel".into(),
-                serde_json::Value::Object(by_stage_kernel),
+                mean_per_step(&sum.by_stage_kernel),
             );
         }
         if timed {
