@@ -636,9 +636,8 @@ impl Trainer {
             .mean();
         // One read-back for the losses, the target's MSE and the per-image MSEs.
         let (names, mut values) = loss.scalars_with(&[mse, image_mse])?;
-        let image_mse = values.split_off(names.len());
-        let mse = image_mse.first().copied().unwrap_or(f64::NAN);
-        let image_mse = image_mse.get(1..).unwrap_or_default();
+        let extra = values.split_off(names.len());
+        let (&mse, image_mse) = extra.split_first().unwrap_or((&f64::NAN, &[]));
         let views = image_mse.len() / t.max(1);
         let psnr = |mse: f64| 10.0 * (1.0 / mse.max(1e-12)).log10();
         let per_step = image_mse.chunks(views.max(1));
