@@ -6,12 +6,13 @@
 //! * [`value`]: the value model and typed accessors.
 
 pub mod reader;
+pub mod torch_zip;
 pub mod value;
 pub mod writer;
 
 use std::path::Path;
 
-pub use value::{DType, Elements, NdArray, Value};
+pub use value::{DType, Elements, NdArray, TensorRef, Value};
 
 use crate::error::{DataError, Location, Result};
 

@@ -22,6 +22,18 @@
 //! global is an error naming it. Out-of-band buffers (`NEXT_BUFFER`) are an error: a file cannot
 //! carry them.
 //!
+//! # PyTorch archives ([`Dialect::Torch`])
+//!
+//! The `data.pkl` of a `torch.save` zip or a TorchScript archive refers to its tensors' bytes by
+//! *persistent id* (`BINPERSID`): `('storage', torch.FloatStorage, key, location, numel)`, where
+//! `key` names the archive entry `data/<key>`. In the torch dialect the VM also knows
+//! `torch._utils._rebuild_tensor_v2` and `_rebuild_parameter`, which become
+//! [`Value::Tensor`] references (storage key, type, offset, shape, stride; the bytes stay in the
+//! archive, [`super::torch_zip`] reads them), and TorchScript's module classes (`__torch__.*`),
+//! which become dicts of their attributes (TorchScript's typed-list wrappers,
+//! `torch.jit._pickle.build_intlist` and its kin, are their argument). Nothing is executed: a TorchScript archive's code is
+//! never run, only its attribute tree is read.
+//!
 //! # numpy arrays
 //!
 //! numpy pickles an array in one of two ways:
@@ -45,7 +57,7 @@
 
 use std::collections::HashMap;
 
-use super::value::{DType, Elements, NdArray, Value};
+use super::value::{DType, Elements, NdArray, TensorRef, Value};
 
 /// Deepest nesting converted to a [`Value`]; deeper (or cyclic) structures are an error.
 pub const MAX_DEPTH: usize = 256;
@@ -79,7 +91,22 @@ impl std::error::Error for PickleError {}
 
 /// Parses one pickle from `bytes` (trailing bytes after `STOP` are ignored, as Python does).
 pub fn from_slice(bytes: &[u8]) -> Result<Value, PickleError> {
-    Vm::new(bytes).run()
+    from_slice_in(bytes, Dialect::Data)
+}
+
+/// Parses one pickle of the given [`Dialect`].
+pub fn from_slice_in(bytes: &[u8], dialect: Dialect) -> Result<Value, PickleError> {
+    Vm::new(bytes, dialect).run()
+}
+
+/// Which globals a pickle may use beyond plain containers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Dialect {
+    /// Data files: numpy arrays and the builtins of the module docs; anything else is an error.
+    Data,
+    /// The `data.pkl` of a PyTorch archive: also persistent storage ids, tensor rebuilds and
+    /// TorchScript module objects (module docs).
+    Torch,
 }
 
 /// The globals the VM can call or keep as values.
@@ -103,10 +130,34 @@ enum Callable {
     ByteArray,
     /// `builtins.set`, `builtins.frozenset` (read as lists).
     Set,
+    /// `torch._utils._rebuild_tensor_v2` (torch dialect).
+    RebuildTensor,
+    /// `torch._utils._rebuild_parameter`: a parameter is its tensor (torch dialect).
+    RebuildParameter,
+    /// A TorchScript module class `__torch__.*`, built from its attribute dict (torch dialect).
+    TorchModule,
+    /// TorchScript's typed-container wrappers (`torch.jit._pickle.build_intlist`,
+    /// `restore_type_tag`, ...): the value is their first argument (torch dialect).
+    FirstArgument,
 }
 
 impl Callable {
-    fn lookup(module: &str, name: &str) -> Option<Self> {
+    fn lookup(module: &str, name: &str, dialect: Dialect) -> Option<Self> {
+        if dialect == Dialect::Torch {
+            match (module, name) {
+                ("torch._utils", "_rebuild_tensor_v2") => return Some(Self::RebuildTensor),
+                ("torch._utils", "_rebuild_parameter") => return Some(Self::RebuildParameter),
+                (
+                    "torch.jit._pickle",
+                    "build_intlist" | "build_doublelist" | "build_boollist" | "build_tensorlist"
+                    | "build_list" | "restore_type_tag",
+                ) => return Some(Self::FirstArgument),
+                (m, _) if m == "__torch__" || m.starts_with("__torch__.") => {
+                    return Some(Self::TorchModule);
+                }
+                _ => {}
+            }
+        }
         let numpy_core = matches!(
             module,
             "numpy.core.multiarray" | "numpy._core.multiarray" | "numpy.core" | "numpy._core"
@@ -153,6 +204,12 @@ enum Obj {
     /// `_reconstruct`'s empty array, waiting for `BUILD`.
     EmptyArray,
     Array(NdArray),
+    /// A persistent storage id of a PyTorch archive (torch dialect).
+    Storage {
+        key: String,
+        storage_type: String,
+    },
+    Tensor(TensorRef),
 }
 
 struct Vm<'a> {
@@ -165,12 +222,13 @@ struct Vm<'a> {
     /// Stack heights at each `MARK` (Python's metastack).
     marks: Vec<usize>,
     memo: HashMap<u64, usize>,
+    dialect: Dialect,
 }
 
 type R<T> = Result<T, PickleError>;
 
 impl<'a> Vm<'a> {
-    fn new(bytes: &'a [u8]) -> Self {
+    fn new(bytes: &'a [u8], dialect: Dialect) -> Self {
         Self {
             bytes,
             pos: 0,
@@ -179,6 +237,7 @@ impl<'a> Vm<'a> {
             stack: Vec::new(),
             marks: Vec::new(),
             memo: HashMap::new(),
+            dialect,
         }
     }
 
@@ -504,6 +563,15 @@ impl<'a> Vm<'a> {
                     let id = self.top()?;
                     self.stack.push(id);
                 }
+                b'Q' => {
+                    let pid = self.pop()?;
+                    let storage = self.persistent_load(pid)?;
+                    self.push(storage);
+                }
+                b'P' => {
+                    return self
+                        .err("PERSID: text persistent ids are not used by PyTorch archives");
+                }
                 0x98 => {} // READONLY_BUFFER: in-band data is already bytes
                 0x97 => {
                     return self.err("NEXT_BUFFER: out-of-band buffers cannot be read from a file");
@@ -542,7 +610,7 @@ impl<'a> Vm<'a> {
     }
 
     fn push_global(&mut self, module: String, name: String) {
-        let callable = Callable::lookup(&module, &name);
+        let callable = Callable::lookup(&module, &name, self.dialect);
         self.push(Obj::Global {
             module,
             name,
@@ -719,7 +787,67 @@ impl<'a> Vm<'a> {
             Callable::NdarrayClass => {
                 self.err("numpy.ndarray called directly (only _reconstruct is supported)")
             }
+            Callable::RebuildTensor => self.rebuild_tensor(&args),
+            Callable::RebuildParameter => match args.first().map(|&a| &self.arena[a]) {
+                Some(Obj::Tensor(t)) => Ok(Obj::Tensor(t.clone())),
+                _ => self.err("_rebuild_parameter(): first argument is not a tensor"),
+            },
+            Callable::TorchModule => Ok(Obj::Dict(Vec::new())),
+            Callable::FirstArgument => match args.first() {
+                Some(&a) => Ok(self.arena[a].clone()),
+                None => self.err(format!("{module}.{name}() without an argument")),
+            },
         }
+    }
+
+    /// `BINPERSID` in the torch dialect: `('storage', storage_type, key, location, numel)`.
+    fn persistent_load(&mut self, pid: usize) -> R<Obj> {
+        if self.dialect != Dialect::Torch {
+            return self.err("persistent id (BINPERSID) outside a PyTorch archive");
+        }
+        let items = self.tuple_items(pid, "persistent id")?;
+        let text = |vm: &Self, i: usize| match items.get(i).map(|&a| &vm.arena[a]) {
+            Some(Obj::Str(s)) => Some(s.clone()),
+            _ => None,
+        };
+        if text(self, 0).as_deref() != Some("storage") || items.len() < 3 {
+            return self.err("persistent id is not ('storage', type, key, ...)");
+        }
+        let storage_type = match items.get(1).map(|&a| &self.arena[a]) {
+            Some(Obj::Global { name, .. }) => name.clone(),
+            _ => return self.err("persistent id: storage type is not a global"),
+        };
+        let Some(key) = text(self, 2) else {
+            return self.err("persistent id: storage key is not a string");
+        };
+        Ok(Obj::Storage { key, storage_type })
+    }
+
+    /// `_rebuild_tensor_v2(storage, offset, size, stride, requires_grad, hooks[, metadata])`.
+    fn rebuild_tensor(&self, args: &[usize]) -> R<Obj> {
+        if args.len() < 4 {
+            return self.err("_rebuild_tensor_v2(): expected (storage, offset, size, stride, ...)");
+        }
+        let Obj::Storage { key, storage_type } = &self.arena[args[0]] else {
+            return self.err("_rebuild_tensor_v2(): first argument is not a storage");
+        };
+        let offset = self.int(args[1], "tensor storage offset")?;
+        let offset = usize::try_from(offset)
+            .or_else(|_| self.err(format!("negative tensor storage offset {offset}")))?;
+        let shape = self.shape(args[2], "tensor size")?;
+        let stride = self.shape(args[3], "tensor stride")?;
+        if stride.len() != shape.len() {
+            return self.err(format!(
+                "tensor size {shape:?} and stride {stride:?} differ in rank"
+            ));
+        }
+        Ok(Obj::Tensor(TensorRef {
+            storage: key.clone(),
+            storage_type: storage_type.clone(),
+            offset,
+            shape,
+            stride,
+        }))
     }
 
     /// `BUILD`: sets the state of a dtype or of `_reconstruct`'s empty array.
@@ -850,6 +978,10 @@ impl<'a> Vm<'a> {
             Obj::Dtype { dtype, .. } => Value::Dtype(*dtype),
             Obj::EmptyArray => return self.err("a numpy array was never given its state (BUILD)"),
             Obj::Array(a) => Value::Array(a.clone()),
+            Obj::Storage { .. } => {
+                return self.err("a tensor storage was never rebuilt into a tensor");
+            }
+            Obj::Tensor(t) => Value::Tensor(t.clone()),
         })
     }
 }
@@ -869,6 +1001,8 @@ fn obj_name(obj: &Obj) -> &'static str {
         Obj::Dtype { .. } => "dtype",
         Obj::EmptyArray => "ndarray",
         Obj::Array(_) => "ndarray",
+        Obj::Storage { .. } => "torch storage",
+        Obj::Tensor(_) => "torch tensor",
     }
 }
 
@@ -1053,7 +1187,7 @@ mod tests {
 
     #[test]
     fn long1_sign_extension() {
-        let vm = Vm::new(&[]);
+        let vm = Vm::new(&[], Dialect::Data);
         assert_eq!(vm.long(&[0xff]).unwrap(), -1);
         assert_eq!(vm.long(&[0x00, 0x80, 0x00]).unwrap(), 0x8000);
         assert_eq!(vm.long(&[0; 9]).unwrap(), 0);

@@ -204,6 +204,24 @@ pub enum Value {
     },
     /// A numpy dtype stored as a value.
     Dtype(DType),
+    /// A PyTorch tensor of an archive, by reference to its storage (torch dialect only).
+    Tensor(TensorRef),
+}
+
+/// Where a PyTorch tensor's elements are: the archive entry `data/<storage>`, read from element
+/// `offset` with `shape` and `stride` (in elements, as `torch.Tensor.stride()`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TensorRef {
+    /// Storage key: the archive entry's name under `data/`.
+    pub storage: String,
+    /// The storage class (`FloatStorage`, `HalfStorage`, ...).
+    pub storage_type: String,
+    /// First element, counted in elements of the storage.
+    pub offset: usize,
+    /// The tensor's shape.
+    pub shape: Vec<usize>,
+    /// Element strides per dimension.
+    pub stride: Vec<usize>,
 }
 
 impl Value {
@@ -222,6 +240,7 @@ impl Value {
             Self::Array(_) => "numpy.ndarray",
             Self::Global { .. } => "global",
             Self::Dtype(_) => "numpy.dtype",
+            Self::Tensor(_) => "torch.Tensor",
         }
     }
 

@@ -72,6 +72,12 @@ impl Writer {
             Value::Array(a) => self.array(a)?,
             Value::Dtype(d) => self.dtype(*d),
             Value::Global { module, name } => self.global(module, name),
+            Value::Tensor(t) => {
+                return Err(format!(
+                    "a torch tensor (storage {}) cannot be written: only numpy arrays are",
+                    t.storage
+                ));
+            }
         }
         Ok(())
     }
