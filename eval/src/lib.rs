@@ -26,6 +26,7 @@
 //! - [`animate`]: free-view orbits; the motions (procedural walk, arm-raise, squat and
 //!   pose-sequence files) are `lifegom_render::motion`, re-exported there.
 //! - [`per_scene`]: the per-scene optimisation baseline scored after K gradient steps.
+//! - [`folders`]: two folders of images scored against each other (`lifegom-metrics`).
 //! - [`validation`]: every feedback step's scores on the validation split (training's curves).
 //! - [`report`]: CSVs, `summary.json`, `report.md`, the Pareto plot.
 //! - [`error`]: the library's one error type.
@@ -39,11 +40,14 @@ pub mod baselines;
 pub mod capacity;
 pub mod error;
 pub mod evaluate;
+pub mod folders;
 pub mod images;
 pub mod metrics;
 pub mod per_scene;
-pub mod perceptual;
 pub mod perceptual_scores;
 pub mod plot;
 pub mod report;
 pub mod validation;
+
+/// LPIPS, the FID Inception and the Fréchet distance, and their weights (`lifegom-perceptual`).
+pub use lifegom_perceptual as perceptual;

