@@ -30,6 +30,14 @@ pub enum EvalError {
     /// Per-scene optimisation failed.
     #[error(transparent)]
     Fit(#[from] lifegom_train::trainer::TrainError),
+    /// An input file or folder that cannot be scored (unpaired, differently sized, empty).
+    #[error("{path}: {reason}")]
+    Input {
+        /// The file or folder.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
     /// A file could not be written.
     #[error("writing {path}: {reason}")]
     Write {

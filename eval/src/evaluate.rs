@@ -345,12 +345,10 @@ pub fn evaluate_split(
         let (m, p_img, g_img) =
             score_region(&pred, &gt, crop_protocol, crop_size, &sample.frame_name)?;
         if model.is_some() && settings.save_predictions {
-            pred.save_png(
-                &settings
-                    .out
-                    .join("preds")
-                    .join(format!("{}.png", sample.frame_name)),
-            )?;
+            // Ground truth beside it under the same name: `lifegom-metrics preds gt` pairs them.
+            let name = format!("{}.png", sample.frame_name);
+            pred.save_png(&settings.out.join("preds").join(&name))?;
+            gt.save_png(&settings.out.join("gt").join(&name))?;
         }
         if model.is_some()
             && sheets.len() < settings.sheets

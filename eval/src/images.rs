@@ -107,6 +107,16 @@ impl Image {
         .map_err(err)
     }
 
+    /// The image as a `[1, 3, H, W]` batch (what the perceptual networks take).
+    pub fn to_batch(&self, device: &burn::tensor::Device) -> Tensor<4> {
+        Tensor::<3>::from_data(
+            burn::tensor::TensorData::new(self.data.clone(), [self.height, self.width, 3]),
+            device,
+        )
+        .permute([2, 0, 1])
+        .unsqueeze_dim(0)
+    }
+
     /// Reads a PNG (or any format the `image` crate was built with) as RGB.
     pub fn load(path: &Path) -> Result<Self, ImageError> {
         let img = image::open(path)

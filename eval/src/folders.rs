@@ -1,0 +1,296 @@
+//! Two folders of images scored against each other, as `python -m pytorch_fid A B` and the
+//! lpips package's scripts do: images paired by file name for PSNR, SSIM and LPIPS, and the
+//! two sets' FID (each image resized to 299² inside the Inception, whatever its size).
+//!
+//! FID over a few dozen images is strongly biased upwards and only comparable between
+//! evaluations with the same image counts; the counts travel with the value.
+
+use std::path::{Path, PathBuf};
+
+use burn::tensor::{Device, Tensor, TensorData};
+use lifegom_render::readback;
+
+use crate::error::EvalError;
+use crate::images::Image;
+use crate::metrics::{ImageRef, psnr, ssim_skimage};
+use crate::perceptual::{FeatureStats, Lpips, PerceptualModels, frechet_distance};
+
+/// Image files the folders may hold (what the `image` crate is built to read).
+const EXTENSIONS: [&str; 2] = ["png", "gif"];
+
+/// Images per network call: bounds memory at large sizes.
+const BATCH: usize = 8;
+
+/// The scores of one pair.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct PairScores {
+    /// The shared file name.
+    pub name: String,
+    /// PSNR in dB (`None` for identical images: infinite).
+    pub psnr: Option<f64>,
+    /// SSIM (skimage's).
+    pub ssim: f64,
+    /// LPIPS with AlexNet (`None` without its weights).
+    pub lpips_alex: Option<f64>,
+    /// LPIPS with VGG16 (`None` without its weights).
+    pub lpips_vgg: Option<f64>,
+}
+
+/// Everything `lifegom-metrics` prints.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct FolderScores {
+    /// Image pairs scored.
+    pub pairs: usize,
+    /// Pairs with identical images (left out of the PSNR mean: their PSNR is infinite).
+    pub identical_pairs: usize,
+    /// Mean PSNR over the other pairs.
+    pub psnr: Option<f64>,
+    /// Mean SSIM.
+    pub ssim: f64,
+    /// Mean LPIPS-alex.
+    pub lpips_alex: Option<f64>,
+    /// Mean LPIPS-vgg (× 1000 is the paper's LPIPS*).
+    pub lpips_vgg: Option<f64>,
+    /// FID between the two folders.
+    pub fid: Option<f64>,
+    /// Images in the first folder that FID saw.
+    pub fid_images_a: usize,
+    /// Images in the second folder that FID saw.
+    pub fid_images_b: usize,
+    /// The weight files that were missing (their figures are `None`).
+    pub missing_weights: Vec<String>,
+    /// Per pair, by name.
+    pub per_pair: Vec<PairScores>,
+}
+
+/// The image files of `dir`, sorted by name.
+pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>, EvalError> {
+    let err = |reason: String| EvalError::Input {
+        path: dir.to_path_buf(),
+        reason,
+    };
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| err(format!("cannot list the folder: {e}")))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.is_file()
+                && p.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+        })
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        return Err(err(format!(
+            "no images ({}) in the folder",
+            EXTENSIONS.join(", ")
+        )));
+    }
+    Ok(files)
+}
+
+/// Pairs the files of two folders by name; an unpaired file is an error naming it.
+pub fn pair_files(a: &Path, b: &Path) -> Result<Vec<(PathBuf, PathBuf)>, EvalError> {
+    let (fa, fb) = (image_files(a)?, image_files(b)?);
+    let name = |p: &Path| p.file_name().map(|n| n.to_os_string());
+    for (files, other, other_dir) in [(&fa, &fb, b), (&fb, &fa, a)] {
+        if let Some(lone) = files
+            .iter()
+            .find(|p| !other.iter().any(|q| name(q) == name(p)))
+        {
+            return Err(EvalError::Input {
+                path: lone.clone(),
+                reason: format!("no image of this name in {}", other_dir.display()),
+            });
+        }
+    }
+    Ok(fa.into_iter().zip(fb).collect())
+}
+
+fn batch(images: &[&Image], device: &Device) -> Tensor<4> {
+    let (h, w) = (images[0].height, images[0].width);
+    let data: Vec<f32> = images.iter().flat_map(|i| i.data.iter().copied()).collect();
+    Tensor::<4>::from_data(TensorData::new(data, [images.len(), h, w, 3]), device)
+        .permute([0, 3, 1, 2])
+}
+
+fn lpips_all(
+    net: &Lpips,
+    pairs: &[(Image, Image)],
+    device: &Device,
+) -> Result<Vec<f64>, EvalError> {
+    let mut out = Vec::with_capacity(pairs.len());
+    for chunk in pairs.chunks(BATCH) {
+        let a: Vec<&Image> = chunk.iter().map(|(a, _)| a).collect();
+        let b: Vec<&Image> = chunk.iter().map(|(_, b)| b).collect();
+        let d = net.try_distance(batch(&a, device), batch(&b, device))?;
+        out.extend(readback::read::<f64, 1, _>("LPIPS distance", d)?);
+    }
+    Ok(out)
+}
+
+/// pool3 features of `images` (any sizes: each is resized to 299² inside), row-major.
+fn features(
+    net: &crate::perceptual::InceptionPool3,
+    images: &[&Image],
+    device: &Device,
+) -> Result<Vec<f32>, EvalError> {
+    let mut rows = Vec::with_capacity(images.len() * 2048);
+    let mut start = 0;
+    while start < images.len() {
+        // A batch holds images of one size.
+        let (h, w) = (images[start].height, images[start].width);
+        let end = (start..images.len())
+            .take(BATCH)
+            .take_while(|&i| images[i].height == h && images[i].width == w)
+            .last()
+            .map_or(start + 1, |i| i + 1);
+        let f = net.try_features(batch(&images[start..end], device))?;
+        rows.extend(readback::read::<f32, 2, _>("Inception features", f)?);
+        start = end;
+    }
+    Ok(rows)
+}
+
+/// Scores folder `a` against folder `b` with whatever networks `models` holds.
+pub fn score_folders(
+    a: &Path,
+    b: &Path,
+    models: &PerceptualModels,
+    device: &Device,
+) -> Result<FolderScores, EvalError> {
+    let files = pair_files(a, b)?;
+    let mut pairs = Vec::with_capacity(files.len());
+    for (fa, fb) in &files {
+        let (ia, ib) = (Image::load(fa)?, Image::load(fb)?);
+        if (ia.width, ia.height) != (ib.width, ib.height) {
+            return Err(EvalError::Input {
+                path: fb.clone(),
+                reason: format!(
+                    "{}×{} px, but {} is {}×{} px",
+                    ib.width,
+                    ib.height,
+                    fa.display(),
+                    ia.width,
+                    ia.height
+                ),
+            });
+        }
+        pairs.push((ia, ib));
+    }
+    let mut per_pair = Vec::with_capacity(pairs.len());
+    for ((fa, _), (ia, ib)) in files.iter().zip(&pairs) {
+        let shape = [ia.height, ia.width, 3];
+        let (ra, rb) = (
+            ImageRef::new(&ia.data, shape)?,
+            ImageRef::new(&ib.data, shape)?,
+        );
+        let p = psnr(ra, rb, 1.0)?;
+        per_pair.push(PairScores {
+            name: fa
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            psnr: p.is_finite().then_some(p),
+            ssim: ssim_skimage(ra, rb)?,
+            lpips_alex: None,
+            lpips_vgg: None,
+        });
+    }
+    // LPIPS needs one size per batch: group the pairs by size.
+    for (net, set) in [(&models.lpips_alex, 0usize), (&models.lpips_vgg, 1usize)] {
+        let Some(net) = net else { continue };
+        let mut order: Vec<usize> = (0..pairs.len()).collect();
+        order.sort_by_key(|&i| (pairs[i].0.height, pairs[i].0.width));
+        let mut i = 0;
+        while i < order.len() {
+            let size = (pairs[order[i]].0.height, pairs[order[i]].0.width);
+            let run: Vec<usize> = order[i..]
+                .iter()
+                .copied()
+                .take_while(|&k| (pairs[k].0.height, pairs[k].0.width) == size)
+                .collect();
+            let group: Vec<(Image, Image)> = run.iter().map(|&k| pairs[k].clone()).collect();
+            for (&k, d) in run.iter().zip(lpips_all(net, &group, device)?) {
+                if set == 0 {
+                    per_pair[k].lpips_alex = Some(d);
+                } else {
+                    per_pair[k].lpips_vgg = Some(d);
+                }
+            }
+            i += run.len();
+        }
+    }
+    let fid = match &models.inception {
+        Some(net) if pairs.len() >= 2 => {
+            let a: Vec<&Image> = pairs.iter().map(|(a, _)| a).collect();
+            let b: Vec<&Image> = pairs.iter().map(|(_, b)| b).collect();
+            let sa = FeatureStats::from_features(&features(net, &a, device)?, 2048)?;
+            let sb = FeatureStats::from_features(&features(net, &b, device)?, 2048)?;
+            Some(frechet_distance(&sa, &sb)?)
+        }
+        _ => None,
+    };
+    let n = per_pair.len() as f64;
+    let finite: Vec<f64> = per_pair.iter().filter_map(|p| p.psnr).collect();
+    let mean_of = |get: fn(&PairScores) -> Option<f64>| -> Option<f64> {
+        let v: Option<Vec<f64>> = per_pair.iter().map(get).collect();
+        v.map(|v| v.iter().sum::<f64>() / n)
+    };
+    let fid_images = if fid.is_some() { pairs.len() } else { 0 };
+    Ok(FolderScores {
+        pairs: per_pair.len(),
+        identical_pairs: per_pair.len() - finite.len(),
+        psnr: (!finite.is_empty()).then(|| finite.iter().sum::<f64>() / finite.len() as f64),
+        ssim: per_pair.iter().map(|p| p.ssim).sum::<f64>() / n,
+        lpips_alex: mean_of(|p| p.lpips_alex),
+        lpips_vgg: mean_of(|p| p.lpips_vgg),
+        fid,
+        fid_images_a: fid_images,
+        fid_images_b: fid_images,
+        missing_weights: models.missing.clone(),
+        per_pair,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(dir: &Path, name: &str, w: usize, h: usize, v: f32) {
+        Image::filled(w, h, [v, v * 0.5, 1.0 - v])
+            .save_png(&dir.join(name))
+            .unwrap();
+    }
+
+    #[test]
+    fn unpaired_and_differently_sized_files_are_named() {
+        let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        write(a.path(), "x.png", 8, 8, 0.2);
+        write(b.path(), "x.png", 8, 8, 0.3);
+        write(a.path(), "lonely.png", 8, 8, 0.2);
+        let none = PerceptualModels {
+            lpips_alex: None,
+            lpips_vgg: None,
+            inception: None,
+            missing: vec!["all".into()],
+        };
+        let device = Device::flex();
+        let e = score_folders(a.path(), b.path(), &none, &device)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("lonely.png") && e.contains("no image of this name"),
+            "{e}"
+        );
+        write(b.path(), "lonely.png", 9, 8, 0.2);
+        let e = score_folders(a.path(), b.path(), &none, &device)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lonely.png") && e.contains("9×8 px"), "{e}");
+        write(b.path(), "lonely.png", 8, 8, 0.2);
+        let s = score_folders(a.path(), b.path(), &none, &device).unwrap();
+        assert_eq!((s.pairs, s.identical_pairs), (2, 1));
+        assert!(s.psnr.unwrap() > 10.0 && s.fid.is_none() && s.lpips_vgg.is_none());
+    }
+}
