@@ -256,6 +256,7 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
             &FitConfig::new(),
             &LossWeights::new(),
             opts.per_scene_subjects.or(opts.max_subjects),
+            &perceptual,
             &opts.device,
         )?;
         for p in &per_scene {

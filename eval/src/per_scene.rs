@@ -5,7 +5,8 @@
 //! ([`crate::baselines::template_one_colour`]) is fitted to the N source views
 //! ([`lifegom_train::fit`]); after each requested K the fitted avatar renders every target view
 //! of the subject, scored as the evaluation scores the model (protocol region, PSNR, SSIM). The
-//! time of a point is the fit's own wall time up to K, per subject (scoring excluded).
+//! time of a point is the fit's own wall time up to K, per subject (scoring excluded). With
+//! the perceptual weights, each K's renders also get LPIPS and FID, on the same regions.
 
 use burn::tensor::Device;
 use lifegom_data::dataset::{Dataset, Protocol};
@@ -35,6 +36,18 @@ pub struct FitPoint {
     pub ms: f64,
     /// Subjects fitted (the means are over their target views).
     pub subjects: usize,
+    /// Mean LPIPS-alex over the target views, when its weights exist.
+    #[serde(default)]
+    pub lpips_alex: Option<f64>,
+    /// Mean LPIPS-vgg over the target views, when its weights exist.
+    #[serde(default)]
+    pub lpips_vgg: Option<f64>,
+    /// FID between the renders and the targets, when the Inception weights exist.
+    #[serde(default)]
+    pub fid: Option<f64>,
+    /// Images per set that FID saw.
+    #[serde(default)]
+    pub fid_images: Option<usize>,
 }
 
 /// The validation samples of each subject, in split order (the first sample's inputs are the
@@ -66,6 +79,7 @@ pub fn score_per_scene_fit(
     cfg: &FitConfig,
     weights: &LossWeights,
     max_subjects: Option<usize>,
+    perceptual: &crate::perceptual_scores::Models,
     device: &Device,
 ) -> Result<Vec<FitPoint>, EvalError> {
     let _span = tracing::info_span!("score_per_scene_fit").entered();
@@ -86,8 +100,14 @@ pub fn score_per_scene_fit(
             ssim: 0.0,
             ms: 0.0,
             subjects: 0,
+            lpips_alex: None,
+            lpips_vgg: None,
+            fid: None,
+            fid_images: None,
         })
         .collect();
+    // Each K's metric regions (prediction, ground truth), for LPIPS and FID at the end.
+    let mut regions: Vec<(Vec<Image>, Vec<Image>)> = vec![(Vec::new(), Vec::new()); ks.len()];
     let mut views = 0usize;
     let groups = samples_by_subject(dataset, &rigs, max_subjects, device)?;
     for targets in &groups {
@@ -101,9 +121,10 @@ pub fn score_per_scene_fit(
             cfg,
             k_max,
             |k, seconds, avatar| {
-                let Some(point) = sums.iter_mut().find(|p| p.steps == k) else {
+                let Some(at) = sums.iter().position(|p| p.steps == k) else {
                     return Ok(true);
                 };
+                let point = &mut sums[at];
                 point.ms += seconds * 1e3;
                 for inputs in targets {
                     let scored = render_timed(
@@ -117,9 +138,11 @@ pub fn score_per_scene_fit(
                         score_region(&pred, &gt, crop_protocol, crop_size, "per-scene fit")
                     });
                     match scored {
-                        Ok((m, _, _)) => {
+                        Ok((m, pred, gt)) => {
                             point.psnr += m.psnr;
                             point.ssim += m.ssim;
+                            regions[at].0.push(pred);
+                            regions[at].1.push(gt);
                         }
                         Err(e) => {
                             failure = Some(e);
@@ -136,14 +159,21 @@ pub fn score_per_scene_fit(
         views += targets.len();
     }
     let (views, subjects) = (views.max(1) as f64, groups.len().max(1) as f64);
-    Ok(sums
-        .into_iter()
-        .map(|p| FitPoint {
-            psnr: p.psnr / views,
-            ssim: p.ssim / views,
-            ms: p.ms / subjects,
-            subjects: groups.len(),
-            ..p
+    sums.into_iter()
+        .zip(&regions)
+        .map(|(p, (pred, gt))| {
+            let perceptual = crate::perceptual_scores::score_pairs(perceptual, pred, gt, device)?;
+            Ok(FitPoint {
+                psnr: p.psnr / views,
+                ssim: p.ssim / views,
+                ms: p.ms / subjects,
+                subjects: groups.len(),
+                lpips_alex: perceptual.lpips_alex,
+                lpips_vgg: perceptual.lpips_vgg,
+                fid: perceptual.fid,
+                fid_images: perceptual.fid_images,
+                ..p
+            })
         })
-        .collect())
+        .collect()
 }

@@ -16,11 +16,11 @@ use crate::error::EvalError;
 use lifegom_render::readback;
 use std::path::Path;
 
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::Device;
 
 use crate::evaluate::SplitScores;
 use crate::images::Image;
-use crate::perceptual::{FeatureStats, PerceptualModels, frechet_distance};
+use crate::perceptual::{FeatureStats, Lpips, PerceptualModels, frechet_distance};
 use crate::report::WEIGHTS_MISSING;
 
 /// The perceptual networks that could be loaded, and why the others could not.
@@ -62,19 +62,90 @@ pub struct PerceptualOutcome {
     pub fid: Option<f64>,
 }
 
-fn batch(img: &Image, device: &Device) -> Tensor<4> {
-    Tensor::<3>::from_data(
-        TensorData::new(img.data.clone(), [img.height, img.width, 3]),
-        device,
-    )
-    .permute([2, 0, 1])
-    .unsqueeze_dim(0)
+/// LPIPS means and FID over image pairs that are not a [`SplitScores`] (a per-scene fit's
+/// renders after K steps).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SetScores {
+    /// Mean LPIPS-alex.
+    pub lpips_alex: Option<f64>,
+    /// Mean LPIPS-vgg.
+    pub lpips_vgg: Option<f64>,
+    /// FID between the predictions and the ground truths.
+    pub fid: Option<f64>,
+    /// Images per set that FID saw.
+    pub fid_images: Option<usize>,
 }
 
-fn first(t: Tensor<1>) -> Result<Option<f64>, EvalError> {
-    Ok(readback::read::<f64, 1, _>("LPIPS distance", t)?
+/// Scores `pred[k]` against `gt[k]` with whatever networks exist.
+pub fn score_pairs(
+    models: &Models,
+    pred: &[Image],
+    gt: &[Image],
+    device: &Device,
+) -> Result<SetScores, EvalError> {
+    let Some(m) = &models.models else {
+        return Ok(SetScores::default());
+    };
+    let mean = |net: &Option<Lpips>| match net {
+        Some(net) => mean_lpips(net, pred, gt, device),
+        None => Ok(None),
+    };
+    let fid = fid_of(m, pred, gt, device)?;
+    Ok(SetScores {
+        lpips_alex: mean(&m.lpips_alex)?,
+        lpips_vgg: mean(&m.lpips_vgg)?,
+        fid,
+        fid_images: fid.map(|_| pred.len()),
+    })
+}
+
+/// FID between two image sets (`None` without the Inception or with fewer than 2 images).
+fn fid_of(
+    m: &PerceptualModels,
+    pred: &[Image],
+    gt: &[Image],
+    device: &Device,
+) -> Result<Option<f64>, EvalError> {
+    let Some(net) = &m.inception else {
+        return Ok(None);
+    };
+    if pred.len() < 2 {
+        return Ok(None);
+    }
+    let features = |imgs: &[Image]| -> Result<Vec<f32>, EvalError> {
+        let mut rows = Vec::with_capacity(imgs.len() * 2048);
+        for img in imgs {
+            let f = net.try_features(img.to_batch(device))?;
+            rows.extend(readback::read::<f32, 2, _>("Inception features", f)?);
+        }
+        Ok(rows)
+    };
+    let a = FeatureStats::from_features(&features(pred)?, 2048)?;
+    let b = FeatureStats::from_features(&features(gt)?, 2048)?;
+    Ok(Some(frechet_distance(&a, &b)?))
+}
+
+/// LPIPS of one pair of images.
+pub fn lpips_of(net: &Lpips, pred: &Image, gt: &Image, device: &Device) -> Result<f64, EvalError> {
+    let d = net.try_distance(pred.to_batch(device), gt.to_batch(device))?;
+    Ok(readback::read::<f64, 1, _>("LPIPS distance", d)?
         .first()
-        .copied())
+        .copied()
+        .unwrap_or(f64::NAN))
+}
+
+/// Mean LPIPS of `pred[k]` against `gt[k]` (`None` for no pairs).
+pub fn mean_lpips(
+    net: &Lpips,
+    pred: &[Image],
+    gt: &[Image],
+    device: &Device,
+) -> Result<Option<f64>, EvalError> {
+    let mut sum = 0.0;
+    for (p, g) in pred.iter().zip(gt) {
+        sum += lpips_of(net, p, g, device)?;
+    }
+    Ok((!pred.is_empty()).then(|| sum / pred.len() as f64))
 }
 
 /// Fills `lpips_alex` / `lpips_vgg` of every view and computes FID, with whatever weights exist.
@@ -90,27 +161,12 @@ pub fn score_perceptual(
     for (k, view) in scores.views.iter_mut().enumerate() {
         let (p, g) = (&scores.images.pred[k], &scores.images.gt[k]);
         if let Some(net) = &m.lpips_alex {
-            view.lpips_alex = first(net.try_distance(batch(p, device), batch(g, device))?)?;
+            view.lpips_alex = Some(lpips_of(net, p, g, device)?);
         }
         if let Some(net) = &m.lpips_vgg {
-            view.lpips_vgg = first(net.try_distance(batch(p, device), batch(g, device))?)?;
+            view.lpips_vgg = Some(lpips_of(net, p, g, device)?);
         }
     }
-    let fid = match &m.inception {
-        Some(net) if scores.images.pred.len() >= 2 => {
-            let features = |imgs: &[Image]| -> Result<Vec<f32>, EvalError> {
-                let mut rows = Vec::with_capacity(imgs.len() * 2048);
-                for img in imgs {
-                    let f = net.try_features(batch(img, device))?;
-                    rows.extend(readback::read::<f32, 2, _>("Inception features", f)?);
-                }
-                Ok(rows)
-            };
-            let a = FeatureStats::from_features(&features(&scores.images.pred)?, 2048)?;
-            let b = FeatureStats::from_features(&features(&scores.images.gt)?, 2048)?;
-            Some(frechet_distance(&a, &b)?)
-        }
-        _ => None,
-    };
+    let fid = fid_of(m, &scores.images.pred, &scores.images.gt, device)?;
     Ok(PerceptualOutcome { fid })
 }

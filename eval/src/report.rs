@@ -2,7 +2,7 @@
 //! the accuracy-vs-time table and Pareto plot of a sweep.
 //!
 //! LPIPS and FID appear only when computed from real weights; otherwise the report says
-//! "LPIPS/FID not computed: weights missing (see README)" and the fields are `null`, never a
+//! [`WEIGHTS_MISSING`] and the fields are `null`, never a
 //! substitute number.
 
 use crate::error::EvalError;
@@ -14,10 +14,11 @@ use serde::{Deserialize, Serialize};
 
 use crate::evaluate::{SplitScores, ViewScore, mean_of, per_subject};
 use crate::per_scene::FitPoint;
-use crate::plot::{Chart, PALETTE, Scale, Series, Style};
+use crate::plot::{Chart, PALETTE, Scale, Series, Style, render_panels};
 
 /// The line printed and written when perceptual weights are absent.
-pub const WEIGHTS_MISSING: &str = "LPIPS/FID not computed: weights missing (see README)";
+pub const WEIGHTS_MISSING: &str =
+    "LPIPS/FID not computed: weights missing (`lifegom-weights fetch` gets them; see README)";
 
 /// Means over a split (the numbers of a results table row).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -36,6 +37,9 @@ pub struct Summary {
     pub lpips_vgg_x1000: Option<f64>,
     /// FID between the prediction and ground-truth crops, when computed.
     pub fid: Option<f64>,
+    /// Images per set FID compared (FIDs are comparable only at equal counts).
+    #[serde(default)]
+    pub fid_images: Option<usize>,
     /// Mean reconstruction time per subject (ms).
     pub recon_ms: f64,
     /// Mean render time per view (ms).
@@ -64,6 +68,7 @@ impl Summary {
             lpips_alex_x1000: mean_of(&scores.views, |v| v.lpips_alex).map(|x| x * 1000.0),
             lpips_vgg_x1000: mean_of(&scores.views, |v| v.lpips_vgg).map(|x| x * 1000.0),
             fid,
+            fid_images: fid.map(|_| scores.images.pred.len()),
             recon_ms: if recon.is_empty() {
                 f64::NAN
             } else {
@@ -80,6 +85,17 @@ impl Summary {
 fn opt(v: Option<f64>, digits: usize) -> String {
     v.map_or("n/a".into(), |x| format!("{x:.digits$}"))
 }
+
+/// A FID cell with its image count: `51.27 (n = 24)`.
+fn fid_cell(fid: Option<f64>, images: Option<usize>) -> String {
+    match (fid, images) {
+        (Some(f), Some(n)) => format!("{f:.2} (n = {n})"),
+        (f, _) => opt(f, 2),
+    }
+}
+
+/// Said under every table with a FID.
+pub const FID_NOTE: &str = "FID over a few dozen images is strongly biased upwards: it is comparable only between rows with the same image count n (the paper's 51.27 is over the whole THuman2.0 test split). LPIPS* is LPIPS × 1000, the paper's unit (its LPIPS* is the VGG one).";
 
 /// Writes `per_view.csv` and `per_subject.csv`.
 pub fn write_csvs(out: &Path, views: &[ViewScore]) -> Result<(), EvalError> {
@@ -168,7 +184,7 @@ fn table_row(name: &str, s: &Summary) -> String {
         s.ssim,
         opt(s.lpips_alex_x1000, 1),
         opt(s.lpips_vgg_x1000, 1),
-        opt(s.fid, 2),
+        fid_cell(s.fid, s.fid_images),
         s.recon_ms,
         s.render_ms
     )
@@ -205,6 +221,9 @@ impl Report {
                     "\n{} views of {} subjects, {} Gaussians per view. PSNR/SSIM on the protocol's region (THuman: GT bounding box grown to 1000×500 at 1024², scaled); recon ms per subject, render ms per view (host wall clock).",
                     s.views, s.subjects, s.num_gaussians
                 );
+                if s.fid.is_some() {
+                    let _ = writeln!(md, "\n{FID_NOTE}");
+                }
             }
         }
         if let Some(first) = self.sweep.first() {
@@ -227,19 +246,21 @@ impl Report {
                 count(people, "person", "people"),
                 count(first.summary.views, "view", "views"),
             );
-            md.push_str("| size | T | subdiv | Gaussians | PSNR ↑ | SSIM ↑ | LPIPS*-vgg ↓ | recon ms | render ms |\n|---|---|---|---|---|---|---|---|---|\n");
+            md.push_str("| size | T | subdiv | Gaussians | PSNR ↑ | SSIM ↑ | LPIPS*-alex ↓ | LPIPS*-vgg ↓ | FID ↓ | recon ms | render ms |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
             for r in &self.sweep {
                 let s = &r.summary;
                 let _ = writeln!(
                     md,
-                    "| {} | {} | {} | {} | {:.2} | {:.4} | {} | {:.0} | {:.1} |",
+                    "| {} | {} | {} | {} | {:.2} | {:.4} | {} | {} | {} | {:.0} | {:.1} |",
                     r.size,
                     s.iterations,
                     s.subdivide,
                     s.num_gaussians,
                     s.psnr,
                     s.ssim,
+                    opt(s.lpips_alex_x1000, 1),
                     opt(s.lpips_vgg_x1000, 1),
+                    fid_cell(s.fid, s.fid_images),
                     s.recon_ms,
                     s.render_ms
                 );
@@ -254,12 +275,18 @@ impl Report {
                 "The template in its mean colour fitted to the source views by Adam through the differentiable renderer (the training loss on the sources), scored after K steps on the same targets ({} subjects).\n",
                 self.per_scene[0].subjects
             );
-            md.push_str("| K | PSNR ↑ | SSIM ↑ | fit ms per subject |\n|---|---|---|---|\n");
+            md.push_str("| K | PSNR ↑ | SSIM ↑ | LPIPS*-alex ↓ | LPIPS*-vgg ↓ | FID ↓ | fit ms per subject |\n|---|---|---|---|---|---|---|\n");
             for p in &self.per_scene {
                 let _ = writeln!(
                     md,
-                    "| {} | {:.2} | {:.4} | {:.0} |",
-                    p.steps, p.psnr, p.ssim, p.ms
+                    "| {} | {:.2} | {:.4} | {} | {} | {} | {:.0} |",
+                    p.steps,
+                    p.psnr,
+                    p.ssim,
+                    opt(p.lpips_alex.map(|x| x * 1000.0), 1),
+                    opt(p.lpips_vgg.map(|x| x * 1000.0), 1),
+                    fid_cell(p.fid, p.fid_images),
+                    p.ms
                 );
             }
         }
@@ -278,33 +305,69 @@ impl Report {
         md
     }
 
-    /// Writes `report.md` (and `pareto.png` when there is a sweep) into `out`.
+    /// Writes `report.md` (and `pareto.png` / `.svg` when there is a sweep or a per-scene fit)
+    /// into `out`; with LPIPS computed, the chart has an LPIPS panel beside the PSNR one.
     pub fn write(&self, out: &Path) -> Result<(), EvalError> {
         std::fs::create_dir_all(out).map_err(|e| EvalError::write(out, e))?;
         if !self.sweep.is_empty() || !self.per_scene.is_empty() {
             let path = out.join("pareto.png");
-            pareto_chart(
-                &self.sweep,
-                self.summary.as_ref(),
-                &self.other_models,
-                &self.baselines,
-                &self.per_scene,
-            )
-            .render(760, 460)
-            .save(&path)
-            .map_err(|e| EvalError::write(&path, e))?;
+            let chart = |metric| {
+                pareto_chart(
+                    metric,
+                    &self.sweep,
+                    self.summary.as_ref(),
+                    &self.other_models,
+                    &self.baselines,
+                    &self.per_scene,
+                )
+            };
+            let lpips = chart(ParetoMetric::LpipsVgg);
+            let figure = if lpips.series.iter().any(|s| !s.points.is_empty()) {
+                render_panels(&[chart(ParetoMetric::Psnr), lpips], 1400, 480)
+            } else {
+                chart(ParetoMetric::Psnr).render(760, 460)
+            };
+            figure
+                .save_png_and_svg(&path)
+                .map_err(|e| EvalError::write(&e.path, e.reason))?;
         }
         let path = out.join("report.md");
         write_atomic(&path, self.markdown().as_bytes()).map_err(|e| EvalError::write(&path, e))
     }
 }
 
-/// PSNR against reconstruction time: the sweep's points, one series per subdivision level,
-/// labelled `T<n>` (and the size when several sizes were swept) — or, without a sweep, the
-/// evaluated model's own point —, other trained models' points labelled `T<n>`, the per-scene
-/// optimisation's points labelled `K<steps>`, and the no-learning baselines: every way of
-/// building an avatar on the same axes.
+/// The quality axis of [`pareto_chart`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ParetoMetric {
+    /// PSNR (dB), higher is better.
+    Psnr,
+    /// LPIPS*-vgg (LPIPS × 1000), lower is better; points without it are left out.
+    LpipsVgg,
+}
+
+impl ParetoMetric {
+    fn of(self, s: &Summary) -> Option<f64> {
+        match self {
+            Self::Psnr => Some(s.psnr),
+            Self::LpipsVgg => s.lpips_vgg_x1000,
+        }
+    }
+
+    fn of_fit(self, p: &FitPoint) -> Option<f64> {
+        match self {
+            Self::Psnr => Some(p.psnr),
+            Self::LpipsVgg => p.lpips_vgg.map(|x| x * 1000.0),
+        }
+    }
+}
+
+/// Quality (`metric`) against reconstruction time: the sweep's points, one series per
+/// subdivision level, labelled `T<n>` (and the size when several sizes were swept) — or,
+/// without a sweep, the evaluated model's own point —, other trained models' points labelled
+/// `T<n>`, the per-scene optimisation's points labelled `K<steps>`, and the no-learning
+/// baselines: every way of building an avatar on the same axes.
 pub fn pareto_chart(
+    metric: ParetoMetric,
     rows: &[SweepRow],
     model: Option<&Summary>,
     other_models: &[(String, Summary)],
@@ -319,69 +382,94 @@ pub fn pareto_chart(
         .iter()
         .enumerate()
         .map(|(k, level)| {
-            let pts: Vec<&SweepRow> = rows
+            let pts: Vec<(&SweepRow, f64)> = rows
                 .iter()
                 .filter(|r| r.summary.subdivide == *level)
+                .filter_map(|r| Some((r, metric.of(&r.summary)?)))
                 .collect();
             Series {
                 name: format!("model, subdiv {level}"),
-                points: pts
-                    .iter()
-                    .map(|r| (r.summary.recon_ms, r.summary.psnr))
-                    .collect(),
+                points: pts.iter().map(|(r, y)| (r.summary.recon_ms, *y)).collect(),
                 labels: pts
                     .iter()
-                    .map(|r| {
+                    .map(|(r, _)| {
                         if sizes.len() > 1 {
-                            format!("T{} {}PX", r.summary.iterations, r.size)
+                            format!("T{} {} px", r.summary.iterations, r.size)
                         } else {
                             format!("T{}", r.summary.iterations)
                         }
                     })
                     .collect(),
                 color: PALETTE[k % PALETTE.len()],
+                ..Default::default()
             }
         })
         .collect();
+    let single = |name: String, m: &Summary, color| Series {
+        name,
+        points: metric.of(m).map(|y| (m.recon_ms, y)).into_iter().collect(),
+        labels: metric
+            .of(m)
+            .map(|_| format!("T{}", m.iterations))
+            .into_iter()
+            .collect(),
+        color,
+        ..Default::default()
+    };
     if let (true, Some(m)) = (rows.is_empty(), model) {
-        series.push(Series {
-            name: format!("model, subdiv {}", m.subdivide),
-            points: vec![(m.recon_ms, m.psnr)],
-            labels: vec![format!("T{}", m.iterations)],
-            color: PALETTE[0],
-        });
+        series.push(single(
+            format!("model, subdiv {}", m.subdivide),
+            m,
+            PALETTE[0],
+        ));
     }
     let first_other = series.len();
     for (k, (name, m)) in other_models.iter().enumerate() {
-        series.push(Series {
-            name: name.clone(),
-            points: vec![(m.recon_ms, m.psnr)],
-            labels: vec![format!("T{}", m.iterations)],
-            color: PALETTE[(first_other + k) % PALETTE.len()],
-        });
+        series.push(single(
+            name.clone(),
+            m,
+            PALETTE[(first_other + k) % PALETTE.len()],
+        ));
     }
     let next = series.len();
     if !per_scene.is_empty() {
+        let pts: Vec<(&FitPoint, f64)> = per_scene
+            .iter()
+            .filter_map(|p| Some((p, metric.of_fit(p)?)))
+            .collect();
         series.push(Series {
             name: "per-scene optimisation".into(),
-            points: per_scene.iter().map(|p| (p.ms, p.psnr)).collect(),
-            labels: per_scene.iter().map(|p| format!("K{}", p.steps)).collect(),
+            points: pts.iter().map(|(p, y)| (p.ms, *y)).collect(),
+            labels: pts.iter().map(|(p, _)| format!("K{}", p.steps)).collect(),
             color: PALETTE[next % PALETTE.len()],
+            ..Default::default()
         });
     }
     let next = series.len();
     for (k, (name, b)) in baselines.iter().enumerate() {
         series.push(Series {
             name: name.clone(),
-            points: vec![(b.recon_ms.max(1e-3), b.psnr)],
+            points: metric
+                .of(b)
+                .map(|y| (b.recon_ms.max(1e-3), y))
+                .into_iter()
+                .collect(),
             labels: vec![String::new()],
             color: PALETTE[(next + k) % PALETTE.len()],
+            ..Default::default()
         });
     }
+    let (title, y_label) = match metric {
+        ParetoMetric::Psnr => ("PSNR vs reconstruction time", "PSNR (dB, higher is better)"),
+        ParetoMetric::LpipsVgg => (
+            "LPIPS* vs reconstruction time",
+            "LPIPS*-vgg (x1000, lower is better)",
+        ),
+    };
     Chart {
-        title: "PSNR vs reconstruction time".into(),
-        x_label: "reconstruction ms".into(),
-        y_label: "PSNR dB".into(),
+        title: title.into(),
+        x_label: "reconstruction time per person (ms)".into(),
+        y_label: y_label.into(),
         x_scale: Scale::Log10,
         y_scale: Scale::Linear,
         series,
@@ -464,12 +552,17 @@ mod tests {
                 ssim: 0.8,
                 ms: 900.0,
                 subjects: 2,
+                lpips_alex: None,
+                lpips_vgg: None,
+                fid: None,
+                fid_images: None,
             }],
             ..Default::default()
         };
         let md = report.markdown();
         assert!(md.contains("| v1.lgck (step 7) | 2 | 1 | 21.00 |"), "{md}");
         let chart = pareto_chart(
+            ParetoMetric::Psnr,
             &report.sweep,
             report.summary.as_ref(),
             &report.other_models,

@@ -4,7 +4,8 @@
 //! step `t = 1…T` is rendered in each target view and scored exactly as the evaluation scores
 //! the final one (protocol region, PSNR, skimage SSIM). Training runs this every
 //! `[train] validate_every` steps, so the curves show, over training, whether later steps help
-//! and how the model compares with the baselines that need no learning.
+//! and how the model compares with the baselines that need no learning. Given the LPIPS-alex
+//! network (cheap: a few ms a view), each step's LPIPS is scored on the same regions.
 
 use std::collections::HashMap;
 
@@ -18,6 +19,8 @@ use serde::{Deserialize, Serialize};
 use crate::error::EvalError;
 use crate::evaluate::{ValidationSample, score_region, thuman_crop_size, validation_samples};
 use crate::images::Image;
+use crate::perceptual::Lpips;
+use crate::perceptual_scores::lpips_of;
 
 /// Mean scores of the state after one feedback step.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -28,6 +31,9 @@ pub struct StepScore {
     pub psnr: f64,
     /// Mean SSIM over the target views.
     pub ssim: f64,
+    /// Mean LPIPS-alex over the target views, when the network was given.
+    #[serde(default)]
+    pub lpips_alex: Option<f64>,
 }
 
 /// Scores every feedback step of `model` (an inference model: no autodiff) on the targets of
@@ -37,6 +43,7 @@ pub fn score_feedback_steps(
     dataset: &Dataset,
     subdivide: u32,
     max_subjects: Option<usize>,
+    lpips: Option<&Lpips>,
     device: &Device,
 ) -> Result<Vec<StepScore>, EvalError> {
     let _span = tracing::info_span!("score_feedback_steps").entered();
@@ -48,6 +55,7 @@ pub fn score_feedback_steps(
     let t_max = model.iterations();
     let mut psnr = vec![0.0; t_max];
     let mut ssim = vec![0.0; t_max];
+    let mut lpips_sum = vec![0.0; t_max];
     let mut views = 0usize;
     let mut cache = HashMap::new();
     for item in validation_samples(dataset, &rigs, max_subjects, device) {
@@ -79,9 +87,13 @@ pub fn score_feedback_steps(
                 inputs.sources.background,
             )?;
             let pred = Image::from_chw(rendered.rgb.squeeze_dim::<3>(0))?;
-            let (m, _, _) = score_region(&pred, &gt, crop_protocol, crop_size, &sample.frame_name)?;
+            let (m, pred, gt) =
+                score_region(&pred, &gt, crop_protocol, crop_size, &sample.frame_name)?;
             psnr[t] += m.psnr;
             ssim[t] += m.ssim;
+            if let Some(net) = lpips {
+                lpips_sum[t] += lpips_of(net, &pred, &gt, device)?;
+            }
         }
         views += 1;
     }
@@ -91,6 +103,7 @@ pub fn score_feedback_steps(
             t: t + 1,
             psnr: psnr[t] / n,
             ssim: ssim[t] / n,
+            lpips_alex: lpips.map(|_| lpips_sum[t] / n),
         })
         .collect())
 }

