@@ -97,21 +97,29 @@ pub enum TrainingSubjects {
     Procedural,
 }
 
-/// What the LPIPS training term is when `[train] loss_lpips > 0` (the paper's AIST++ setting).
-///
-/// The trainer has no LPIPS: its VGG weights are not part of lifegom (the evaluation loads
-/// converted ones for scoring only, `lifegom_eval::perceptual`). Rather than drop a weighted
-/// term silently, a config says what stands in for it.
+/// What the LPIPS training term is when `[train] loss_lpips > 0` (the paper's AIST++ setting)
+/// and the LPIPS-VGG weights are not in the weights folder (`lifegom-weights fetch` puts them
+/// there; with them the term is the real LPIPS-VGG, design.md §9.2).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum LpipsFallback {
-    /// No stand-in: a config with `loss_lpips > 0` is refused when training starts.
+    /// No stand-in: without the weights, a config with `loss_lpips > 0` is refused when
+    /// training starts.
     #[default]
     Refuse,
     /// `1 − SSIM` (the training SSIM, design.md §9.2) at the LPIPS weight, added to the SSIM
     /// term; the training log says so in its first lines. SSIM is the other structural loss
     /// of the paper (its THuman setting) and needs no weights.
     Ssim,
+}
+
+/// Whether the trainer has the LPIPS-VGG network for the LPIPS term.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LpipsWeights {
+    /// Loaded: the term is LPIPS-VGG.
+    Present,
+    /// Not in the weights folder: [`LpipsFallback`] decides.
+    Absent,
 }
 
 /// `[train]`.
@@ -184,10 +192,12 @@ impl Default for TrainSection {
 
 impl TrainSection {
     /// The loss weights the trainer uses: the configured ones, with the LPIPS weight moved to
-    /// the SSIM term under [`LpipsFallback::Ssim`].
-    pub fn loss_weights(&self) -> LossWeights {
-        let (ssim, lpips) = match self.lpips_fallback {
-            LpipsFallback::Ssim if self.loss_lpips > 0.0 => (self.loss_ssim + self.loss_lpips, 0.0),
+    /// the SSIM term under [`LpipsFallback::Ssim`] when the LPIPS weights are absent.
+    pub fn loss_weights(&self, lpips: LpipsWeights) -> LossWeights {
+        let (ssim, lpips) = match (self.lpips_fallback, lpips) {
+            (LpipsFallback::Ssim, LpipsWeights::Absent) if self.loss_lpips > 0.0 => {
+                (self.loss_ssim + self.loss_lpips, 0.0)
+            }
             _ => (self.loss_ssim, self.loss_lpips),
         };
         LossWeights::new()
@@ -198,14 +208,23 @@ impl TrainSection {
             .with_laplacian(self.loss_laplacian)
     }
 
-    /// The line the training log starts with when the LPIPS term falls back to SSIM
-    /// (`None` when no fallback applies).
-    pub fn lpips_note(&self) -> Option<String> {
-        (self.lpips_fallback == LpipsFallback::Ssim && self.loss_lpips > 0.0).then(|| {
-            format!(
-                "LPIPS training loss: no LPIPS weights in the trainer, so [train] lpips_fallback = \"ssim\" trains with 1 - SSIM in its place (loss_lpips = {} added to loss_ssim = {}: the logged `ssim` term carries both)",
+    /// The line the training log starts with about the LPIPS term (`None` when it is off).
+    pub fn lpips_note(&self, lpips: LpipsWeights) -> Option<String> {
+        if self.loss_lpips <= 0.0 {
+            return None;
+        }
+        Some(match (lpips, self.lpips_fallback) {
+            (LpipsWeights::Present, _) => format!(
+                "LPIPS training loss: LPIPS-VGG v0.1 at half resolution (nearest), weight {}",
+                self.loss_lpips
+            ),
+            (LpipsWeights::Absent, LpipsFallback::Ssim) => format!(
+                "LPIPS training loss: no LPIPS weights (run `lifegom-weights fetch`), so [train] lpips_fallback = \"ssim\" trains with 1 - SSIM in its place (loss_lpips = {} added to loss_ssim = {}: the logged `ssim` term carries both)",
                 self.loss_lpips, self.loss_ssim
-            )
+            ),
+            (LpipsWeights::Absent, LpipsFallback::Refuse) => {
+                "LPIPS training loss: no LPIPS weights and no fallback".into()
+            }
         })
     }
 }
@@ -335,7 +354,7 @@ mod tests {
             (3, 1, 2)
         );
         assert_eq!(r.feature_dim(), 1152);
-        let w = cfg.train.loss_weights();
+        let w = cfg.train.loss_weights(LpipsWeights::Absent);
         assert_eq!(
             (w.rgb, w.mask, w.ssim, w.lpips, w.laplacian),
             (1.0, 5.0, 1.0, 0.0, 100.0)
@@ -348,32 +367,37 @@ mod tests {
 
     #[test]
     fn the_lpips_fallback_moves_its_weight_to_ssim_and_says_so() {
+        use LpipsWeights::{Absent, Present};
         let aist = TrainSection {
             loss_mask: 0.0,
             loss_ssim: 0.0,
             loss_lpips: 1.0,
             ..TrainSection::default()
         };
-        let w = aist.loss_weights();
+        let w = aist.loss_weights(Absent);
         assert_eq!((w.ssim, w.lpips), (0.0, 1.0), "refused later, not hidden");
-        assert!(aist.lpips_note().is_none());
+        assert!(aist.lpips_note(Absent).unwrap().contains("no fallback"));
         let fallback = TrainSection {
             lpips_fallback: LpipsFallback::Ssim,
             ..aist
         };
-        let w = fallback.loss_weights();
+        let w = fallback.loss_weights(Absent);
         assert_eq!((w.rgb, w.mask, w.ssim, w.lpips), (1.0, 0.0, 1.0, 0.0));
-        assert!(fallback.lpips_note().unwrap().contains("SSIM"));
+        assert!(fallback.lpips_note(Absent).unwrap().contains("SSIM"));
+        // With the weights the real term stays, whatever the fallback.
+        let w = fallback.loss_weights(Present);
+        assert_eq!((w.ssim, w.lpips), (0.0, 1.0));
+        assert!(fallback.lpips_note(Present).unwrap().contains("LPIPS-VGG"));
         // Without an LPIPS weight the fallback changes nothing.
         let thuman = TrainSection {
             lpips_fallback: LpipsFallback::Ssim,
             ..TrainSection::default()
         };
-        assert_eq!(thuman.loss_weights().ssim, 1.0);
-        assert!(thuman.lpips_note().is_none());
+        assert_eq!(thuman.loss_weights(Absent).ssim, 1.0);
+        assert!(thuman.lpips_note(Absent).is_none());
         let cfg = ExperimentConfig::load(&configs_dir().join("synthetic-multiframe.toml")).unwrap();
         assert_eq!(cfg.train.lpips_fallback, LpipsFallback::Ssim);
-        assert!(cfg.train.lpips_note().is_some());
+        assert!(cfg.train.lpips_note(Absent).is_some());
     }
 
     #[test]

@@ -36,11 +36,12 @@ use lifegom_render::gom::GomMesh;
 use lifegom_render::rng::Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::config::TrainSection;
+use crate::config::{LpipsWeights, TrainSection};
 use crate::data_parallel::{self, ReplicaError, Replicas, SingleProcess};
 use crate::losses::{
     LossTerms, LossWeights, UniformLaplacian, WeightedLoss, l1, mask_l1, ssim_loss,
 };
+use lifegom_perceptual::{LPIPS_VGG_FILE, Lpips, LpipsNet, PerceptualModels};
 
 /// Errors of a training step or checkpoint.
 #[derive(Debug, thiserror::Error)]
@@ -75,6 +76,9 @@ pub enum TrainError {
     /// Reading or generating a training sample failed.
     #[error(transparent)]
     Data(#[from] lifegom_data::DataError),
+    /// The LPIPS network of the LPIPS term failed to load or to run.
+    #[error(transparent)]
+    Perceptual(#[from] lifegom_perceptual::PerceptualError),
     /// The training source cannot be used as configured.
     #[error("training data: {0}")]
     Source(String),
@@ -188,6 +192,9 @@ pub struct Trainer {
     watch: GradientWatch,
     lr: ModuleLearningRate,
     weights: LossWeights,
+    /// LPIPS-VGG for the LPIPS term (frozen, on the autodiff device), when `[train]
+    /// loss_lpips > 0` and its weights are in the weights folder.
+    lpips: Option<Lpips>,
     /// Optimiser steps taken so far.
     pub step: u64,
     /// Samples of the run's stream consumed so far (the next batch starts here).
@@ -343,13 +350,20 @@ impl Trainer {
         train: &TrainSection,
         device: Device,
     ) -> Result<Self, TrainError> {
+        let lpips = lpips_network(train, &device)?;
+        let present = if lpips.is_some() {
+            LpipsWeights::Present
+        } else {
+            LpipsWeights::Absent
+        };
         Ok(Self {
             lr: learning_rates(&model, train)?,
             model,
             config,
             optim,
             watch,
-            weights: train.loss_weights(),
+            weights: train.loss_weights(present),
+            lpips,
             step,
             samples,
             seed: train.seed,
@@ -719,8 +733,11 @@ impl Trainer {
         let terms = LossTerms {
             rgb: l1(pred.clone(), gt_rgb.clone()),
             mask: mask_l1(alpha, gt_mask),
+            lpips: match &self.lpips {
+                Some(net) => Some(lpips_loss(net, pred.clone(), gt_rgb.clone())?),
+                None => None,
+            },
             ssim: ssim_loss(pred, gt_rgb),
-            lpips: None,
             laplacian: laplacian.loss(meshes),
         };
         let loss = self.weights.total(terms)?;
@@ -732,4 +749,37 @@ impl Trainer {
             iterations: t,
         })
     }
+}
+
+/// LPIPS-VGG for the LPIPS term when `[train] loss_lpips > 0` and the converted weights are in
+/// the weights folder (`$LIFEGOM_WEIGHTS` or `weights/`), frozen; `None` otherwise.
+fn lpips_network(train: &TrainSection, device: &Device) -> Result<Option<Lpips>, TrainError> {
+    if train.loss_lpips <= 0.0 {
+        return Ok(None);
+    }
+    let path = PerceptualModels::default_dir().join(LPIPS_VGG_FILE);
+    if !path.is_file() {
+        return Ok(None);
+    }
+    Ok(Some(Lpips::load(LpipsNet::Vgg, &path, device)?.frozen()))
+}
+
+/// The official AIST++ LPIPS term: LPIPS-VGG of every render against its ground truth after
+/// `F.interpolate(scale_factor=0.5)` (nearest: every other pixel from the first), mean over
+/// the images (design.md §9.2).
+fn lpips_loss(net: &Lpips, pred: Tensor<4>, gt: Tensor<4>) -> Result<Tensor<1>, TrainError> {
+    let d = net.try_distance(half_nearest(pred), half_nearest(gt))?;
+    Ok(d.mean())
+}
+
+/// `[B, C, H, W]` → `[B, C, ⌊H/2⌋, ⌊W/2⌋]`, keeping the even rows and columns.
+fn half_nearest(x: Tensor<4>) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    let (h2, w2) = (h / 2, w / 2);
+    x.narrow(2, 0, h2 * 2)
+        .narrow(3, 0, w2 * 2)
+        .reshape([b, c, h2, 2, w2, 2])
+        .narrow(3, 0, 1)
+        .narrow(5, 0, 1)
+        .reshape([b, c, h2, w2])
 }
