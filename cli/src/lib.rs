@@ -39,6 +39,7 @@ pub mod eval_run;
 pub mod launches;
 pub mod profile;
 pub mod reconstruct_run;
+pub mod run_lock;
 pub mod train_run;
 
 /// Makes `choice` Burn's default device for this process, through Burn's `BURN_DEVICE` variable

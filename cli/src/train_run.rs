@@ -41,13 +41,17 @@ use burn::tensor::Device;
 use lifegom_data::dataset::{Dataset, Split};
 use lifegom_eval::evaluate::{EvalSettings, Method, evaluate_split, mean_of};
 use lifegom_eval::images::{Image, error_map, grid};
+use lifegom_eval::perceptual::{
+    LPIPS_ALEX_FILE, LPIPS_VGG_FILE, Lpips, LpipsNet, PerceptualModels,
+};
+use lifegom_eval::perceptual_scores::mean_lpips;
 use lifegom_eval::plot::{Chart, PALETTE, Scale, Series, Style};
 use lifegom_eval::validation::score_feedback_steps;
 use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::{MeshPurpose, ReconstructorConfig};
 use lifegom_model::trained;
 
-use lifegom_train::config::{ExperimentConfig, LpipsFallback};
+use lifegom_train::config::{ExperimentConfig, LpipsFallback, LpipsWeights};
 use lifegom_train::data_parallel::{BatchLayout, Replicas, SingleProcess, weights_checksum};
 use lifegom_train::losses::UniformLaplacian;
 use lifegom_train::prefetch::Prefetcher;
@@ -229,6 +233,7 @@ pub fn write_loss_curve(out: &Path) -> anyhow::Result<()> {
                 points,
                 labels: vec![],
                 color: PALETTE[k % PALETTE.len()],
+                ..Default::default()
             });
         }
     }
@@ -242,10 +247,8 @@ pub fn write_loss_curve(out: &Path) -> anyhow::Result<()> {
         style: Style::Lines,
     };
     let path = out.join("loss_curve.png");
-    chart
-        .render(720, 420)
-        .save(&path)
-        .with_context(|| format!("writing {}", path.display()))
+    chart.render(720, 420).save_png_and_svg(&path)?;
+    Ok(())
 }
 
 /// The validation split and its baselines' scores, when `[train] validate_every` asks for it.
@@ -253,6 +256,8 @@ struct Validation {
     dataset: Dataset,
     subjects: usize,
     subdivide: u32,
+    /// LPIPS-alex, when its weights are in the weights folder (`lifegom-weights fetch`).
+    lpips: Option<Lpips>,
 }
 
 impl Validation {
@@ -273,10 +278,23 @@ impl Validation {
                 return None;
             }
         };
+        let lpips_path = PerceptualModels::default_dir().join(LPIPS_ALEX_FILE);
+        let lpips = if lpips_path.is_file() {
+            match Lpips::load(LpipsNet::Alex, &lpips_path, device) {
+                Ok(net) => Some(net),
+                Err(e) => {
+                    eprintln!("validation: {e}; no LPIPS on validation");
+                    None
+                }
+            }
+        } else {
+            None
+        };
         let v = Self {
             dataset,
             subjects: cfg.train.validate_subjects.max(1),
             subdivide,
+            lpips,
         };
         let mut baselines = serde_json::Map::new();
         for (name, method) in [
@@ -299,7 +317,14 @@ impl Validation {
                 Ok(s) => {
                     let psnr = mean_of(&s.views, |x| Some(x.psnr));
                     let ssim = mean_of(&s.views, |x| Some(x.ssim));
-                    baselines.insert(name.into(), serde_json::json!({"psnr": psnr, "ssim": ssim}));
+                    let mut entry = serde_json::json!({"psnr": psnr, "ssim": ssim});
+                    if let Some(net) = &v.lpips {
+                        match mean_lpips(net, &s.images.pred, &s.images.gt, device) {
+                            Ok(d) => entry["lpips_alex"] = serde_json::json!(d),
+                            Err(e) => eprintln!("validation: baseline {name}: LPIPS: {e}"),
+                        }
+                    }
+                    baselines.insert(name.into(), entry);
                 }
                 Err(e) => eprintln!("validation: baseline {name}: {e}"),
             }
@@ -326,13 +351,19 @@ impl Validation {
             &self.dataset,
             self.subdivide,
             Some(self.subjects),
+            self.lpips.as_ref(),
             device,
         )?;
-        Ok(serde_json::json!({
+        let mut line = serde_json::json!({
             "step": trainer.step,
             "psnr": scores.iter().map(|s| s.psnr).collect::<Vec<_>>(),
             "ssim": scores.iter().map(|s| s.ssim).collect::<Vec<_>>(),
-        }))
+        });
+        if self.lpips.is_some() {
+            line["lpips_alex"] =
+                serde_json::json!(scores.iter().map(|s| s.lpips_alex).collect::<Vec<_>>());
+        }
+        Ok(line)
     }
 }
 
@@ -356,6 +387,7 @@ pub fn write_validation_curve(out: &Path) -> anyhow::Result<()> {
                 .collect(),
             labels: vec![],
             color: PALETTE[t % PALETTE.len()],
+            ..Default::default()
         })
         .collect();
     let first = lines
@@ -376,6 +408,7 @@ pub fn write_validation_curve(out: &Path) -> anyhow::Result<()> {
                     points: vec![(first, psnr), (last.max(first + 1.0), psnr)],
                     labels: vec![],
                     color: PALETTE[(t_max + k) % PALETTE.len()],
+                    ..Default::default()
                 });
             }
         }
@@ -390,10 +423,8 @@ pub fn write_validation_curve(out: &Path) -> anyhow::Result<()> {
         style: Style::Lines,
     };
     let path = out.join("validation_curve.png");
-    chart
-        .render(720, 420)
-        .save(&path)
-        .with_context(|| format!("writing {}", path.display()))
+    chart.render(720, 420).save_png_and_svg(&path)?;
+    Ok(())
 }
 
 /// Trains `cfg` until its steps are done, the time limit, or `stop` is raised.
@@ -415,6 +446,12 @@ pub fn train_with(
     let _span =
         tracing::info_span!("train", out = %opts.out.display(), rank = replicas.rank()).entered();
     let root = replicas.rank() == 0;
+    // One writer per run folder; the other ranks of a data-parallel job write nothing there.
+    let _lock = if root {
+        Some(crate::run_lock::RunLock::acquire(&opts.out)?)
+    } else {
+        None
+    };
     if root {
         std::fs::create_dir_all(opts.out.join("snapshots"))
             .with_context(|| format!("creating {}", opts.out.display()))?;
@@ -425,14 +462,26 @@ pub fn train_with(
             tracing::info!(stale, "removed temporary files a killed run left");
         }
     }
-    if cfg.train.loss_lpips > 0.0 && cfg.train.lpips_fallback == LpipsFallback::Refuse {
+    let lpips_weights = if PerceptualModels::default_dir()
+        .join(LPIPS_VGG_FILE)
+        .is_file()
+    {
+        LpipsWeights::Present
+    } else {
+        LpipsWeights::Absent
+    };
+    if cfg.train.loss_lpips > 0.0
+        && lpips_weights == LpipsWeights::Absent
+        && cfg.train.lpips_fallback == LpipsFallback::Refuse
+    {
         bail!(
-            "{}: [train] loss_lpips = {} but the trainer has no LPIPS (the AIST++ setting, docs/design.md §9.2): set it to 0, or train with 1 - SSIM in its place with [train] lpips_fallback = \"ssim\"",
+            "{}: [train] loss_lpips = {} but the LPIPS-VGG weights are not in {} (the AIST++ setting, docs/design.md §9.2): fetch them with `lifegom-weights fetch`, set loss_lpips to 0, or train with 1 - SSIM in its place with [train] lpips_fallback = \"ssim\"",
             cfg.file.source.display(),
-            cfg.train.loss_lpips
+            cfg.train.loss_lpips,
+            PerceptualModels::default_dir().display()
         );
     }
-    if let Some(note) = cfg.train.lpips_note() {
+    if let Some(note) = cfg.train.lpips_note(lpips_weights) {
         eprintln!("{note}");
     }
     let source = Arc::new(

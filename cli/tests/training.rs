@@ -364,3 +364,70 @@ fn prefetched_samples_follow_the_serial_schedule() {
         assert_eq!((a.index, a.sample.frame_name), (step, b.frame_name));
     }
 }
+
+/// One run, one writer: a second `lifegom-train` on a folder a running one holds stops at once
+/// naming the folder and the holder's process id; once the holder is killed with SIGKILL, the
+/// folder is free again (the lock is the kernel's, not a marker file).
+#[cfg(unix)]
+#[test]
+fn a_second_process_on_a_run_folder_in_use_stops_at_once() {
+    let _serial = serial();
+    let out = out_dir("one-writer");
+    let train = |steps: &str| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_lifegom-train"));
+        cmd.arg("--config")
+            .arg(config_path())
+            .args(["--device", "ndarray", "--steps", steps, "--data"])
+            .arg(data_root())
+            .arg("--out")
+            .arg(&out);
+        cmd
+    };
+    let mut first = train("100000")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("starting lifegom-train");
+    // The first one holds the folder once its lock file names it.
+    let lock = out.join(lifegom_cli::run_lock::LOCK_FILE);
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    while std::fs::read_to_string(&lock).map_or(true, |s| s.trim() != first.id().to_string()) {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the first run never locked its folder"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let started = std::time::Instant::now();
+    let second = train("1").output().expect("running lifegom-train");
+    let stderr = String::from_utf8_lossy(&second.stderr);
+    assert!(!second.status.success(), "the second run ran:\n{stderr}");
+    assert!(
+        stderr.contains(&out.display().to_string())
+            && stderr.contains(&format!("process {}", first.id())),
+        "{stderr}"
+    );
+    assert!(
+        started.elapsed().as_secs() < 60,
+        "the second run did not stop at once"
+    );
+    // An export of the run's checkpoint is refused the same way.
+    let export = std::process::Command::new(env!("CARGO_BIN_EXE_lifegom-train"))
+        .arg("--out")
+        .arg(&out)
+        .arg("--export")
+        .arg(out.join("exported.lgck"))
+        .output()
+        .expect("running lifegom-train --export");
+    assert!(!export.status.success());
+    assert!(String::from_utf8_lossy(&export.stderr).contains("in use by process"));
+    first.kill().expect("SIGKILL"); // kill -9: no clean-up runs
+    first.wait().unwrap();
+    let again = train("1").output().expect("running lifegom-train");
+    assert!(
+        again.status.success(),
+        "a killed holder left the folder locked:\n{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}

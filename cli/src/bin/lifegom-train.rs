@@ -117,6 +117,14 @@ fn main() -> anyhow::Result<()> {
     // SAFETY: the first thing `main` does after parsing; no thread has started yet.
     unsafe { lifegom_cli::make_default_device(args.device) };
     if let Some(dest) = &args.export {
+        // Exporting a run's own checkpoint takes the run folder as training does (one process
+        // on a run at a time).
+        let _lock = match &args.from {
+            ExportSource::Latest | ExportSource::Best if args.out.is_dir() => {
+                Some(lifegom_cli::run_lock::RunLock::acquire(&args.out)?)
+            }
+            _ => None,
+        };
         let source = match &args.from {
             ExportSource::Latest => latest_checkpoint(&args.out),
             ExportSource::Best => best_checkpoint(&args.out),
