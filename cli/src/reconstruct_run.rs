@@ -56,6 +56,8 @@ pub struct ReconstructOptions {
     pub official_network: ReconstructorConfig,
     /// Image size the model works at (the experiment's `data.img_size`), `[W, H]`.
     pub img_size: [u32; 2],
+    /// How larger photos are shrunk to it (the experiment's `data.resize`).
+    pub resize: lifegom_data::preprocess::ResizeMode,
     /// Background the images are composited over, in `[0, 1]`.
     pub background: [f32; 3],
     /// Kinematic tree of an official-layout subject (the JSON layout is always the Anny rig).
@@ -215,7 +217,14 @@ pub fn run(opts: &ReconstructOptions) -> anyhow::Result<ReconstructOutcome> {
     // `model_inputs` takes the inputs and one target; the held-out frame is the target when
     // there is one, otherwise the first input stands in and is not scored.
     let target = held_out.unwrap_or(inputs_at[0]);
-    let sample = load_sample(&subject, &inputs_at, target, bg.map(|c| c * 255.0), (w, h))?;
+    let sample = load_sample(
+        &subject,
+        &inputs_at,
+        target,
+        bg.map(|c| c * 255.0),
+        (w, h),
+        opts.resize,
+    )?;
     let warnings: Vec<String> = exposure_warning(&sample.views[..inputs_at.len()])
         .map(|w| format!("{}: {w}", opts.subject.display()))
         .into_iter()

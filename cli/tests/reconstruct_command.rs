@@ -42,6 +42,7 @@ fn options(subject: &Path, model: &Path, out: PathBuf) -> ReconstructOptions {
         model: model.to_path_buf(),
         official_network: lifegom_model::reconstructor::ReconstructorConfig::tiny(1),
         img_size: [64, 64],
+        resize: Default::default(),
         background: [0.0; 3],
         kinematic_tree: KinematicTree::Stored,
         inputs: None,

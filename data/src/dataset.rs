@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::{DataError, Location, Result};
 use crate::format::{FrameCamera, FrameMeshInfo, Subject, read_split};
 use crate::kinematics::KinematicTree;
-use crate::preprocess::{self, FloatImage, Kernel};
+use crate::preprocess::{self, FloatImage, Kernel, ResizeMode};
 use lifegom_render::rng::Rng;
 
 /// Which experiment's frame-indexing rules apply (module docs).
@@ -104,6 +104,11 @@ pub struct DataConfig {
     pub train_background: Background,
     /// Background during evaluation.
     pub test_background: Background,
+    /// How images larger than `img_size` are shrunk (design.md §8.3): `"anti_aliased"` (the
+    /// default) or `"reference"` (`cv2.resize` exactly, for bit-exact comparisons with the
+    /// official pipeline).
+    #[serde(default)]
+    pub resize: ResizeMode,
 }
 
 impl DataConfig {
@@ -304,6 +309,8 @@ pub struct Dataset {
     pub rule: FrameRule,
     /// Output size `(W, H)`.
     pub img_size: (u32, u32),
+    /// How larger images are shrunk to it.
+    pub resize: ResizeMode,
     /// Background policy of this split.
     pub background: Background,
     /// Samples before each subject (prefix sums), plus the total at the end.
@@ -350,7 +357,14 @@ impl Dataset {
             rule,
             (config.img_size[0], config.img_size[1]),
             background,
-        ))
+        )
+        .with_resize(config.resize))
+    }
+
+    /// The same dataset shrinking larger images by `resize`.
+    pub fn with_resize(mut self, resize: ResizeMode) -> Self {
+        self.resize = resize;
+        self
     }
 
     /// A dataset over already loaded subjects.
@@ -369,6 +383,7 @@ impl Dataset {
             subjects,
             rule,
             img_size,
+            resize: ResizeMode::default(),
             background,
             offsets,
         }
@@ -416,6 +431,7 @@ impl Dataset {
             idx.target,
             bg,
             self.img_size,
+            self.resize,
         )
     }
 }
@@ -429,11 +445,12 @@ pub fn load_sample(
     target: usize,
     bg: [f32; 3],
     size: (u32, u32),
+    resize: ResizeMode,
 ) -> Result<Sample> {
     let views = inputs
         .iter()
         .chain(std::iter::once(&target))
-        .map(|&f| load_view(subject, f, bg, size))
+        .map(|&f| load_view(subject, f, bg, size, resize))
         .collect::<Result<Vec<_>>>()?;
     Ok(Sample {
         subject: subject.name.clone(),
@@ -493,7 +510,13 @@ pub fn exposure_warning(views: &[View]) -> Option<String> {
 }
 
 /// Reads, undistorts, composites and resizes frame `f` of `subject` (design.md §8.3).
-pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) -> Result<View> {
+pub fn load_view(
+    subject: &Subject,
+    f: usize,
+    bg: [f32; 3],
+    size: (u32, u32),
+    resize: ResizeMode,
+) -> Result<View> {
     let frame = &subject.frames[f];
     let at = |path: &Path, field: &str| {
         Location::file(path)
@@ -550,6 +573,7 @@ pub fn load_view(subject: &Subject, f: usize, bg: [f32; 3], size: (u32, u32)) ->
         &subject.mesh_infos[f],
         bg,
         size,
+        resize,
     ))
 }
 
@@ -565,6 +589,7 @@ pub fn prepare_view(
     info: &FrameMeshInfo,
     bg: [f32; 3],
     size: (u32, u32),
+    resize: ResizeMode,
 ) -> View {
     if let Some(d) = &cam.distortion {
         rgb = preprocess::undistort(&rgb, &cam.k, d);
@@ -572,8 +597,8 @@ pub fn prepare_view(
     }
     preprocess::composite(&mut rgb, &alpha, bg);
     let orig = (rgb.width, rgb.height);
-    let rgb = preprocess::resize(&rgb, size.0, size.1, Kernel::Lanczos4);
-    let alpha = preprocess::resize(&alpha, size.0, size.1, Kernel::Linear);
+    let rgb = preprocess::resize(&rgb, size.0, size.1, Kernel::Lanczos4, resize);
+    let alpha = preprocess::resize(&alpha, size.0, size.1, Kernel::Linear, resize);
     let k = preprocess::scale_intrinsics(cam.k, orig, size);
     let e = fold_body_transform(&cam.e, info.rh, info.th);
     View {

@@ -3,9 +3,13 @@
 //! 1. read the RGB image and the mask (mask channel 0 / 255 = alpha, a soft mask);
 //! 2. undistort both with `(K, D)` at the original resolution, if `D` is stored;
 //! 3. composite over the background *before* resizing: `img = α·img + (1−α)·bg` (0..255);
-//! 4. resize to the target size: the image with a Lanczos-4 kernel, alpha bilinearly, both with
-//!    OpenCV's sampling (`src = (dst + ½)·scale − ½`, fixed kernel support, no antialiasing
-//!    filter widening when shrinking — the reference's `cv2.resize` behaviour);
+//! 4. resize to the target size ([`ResizeMode`]): by default an axis that shrinks averages the
+//!    source pixels each output pixel covers (an area filter, `cv2.INTER_AREA`), so detail
+//!    above the new Nyquist frequency does not alias; an axis that grows, and every axis under
+//!    [`ResizeMode::Reference`], resamples as the reference's `cv2.resize` does: the image with
+//!    a Lanczos-4 kernel, alpha bilinearly, OpenCV's grid (`src = (dst + ½)·scale − ½`) and a
+//!    fixed kernel support (no widening when shrinking, so a photo shrunk several times is
+//!    point-sampled);
 //! 5. divide by 255 and scale `K`: row 0 by `W_new/W_orig`, row 1 by `H_new/H_orig`.
 //!
 //! Images are `f32` planes, interleaved `H×W×C`, row-major.
@@ -51,6 +55,19 @@ impl FloatImage {
     fn at(&self, x: usize, y: usize, c: usize) -> f32 {
         self.data[(y * self.width as usize + x) * self.channels + c]
     }
+}
+
+/// How [`resize`] shrinks (`[data] resize` in a config).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ResizeMode {
+    /// Shrinking averages the covered source pixels (area filter); enlarging as
+    /// [`ResizeMode::Reference`]. For photos of any size.
+    #[default]
+    AntiAliased,
+    /// `cv2.resize` exactly, shrinking too: for comparisons with the official pipeline on data
+    /// stored at the size it is used (THuman's), where both modes agree anyway.
+    Reference,
 }
 
 /// Resampling kernel of [`resize`].
@@ -125,11 +142,20 @@ pub fn composite(rgb: &mut FloatImage, alpha: &FloatImage, bg: [f32; 3]) {
 /// Resizes with OpenCV's sampling grid and a fixed-support kernel (module docs). Weights are
 /// normalised per output pixel, and taps outside the image clamp to the border (OpenCV's
 /// `BORDER_REPLICATE` for resize).
-pub fn resize(src: &FloatImage, width: u32, height: u32, kernel: Kernel) -> FloatImage {
+pub fn resize(
+    src: &FloatImage,
+    width: u32,
+    height: u32,
+    kernel: Kernel,
+    mode: ResizeMode,
+) -> FloatImage {
     if (src.width, src.height) == (width, height) {
         return src.clone();
     }
     let taps = |n_src: u32, n_dst: u32| -> Vec<Vec<(usize, f32)>> {
+        if mode == ResizeMode::AntiAliased && n_dst < n_src {
+            return area_taps(n_src, n_dst);
+        }
         let scale = n_src as f64 / n_dst as f64;
         (0..n_dst)
             .map(|d| {
@@ -180,6 +206,26 @@ pub fn resize(src: &FloatImage, width: u32, height: u32, kernel: Kernel) -> Floa
         channels: c,
         data,
     }
+}
+
+/// The area filter's taps when shrinking `n_src` pixels to `n_dst`: output pixel `d` covers the
+/// source interval `[d·s, (d+1)·s)` with `s = n_src / n_dst`, and each source pixel weighs the
+/// length of its overlap with it (weights sum to 1).
+fn area_taps(n_src: u32, n_dst: u32) -> Vec<Vec<(usize, f32)>> {
+    let scale = n_src as f64 / n_dst as f64;
+    (0..n_dst)
+        .map(|d| {
+            let (lo, hi) = (d as f64 * scale, (d as f64 + 1.0) * scale);
+            let first = lo.floor() as usize;
+            let last = (hi.ceil() as usize).min(n_src as usize);
+            (first..last)
+                .filter_map(|i| {
+                    let overlap = (hi.min(i as f64 + 1.0) - lo.max(i as f64)) / scale;
+                    (overlap > 1e-12).then_some((i, overlap as f32))
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// `K` for an image resized from `from` to `to` (both `(W, H)`): row 0 × `W'/W`, row 1 × `H'/H`.
@@ -253,12 +299,98 @@ mod tests {
             data: vec![7.0; 16 * 8 * 3],
         };
         for kernel in [Kernel::Linear, Kernel::Lanczos4] {
-            let r = resize(&flat, 5, 11, kernel);
-            assert!(r.data.iter().all(|v| (v - 7.0).abs() < 1e-4));
+            for mode in [ResizeMode::AntiAliased, ResizeMode::Reference] {
+                let r = resize(&flat, 5, 11, kernel, mode);
+                assert!(r.data.iter().all(|v| (v - 7.0).abs() < 1e-4));
+            }
         }
-        // Bilinear 2× downsampling of a ramp averages neighbours: (2x + 2x+1)/2.
-        let r = resize(&ramp(8, 2), 4, 1, Kernel::Linear);
-        assert_eq!(r.data, vec![0.5, 2.5, 4.5, 6.5]);
+        // 2× down a ramp: both modes average neighbours, (2x + 2x+1)/2.
+        for mode in [ResizeMode::AntiAliased, ResizeMode::Reference] {
+            let r = resize(&ramp(8, 2), 4, 1, Kernel::Linear, mode);
+            assert_eq!(r.data, vec![0.5, 2.5, 4.5, 6.5]);
+        }
+        // Shrunk by whole factors a ramp stays a ramp: each output pixel is its footprint's
+        // centre value. By a fractional factor the footprint cuts pixels, which are constant
+        // over their area, so the value is within a fraction of a step of the centre's.
+        for (w, n, tolerance) in [(16u32, 4u32, 1e-4), (12, 4, 1e-4), (10, 3, 0.05)] {
+            let r = resize(&ramp(w, 1), n, 1, Kernel::Lanczos4, ResizeMode::AntiAliased);
+            let s = w as f32 / n as f32;
+            for (d, v) in r.data.iter().enumerate() {
+                let centre = (d as f32 + 0.5) * s - 0.5;
+                assert!((v - centre).abs() < tolerance, "{w}→{n}: {:?}", r.data);
+            }
+        }
+    }
+
+    /// Stripes one pixel wide (far above the Nyquist frequency of a 4× smaller image) shrunk
+    /// 4×: the anti-aliased resize equals the 4×4 box average (flat grey), the reference resize
+    /// point-samples them into full-contrast aliases.
+    #[test]
+    fn shrinking_fine_stripes_leaves_no_aliasing() {
+        let (w, h) = (64u32, 64u32);
+        let stripes = FloatImage {
+            width: w,
+            height: h,
+            channels: 1,
+            // A period of 3 px: beats against the 4 px footprint in the reference resize.
+            data: (0..w * h)
+                .map(|i| if (i % w) % 3 == 0 { 255.0 } else { 0.0 })
+                .collect(),
+        };
+        let box_average = |img: &FloatImage, f: u32| -> Vec<f32> {
+            let (bw, bh) = (img.width / f, img.height / f);
+            (0..bw * bh)
+                .map(|o| {
+                    let (x, y) = (o % bw, o / bw);
+                    let mut sum = 0.0;
+                    for dy in 0..f {
+                        for dx in 0..f {
+                            sum += img.data[((y * f + dy) * img.width + x * f + dx) as usize];
+                        }
+                    }
+                    sum / (f * f) as f32
+                })
+                .collect()
+        };
+        let reference = box_average(&stripes, 4);
+        let aa = resize(
+            &stripes,
+            w / 4,
+            h / 4,
+            Kernel::Lanczos4,
+            ResizeMode::AntiAliased,
+        );
+        let worst = aa
+            .data
+            .iter()
+            .zip(&reference)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(
+            worst < 1e-3,
+            "anti-aliased differs from the box average by {worst}"
+        );
+        // The aliasing energy: variance around the box average (0 for a perfect filter).
+        let energy = |img: &[f32]| {
+            img.iter()
+                .zip(&reference)
+                .map(|(a, b)| (a - b).powi(2))
+                .sum::<f32>()
+                / img.len() as f32
+        };
+        let cv = resize(
+            &stripes,
+            w / 4,
+            h / 4,
+            Kernel::Lanczos4,
+            ResizeMode::Reference,
+        );
+        assert!(energy(&aa.data) < 1e-6);
+        assert!(
+            energy(&cv.data) > 100.0,
+            "the reference resize aliases: {}",
+            energy(&cv.data)
+        );
     }
 
     #[test]

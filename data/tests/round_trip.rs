@@ -104,7 +104,8 @@ fn generated_split_reads_back_with_the_official_rules() {
         k[0][0] as f32 * c[0] / c[2] + k[0][2] as f32,
         k[1][1] as f32 * c[1] / c[2] + k[1][2] as f32,
     );
-    let view = lifegom_data::dataset::load_view(subj, 20, [0.0; 3], (64, 64)).unwrap();
+    let view =
+        lifegom_data::dataset::load_view(subj, 20, [0.0; 3], (64, 64), Default::default()).unwrap();
     let mask_at = view.mask[(v as usize).min(63) * 64 + (u as usize).min(63)];
     assert!(
         mask_at > 0.5,
@@ -245,7 +246,8 @@ fn assert_error(dir: &Path, parts: &[&str]) {
     let msg = Subject::load(dir, KinematicTree::Stored)
         .and_then(|s| {
             (0..s.frames.len()).try_for_each(|f| {
-                lifegom_data::dataset::load_view(&s, f, [0.0; 3], (32, 32)).map(|_| ())
+                lifegom_data::dataset::load_view(&s, f, [0.0; 3], (32, 32), Default::default())
+                    .map(|_| ())
             })
         })
         .unwrap_err()
@@ -464,7 +466,9 @@ fn json_layout_reads_back_the_official_subject() {
         assert_eq!((&a.poses, a.rh, a.th), (&b.poses, b.rh, b.th));
         assert!(worst(&a.tpose_joints, &b.tpose_joints) < 1e-5);
     }
-    let view = |s: &Subject| lifegom_data::dataset::load_view(s, 2, [1.0; 3], (32, 32)).unwrap();
+    let view = |s: &Subject| {
+        lifegom_data::dataset::load_view(s, 2, [1.0; 3], (32, 32), Default::default()).unwrap()
+    };
     assert_eq!(view(&json).rgb, view(&official).rgb);
 }
 
@@ -484,7 +488,8 @@ fn bad_json_subjects_name_file_frame_and_field() {
         let msg = custom::load_subject(&path)
             .and_then(|s| {
                 (0..s.frames.len()).try_for_each(|f| {
-                    lifegom_data::dataset::load_view(&s, f, [0.0; 3], (32, 32)).map(|_| ())
+                    lifegom_data::dataset::load_view(&s, f, [0.0; 3], (32, 32), Default::default())
+                        .map(|_| ())
                 })
             })
             .unwrap_err()

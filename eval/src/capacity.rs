@@ -89,7 +89,7 @@ fn inputs_for(
     let views = sources
         .iter()
         .chain(std::iter::once(&target))
-        .map(|&f| lifegom_data::dataset::load_view(s, f, bg, dataset.img_size))
+        .map(|&f| lifegom_data::dataset::load_view(s, f, bg, dataset.img_size, dataset.resize))
         .collect::<Result<Vec<_>, _>>()?;
     let sample = Sample {
         subject: s.name.clone(),

@@ -97,6 +97,7 @@ fn main() -> anyhow::Result<()> {
         model: args.model,
         official_network: experiment.reconstructor(),
         img_size: cfg.data.img_size,
+        resize: cfg.data.resize,
         background,
         kinematic_tree: args.kinematic_tree.unwrap_or(cfg.data.kinematic_tree),
         inputs: args.inputs,

@@ -20,7 +20,7 @@ use super::{SynthConfig, generate_subject_frames};
 use crate::dataset::{Background, DataConfig, FrameRule, Sample, Split, prepare_view};
 use crate::error::{DataError, Location, Result};
 use crate::format::CanonicalBody;
-use crate::preprocess::FloatImage;
+use crate::preprocess::{FloatImage, ResizeMode};
 
 /// Stream key of the subjects' seed (kept apart from the on-disk split's subjects).
 const SUBJECT_SEED: u64 = 0x5752_4541_4d00_0001;
@@ -43,6 +43,7 @@ pub struct SubjectStream {
     synth: SynthConfig,
     rule: FrameRule,
     img_size: (u32, u32),
+    resize: ResizeMode,
     background: Background,
     /// `[synthetic] seed`.
     seed: u64,
@@ -70,6 +71,7 @@ impl SubjectStream {
                 n_inputs: data.n_input_frames,
             },
             img_size: (data.img_size[0], data.img_size[1]),
+            resize: data.resize,
             background: data.train_background,
             seed: synth.seed,
         }
@@ -157,6 +159,7 @@ impl SubjectStream {
                     &subject.mesh_info(frame),
                     bg,
                     self.img_size,
+                    self.resize,
                 ))
             })
             .collect::<Result<Vec<_>>>()?;
@@ -218,6 +221,7 @@ mod tests {
             n_input_frames: 3,
             train_background: Background::Random,
             test_background: Background::Fixed([0, 0, 0]),
+            resize: ResizeMode::default(),
         };
         (synth, data)
     }
@@ -245,7 +249,8 @@ mod tests {
                 .iter()
                 .position(|n| *n == view.frame)
                 .unwrap();
-            let read = crate::dataset::load_view(&subject, f, bg, (24, 24)).unwrap();
+            let read = crate::dataset::load_view(&subject, f, bg, (24, 24), ResizeMode::default())
+                .unwrap();
             assert_eq!(&read, view, "frame {}", view.frame);
         }
         let _ = std::fs::remove_dir_all(&dir);
@@ -291,7 +296,9 @@ mod tests {
                 .iter()
                 .position(|n| *n == view.frame)
                 .unwrap();
-            let read = crate::dataset::load_view(&subject, f, [255.0; 3], (16, 16)).unwrap();
+            let read =
+                crate::dataset::load_view(&subject, f, [255.0; 3], (16, 16), ResizeMode::default())
+                    .unwrap();
             assert_eq!(&read, view, "frame {}", view.frame);
         }
         let _ = std::fs::remove_dir_all(&dir);
