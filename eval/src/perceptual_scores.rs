@@ -120,8 +120,9 @@ fn fid_of(
         }
         Ok(rows)
     };
-    let a = FeatureStats::from_features(&features(pred)?, 2048)?;
-    let b = FeatureStats::from_features(&features(gt)?, 2048)?;
+    let (fa, fb) = (features(pred)?, features(gt)?);
+    let a = FeatureStats::from_features(&fa, 2048)?;
+    let b = FeatureStats::from_features(&fb, 2048)?;
     Ok(Some(frechet_distance(&a, &b)?))
 }
 

@@ -182,15 +182,30 @@ pub fn frechet_distance(a: &FeatureStats, b: &FeatureStats) -> Result<f64, Perce
         reason: "cov: the symmetric eigensolver did not converge".into(),
     };
     let (l1, v1) = eigen_with_vectors(s1).ok_or_else(no_convergence)?;
-    let sqrt_l1 = l1.map(|l| l.max(0.0).sqrt());
     // With Σ1^½ = V D Vᵀ (D = diag(√λ)), M = Σ1^½ Σ2 Σ1^½ = V (D Vᵀ Σ2 V D) Vᵀ has the
-    // eigenvalues of D (Vᵀ Σ2 V) D: two matrix products instead of four.
-    let w = v1.transpose() * s2 * &v1;
-    let m = symmetrised(DMatrix::from_fn(d, d, |i, j| {
+    // eigenvalues of D (Vᵀ Σ2 V) D. Rows and columns where λ is zero are zero, so only the
+    // numerical range of Σ1 is kept (λ above d·ε·λ_max, numpy's matrix-rank threshold): with
+    // fewer images than dimensions that is a few dozen of the 2048, which is exact up to
+    // round-off, far cheaper, and avoids nalgebra's QR returning infinite eigenvalues for a
+    // matrix that is mostly zero blocks (seen on the quickstart's 24 renders).
+    let l_max = l1.iter().copied().fold(0.0f64, f64::max);
+    let kept: Vec<usize> = (0..d)
+        .filter(|&i| l1[i] > l_max * d as f64 * f64::EPSILON)
+        .collect();
+    let v_kept = v1.select_columns(&kept);
+    let sqrt_l1: Vec<f64> = kept.iter().map(|&i| l1[i].sqrt()).collect();
+    let w = v_kept.transpose() * s2 * &v_kept;
+    let r = kept.len();
+    let m = symmetrised(DMatrix::from_fn(r, r, |i, j| {
         sqrt_l1[i] * w[(i, j)] * sqrt_l1[j]
     }));
-    let lm = eigenvalues(m).ok_or_else(no_convergence)?;
-    let tr_covmean: f64 = lm.iter().map(|l| l.max(0.0).sqrt()).sum();
+    // Σ1 = 0 (every row the same) leaves nothing: the trace is 0.
+    let tr_covmean: f64 = if r == 0 {
+        0.0
+    } else {
+        let lm = eigenvalues(m).ok_or_else(no_convergence)?;
+        lm.iter().map(|l| l.max(0.0).sqrt()).sum()
+    };
     let fid = mean_term + trace_sum - 2.0 * tr_covmean;
     if fid.is_finite() {
         Ok(fid)
@@ -215,6 +230,29 @@ mod tests {
                 shift + scale * (base + 0.3 * ((i % dim) as f32 * 0.7).sin())
             })
             .collect()
+    }
+
+    /// Pool3 features of the quickstart's 24 template-in-one-colour renders and their targets:
+    /// a rank-23 pair on which nalgebra's QR, run on the whole 2048² product, returned
+    /// infinite eigenvalues (FID −∞). The reference is pytorch-fid's formula under scipy 1.10
+    /// on the same f32 features.
+    #[test]
+    fn rank_deficient_quickstart_features_match_scipy() {
+        let load = |name: &str| -> Vec<f32> {
+            let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("tests/fixtures")
+                .join(name);
+            std::fs::read(path)
+                .unwrap()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect()
+        };
+        let a = FeatureStats::from_features(&load("fid_template_renders.f32"), 2048).unwrap();
+        let b = FeatureStats::from_features(&load("fid_template_targets.f32"), 2048).unwrap();
+        let fid = frechet_distance(&a, &b).unwrap();
+        let scipy = 246.852_776_870_619_92;
+        assert!((fid - scipy).abs() / scipy < 1e-6, "FID {fid} vs scipy {scipy}");
     }
 
     #[test]
