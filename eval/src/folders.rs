@@ -7,19 +7,16 @@
 
 use std::path::{Path, PathBuf};
 
-use burn::tensor::{Device, Tensor, TensorData};
-use lifegom_render::readback;
+use burn::tensor::Device;
 
 use crate::error::EvalError;
 use crate::images::Image;
 use crate::metrics::{ImageRef, psnr, ssim_skimage};
-use crate::perceptual::{FeatureStats, Lpips, PerceptualModels, frechet_distance};
+use crate::perceptual::{FeatureStats, PerceptualModels, frechet_distance};
+use crate::perceptual_scores::{lpips_pairs, pool3_features};
 
 /// Image files the folders may hold (what the `image` crate is built to read).
 const EXTENSIONS: [&str; 2] = ["png", "gif"];
-
-/// Images per network call: bounds memory at large sizes.
-const BATCH: usize = 8;
 
 /// The scores of one pair.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -107,51 +104,6 @@ pub fn pair_files(a: &Path, b: &Path) -> Result<Vec<(PathBuf, PathBuf)>, EvalErr
     Ok(fa.into_iter().zip(fb).collect())
 }
 
-fn batch(images: &[&Image], device: &Device) -> Tensor<4> {
-    let (h, w) = (images[0].height, images[0].width);
-    let data: Vec<f32> = images.iter().flat_map(|i| i.data.iter().copied()).collect();
-    Tensor::<4>::from_data(TensorData::new(data, [images.len(), h, w, 3]), device)
-        .permute([0, 3, 1, 2])
-}
-
-fn lpips_all(
-    net: &Lpips,
-    pairs: &[(Image, Image)],
-    device: &Device,
-) -> Result<Vec<f64>, EvalError> {
-    let mut out = Vec::with_capacity(pairs.len());
-    for chunk in pairs.chunks(BATCH) {
-        let a: Vec<&Image> = chunk.iter().map(|(a, _)| a).collect();
-        let b: Vec<&Image> = chunk.iter().map(|(_, b)| b).collect();
-        let d = net.try_distance(batch(&a, device), batch(&b, device))?;
-        out.extend(readback::read::<f64, 1, _>("LPIPS distance", d)?);
-    }
-    Ok(out)
-}
-
-/// pool3 features of `images` (any sizes: each is resized to 299² inside), row-major.
-fn features(
-    net: &crate::perceptual::InceptionPool3,
-    images: &[&Image],
-    device: &Device,
-) -> Result<Vec<f32>, EvalError> {
-    let mut rows = Vec::with_capacity(images.len() * 2048);
-    let mut start = 0;
-    while start < images.len() {
-        // A batch holds images of one size.
-        let (h, w) = (images[start].height, images[start].width);
-        let end = (start..images.len())
-            .take(BATCH)
-            .take_while(|&i| images[i].height == h && images[i].width == w)
-            .last()
-            .map_or(start + 1, |i| i + 1);
-        let f = net.try_features(batch(&images[start..end], device))?;
-        rows.extend(readback::read::<f32, 2, _>("Inception features", f)?);
-        start = end;
-    }
-    Ok(rows)
-}
-
 /// Scores folder `a` against folder `b` with whatever networks `models` holds.
 pub fn score_folders(
     a: &Path,
@@ -197,36 +149,25 @@ pub fn score_folders(
             lpips_vgg: None,
         });
     }
-    // LPIPS needs one size per batch: group the pairs by size.
-    for (net, set) in [(&models.lpips_alex, 0usize), (&models.lpips_vgg, 1usize)] {
-        let Some(net) = net else { continue };
-        let mut order: Vec<usize> = (0..pairs.len()).collect();
-        order.sort_by_key(|&i| (pairs[i].0.height, pairs[i].0.width));
-        let mut i = 0;
-        while i < order.len() {
-            let size = (pairs[order[i]].0.height, pairs[order[i]].0.width);
-            let run: Vec<usize> = order[i..]
-                .iter()
-                .copied()
-                .take_while(|&k| (pairs[k].0.height, pairs[k].0.width) == size)
-                .collect();
-            let group: Vec<(Image, Image)> = run.iter().map(|&k| pairs[k].clone()).collect();
-            for (&k, d) in run.iter().zip(lpips_all(net, &group, device)?) {
-                if set == 0 {
-                    per_pair[k].lpips_alex = Some(d);
-                } else {
-                    per_pair[k].lpips_vgg = Some(d);
-                }
-            }
-            i += run.len();
+    // LPIPS batches images of one size: the pairs sorted by size, scored, put back.
+    let mut order: Vec<usize> = (0..pairs.len()).collect();
+    order.sort_by_key(|&i| (pairs[i].0.height, pairs[i].0.width));
+    let pred: Vec<Image> = order.iter().map(|&i| pairs[i].0.clone()).collect();
+    let gt: Vec<Image> = order.iter().map(|&i| pairs[i].1.clone()).collect();
+    if let Some(net) = &models.lpips_alex {
+        for (&k, d) in order.iter().zip(lpips_pairs(net, &pred, &gt, device)?) {
+            per_pair[k].lpips_alex = Some(d);
+        }
+    }
+    if let Some(net) = &models.lpips_vgg {
+        for (&k, d) in order.iter().zip(lpips_pairs(net, &pred, &gt, device)?) {
+            per_pair[k].lpips_vgg = Some(d);
         }
     }
     let fid = match &models.inception {
         Some(net) if pairs.len() >= 2 => {
-            let a: Vec<&Image> = pairs.iter().map(|(a, _)| a).collect();
-            let b: Vec<&Image> = pairs.iter().map(|(_, b)| b).collect();
-            let sa = FeatureStats::from_features(&features(net, &a, device)?, 2048)?;
-            let sb = FeatureStats::from_features(&features(net, &b, device)?, 2048)?;
+            let sa = FeatureStats::from_features(&pool3_features(net, &pred, device)?, 2048)?;
+            let sb = FeatureStats::from_features(&pool3_features(net, &gt, device)?, 2048)?;
             Some(frechet_distance(&sa, &sb)?)
         }
         _ => None,

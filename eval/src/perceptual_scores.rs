@@ -16,17 +16,22 @@ use crate::error::EvalError;
 use lifegom_render::readback;
 use std::path::Path;
 
-use burn::tensor::Device;
+use std::sync::Mutex;
+
+use burn::tensor::{Device, Tensor};
 
 use crate::evaluate::SplitScores;
 use crate::images::Image;
-use crate::perceptual::{FeatureStats, Lpips, PerceptualModels, frechet_distance};
+use crate::perceptual::{FeatureStats, InceptionPool3, Lpips, PerceptualModels, frechet_distance};
 use crate::report::WEIGHTS_MISSING;
 
 /// The perceptual networks that could be loaded, and why the others could not.
 pub struct Models {
     models: Option<PerceptualModels>,
     problem: Option<String>,
+    /// The last ground-truth set's Inception statistics, by a hash of its pixels: every method
+    /// of an evaluation is scored against the same ground truth.
+    gt_stats: Mutex<Option<(u64, FeatureStats)>>,
 }
 
 /// Loads what exists in `dir` (never fails: problems become the report note).
@@ -37,11 +42,13 @@ pub fn load_models(dir: &Path, device: &Device) -> Models {
             Models {
                 models: Some(m),
                 problem,
+                gt_stats: Mutex::new(None),
             }
         }
         Err(e) => Models {
             models: None,
             problem: Some(e.to_string()),
+            gt_stats: Mutex::new(None),
         },
     }
 }
@@ -90,7 +97,7 @@ pub fn score_pairs(
         Some(net) => mean_lpips(net, pred, gt, device),
         None => Ok(None),
     };
-    let fid = fid_of(m, pred, gt, device)?;
+    let fid = fid_of(models, pred, gt, device)?;
     Ok(SetScores {
         lpips_alex: mean(&m.lpips_alex)?,
         lpips_vgg: mean(&m.lpips_vgg)?,
@@ -101,29 +108,108 @@ pub fn score_pairs(
 
 /// FID between two image sets (`None` without the Inception or with fewer than 2 images).
 fn fid_of(
-    m: &PerceptualModels,
+    models: &Models,
     pred: &[Image],
     gt: &[Image],
     device: &Device,
 ) -> Result<Option<f64>, EvalError> {
-    let Some(net) = &m.inception else {
+    let Some(net) = models.models.as_ref().and_then(|m| m.inception.as_ref()) else {
         return Ok(None);
     };
     if pred.len() < 2 {
         return Ok(None);
     }
-    let features = |imgs: &[Image]| -> Result<Vec<f32>, EvalError> {
-        let mut rows = Vec::with_capacity(imgs.len() * 2048);
-        for img in imgs {
-            let f = net.try_features(img.to_batch(device))?;
-            rows.extend(readback::read::<f32, 2, _>("Inception features", f)?);
-        }
-        Ok(rows)
+    let stats = |imgs: &[Image]| -> Result<FeatureStats, EvalError> {
+        Ok(FeatureStats::from_features(
+            &pool3_features(net, imgs, device)?,
+            2048,
+        )?)
     };
-    let (fa, fb) = (features(pred)?, features(gt)?);
-    let a = FeatureStats::from_features(&fa, 2048)?;
-    let b = FeatureStats::from_features(&fb, 2048)?;
-    Ok(Some(frechet_distance(&a, &b)?))
+    let key = pixels_hash(gt);
+    let mut cache = models.gt_stats.lock().unwrap_or_else(|e| e.into_inner());
+    let b = match cache.as_ref() {
+        Some((k, b)) if *k == key => b.clone(),
+        _ => {
+            let b = stats(gt)?;
+            *cache = Some((key, b.clone()));
+            b
+        }
+    };
+    Ok(Some(frechet_distance(&stats(pred)?, &b)?))
+}
+
+/// A hash of a set of images' sizes and pixels (the ground-truth cache's key).
+fn pixels_hash(images: &[Image]) -> u64 {
+    use std::hash::{Hash, Hasher};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    for img in images {
+        (img.width, img.height).hash(&mut h);
+        for v in &img.data {
+            v.to_bits().hash(&mut h);
+        }
+    }
+    h.finish()
+}
+
+/// Images per network call: a batch fills the matrix products better than single images, and
+/// bounds memory at large sizes.
+const BATCH: usize = 8;
+
+/// Consecutive runs of at most [`BATCH`] indices whose images share one size.
+fn batches(images: &[&Image]) -> Vec<std::ops::Range<usize>> {
+    let mut out = Vec::new();
+    let mut start = 0;
+    while start < images.len() {
+        let size = (images[start].width, images[start].height);
+        let end = (start..images.len())
+            .take(BATCH)
+            .take_while(|&i| (images[i].width, images[i].height) == size)
+            .last()
+            .map_or(start + 1, |i| i + 1);
+        out.push(start..end);
+        start = end;
+    }
+    out
+}
+
+fn stack(images: &[&Image], device: &Device) -> Tensor<4> {
+    Tensor::cat(images.iter().map(|i| i.to_batch(device)).collect(), 0)
+}
+
+/// Inception pool3 features of `images` (any sizes: each is resized to 299² inside),
+/// row-major `images.len() × 2048`.
+pub fn pool3_features(
+    net: &InceptionPool3,
+    images: &[Image],
+    device: &Device,
+) -> Result<Vec<f32>, EvalError> {
+    let refs: Vec<&Image> = images.iter().collect();
+    let mut rows = Vec::with_capacity(images.len() * 2048);
+    for run in batches(&refs) {
+        let f = net.try_features(stack(&refs[run], device))?;
+        rows.extend(readback::read::<f32, 2, _>("Inception features", f)?);
+    }
+    Ok(rows)
+}
+
+/// LPIPS of every pair `pred[k]`, `gt[k]` (each pair of one size), in batches.
+pub fn lpips_pairs(
+    net: &Lpips,
+    pred: &[Image],
+    gt: &[Image],
+    device: &Device,
+) -> Result<Vec<f64>, EvalError> {
+    let refs: Vec<&Image> = pred.iter().collect();
+    let gt_refs: Vec<&Image> = gt.iter().collect();
+    let mut out = Vec::with_capacity(pred.len());
+    for run in batches(&refs) {
+        let d = net.try_distance(
+            stack(&refs[run.clone()], device),
+            stack(&gt_refs[run], device),
+        )?;
+        out.extend(readback::read::<f64, 1, _>("LPIPS distance", d)?);
+    }
+    Ok(out)
 }
 
 /// LPIPS of one pair of images.
@@ -142,11 +228,8 @@ pub fn mean_lpips(
     gt: &[Image],
     device: &Device,
 ) -> Result<Option<f64>, EvalError> {
-    let mut sum = 0.0;
-    for (p, g) in pred.iter().zip(gt) {
-        sum += lpips_of(net, p, g, device)?;
-    }
-    Ok((!pred.is_empty()).then(|| sum / pred.len() as f64))
+    let d = lpips_pairs(net, pred, gt, device)?;
+    Ok((!d.is_empty()).then(|| d.iter().sum::<f64>() / d.len() as f64))
 }
 
 /// Fills `lpips_alex` / `lpips_vgg` of every view and computes FID, with whatever weights exist.
@@ -159,15 +242,19 @@ pub fn score_perceptual(
         return Ok(PerceptualOutcome::default());
     };
     let _span = tracing::info_span!("perceptual", views = scores.views.len()).entered();
-    for (k, view) in scores.views.iter_mut().enumerate() {
-        let (p, g) = (&scores.images.pred[k], &scores.images.gt[k]);
-        if let Some(net) = &m.lpips_alex {
-            view.lpips_alex = Some(lpips_of(net, p, g, device)?);
-        }
-        if let Some(net) = &m.lpips_vgg {
-            view.lpips_vgg = Some(lpips_of(net, p, g, device)?);
+    let (pred, gt) = (&scores.images.pred, &scores.images.gt);
+    if let Some(net) = &m.lpips_alex {
+        let d = lpips_pairs(net, pred, gt, device)?;
+        for (view, d) in scores.views.iter_mut().zip(d) {
+            view.lpips_alex = Some(d);
         }
     }
-    let fid = fid_of(m, &scores.images.pred, &scores.images.gt, device)?;
+    if let Some(net) = &m.lpips_vgg {
+        let d = lpips_pairs(net, pred, gt, device)?;
+        for (view, d) in scores.views.iter_mut().zip(d) {
+            view.lpips_vgg = Some(d);
+        }
+    }
+    let fid = fid_of(models, &scores.images.pred, &scores.images.gt, device)?;
     Ok(PerceptualOutcome { fid })
 }
