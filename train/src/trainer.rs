@@ -783,3 +783,60 @@ fn half_nearest(x: Tensor<4>) -> Tensor<4> {
         .narrow(5, 0, 1)
         .reshape([b, c, h2, w2])
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::TensorData;
+    use lifegom_perceptual::lpips::LpipsConfig;
+
+    /// `F.interpolate(scale_factor=0.5)` (nearest) keeps the even rows and columns, and drops
+    /// an odd last one.
+    #[test]
+    fn half_nearest_keeps_even_pixels() {
+        let device = Device::flex();
+        let x = Tensor::<4>::from_data(
+            TensorData::new((0..2 * 5 * 7).map(|v| v as f32).collect(), [1, 2, 5, 7]),
+            &device,
+        );
+        let h = half_nearest(x);
+        assert_eq!(h.dims(), [1, 2, 2, 3]);
+        let v: Vec<f32> = h.into_data().convert::<f32>().try_to_vec().unwrap();
+        // Channel 0: rows 0, 2 of a 5 × 7 ramp, columns 0, 2, 4; channel 1 the same + 35.
+        assert_eq!(v, [0., 2., 4., 14., 16., 18., 35., 37., 39., 49., 51., 53.]);
+    }
+
+    /// The LPIPS term is zero for identical images, and a gradient reaches the renders but
+    /// not the frozen network.
+    #[test]
+    fn the_lpips_term_trains_the_renders_only() {
+        let device = Device::flex().autodiff();
+        let net = Lpips::from_model(
+            LpipsNet::Vgg,
+            LpipsConfig::for_net(LpipsNet::Vgg).init(&device),
+        )
+        .frozen();
+        let image = |seed: f32| {
+            Tensor::<4>::from_data(
+                TensorData::new(
+                    (0..2 * 3 * 40 * 40)
+                        .map(|i| (0.5 + 0.4 * ((i as f32) * seed).sin()).clamp(0.0, 1.0))
+                        .collect(),
+                    [2, 3, 40, 40],
+                ),
+                &device,
+            )
+        };
+        let same = lpips_loss(&net, image(0.37), image(0.37)).unwrap();
+        let same: Vec<f32> = same.into_data().convert::<f32>().try_to_vec().unwrap();
+        assert!(same[0].abs() < 1e-6, "{same:?}");
+        let pred = image(0.37).require_grad();
+        let loss = lpips_loss(&net, pred.clone(), image(0.11)).unwrap();
+        let grads = loss.backward();
+        let g = pred.grad(&grads).expect("the renders get a gradient");
+        let g: Vec<f32> = g.into_data().convert::<f32>().try_to_vec().unwrap();
+        assert!(g.iter().any(|v| *v != 0.0) && g.iter().all(|v| v.is_finite()));
+        let conv = &net.model().convs[0];
+        assert!(conv.weight.grad(&grads).is_none(), "the network is frozen");
+    }
+}
