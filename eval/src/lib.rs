@@ -30,7 +30,8 @@
 //! - [`validation`]: every feedback step's scores on the validation split (training's curves).
 //! - [`report`]: CSVs, `summary.json`, `report.md`, the Pareto plot.
 //! - [`error`]: the library's one error type.
-//! - [`images`], [`plot`]: PNG/GIF writing, sheets, error maps, dependency-free charts.
+//! - [`images`], [`plot`]: PNG/GIF writing, sheets, error maps; charts drawn with plotters
+//!   (PNG and SVG, an embedded font).
 //! - [`perceptual`]: LPIPS v0.1 (AlexNet, VGG16) and pytorch-fid's Inception pool3 features and
 //!   Fréchet distance, as Burn modules loading converted weights; [`perceptual_scores`]: how the
 //!   evaluation uses them.
