@@ -24,7 +24,7 @@ use lifegom_eval::evaluate::{
     EvalSettings, Method, SplitScores, evaluate_split, reconstruct_timed, render_timed,
 };
 use lifegom_eval::images::save_gif;
-use lifegom_eval::per_scene::{FitPoint, score_per_scene_fit};
+use lifegom_eval::per_scene::{FitPoint, PerSceneFit, score_per_scene_fit};
 use lifegom_eval::perceptual_scores::{PerceptualOutcome, score_perceptual};
 use lifegom_eval::report::{Report, Summary, SweepRow, write_csvs};
 use lifegom_train::fit::FitConfig;
@@ -251,11 +251,13 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         );
         per_scene = score_per_scene_fit(
             &dataset,
-            &opts.per_scene,
-            opts.subdivide.unwrap_or(config.subdivide_test),
-            &FitConfig::new(),
-            &LossWeights::new(),
-            opts.per_scene_subjects.or(opts.max_subjects),
+            &PerSceneFit {
+                ks: opts.per_scene.clone(),
+                subdivide: opts.subdivide.unwrap_or(config.subdivide_test),
+                cfg: FitConfig::new(),
+                weights: LossWeights::new(),
+                max_subjects: opts.per_scene_subjects.or(opts.max_subjects),
+            },
             &perceptual,
             &opts.device,
         )?;

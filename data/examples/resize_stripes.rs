@@ -20,7 +20,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let v = if x < n as f32 / 2.0 {
                 let (dx, dy) = (x - n as f32 / 4.0, y - n as f32 / 2.0);
                 0.5 + 0.5 * (std::f32::consts::PI * (dx * dx + dy * dy) / n as f32).cos()
-            } else if (i % n) % 3 == 0 {
+            } else if (i % n).is_multiple_of(3) {
                 1.0
             } else {
                 0.0

@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::{DataError, Location, Result};
 use crate::format::{FrameCamera, FrameMeshInfo, Subject, read_split};
 use crate::kinematics::KinematicTree;
-use crate::preprocess::{self, FloatImage, Kernel, ResizeMode};
+use crate::preprocess::{self, FloatImage, Kernel, Resampling, ResizeMode};
 use lifegom_render::rng::Rng;
 
 /// Which experiment's frame-indexing rules apply (module docs).
@@ -572,8 +572,7 @@ pub fn load_view(
         &subject.cameras[f],
         &subject.mesh_infos[f],
         bg,
-        size,
-        resize,
+        Resampling { size, mode: resize },
     ))
 }
 
@@ -588,9 +587,9 @@ pub fn prepare_view(
     cam: &FrameCamera,
     info: &FrameMeshInfo,
     bg: [f32; 3],
-    size: (u32, u32),
-    resize: ResizeMode,
+    to: Resampling,
 ) -> View {
+    let Resampling { size, mode: resize } = to;
     if let Some(d) = &cam.distortion {
         rgb = preprocess::undistort(&rgb, &cam.k, d);
         alpha = preprocess::undistort(&alpha, &cam.k, d);

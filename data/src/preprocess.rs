@@ -70,6 +70,15 @@ pub enum ResizeMode {
     Reference,
 }
 
+/// The size a view is brought to, and how it is shrunk.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Resampling {
+    /// `(W, H)`.
+    pub size: (u32, u32),
+    /// How larger images are shrunk.
+    pub mode: ResizeMode,
+}
+
 /// Resampling kernel of [`resize`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Kernel {

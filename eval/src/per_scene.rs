@@ -70,18 +70,37 @@ fn samples_by_subject(
     Ok(groups)
 }
 
-/// Fits every subject (at most `max_subjects`) for `max(ks)` steps and scores it after each
-/// `K ∈ ks` (module docs); `subdivide` is the Gaussians' level.
+/// What the per-scene optimisation baseline fits and where it is scored.
+#[derive(Debug, Clone)]
+pub struct PerSceneFit {
+    /// Score after each of these gradient step counts K.
+    pub ks: Vec<usize>,
+    /// The Gaussians' subdivision level.
+    pub subdivide: u32,
+    /// The optimiser's settings.
+    pub cfg: FitConfig,
+    /// The loss it minimises on the source views.
+    pub weights: LossWeights,
+    /// Subjects fitted (default: all).
+    pub max_subjects: Option<usize>,
+}
+
+/// Fits every subject (at most `fit.max_subjects`) for `max(ks)` steps and scores it after
+/// each `K ∈ ks` (module docs), with LPIPS and FID when `perceptual` has the networks.
 pub fn score_per_scene_fit(
     dataset: &Dataset,
-    ks: &[usize],
-    subdivide: u32,
-    cfg: &FitConfig,
-    weights: &LossWeights,
-    max_subjects: Option<usize>,
+    fit_settings: &PerSceneFit,
     perceptual: &crate::perceptual_scores::Models,
     device: &Device,
 ) -> Result<Vec<FitPoint>, EvalError> {
+    let PerSceneFit {
+        ks,
+        subdivide,
+        cfg,
+        weights,
+        max_subjects,
+    } = fit_settings;
+    let (subdivide, max_subjects) = (*subdivide, *max_subjects);
     let _span = tracing::info_span!("score_per_scene_fit").entered();
     let rigs = SubjectRig::for_split(dataset)?;
     let topology = &rigs[0].topology;

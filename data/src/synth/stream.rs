@@ -20,7 +20,7 @@ use super::{SynthConfig, generate_subject_frames};
 use crate::dataset::{Background, DataConfig, FrameRule, Sample, Split, prepare_view};
 use crate::error::{DataError, Location, Result};
 use crate::format::CanonicalBody;
-use crate::preprocess::{FloatImage, ResizeMode};
+use crate::preprocess::{FloatImage, Resampling, ResizeMode};
 
 /// Stream key of the subjects' seed (kept apart from the on-disk split's subjects).
 const SUBJECT_SEED: u64 = 0x5752_4541_4d00_0001;
@@ -158,8 +158,10 @@ impl SubjectStream {
                     &frame.frame_camera(),
                     &subject.mesh_info(frame),
                     bg,
-                    self.img_size,
-                    self.resize,
+                    Resampling {
+                        size: self.img_size,
+                        mode: self.resize,
+                    },
                 ))
             })
             .collect::<Result<Vec<_>>>()?;
