@@ -45,7 +45,7 @@ use lifegom_eval::perceptual::{
     LPIPS_ALEX_FILE, LPIPS_VGG_FILE, Lpips, LpipsNet, PerceptualModels,
 };
 use lifegom_eval::perceptual_scores::mean_lpips;
-use lifegom_eval::plot::{Chart, PALETTE, Scale, Series, Style};
+use lifegom_eval::plot::{Chart, PALETTE, Scale, Series, Style, render_panels};
 use lifegom_eval::validation::score_feedback_steps;
 use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::{MeshPurpose, ReconstructorConfig};
@@ -370,20 +370,40 @@ impl Validation {
 /// Draws `validation_curve.png` from `validation.jsonl` and `validation_baselines.json`.
 pub fn write_validation_curve(out: &Path) -> anyhow::Result<()> {
     let lines = read_history(&out.join("validation.jsonl"), u64::MAX);
-    let Some(t_max) = lines
-        .iter()
-        .filter_map(|v| v["psnr"].as_array())
-        .map(Vec::len)
-        .max()
-    else {
+    let baselines: serde_json::Value =
+        std::fs::read_to_string(out.join("validation_baselines.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok())
+            .unwrap_or_default();
+    let Some(psnr) = validation_chart(&lines, &baselines, "psnr") else {
         return Ok(());
     };
+    let path = out.join("validation_curve.png");
+    match validation_chart(&lines, &baselines, "lpips_alex") {
+        Some(lpips) => render_panels(&[psnr, lpips], 1280, 420).save_png_and_svg(&path)?,
+        None => psnr.render(720, 420).save_png_and_svg(&path)?,
+    }
+    Ok(())
+}
+
+/// One validation metric (`psnr`, `lpips_alex`) of every feedback step against the training
+/// step, with the baselines' level; `None` when no line logged it.
+fn validation_chart(
+    lines: &[serde_json::Value],
+    baselines: &serde_json::Value,
+    key: &str,
+) -> Option<Chart> {
+    let t_max = lines
+        .iter()
+        .filter_map(|v| v[key].as_array())
+        .map(Vec::len)
+        .max()?;
     let mut series: Vec<Series> = (0..t_max)
         .map(|t| Series {
             name: format!("model, t = {}", t + 1),
             points: lines
                 .iter()
-                .filter_map(|v| Some((v["step"].as_f64()?, v["psnr"][t].as_f64()?)))
+                .filter_map(|v| Some((v["step"].as_f64()?, v[key][t].as_f64()?)))
                 .collect(),
             labels: vec![],
             color: PALETTE[t % PALETTE.len()],
@@ -395,17 +415,12 @@ pub fn write_validation_curve(out: &Path) -> anyhow::Result<()> {
         .and_then(|v| v["step"].as_f64())
         .unwrap_or(0.0);
     let last = lines.last().and_then(|v| v["step"].as_f64()).unwrap_or(1.0);
-    let baselines: serde_json::Value =
-        std::fs::read_to_string(out.join("validation_baselines.json"))
-            .ok()
-            .and_then(|t| serde_json::from_str(&t).ok())
-            .unwrap_or_default();
     if let Some(map) = baselines.as_object() {
         for (k, (name, b)) in map.iter().enumerate() {
-            if let Some(psnr) = b["psnr"].as_f64() {
+            if let Some(level) = b[key].as_f64() {
                 series.push(Series {
                     name: name.clone(),
-                    points: vec![(first, psnr), (last.max(first + 1.0), psnr)],
+                    points: vec![(first, level), (last.max(first + 1.0), level)],
                     labels: vec![],
                     color: PALETTE[(t_max + k) % PALETTE.len()],
                     ..Default::default()
@@ -413,18 +428,25 @@ pub fn write_validation_curve(out: &Path) -> anyhow::Result<()> {
             }
         }
     }
-    let chart = Chart {
-        title: "validation PSNR per feedback step (unseen subjects)".into(),
+    let (title, y_label) = match key {
+        "psnr" => (
+            "validation PSNR per feedback step (unseen subjects)",
+            "PSNR (dB, higher is better)",
+        ),
+        _ => (
+            "validation LPIPS-alex per feedback step",
+            "LPIPS-alex (lower is better)",
+        ),
+    };
+    Some(Chart {
+        title: title.into(),
         x_label: "training step".into(),
-        y_label: "PSNR (dB)".into(),
+        y_label: y_label.into(),
         x_scale: Scale::Linear,
         y_scale: Scale::Linear,
         series,
         style: Style::Lines,
-    };
-    let path = out.join("validation_curve.png");
-    chart.render(720, 420).save_png_and_svg(&path)?;
-    Ok(())
+    })
 }
 
 /// Trains `cfg` until its steps are done, the time limit, or `stop` is raised.

@@ -331,9 +331,10 @@ mod tests {
         }
     }
 
-    /// Stripes one pixel wide (far above the Nyquist frequency of a 4× smaller image) shrunk
-    /// 4×: the anti-aliased resize equals the 4×4 box average (flat grey), the reference resize
-    /// point-samples them into full-contrast aliases.
+    /// Stripes of a 3 px period (above the Nyquist frequency of a 4× smaller image) shrunk 4×:
+    /// the anti-aliased resize equals the 4×4 box average (the supersampled training renders'
+    /// filter: a quarter or half bright, by phase), the reference resize point-samples them
+    /// into full-contrast aliases.
     #[test]
     fn shrinking_fine_stripes_leaves_no_aliasing() {
         let (w, h) = (64u32, 64u32);
