@@ -568,3 +568,55 @@ fn bad_json_subjects_name_file_frame_and_field() {
         &["field `format`", "lifegom-subject-1"],
     );
 }
+
+/// A subject written at 4× the training size and shrunk by the loader (the default
+/// anti-aliased resize) is the subject rendered at the training size with 4 × 4 supersampling,
+/// up to the 8-bit rounding of each; the reference's `cv2.resize` rule aliases it.
+#[test]
+fn a_subject_written_at_four_times_the_size_shrinks_to_the_supersampled_render() {
+    use lifegom_data::preprocess::{FloatImage, Kernel, ResizeMode, resize};
+    let cfg = tiny_config();
+    let s = cfg.synthetic.clone().unwrap();
+    let template = lifegom_render::template::BodyTemplate::load(s.template.path()).unwrap();
+    let size = 48;
+    let native = synth::SynthConfig {
+        image_size: size,
+        supersample: 4,
+        ..s.clone()
+    };
+    let large = synth::SynthConfig {
+        image_size: 4 * size,
+        supersample: 1,
+        ..s.clone()
+    };
+    let a = synth::generate_subject(&template, &native, 7, 1, "x", Some(3)).unwrap();
+    let b = synth::generate_subject(&template, &large, 7, 1, "x", Some(3)).unwrap();
+    let psnr = |x: &[f32], y: &[f32]| {
+        let mse = x
+            .iter()
+            .zip(y)
+            .map(|(p, q)| f64::from(p - q).powi(2))
+            .sum::<f64>()
+            / x.len() as f64;
+        10.0 * (255.0f64 * 255.0 / mse).log10()
+    };
+    for (fa, fb) in a.frames.iter().zip(&b.frames) {
+        let want = FloatImage::from_rgb8(size, size, &fa.rgb);
+        let big = FloatImage::from_rgb8(4 * size, 4 * size, &fb.rgb);
+        let shrunk = |mode| resize(&big, size, size, Kernel::Lanczos4, mode);
+        let (aa, cv) = (
+            psnr(&shrunk(ResizeMode::AntiAliased).data, &want.data),
+            psnr(&shrunk(ResizeMode::Reference).data, &want.data),
+        );
+        eprintln!(
+            "{}: shrunk 4x vs supersampled: anti-aliased {aa:.1} dB, reference {cv:.1} dB",
+            fa.name
+        );
+        assert!(aa > 60.0, "{}: anti-aliased shrink at {aa:.1} dB", fa.name);
+        assert!(
+            cv < aa - 10.0,
+            "{}: reference {cv:.1} dB, anti-aliased {aa:.1}",
+            fa.name
+        );
+    }
+}

@@ -82,7 +82,7 @@ struct Args {
         value_delimiter = ',',
         default_value = "assets/demo/v1/demo.lgck"
     )]
-    compare: Vec<PathBuf>,
+    compare: Vec<String>,
     /// Do not fetch the LPIPS / FID weights when they are missing (the report then says LPIPS
     /// and FID were not computed; `lifegom-weights fetch` gets them later).
     #[arg(long)]
@@ -216,7 +216,8 @@ fn main() -> anyhow::Result<()> {
         other_models: args
             .compare
             .iter()
-            .filter(|p| !p.as_os_str().is_empty())
+            .filter(|p| !p.is_empty())
+            .map(PathBuf::from)
             .filter(|p| {
                 let found = p.exists();
                 if !found {
@@ -224,7 +225,6 @@ fn main() -> anyhow::Result<()> {
                 }
                 found
             })
-            .cloned()
             .collect(),
         per_scene: args.per_scene.iter().copied().filter(|&k| k > 0).collect(),
         per_scene_subjects: args.per_scene_subjects,
