@@ -103,14 +103,8 @@ fn lpips_features_and_fid_match_the_reference_packages() {
         let files = lifegom_eval::folders::image_files(set).unwrap();
         for (file, want) in files.iter().zip(reference[key].as_array().unwrap()) {
             let img = lifegom_eval::images::Image::load(file).unwrap();
-            let t = burn::tensor::Tensor::<3>::from_data(
-                burn::tensor::TensorData::new(img.data.clone(), [img.height, img.width, 3]),
-                &device,
-            )
-            .permute([2, 0, 1])
-            .unsqueeze_dim(0);
             let got: Vec<f32> = net
-                .try_features(t)
+                .try_features(img.to_batch(&device))
                 .unwrap()
                 .into_data()
                 .try_to_vec()

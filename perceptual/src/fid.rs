@@ -179,49 +179,18 @@ pub fn frechet_distance(a: &FeatureStats, b: &FeatureStats) -> Result<f64, Perce
         });
     }
     let d = a.dim;
-    if let (Some(x1), Some(x2)) = (&a.centred, &b.centred) {
-        return low_rank_distance(a, b, x1, x2);
-    }
-    let s1 = symmetrised(DMatrix::from_row_slice(d, d, &a.cov));
-    let s2 = symmetrised(DMatrix::from_row_slice(d, d, &b.cov));
     let mean_term: f64 = a
         .mean
         .iter()
         .zip(&b.mean)
         .map(|(x, y)| (x - y) * (x - y))
         .sum();
-    let trace_sum = s1.trace() + s2.trace();
-
-    let no_convergence = || PerceptualError::Stats {
-        field: "a",
-        reason: "cov: the symmetric eigensolver did not converge".into(),
+    let trace = |s: &FeatureStats| (0..d).map(|i| s.cov[i * d + i]).sum::<f64>();
+    let tr_covmean = match (&a.centred, &b.centred) {
+        (Some(x1), Some(x2)) => low_rank_trace(a, b, x1, x2)?,
+        _ => eigen_trace(a, b)?,
     };
-    let (l1, v1) = eigen_with_vectors(s1).ok_or_else(no_convergence)?;
-    // With Σ1^½ = V D Vᵀ (D = diag(√λ)), M = Σ1^½ Σ2 Σ1^½ = V (D Vᵀ Σ2 V D) Vᵀ has the
-    // eigenvalues of D (Vᵀ Σ2 V) D. Rows and columns where λ is zero are zero, so only the
-    // numerical range of Σ1 is kept (λ above d·ε·λ_max, numpy's matrix-rank threshold): with
-    // fewer images than dimensions that is a few dozen of the 2048, which is exact up to
-    // round-off, far cheaper, and avoids nalgebra's QR returning infinite eigenvalues for a
-    // matrix that is mostly zero blocks (seen on the quickstart's 24 renders).
-    let l_max = l1.iter().copied().fold(0.0f64, f64::max);
-    let kept: Vec<usize> = (0..d)
-        .filter(|&i| l1[i] > l_max * d as f64 * f64::EPSILON)
-        .collect();
-    let v_kept = v1.select_columns(&kept);
-    let sqrt_l1: Vec<f64> = kept.iter().map(|&i| l1[i].sqrt()).collect();
-    let w = v_kept.transpose() * s2 * &v_kept;
-    let r = kept.len();
-    let m = symmetrised(DMatrix::from_fn(r, r, |i, j| {
-        sqrt_l1[i] * w[(i, j)] * sqrt_l1[j]
-    }));
-    // Σ1 = 0 (every row the same) leaves nothing: the trace is 0.
-    let tr_covmean: f64 = if r == 0 {
-        0.0
-    } else {
-        let lm = eigenvalues(m).ok_or_else(no_convergence)?;
-        lm.iter().map(|l| l.max(0.0).sqrt()).sum()
-    };
-    let fid = mean_term + trace_sum - 2.0 * tr_covmean;
+    let fid = mean_term + trace(a) + trace(b) - 2.0 * tr_covmean;
     if fid.is_finite() {
         Ok(fid)
     } else {
@@ -232,48 +201,65 @@ pub fn frechet_distance(a: &FeatureStats, b: &FeatureStats) -> Result<f64, Perce
     }
 }
 
-/// [`frechet_distance`] from the centred features, when both sets have no more vectors than
+/// `Tr((Σ1 Σ2)^½)` from the covariances, through symmetric eigendecompositions (module docs).
+fn eigen_trace(a: &FeatureStats, b: &FeatureStats) -> Result<f64, PerceptualError> {
+    let d = a.dim;
+    let s1 = symmetrised(DMatrix::from_row_slice(d, d, &a.cov));
+    let s2 = symmetrised(DMatrix::from_row_slice(d, d, &b.cov));
+    let no_convergence = || PerceptualError::Stats {
+        field: "a",
+        reason: "cov: the symmetric eigensolver did not converge".into(),
+    };
+    let (l1, v1) = eigen_with_vectors(s1).ok_or_else(no_convergence)?;
+    // With Σ1^½ = V D Vᵀ (D = diag(√λ)), M = Σ1^½ Σ2 Σ1^½ = V (D Vᵀ Σ2 V D) Vᵀ has the
+    // eigenvalues of D (Vᵀ Σ2 V) D. Rows and columns where λ is zero are zero, so only the
+    // numerical range of Σ1 is kept (λ above d·ε·λ_max, numpy's matrix-rank threshold): exact
+    // up to round-off, cheaper, and it avoids nalgebra's QR returning infinite eigenvalues for
+    // a matrix that is mostly zero blocks (seen on the quickstart's 24 renders).
+    let l_max = l1.iter().copied().fold(0.0f64, f64::max);
+    let kept: Vec<usize> = (0..d)
+        .filter(|&i| l1[i] > l_max * d as f64 * f64::EPSILON)
+        .collect();
+    // Σ1 = 0 (every row the same) leaves nothing: the trace is 0.
+    if kept.is_empty() {
+        return Ok(0.0);
+    }
+    let v_kept = v1.select_columns(&kept);
+    let sqrt_l1: Vec<f64> = kept.iter().map(|&i| l1[i].sqrt()).collect();
+    let w = v_kept.transpose() * s2 * &v_kept;
+    let r = kept.len();
+    let m = symmetrised(DMatrix::from_fn(r, r, |i, j| {
+        sqrt_l1[i] * w[(i, j)] * sqrt_l1[j]
+    }));
+    let lm = eigenvalues(m).ok_or_else(no_convergence)?;
+    Ok(lm.iter().map(|l| l.max(0.0).sqrt()).sum())
+}
+
+/// `Tr((Σ1 Σ2)^½)` from the centred features, when both sets have no more vectors than
 /// dimensions: with `Σk = XkᵀXk / (nk − 1)`, the non-zero eigenvalues of `Σ1 Σ2` are those of
-/// `A Aᵀ / ((n1 − 1)(n2 − 1))` with `A = X1 X2ᵀ` (`n1 × n2`), so `Tr((Σ1 Σ2)^½)` is the sum of
-/// `A`'s singular values over `√((n1 − 1)(n2 − 1))`: exact, and `n1·n2·d` work instead of `d³`.
-fn low_rank_distance(
+/// `A Aᵀ / ((n1 − 1)(n2 − 1))` with `A = X1 X2ᵀ` (`n1 × n2`), so the trace is the sum of `A`'s
+/// singular values over `√((n1 − 1)(n2 − 1))`: exact, and `n1·n2·d` work instead of `d³`.
+fn low_rank_trace(
     a: &FeatureStats,
     b: &FeatureStats,
     x1: &[f64],
     x2: &[f64],
 ) -> Result<f64, PerceptualError> {
     let d = a.dim;
-    let bad = |field, what: &str| PerceptualError::Stats {
+    let bad = |field| PerceptualError::Stats {
         field,
-        reason: format!("centred has {what}"),
+        reason: "centred has the wrong length".into(),
     };
     if x1.len() != a.count * d {
-        return Err(bad("a", "the wrong length"));
+        return Err(bad("a"));
     }
     if x2.len() != b.count * d {
-        return Err(bad("b", "the wrong length"));
+        return Err(bad("b"));
     }
     let m1 = DMatrix::from_row_slice(a.count, d, x1);
     let m2 = DMatrix::from_row_slice(b.count, d, x2);
-    let cross = &m1 * m2.transpose();
     let norm = ((a.count as f64 - 1.0) * (b.count as f64 - 1.0)).sqrt();
-    let tr_covmean = cross.singular_values().iter().sum::<f64>() / norm;
-    let mean_term: f64 = a
-        .mean
-        .iter()
-        .zip(&b.mean)
-        .map(|(x, y)| (x - y) * (x - y))
-        .sum();
-    let trace = |s: &FeatureStats| (0..d).map(|i| s.cov[i * d + i]).sum::<f64>();
-    let fid = mean_term + trace(a) + trace(b) - 2.0 * tr_covmean;
-    if fid.is_finite() {
-        Ok(fid)
-    } else {
-        Err(PerceptualError::Stats {
-            field: "cov",
-            reason: format!("the Fréchet distance is not finite ({fid})"),
-        })
-    }
+    Ok((&m1 * m2.transpose()).singular_values().iter().sum::<f64>() / norm)
 }
 
 #[cfg(test)]

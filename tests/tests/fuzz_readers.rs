@@ -977,6 +977,43 @@ fn crc32(bytes: &[u8]) -> u32 {
 
 /// A stored (uncompressed) zip of `entries` (name, data, CRC of data), each data start
 /// aligned to 64 bytes by a padding extra field, as `torch.save` aligns it.
+/// The entries of a parsed zip: name, stored data and CRC-32.
+fn zip_entries<'a>(base: &'a [u8], zip: &'a ZipLayout) -> Vec<(&'a [u8], &'a [u8], u32)> {
+    zip.entries
+        .iter()
+        .map(|e| {
+            let data = &base[e.data..e.data + e.size];
+            (e.name.as_slice(), data, crc32(data))
+        })
+        .collect()
+}
+
+/// A zip case: an edit of entry `pickle_at`'s pickle or an exchange of two entries' data,
+/// re-zipped with right sizes and CRCs, or a splice of the original bytes.
+fn rezip(
+    base: &[u8],
+    entries: &[(&[u8], &[u8], u32)],
+    pickle_at: usize,
+    pickle: &[u8],
+    edit: &Edit,
+) -> Vec<u8> {
+    let mut entries = entries.to_vec();
+    match edit {
+        Edit::InZip(inner) => {
+            let changed = apply_splice(pickle, inner);
+            entries[pickle_at] = (entries[pickle_at].0, &changed, crc32(&changed));
+            write_zip(&entries)
+        }
+        Edit::SwapEntries(a, b) => {
+            let (da, db) = (entries[*a].1, entries[*b].1);
+            entries[*a] = (entries[*a].0, db, crc32(db));
+            entries[*b] = (entries[*b].0, da, crc32(da));
+            write_zip(&entries)
+        }
+        splice => apply_splice(base, splice),
+    }
+}
+
 fn write_zip(entries: &[(&[u8], &[u8], u32)]) -> Vec<u8> {
     let mut out = Vec::new();
     let mut central = Vec::new();
@@ -1413,33 +1450,10 @@ fn structured_containers_are_errors_not_panics() {
     let official = ReconstructorConfig::tiny(3);
     let base = std::fs::read(fixtures.join("official/demo-v2.pth")).unwrap();
     let zip = parse_zip(&base);
-    let entries: Vec<(&[u8], &[u8], u32)> = zip
-        .entries
-        .iter()
-        .map(|e| {
-            let data = &base[e.data..e.data + e.size];
-            (e.name.as_slice(), data, crc32(data))
-        })
-        .collect();
+    let entries = zip_entries(&base, &zip);
     assert!(entries[0].0.ends_with(b"data.pkl"), "data.pkl comes first");
     let pickle = entries[0].1.to_vec();
-    let rezip = |edit: &Edit| -> Vec<u8> {
-        let mut entries: Vec<(&[u8], &[u8], u32)> = entries.clone();
-        match edit {
-            Edit::InZip(inner) => {
-                let changed = apply_splice(&pickle, inner);
-                entries[0] = (entries[0].0, &changed, crc32(&changed));
-                write_zip(&entries)
-            }
-            Edit::SwapEntries(a, b) => {
-                let (da, db) = (entries[*a].1, entries[*b].1);
-                entries[*a] = (entries[*a].0, db, crc32(db));
-                entries[*b] = (entries[*b].0, da, crc32(da));
-                write_zip(&entries)
-            }
-            splice => apply_splice(&base, splice),
-        }
-    };
+    let rezipped = |edit: &Edit| rezip(&base, &entries, 0, &pickle, edit);
     // The re-zipped fixture reads as the fixture does, so a changed pickle is reached.
     let path = dir.join("structured.pth");
     std::fs::write(&path, write_zip(&entries)).unwrap();
@@ -1454,7 +1468,7 @@ fn structured_containers_are_errors_not_panics() {
         &all,
         150,
         &path,
-        rezip,
+        rezipped,
         |p| trained::load_any(p, &official, &device),
     ));
     let all: Vec<Case> = pickle_cases(&pickle, 37)
@@ -1469,7 +1483,7 @@ fn structured_containers_are_errors_not_panics() {
         &all,
         60,
         &path,
-        rezip,
+        rezipped,
         |p| trained::load_any(p, &official, &device),
     ));
 
@@ -1477,36 +1491,13 @@ fn structured_containers_are_errors_not_panics() {
     // `data.pkl` re-zipped so that the torch-dialect pickle is reached.
     let base = std::fs::read(fixtures.join("perceptual/tiny_script.pt")).unwrap();
     let zip = parse_zip(&base);
-    let entries: Vec<(&[u8], &[u8], u32)> = zip
-        .entries
-        .iter()
-        .map(|e| {
-            let data = &base[e.data..e.data + e.size];
-            (e.name.as_slice(), data, crc32(data))
-        })
-        .collect();
+    let entries = zip_entries(&base, &zip);
     let pkl = entries
         .iter()
         .position(|e| e.0.ends_with(b"/data.pkl"))
         .expect("a data.pkl entry");
     let pickle = entries[pkl].1.to_vec();
-    let rezip = |edit: &Edit| -> Vec<u8> {
-        let mut entries: Vec<(&[u8], &[u8], u32)> = entries.clone();
-        match edit {
-            Edit::InZip(inner) => {
-                let changed = apply_splice(&pickle, inner);
-                entries[pkl] = (entries[pkl].0, &changed, crc32(&changed));
-                write_zip(&entries)
-            }
-            Edit::SwapEntries(a, b) => {
-                let (da, db) = (entries[*a].1, entries[*b].1);
-                entries[*a] = (entries[*a].0, db, crc32(db));
-                entries[*b] = (entries[*b].0, da, crc32(da));
-                write_zip(&entries)
-            }
-            splice => apply_splice(&base, splice),
-        }
-    };
+    let rezipped = |edit: &Edit| rezip(&base, &entries, pkl, &pickle, edit);
     let path = dir.join("structured_script.pt");
     std::fs::write(&path, write_zip(&entries)).unwrap();
     let read = lifegom_data::pickle::torch_zip::load;
@@ -1518,7 +1509,7 @@ fn structured_containers_are_errors_not_panics() {
         &all,
         150,
         &path,
-        rezip,
+        rezipped,
         read,
     ));
     let all: Vec<Case> = pickle_cases(&pickle, 41)
@@ -1533,7 +1524,7 @@ fn structured_containers_are_errors_not_panics() {
         &all,
         300,
         &path,
-        rezip,
+        rezipped,
         read,
     ));
 
