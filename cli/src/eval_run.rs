@@ -27,6 +27,7 @@ use lifegom_eval::images::save_gif;
 use lifegom_eval::per_scene::{FitPoint, PerSceneFit, score_per_scene_fit};
 use lifegom_eval::perceptual_scores::{PerceptualOutcome, score_perceptual};
 use lifegom_eval::report::{Report, Summary, SweepRow, write_csvs};
+use lifegom_eval::validation::score_feedback_steps;
 use lifegom_train::fit::FitConfig;
 use lifegom_train::losses::LossWeights;
 
@@ -79,6 +80,9 @@ pub struct EvalOptions {
     pub weights_dir: PathBuf,
     /// Lines to put under the report heading (command line, machine).
     pub context: Vec<String>,
+    /// Also score every trained model after each feedback step `t = 1..T` (one more
+    /// reconstruction per subject; the report's "Every feedback step" table).
+    pub feedback_steps: bool,
 }
 
 /// Result of [`run`].
@@ -202,6 +206,39 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         report.other_models.push((name, summary));
     }
 
+    if opts.feedback_steps {
+        let subdivide = opts.subdivide.unwrap_or(config.subdivide_test);
+        let lpips = perceptual.lpips_alex();
+        let mut named = vec![("model".to_owned(), &model)];
+        let others = opts
+            .other_models
+            .iter()
+            .map(|p| {
+                Ok((
+                    p.display().to_string(),
+                    trained::load_any(p, &opts.official_network, &opts.device)?.model,
+                ))
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        named.extend(others.iter().map(|(n, m)| (n.clone(), m)));
+        for (name, m) in named {
+            let steps = score_feedback_steps(
+                m,
+                &dataset,
+                subdivide,
+                opts.max_subjects,
+                lpips,
+                &opts.device,
+            )?;
+            let psnr: Vec<String> = steps.iter().map(|s| format!("{:.2}", s.psnr)).collect();
+            eprintln!(
+                "        {name}: PSNR after each feedback step {}",
+                psnr.join(" / ")
+            );
+            report.feedback_steps.push((name, steps));
+        }
+    }
+
     let mut baselines = Vec::new();
     if opts.baseline {
         let subdivide = opts.subdivide.unwrap_or(config.subdivide_test);
@@ -279,6 +316,7 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         "baselines": baselines_json(&baselines),
         "sweep": sweep,
         "per_scene": per_scene,
+        "feedback_steps": report.feedback_steps,
         "checkpoint": opts.checkpoint.display().to_string(),
         "perceptual": perceptual.note().unwrap_or_else(|| "computed".into()),
     });

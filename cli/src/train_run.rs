@@ -6,13 +6,14 @@
 //! |---|---|
 //! | `config.toml` | the experiment config the run was started with |
 //! | `checkpoints/latest.lgck` | weights + optimiser + step, replaced atomically every `checkpoint_every` steps, at the end, on the time limit and on Ctrl-C |
-//! | `checkpoints/best.lgck` | the weights (no optimiser state: for evaluation and export) with the best validation PSNR at the last feedback step since the file appeared (its header's `meta.validation` says step and PSNR), replaced atomically when a validation beats it |
+//! | `checkpoints/best.lgck` | the weights (no optimiser state: for evaluation and export) with the best validation PSNR at the last feedback step (the mean over the validation split and the held-out set when both are scored) since the file appeared (its header's `meta.validation` says step and PSNR), replaced atomically when a validation beats it |
 //! | `metrics.jsonl` | one JSON object per logged step: losses, target PSNR, seconds, elapsed |
 //! | `snapshots/step_NNNNNNN.png` | target ground truth, last-iteration render, error map |
 //! | `loss_curve.png` | the logged losses against the step (written at every checkpoint) |
 //! | `validation.jsonl` | every `validate_every` steps: PSNR and SSIM of each feedback step `t` on the validation split |
 //! | `validation_baselines.json` | the same scores of the baselines that need no training (template in one colour, projective texturing) |
-//! | `validation_curve.png` | validation PSNR of each `t` against the step, with the baselines |
+//! | `validation_curve.png` | validation PSNR (and LPIPS-alex) of each `t` against the step, with the baselines |
+//! | `validation_baselines_held_out.json`, `validation_curve_held_out.png` | the same for the held-out set (design.md §8.11), when `[data] held_out_dir` names one; its scores are the `held_out` object of each `validation.jsonl` line |
 //!
 //! On `--resume` the loop restarts from `checkpoints/latest.lgck`, drops log lines past the
 //! checkpoint's step (they belong to work that was lost), and continues the same data schedule.
@@ -251,9 +252,32 @@ pub fn write_loss_curve(out: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The validation split and its baselines' scores, when `[train] validate_every` asks for it.
-struct Validation {
+/// A validation set the run scores: the generator's validation split, or the held-out set
+/// (design.md §8.11), whose scores go under `key` in each `validation.jsonl` line.
+struct ValidationSet {
+    /// `None` for the validation split (its scores at the top level of a line); `Some("held_out")`.
+    key: Option<&'static str>,
     dataset: Dataset,
+}
+
+impl ValidationSet {
+    /// The baselines' scores file of this set.
+    fn baselines_file(&self) -> String {
+        baselines_file(self.key)
+    }
+}
+
+/// `validation_baselines.json`, or `validation_baselines_<key>.json` for the held-out set.
+fn baselines_file(key: Option<&str>) -> String {
+    match key {
+        None => "validation_baselines.json".into(),
+        Some(k) => format!("validation_baselines_{k}.json"),
+    }
+}
+
+/// The validation sets and their baselines' scores, when `[train] validate_every` asks for it.
+struct Validation {
+    sets: Vec<ValidationSet>,
     subjects: usize,
     subdivide: u32,
     /// LPIPS-alex, when its weights are in the weights folder (`lifegom-weights fetch`).
@@ -261,23 +285,37 @@ struct Validation {
 }
 
 impl Validation {
-    /// Opens the validation split and scores the baselines once (they do not train); `None`
-    /// with a message when validation is off or the split is missing.
+    /// Opens the validation split (and the held-out set, when the config names one) and scores
+    /// the baselines once (they do not train); `None` with a message when validation is off or
+    /// the split is missing.
     fn open(cfg: &ExperimentConfig, subdivide: u32, out: &Path, device: &Device) -> Option<Self> {
         if cfg.train.validate_every == 0 {
             return None;
         }
-        let dataset = match Dataset::open(&cfg.file.data, Split::Val) {
-            Ok(d) if !d.is_empty() => d,
+        let open = |data: &lifegom_data::dataset::DataConfig, what: &str| match Dataset::open(
+            data,
+            Split::Val,
+        ) {
+            Ok(d) if !d.is_empty() => Some(d),
             Ok(_) => {
-                eprintln!("validation: the validation split is empty; no validation curves");
-                return None;
+                eprintln!("validation: the {what} is empty; no validation curves for it");
+                None
             }
             Err(e) => {
-                eprintln!("validation: {e}; no validation curves");
-                return None;
+                eprintln!("validation: {e}; no validation curves for the {what}");
+                None
             }
         };
+        let dataset = open(&cfg.file.data, "validation split")?;
+        let mut sets = vec![ValidationSet { key: None, dataset }];
+        if let Some(held) = cfg.file.data.held_out()
+            && let Some(dataset) = open(&held, "held-out set")
+        {
+            sets.push(ValidationSet {
+                key: Some(HELD_OUT),
+                dataset,
+            });
+        }
         let lpips_path = PerceptualModels::default_dir().join(LPIPS_ALEX_FILE);
         let lpips = if lpips_path.is_file() {
             match Lpips::load(LpipsNet::Alex, &lpips_path, device) {
@@ -291,11 +329,20 @@ impl Validation {
             None
         };
         let v = Self {
-            dataset,
+            sets,
             subjects: cfg.train.validate_subjects.max(1),
             subdivide,
             lpips,
         };
+        for set in &v.sets {
+            v.score_baselines(set, out, device);
+        }
+        Some(v)
+    }
+
+    /// Scores the no-learning baselines on `set` into its baselines file.
+    fn score_baselines(&self, set: &ValidationSet, out: &Path, device: &Device) {
+        let subdivide = self.subdivide;
         let mut baselines = serde_json::Map::new();
         for (name, method) in [
             (BASELINE_TEMPLATE, Method::TemplateBaseline { subdivide }),
@@ -310,15 +357,15 @@ impl Validation {
                 iterations: None,
                 save_predictions: false,
                 sheets: 0,
-                max_subjects: Some(v.subjects),
+                max_subjects: Some(self.subjects),
                 refine_steps: 0,
             };
-            match evaluate_split(&method, &v.dataset, &settings, device) {
+            match evaluate_split(&method, &set.dataset, &settings, device) {
                 Ok(s) => {
                     let psnr = mean_of(&s.views, |x| Some(x.psnr));
                     let ssim = mean_of(&s.views, |x| Some(x.ssim));
                     let mut entry = serde_json::json!({"psnr": psnr, "ssim": ssim});
-                    if let Some(net) = &v.lpips {
+                    if let Some(net) = &self.lpips {
                         match mean_lpips(net, &s.images.pred, &s.images.gt, device) {
                             Ok(d) => entry["lpips_alex"] = serde_json::json!(d),
                             Err(e) => eprintln!("validation: baseline {name}: LPIPS: {e}"),
@@ -329,7 +376,7 @@ impl Validation {
                 Err(e) => eprintln!("validation: baseline {name}: {e}"),
             }
         }
-        let path = out.join("validation_baselines.json");
+        let path = out.join(set.baselines_file());
         if let Err(e) = lifegom_render::atomic_file::write_atomic(
             &path,
             serde_json::to_string_pretty(&baselines)
@@ -338,50 +385,91 @@ impl Validation {
         ) {
             eprintln!("validation: writing {}: {e}", path.display());
         }
-        Some(v)
     }
 
-    /// Scores every feedback step of the trainer's current weights; one line of
+    /// Scores every feedback step of the trainer's current weights on every set; one line of
     /// `validation.jsonl`.
     fn run(&self, trainer: &Trainer, device: &Device) -> anyhow::Result<serde_json::Value> {
         let _span = tracing::info_span!("validation", step = trainer.step).entered();
         let model = trainer.model.valid();
-        let scores = score_feedback_steps(
-            &model,
-            &self.dataset,
-            self.subdivide,
-            Some(self.subjects),
-            self.lpips.as_ref(),
-            device,
-        )?;
-        let mut line = serde_json::json!({
-            "step": trainer.step,
-            "psnr": scores.iter().map(|s| s.psnr).collect::<Vec<_>>(),
-            "ssim": scores.iter().map(|s| s.ssim).collect::<Vec<_>>(),
-        });
-        if self.lpips.is_some() {
-            line["lpips_alex"] =
-                serde_json::json!(scores.iter().map(|s| s.lpips_alex).collect::<Vec<_>>());
+        let mut line = serde_json::json!({ "step": trainer.step });
+        for set in &self.sets {
+            let scores = score_feedback_steps(
+                &model,
+                &set.dataset,
+                self.subdivide,
+                Some(self.subjects),
+                self.lpips.as_ref(),
+                device,
+            )?;
+            let mut entry = serde_json::json!({
+                "psnr": scores.iter().map(|s| s.psnr).collect::<Vec<_>>(),
+                "ssim": scores.iter().map(|s| s.ssim).collect::<Vec<_>>(),
+            });
+            if self.lpips.is_some() {
+                entry["lpips_alex"] =
+                    serde_json::json!(scores.iter().map(|s| s.lpips_alex).collect::<Vec<_>>());
+            }
+            match set.key {
+                None => {
+                    for (k, v) in entry.as_object().into_iter().flatten() {
+                        line[k] = v.clone();
+                    }
+                }
+                Some(key) => line[key] = entry,
+            }
         }
         Ok(line)
     }
 }
 
-/// Draws `validation_curve.png` from `validation.jsonl` and `validation_baselines.json`.
+/// The key of the held-out set's scores in `validation.jsonl` (design.md §8.11).
+pub const HELD_OUT: &str = "held_out";
+
+/// The score a validation line is judged by for `best.lgck`: the final feedback step's PSNR,
+/// averaged over the validation split and the held-out set when both were scored, so the kept
+/// weights are the ones that do best on both kinds of people.
+fn selection_psnr(line: &serde_json::Value) -> Option<f64> {
+    let own = final_step_psnr(line)?;
+    Some(match final_step_psnr(&line[HELD_OUT]) {
+        Some(held) => 0.5 * (own + held),
+        None => own,
+    })
+}
+
+/// Draws `validation_curve.png` from `validation.jsonl` and `validation_baselines.json`, and
+/// `validation_curve_held_out.png` from the held-out set's scores when they were logged.
 pub fn write_validation_curve(out: &Path) -> anyhow::Result<()> {
     let lines = read_history(&out.join("validation.jsonl"), u64::MAX);
-    let baselines: serde_json::Value =
-        std::fs::read_to_string(out.join("validation_baselines.json"))
+    let held: Vec<serde_json::Value> = lines
+        .iter()
+        .filter_map(|v| {
+            let mut h = v.get(HELD_OUT)?.clone();
+            h["step"] = v["step"].clone();
+            Some(h)
+        })
+        .collect();
+    for (key, lines, file, people) in [
+        (None, &lines, "validation_curve.png", "unseen subjects"),
+        (
+            Some(HELD_OUT),
+            &held,
+            "validation_curve_held_out.png",
+            "held-out family",
+        ),
+    ] {
+        let baselines: serde_json::Value = std::fs::read_to_string(out.join(baselines_file(key)))
             .ok()
             .and_then(|t| serde_json::from_str(&t).ok())
             .unwrap_or_default();
-    let Some(psnr) = validation_chart(&lines, &baselines, "psnr") else {
-        return Ok(());
-    };
-    let path = out.join("validation_curve.png");
-    match validation_chart(&lines, &baselines, "lpips_alex") {
-        Some(lpips) => render_panels(&[psnr, lpips], 1280, 420).save_png_and_svg(&path)?,
-        None => psnr.render(720, 420).save_png_and_svg(&path)?,
+        let Some(psnr) = validation_chart(lines, &baselines, "psnr", people) else {
+            continue;
+        };
+        let path = out.join(file);
+        match validation_chart(lines, &baselines, "lpips_alex", people) {
+            Some(lpips) => render_panels(&[psnr, lpips], 1280, 420).save_png_and_svg(&path)?,
+            None => psnr.render(720, 420).save_png_and_svg(&path)?,
+        }
     }
     Ok(())
 }
@@ -392,6 +480,7 @@ fn validation_chart(
     lines: &[serde_json::Value],
     baselines: &serde_json::Value,
     key: &str,
+    people: &str,
 ) -> Option<Chart> {
     let t_max = lines
         .iter()
@@ -430,16 +519,16 @@ fn validation_chart(
     }
     let (title, y_label) = match key {
         "psnr" => (
-            "validation PSNR per feedback step (unseen subjects)",
+            format!("validation PSNR per feedback step ({people})"),
             "PSNR (dB, higher is better)",
         ),
         _ => (
-            "validation LPIPS-alex per feedback step",
+            format!("validation LPIPS-alex per feedback step ({people})"),
             "LPIPS-alex (lower is better)",
         ),
     };
     Some(Chart {
-        title: title.into(),
+        title,
         x_label: "training step".into(),
         y_label: y_label.into(),
         x_scale: Scale::Linear,
@@ -790,7 +879,7 @@ pub fn train_with(
             writeln!(val_log, "{line}")?;
             val_log.flush()?;
             write_validation_curve(&opts.out)?;
-            if let Some(psnr) = final_step_psnr(&line)
+            if let Some(psnr) = selection_psnr(&line)
                 && psnr > best_psnr
             {
                 let mut best_meta = meta.clone();

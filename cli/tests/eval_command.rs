@@ -42,6 +42,7 @@ fn eval_on_a_tiny_split_writes_every_file() {
         refine_steps: 0,
         weights_dir: tmp.join("no-weights"),
         context: vec!["test".into()],
+        feedback_steps: true,
     })
     .unwrap();
 
@@ -98,6 +99,21 @@ fn eval_on_a_tiny_split_writes_every_file() {
     assert!(report.contains(WEIGHTS_MISSING), "{report}");
     assert!(report.contains("template, one colour") && report.contains("projective texturing"));
     assert!(report.contains("What accuracy costs in time"));
+    // Every feedback step of the one reconstruction; its last is the model's own score.
+    assert!(
+        report.contains("Every feedback step") && report.contains("t = 2"),
+        "{report}"
+    );
+    let summary_json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let steps = summary_json["feedback_steps"][0][1].as_array().unwrap();
+    assert_eq!(steps.len(), 2);
+    let last = steps[1]["psnr"].as_f64().unwrap();
+    assert!(
+        (last - outcome.summary.psnr).abs() < 1e-3,
+        "{last} vs {}",
+        outcome.summary.psnr
+    );
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert!((summary["model"]["psnr"].as_f64().unwrap() - outcome.summary.psnr).abs() < 1e-9);

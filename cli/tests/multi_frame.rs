@@ -123,6 +123,7 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
         refine_steps: 0,
         weights_dir: tmp.join("no-weights"),
         context: vec!["test".into()],
+        feedback_steps: false,
     })
     .unwrap();
     // One validation sequence: frames 0-4 are the inputs, its 2 targets are scored.

@@ -109,9 +109,31 @@ pub struct DataConfig {
     /// official pipeline).
     #[serde(default)]
     pub resize: ResizeMode,
+    /// Folder of a second validation set, of people the training data does not resemble
+    /// (design.md §8.11; the synthetic generator's held-out family). Validated and reported
+    /// beside `val_dir` wherever that is, when set together with `held_out_split`.
+    #[serde(default)]
+    pub held_out_dir: Option<PathBuf>,
+    /// Split file of the held-out set.
+    #[serde(default)]
+    pub held_out_split: Option<PathBuf>,
 }
 
 impl DataConfig {
+    /// The held-out validation set as a config whose validation split is it (so every reader
+    /// of `Split::Val` reads it unchanged), or `None` when the config names none.
+    pub fn held_out(&self) -> Option<Self> {
+        let (dir, split) = (self.held_out_dir.clone()?, self.held_out_split.clone()?);
+        Some(Self {
+            val_dir: dir,
+            val_split: split,
+            val_subjects: None,
+            held_out_dir: None,
+            held_out_split: None,
+            ..self.clone()
+        })
+    }
+
     /// The subject folder and split file of `split`.
     pub fn split_paths(&self, split: Split) -> (PathBuf, PathBuf) {
         match split {
@@ -132,6 +154,12 @@ impl DataConfig {
             location: Box::new(Location::file(source).field(format!("data.{field}"))),
             reason,
         };
+        if self.held_out_dir.is_some() != self.held_out_split.is_some() {
+            return Err(bad(
+                "held_out_dir",
+                "held_out_dir and held_out_split go together: set both or neither".into(),
+            ));
+        }
         if self.img_size.contains(&0) {
             return Err(bad(
                 "img_size",

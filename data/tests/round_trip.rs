@@ -620,3 +620,101 @@ fn a_subject_written_at_four_times_the_size_shrinks_to_the_supersampled_render()
         );
     }
 }
+
+/// The held-out family (design.md §8.11) is written at `held_out_scale` times the size into its
+/// own folder and split file, and reads back through the validation rules at the config's size;
+/// its people are not the validation split's.
+#[test]
+fn held_out_subjects_are_written_large_and_read_at_the_configs_size() {
+    let dir = std::env::temp_dir().join(format!("lifegom-held-out-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut cfg = tiny_config().with_root(&dir);
+    cfg.data.held_out_dir = Some("held_out".into());
+    cfg.data.held_out_split = Some("held_out.json".into());
+    let s = synth::SynthConfig {
+        train_subjects: 0,
+        val_subjects: 1,
+        held_out_subjects: 2,
+        ..cfg.synthetic.clone().unwrap()
+    };
+    s.validate(&cfg.data, Path::new("tiny.toml")).unwrap();
+    let summary = synth::generate_split(&s, &cfg.data, &dir, s.seed, &|| {}).unwrap();
+    assert_eq!(summary.held_out, ["held_000", "held_001"]);
+    let png = image::open(dir.join("held_out/held_000/images/frame_000000.png")).unwrap();
+    assert_eq!(png.width(), 4 * s.image_size);
+
+    let held = cfg.data.held_out().unwrap();
+    let set = Dataset::open(&held, Split::Val).unwrap();
+    assert_eq!(set.subjects.len(), 2);
+    let mut rng = Rng::new(0);
+    let sample = set.sample(0, &mut rng).unwrap();
+    let [w, h] = cfg.data.img_size;
+    assert!(
+        sample
+            .views
+            .iter()
+            .all(|v| v.rgb.len() == (w * h * 3) as usize)
+    );
+    // Every view sees the person: the shrunk mask covers a few percent of the image.
+    for v in &sample.views {
+        let cover = v.mask.iter().sum::<f32>() / v.mask.len() as f32;
+        assert!((0.02..0.6).contains(&cover), "mask cover {cover}");
+    }
+    let val = Dataset::open(&cfg.data, Split::Val).unwrap();
+    let other = val.sample(0, &mut Rng::new(0)).unwrap();
+    assert_ne!(other.views[0].rgb, sample.views[0].rgb);
+
+    // Half a pair is one clear error naming the field.
+    let mut half = cfg.data.clone();
+    half.held_out_split = None;
+    let err = half
+        .validate(Path::new("tiny.toml"))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("held_out_dir"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The stream's variety (design.md §8.11) draws a camera distance and a light per subject from
+/// a fork of its own: the person, pose and camera azimuths stay the ones drawn without it.
+#[test]
+fn stream_variety_moves_the_camera_and_the_light_but_keeps_the_person() {
+    let s = tiny_config().synthetic.unwrap();
+    let template = lifegom_render::template::BodyTemplate::load(s.template.path()).unwrap();
+    let varied = synth::SynthConfig {
+        camera_radius_range: Some([2.5, 2.5]),
+        shading: synth::Shading::RandomLight,
+        ..s.clone()
+    };
+    let a = synth::generate_subject(&template, &s, 7, 1, "x", Some(3)).unwrap();
+    let b = synth::generate_subject(&template, &varied, 7, 1, "x", Some(3)).unwrap();
+    assert_eq!(a.est_joints, b.est_joints);
+    for (fa, fb) in a.frames.iter().zip(&b.frames) {
+        assert_eq!(fa.body, fb.body);
+        let distance = |f: &synth::RenderedFrame| {
+            let c = f.camera.cam_from_world;
+            (Vec3::from(c.inverse().translation) - synth::LOOK_AT).length()
+        };
+        assert!((distance(fa) - 2.0).abs() < 1e-3 && (distance(fb) - 2.5).abs() < 1e-3);
+        // Farther: the person covers less of the picture; shaded: other colours.
+        let cover = |f: &synth::RenderedFrame| f.mask.iter().map(|&m| u64::from(m)).sum::<u64>();
+        assert!(cover(fb) < cover(fa));
+    }
+    let albedo = synth::SynthConfig {
+        camera_radius_range: Some([2.5, 2.5]),
+        ..s.clone()
+    };
+    let c = synth::generate_subject(&template, &albedo, 7, 1, "x", Some(3)).unwrap();
+    assert_eq!(c.frames[0].mask, b.frames[0].mask);
+    assert_ne!(c.frames[0].rgb, b.frames[0].rgb);
+    let bad = synth::SynthConfig {
+        camera_radius_range: Some([3.0, 2.0]),
+        ..s
+    };
+    let cfg = tiny_config();
+    let err = bad
+        .validate(&cfg.data, Path::new("tiny.toml"))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("camera_radius_range"), "{err}");
+}

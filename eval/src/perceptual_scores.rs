@@ -54,6 +54,11 @@ pub fn load_models(dir: &Path, device: &Device) -> Models {
 }
 
 impl Models {
+    /// LPIPS-alex, when its weights were found.
+    pub fn lpips_alex(&self) -> Option<&Lpips> {
+        self.models.as_ref()?.lpips_alex.as_ref()
+    }
+
     /// The note for the report when something is missing.
     pub fn note(&self) -> Option<String> {
         self.problem

@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 use crate::evaluate::{SplitScores, ViewScore, mean_of, per_subject};
 use crate::per_scene::FitPoint;
 use crate::plot::{Chart, PALETTE, Scale, Series, Style, render_panels};
+use crate::validation::StepScore;
 
 /// The line printed and written when perceptual weights are absent.
 pub const WEIGHTS_MISSING: &str =
@@ -173,6 +174,8 @@ pub struct Report {
     pub sweep: Vec<SweepRow>,
     /// The per-scene optimisation baseline after K gradient steps (same axes as the sweep).
     pub per_scene: Vec<FitPoint>,
+    /// Each trained model's scores after every feedback step `t = 1..T` (name, scores).
+    pub feedback_steps: Vec<(String, Vec<StepScore>)>,
 }
 
 fn table_row(name: &str, s: &Summary) -> String {
@@ -224,6 +227,27 @@ impl Report {
                 if s.fid.is_some() {
                     let _ = writeln!(md, "\n{FID_NOTE}");
                 }
+            }
+        }
+        if let Some((_, first)) = self.feedback_steps.first() {
+            md.push_str("\n## Every feedback step\n\nThe same targets scored after each feedback step t of one reconstruction (PSNR / SSIM / LPIPS*-alex).\n\n|");
+            for s in first {
+                let _ = write!(md, " | t = {}", s.t);
+            }
+            md.push_str(" | t = T − t = 1 (dB) |\n|---|");
+            md.push_str(&"---|".repeat(first.len() + 1));
+            md.push('\n');
+            for (name, steps) in &self.feedback_steps {
+                let _ = write!(md, "| {name}");
+                for s in steps {
+                    let lpips = opt(s.lpips_alex.map(|x| x * 1000.0), 1);
+                    let _ = write!(md, " | {:.2} / {:.4} / {lpips}", s.psnr, s.ssim);
+                }
+                let gain = match (steps.first(), steps.last()) {
+                    (Some(a), Some(b)) => format!("{:+.2}", b.psnr - a.psnr),
+                    _ => "—".into(),
+                };
+                let _ = writeln!(md, " | {gain} |");
             }
         }
         if let Some(first) = self.sweep.first() {

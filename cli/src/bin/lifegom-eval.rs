@@ -94,9 +94,17 @@ struct Args {
     /// Folder with converted LPIPS/Inception weights (default: $LIFEGOM_WEIGHTS or weights/).
     #[arg(long)]
     weights: Option<PathBuf>,
+    /// Score every trained model after each feedback step t = 1..T too.
+    #[arg(long)]
+    feedback_steps: bool,
+    /// Evaluate the config's held-out set (`[data] held_out_dir`, design.md §8.11) instead of
+    /// its validation split.
+    #[arg(long)]
+    held_out: bool,
 }
 
 fn main() -> anyhow::Result<()> {
+    use anyhow::Context as _;
     lifegom_cli::allocator::keep_freed_memory();
     lifegom_cli::init_tracing();
     let args = Args::parse();
@@ -107,7 +115,15 @@ fn main() -> anyhow::Result<()> {
         experiment = experiment.with_root(root);
     }
     let official_network = experiment.reconstructor();
-    let cfg = experiment.file;
+    let mut cfg = experiment.file;
+    if args.held_out {
+        cfg.data = cfg.data.held_out().with_context(|| {
+            format!(
+                "{}: --held-out needs a held-out set: [data] held_out_dir and held_out_split",
+                args.config.display()
+            )
+        })?;
+    }
     let command: Vec<String> = std::env::args().collect();
     let outcome = run(&EvalOptions {
         data: cfg.data,
@@ -134,6 +150,7 @@ fn main() -> anyhow::Result<()> {
             .clone()
             .unwrap_or_else(PerceptualModels::default_dir),
         context: vec![format!("`{}` on {}", command.join(" "), args.device.name())],
+        feedback_steps: args.feedback_steps,
     })?;
     println!(
         "{}",

@@ -31,6 +31,10 @@ struct Args {
     /// subjects: ring views 0, 4, 8, 12, or four times spread over a sequence) to this PNG.
     #[arg(long)]
     contact_sheet: Option<PathBuf>,
+    /// Also write a contact sheet of the held-out subjects (design.md §8.11; up to 8, every
+    /// view, images then masks) to this PNG.
+    #[arg(long)]
+    held_out_sheet: Option<PathBuf>,
     /// Also write the first validation subject in the custom JSON layout (`subject.json` and
     /// its pictures) to this folder: the worked example of docs/custom-data.md.
     #[arg(long)]
@@ -49,7 +53,12 @@ fn main() -> anyhow::Result<()> {
         );
     };
     let seed = args.seed.unwrap_or(synth_cfg.seed);
-    let total = (synth_cfg.train_subjects + synth_cfg.val_subjects) as u64;
+    let held_out = if cfg.data.held_out().is_some() {
+        synth_cfg.held_out_subjects
+    } else {
+        0
+    };
+    let total = (synth_cfg.train_subjects + synth_cfg.val_subjects + held_out) as u64;
     let bar = ProgressBar::new(total).with_style(
         ProgressStyle::with_template(
             "{elapsed_precise} [{bar:40}] {pos}/{len} subjects, eta {eta}",
@@ -60,9 +69,10 @@ fn main() -> anyhow::Result<()> {
     let summary = synth::generate_split(&synth_cfg, &cfg.data, &args.out, seed, &|| bar.inc(1))?;
     bar.finish();
     eprintln!(
-        "wrote {} train + {} val subjects, {} frames, to {} in {:.1} s",
+        "wrote {} train + {} val + {} held-out subjects, {} frames, to {} in {:.1} s",
         summary.train.len(),
         summary.val.len(),
+        summary.held_out.len(),
         summary.frames,
         args.out.display(),
         start.elapsed().as_secs_f64()
@@ -80,6 +90,15 @@ fn main() -> anyhow::Result<()> {
         lifegom_render::atomic_file::write_png(&path, &rgb, w, h, image::ExtendedColorType::Rgb8)
             .with_context(|| format!("writing {}", path.display()))?;
         eprintln!("contact sheet: {}", path.display());
+    }
+    if let (Some(path), Some(held)) = (args.held_out_sheet, cfg.data.held_out()) {
+        let dir = args.out.join(&held.val_dir);
+        let subjects: Vec<String> = summary.held_out.iter().take(8).cloned().collect();
+        let views: Vec<usize> = (0..cfg.data.n_input_frames + synth_cfg.val_target_views).collect();
+        let (w, h, rgb) = synth::contact_sheet(&dir, &subjects, &views)?;
+        lifegom_render::atomic_file::write_png(&path, &rgb, w, h, image::ExtendedColorType::Rgb8)
+            .with_context(|| format!("writing {}", path.display()))?;
+        eprintln!("held-out contact sheet: {}", path.display());
     }
     if let Some(dir) = args.json_example {
         let Some(first) = summary.val.first() else {

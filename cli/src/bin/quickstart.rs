@@ -16,7 +16,10 @@
 //!    target views beside the no-learning baselines (one colour, projective texturing) and the
 //!    per-scene optimisation after K gradient steps; renders comparison sheets, a free-view
 //!    turntable and three procedural motions, or `--motion` files (novel views and poses);
-//! 5. writes `<out>/report.md` with the table and the pictures, and one JSON line.
+//! 5. scores the same models and baselines on the held-out family (design.md §8.11: people the
+//!    training stream never produces, written at 4× and shrunk by the loader) into
+//!    `<out>/held_out/report.md`, with per-scene optimisation up to K = 100;
+//! 6. writes `<out>/report.md` with the table and the pictures, and one JSON line.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -68,6 +71,10 @@ struct Args {
     /// Per-scene optimisation baseline: score after each of these step counts (`0`: skip).
     #[arg(long, value_delimiter = ',', default_value = "10,30")]
     per_scene: Vec<usize>,
+    /// The same on the held-out set (design.md §8.11), where the model is measured against
+    /// 100 steps of per-scene optimisation.
+    #[arg(long, value_delimiter = ',', default_value = "10,30,100")]
+    held_out_per_scene: Vec<usize>,
     /// Subjects the per-scene optimisation fits (default: all, as the model).
     #[arg(long)]
     per_scene_subjects: Option<usize>,
@@ -101,7 +108,11 @@ fn main() -> anyhow::Result<()> {
     };
     let cfg = ExperimentConfig::load(&args.config)?;
     let (val_dir, val_split) = cfg.file.data.split_paths(Split::Val);
-    if val_split.exists() {
+    let held_out = cfg.file.data.held_out();
+    let held_out_missing = held_out
+        .as_ref()
+        .is_some_and(|h| !h.split_paths(Split::Val).1.exists());
+    if val_split.exists() && !held_out_missing {
         stage(
             1,
             format!("using the validation subjects in {}", val_dir.display()),
@@ -116,8 +127,9 @@ fn main() -> anyhow::Result<()> {
         stage(
             1,
             format!(
-                "generating {} validation subjects into {}",
+                "generating {} validation and {} held-out subjects into {}",
                 synth_cfg.val_subjects,
+                synth_cfg.held_out_subjects,
                 cfg.file.data.root.display()
             ),
         );
@@ -128,7 +140,12 @@ fn main() -> anyhow::Result<()> {
             synth_cfg.seed,
             &|| {},
         )?;
-        eprintln!("        {} subjects, {} frames", s.val.len(), s.frames);
+        eprintln!(
+            "        {} + {} subjects, {} frames",
+            s.val.len(),
+            s.held_out.len(),
+            s.frames
+        );
     }
 
     let weights_dir = PerceptualModels::default_dir();
@@ -198,9 +215,33 @@ fn main() -> anyhow::Result<()> {
         4,
         "reconstructing the validation subjects, scoring them beside the baselines, rendering novel views and poses".into(),
     );
+    let other_models: Vec<PathBuf> = args
+        .compare
+        .iter()
+        .filter(|p| !p.is_empty())
+        .map(PathBuf::from)
+        .filter(|p| {
+            let found = p.exists();
+            if !found {
+                eprintln!("--compare: {} not found; not scored", p.display());
+            }
+            found
+        })
+        .collect();
+    let command = format!(
+        "`cargo run --release -p lifegom-cli --bin quickstart` on {} ({} threads available)",
+        args.device.name(),
+        std::thread::available_parallelism().map_or(0, |n| n.get())
+    );
+    let mut context = vec![command.clone(), format!("model: {trained_how}")];
+    if held_out.is_some() {
+        context.push(
+            "the same models and baselines on people the training stream never produces (design.md §8.11): [held_out/report.md](held_out/report.md)".into(),
+        );
+    }
     let outcome = run_eval(&EvalOptions {
         data: cfg.file.data.clone(),
-        checkpoint,
+        checkpoint: checkpoint.clone(),
         official_network: cfg.reconstructor(),
         out: args.out.clone(),
         device: args.device.device(),
@@ -213,33 +254,60 @@ fn main() -> anyhow::Result<()> {
         sweep_sizes: vec![],
         sweep_subjects: None,
         baseline: true,
-        other_models: args
-            .compare
-            .iter()
-            .filter(|p| !p.is_empty())
-            .map(PathBuf::from)
-            .filter(|p| {
-                let found = p.exists();
-                if !found {
-                    eprintln!("--compare: {} not found; not scored", p.display());
-                }
-                found
-            })
-            .collect(),
+        other_models: other_models.clone(),
         per_scene: args.per_scene.iter().copied().filter(|&k| k > 0).collect(),
         per_scene_subjects: args.per_scene_subjects,
         max_subjects: None,
         refine_steps: args.refine_steps,
-        weights_dir,
-        context: vec![
-            format!(
-                "`cargo run --release -p lifegom-cli --bin quickstart` on {} ({} threads available)",
-                args.device.name(),
-                std::thread::available_parallelism().map_or(0, |n| n.get())
-            ),
-            format!("model: {trained_how}"),
-        ],
+        weights_dir: weights_dir.clone(),
+        context,
+        feedback_steps: true,
     })?;
+    let held_out_json = match held_out {
+        Some(data) => {
+            stage(
+                4,
+                "the held-out family: people, garments, prints, light and camera distances the training stream never produces".into(),
+            );
+            let h = run_eval(&EvalOptions {
+                data,
+                checkpoint: checkpoint.clone(),
+                official_network: cfg.reconstructor(),
+                out: args.out.join("held_out"),
+                device: args.device.device(),
+                subdivide: None,
+                iterations: None,
+                sheets: 8,
+                freeview_frames: 0,
+                motions: vec![],
+                sweep: false,
+                sweep_sizes: vec![],
+                sweep_subjects: None,
+                baseline: true,
+                other_models,
+                per_scene: args.held_out_per_scene.iter().copied().filter(|&k| k > 0).collect(),
+                per_scene_subjects: args.per_scene_subjects,
+                max_subjects: None,
+                refine_steps: args.refine_steps,
+                weights_dir,
+                context: vec![
+                    command,
+                    format!("model: {trained_how}"),
+                    "held-out family (design.md §8.11): written at 4× the size and shrunk by the loader".into(),
+                ],
+                feedback_steps: true,
+            })?;
+            serde_json::json!({
+                "report": h.report.display().to_string(),
+                "psnr": h.summary.psnr,
+                "ssim": h.summary.ssim,
+                "lpips_alex_x1000": h.summary.lpips_alex_x1000,
+                "baselines": lifegom_cli::eval_run::baselines_json(&h.baselines),
+                "per_scene": h.per_scene,
+            })
+        }
+        None => serde_json::Value::Null,
+    };
     stage(5, format!("report written to {}", outcome.report.display()));
     let s = &outcome.summary;
     println!(
@@ -256,6 +324,7 @@ fn main() -> anyhow::Result<()> {
             "fid_images": s.fid_images,
             "recon_ms": s.recon_ms,
             "render_ms": s.render_ms,
+            "held_out": held_out_json,
             "total_minutes": started.elapsed().as_secs_f64() / 60.0,
         })
     );

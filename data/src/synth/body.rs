@@ -112,6 +112,15 @@ pub enum Bottom {
     Shorts,
     /// A flared skirt to about the knee.
     Skirt,
+    /// A skirt to the ankles (held out of training: design.md §8.11).
+    LongSkirt,
+}
+
+impl Bottom {
+    /// A skirt of either length: part of the legs' skin, so leg swings stay small.
+    pub fn is_skirt(self) -> bool {
+        matches!(self, Self::Skirt | Self::LongSkirt)
+    }
 }
 
 /// A sampled outfit.
@@ -156,6 +165,39 @@ impl Outfit {
             bottom_offset: rng.range(0.004, 0.02) as f32,
             skirt_flare: rng.range(1.2, 2.5) as f32,
             hair_volume: rng.range(0.008, 0.035) as f32,
+        }
+    }
+
+    /// An outfit of the held-out family (design.md §8.11), outside every range [`Outfit::sample`]
+    /// draws from: ankle-length skirts or wide trousers, a loose top standing off the body
+    /// (3.5–6 cm against 0.6–3 cm), voluminous long hair in dyed colours, and plaid, diagonal
+    /// or ramp prints; half of them a dress (top and skirt of one cloth).
+    pub fn held_out(rng: &mut Rng) -> Self {
+        let sleeves = [Sleeves::None, Sleeves::Short, Sleeves::Long][rng.below(3)];
+        let bottom = [Bottom::LongSkirt, Bottom::Trousers][rng.below(2)];
+        let shoes = Material::solid([0.5, 0.45, 0.4].map(|c: f32| c + rng.range(-0.3, 0.4) as f32));
+        let top = Material::held_out_cloth(rng);
+        let dress = bottom == Bottom::LongSkirt && rng.uniform() < 0.5;
+        let legs = if dress {
+            top
+        } else {
+            Material::held_out_cloth(rng)
+        };
+        Self {
+            sleeves,
+            bottom,
+            long_hair: true,
+            materials: [
+                Material::random_skin(rng),
+                Material::held_out_hair(rng),
+                top,
+                legs,
+                shoes,
+            ],
+            top_offset: rng.range(0.035, 0.06) as f32,
+            bottom_offset: rng.range(0.025, 0.045) as f32,
+            skirt_flare: rng.range(0.6, 1.2) as f32,
+            hair_volume: rng.range(0.04, 0.065) as f32,
         }
     }
 }
@@ -265,6 +307,8 @@ pub fn surfaces(
                 Part::Shin => match outfit.bottom {
                     Bottom::Trousers => Surface::Bottom,
                     Bottom::Skirt if v.y > lm.knee_y + 0.02 => Surface::Bottom,
+                    // To just above the ankle.
+                    Bottom::LongSkirt if v.y > 0.2 * lm.knee_y => Surface::Bottom,
                     _ => Surface::Skin,
                 },
                 Part::Foot => Surface::Shoes,
@@ -289,7 +333,7 @@ pub fn clothe(
         .zip(surfaces)
         .map(|((&v, &n), s)| match s {
             Surface::Top => v + n * outfit.top_offset,
-            Surface::Bottom if outfit.bottom == Bottom::Skirt && v.y < lm.hip_y => {
+            Surface::Bottom if outfit.bottom.is_skirt() && v.y < lm.hip_y => {
                 let depth = lm.hip_y - v.y;
                 let radial = Vec3::new(v.x - lm.axis.x, 0.0, v.z - lm.axis.z);
                 v + radial * (outfit.skirt_flare * depth) + n * outfit.bottom_offset
@@ -328,11 +372,7 @@ pub fn random_pose(skeleton: &Skeleton, outfit: &Outfit, rng: &mut Rng) -> BodyP
         );
         set(&format!("wrist.{side}"), Vec3::new(u(0.3), u(0.3), u(0.3)));
     }
-    let leg_swing = if outfit.bottom == Bottom::Skirt {
-        0.12
-    } else {
-        0.3
-    };
+    let leg_swing = if outfit.bottom.is_skirt() { 0.12 } else { 0.3 };
     for (side, s) in [("L", 1.0f32), ("R", -1.0)] {
         set(
             &format!("upperleg01.{side}"),
@@ -371,6 +411,29 @@ mod tests {
             "{bottoms:?} {sleeves:?}"
         );
         assert!(hair.iter().all(|&n| n > 60), "{hair:?}");
+    }
+
+    #[test]
+    fn held_out_outfits_lie_outside_the_streams_ranges() {
+        let root = Rng::new(12);
+        let (mut skirts, mut dresses) = (0, 0);
+        for i in 0..300 {
+            let s = Outfit::sample(&mut root.fork(i));
+            assert!(
+                s.bottom != Bottom::LongSkirt && s.top_offset <= 0.03 && s.hair_volume <= 0.035
+            );
+            let h = Outfit::held_out(&mut root.fork(1000 + i));
+            assert!(h.bottom != Bottom::Skirt && h.bottom != Bottom::Shorts && h.long_hair);
+            assert!(h.top_offset >= 0.035 && h.bottom_offset >= 0.025 && h.hair_volume >= 0.04);
+            skirts += usize::from(h.bottom == Bottom::LongSkirt);
+            dresses += usize::from(
+                h.materials[Surface::Top as usize] == h.materials[Surface::Bottom as usize],
+            );
+        }
+        assert!(
+            skirts > 100 && skirts < 200 && dresses > 30,
+            "{skirts} {dresses}"
+        );
     }
 
     #[test]

@@ -116,6 +116,9 @@ pub enum Shading {
     Albedo,
     /// Albedo × (ambient + diffuse) with one directional light fixed to the world.
     Lambert,
+    /// Lambert under a light drawn per subject (any azimuth, 25–80° above the horizon) with an
+    /// ambient share of 0.3–0.6: the stream's lighting variety (design.md §8.11).
+    RandomLight,
 }
 
 /// What kind of split the generator writes (design.md §8.7, §8.10).
@@ -158,6 +161,10 @@ pub struct SynthConfig {
     /// Camera distance to the look-at point, metres.
     #[serde(default = "default_radius")]
     pub camera_radius: f32,
+    /// When set, each subject's camera distance is drawn uniformly from `[near, far]` metres
+    /// instead of `camera_radius` (the stream's distance variety, design.md §8.11).
+    #[serde(default)]
+    pub camera_radius_range: Option<[f32; 2]>,
     /// Camera pitch, degrees (negative looks down).
     #[serde(default = "default_pitch")]
     pub camera_pitch_deg: f32,
@@ -183,9 +190,41 @@ pub struct SynthConfig {
     /// (each person turns by a random angle within ±this, so the one camera sees more sides).
     #[serde(default = "default_max_turn")]
     pub max_turn_deg: f32,
+    /// Variety only the training stream draws (`[synthetic.stream_variety]`, design.md §8.11);
+    /// the split written to disk ignores it, so the validation people stay the same.
+    #[serde(default)]
+    pub stream_variety: Option<StreamVariety>,
+    /// Subjects of the held-out family written to `[data] held_out_dir` (design.md §8.11):
+    /// garments, prints, hair, lighting and camera distances the training stream never draws.
+    #[serde(default)]
+    pub held_out_subjects: usize,
+    /// The held-out subjects are written this many times larger than `image_size` (one sample
+    /// per pixel), so the loader shrinks them as it shrinks anyone's photos.
+    #[serde(default = "default_held_out_scale")]
+    pub held_out_scale: u32,
     /// Base seed (`--seed` overrides it).
     #[serde(default)]
     pub seed: u64,
+}
+
+/// How the training stream's subjects vary beyond the written split's (design.md §8.11).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StreamVariety {
+    /// Each subject's camera distance, drawn uniformly from `[near, far]` metres.
+    pub camera_radius: [f32; 2],
+    /// The subjects' look.
+    pub shading: Shading,
+}
+
+/// Which people a subject is drawn from (design.md §8.11).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Family {
+    /// The training stream's people (and the validation subjects drawn like them).
+    Stream,
+    /// People the stream never produces: held-out garments, prints, hair, lighting and camera
+    /// distances, for a validation set the training data does not resemble.
+    HeldOut,
 }
 
 fn default_source_views() -> usize {
@@ -223,6 +262,9 @@ fn default_sequence_frames() -> usize {
 }
 fn default_max_turn() -> f32 {
     180.0
+}
+fn default_held_out_scale() -> u32 {
+    4
 }
 
 /// Heights (metres, T-pose) accepted when sampling shapes.
@@ -279,6 +321,35 @@ impl SynthConfig {
                     self.supersample
                 ),
             ));
+        }
+        if self.held_out_subjects > MAX_SUBJECTS {
+            return Err(bad(
+                "held_out_subjects",
+                format!(
+                    "must be at most {MAX_SUBJECTS}, got {}",
+                    self.held_out_subjects
+                ),
+            ));
+        }
+        if self.held_out_subjects > 0 {
+            if data.held_out().is_none() {
+                return Err(bad(
+                    "held_out_subjects",
+                    "held-out subjects need a folder and a split file: set [data] held_out_dir and held_out_split".into(),
+                ));
+            }
+            let side = u64::from(self.image_size) * u64::from(self.held_out_scale);
+            if self.held_out_scale == 0 || side > u64::from(crate::dataset::MAX_IMAGE_SIDE) {
+                return Err(bad(
+                    "held_out_scale",
+                    format!(
+                        "image_size × held_out_scale must be in 1..={} pixels a side, got {} × {}",
+                        crate::dataset::MAX_IMAGE_SIDE,
+                        self.image_size,
+                        self.held_out_scale
+                    ),
+                ));
+            }
         }
         if self.setting == SynthSetting::MultiFrame {
             return self.validate_multi_frame(data, source);
@@ -354,6 +425,22 @@ impl SynthConfig {
                 format!("must be > 0.3 m, got {}", self.camera_radius),
             ));
         }
+        for (field, range) in [
+            ("camera_radius_range", self.camera_radius_range),
+            (
+                "stream_variety.camera_radius",
+                self.stream_variety.map(|v| v.camera_radius),
+            ),
+        ] {
+            if let Some([near, far]) = range
+                && !(near > 0.3 && near.is_finite() && far.is_finite() && near <= far)
+            {
+                return Err(bad(
+                    field,
+                    format!("must be [near, far] with 0.3 < near <= far, got [{near}, {far}]"),
+                ));
+            }
+        }
         if !(self.focal_factor > 0.0 && self.focal_factor.is_finite()) {
             return Err(bad(
                 "focal_factor",
@@ -406,6 +493,38 @@ impl SynthConfig {
         };
         let (train, val) = names.split_at(self.train_subjects);
         (train.to_vec(), val.to_vec())
+    }
+
+    /// The settings the training stream draws its subjects with: these, with the stream's
+    /// variety (when configured) in place of the camera distance and look.
+    pub fn for_stream(&self) -> Self {
+        match self.stream_variety {
+            Some(v) => Self {
+                camera_radius_range: Some(v.camera_radius),
+                shading: v.shading,
+                stream_variety: None,
+                ..self.clone()
+            },
+            None => self.clone(),
+        }
+    }
+
+    /// Folder names of the held-out subjects: `held_000`, `held_001`, ...
+    pub fn held_out_names(&self) -> Vec<String> {
+        (0..self.held_out_subjects)
+            .map(|i| format!("held_{i:03}"))
+            .collect()
+    }
+
+    /// The settings a held-out subject is rendered with: `held_out_scale` times the size, one
+    /// sample per pixel (the loader's anti-aliased shrink is the supersampling), shaded.
+    fn held_out_render(&self) -> Self {
+        Self {
+            image_size: self.image_size * self.held_out_scale,
+            supersample: 1,
+            shading: Shading::Lambert,
+            ..self.clone()
+        }
     }
 
     /// Frames of one training subject: the camera ring and its targets (multi-view), or the
@@ -556,6 +675,9 @@ struct Scene<'a> {
     surfaces: Vec<Surface>,
     faces: &'a [[u32; 3]],
     outfit: Outfit,
+    /// Direction towards the light, world space, and the ambient share (shaded looks only).
+    light: Vec3,
+    ambient: f32,
 }
 
 impl Scene<'_> {
@@ -573,7 +695,7 @@ impl Scene<'_> {
             cy: camera.intrinsics.cy * s,
         };
         let frags = raster::rasterize(&self.world, self.faces, &hi);
-        let light = Vec3::new(0.3, 1.0, 0.5).normalize();
+        let light = self.light;
         let mut acc = vec![[0f32; 4]; w * h];
         let hw = hi.width as usize;
         for (p, frag) in frags.iter().enumerate() {
@@ -587,9 +709,9 @@ impl Scene<'_> {
             let corner = (0..3).max_by(|&x, &y| b[x].total_cmp(&b[y])).unwrap_or(0);
             let surface = self.surfaces[face[corner] as usize];
             let mut c = self.outfit.materials[surface as usize].albedo(interp(&self.canonical));
-            if shading == Shading::Lambert {
+            if shading != Shading::Albedo {
                 let n = interp(&self.normals).normalize_or_zero();
-                let lit = 0.35 + 0.65 * n.dot(light).max(0.0);
+                let lit = self.ambient + (1.0 - self.ambient) * n.dot(light).max(0.0);
                 c = c.map(|v| v * lit);
             }
             let (x, y) = ((p % hw) / ss as usize, (p / hw) / ss as usize);
@@ -631,13 +753,30 @@ struct Person {
     outfit: Outfit,
     est_joints: Vec<Vec3>,
     est_vertices: Vec<Vec3>,
+    /// Direction towards the light (world space) and the ambient share, when shaded.
+    light: Vec3,
+    ambient: f32,
+}
+
+/// The stream's light: fixed to the world, from above, front and side.
+const STREAM_LIGHT: Vec3 = Vec3::new(0.3, 1.0, 0.5);
+/// The ambient share of Lambert shading under a fixed light.
+const STREAM_AMBIENT: f32 = 0.35;
+
+/// A light direction at any azimuth and an elevation drawn from `elevation` (degrees).
+fn random_light(rng: &mut Rng, elevation: (f64, f64)) -> Vec3 {
+    let az = rng.uniform() as f32 * std::f32::consts::TAU;
+    let el = (rng.range(elevation.0, elevation.1) as f32).to_radians();
+    Vec3::new(az.sin() * el.cos(), el.sin(), az.cos() * el.cos())
 }
 
 impl Person {
-    /// Draws the person from `rng` (shape, estimated shape, outfit, in that order).
+    /// Draws the person from `rng` (shape, estimated shape, outfit, in that order; the
+    /// held-out family then its light).
     fn sample(
         template: &BodyTemplate,
         cfg: &SynthConfig,
+        family: Family,
         name: &str,
         rng: &mut Rng,
     ) -> Result<Self> {
@@ -687,7 +826,14 @@ impl Person {
             .with_rest_joints(joints.clone())
             .map_err(|e| DataError::render(at("skeleton"), e))?;
 
-        let outfit = Outfit::sample(rng);
+        let (outfit, light) = match family {
+            Family::Stream => (Outfit::sample(rng), STREAM_LIGHT.normalize()),
+            Family::HeldOut => {
+                let outfit = Outfit::held_out(rng);
+                // Any azimuth, 15–70° above the horizon.
+                (outfit, random_light(rng, (15.0, 70.0)))
+            }
+        };
         let dominant: Vec<usize> = template
             .skin
             .joints
@@ -709,6 +855,8 @@ impl Person {
             outfit,
             est_joints,
             est_vertices,
+            light,
+            ambient: STREAM_AMBIENT,
         })
     }
 
@@ -744,6 +892,8 @@ impl Person {
             surfaces: self.surfaces.clone(),
             faces,
             outfit: self.outfit.clone(),
+            light: self.light,
+            ambient: self.ambient,
         };
         let body = FrameBody {
             poses: pose.to_flat(),
@@ -766,8 +916,63 @@ pub fn generate_subject_frames(
     val_inputs: Option<usize>,
     only: Option<&[usize]>,
 ) -> Result<SyntheticSubject> {
-    let mut rng = Rng::new(seed).fork(index as u64);
-    let person = Person::sample(template, cfg, name, &mut rng)?;
+    let rng = Rng::new(seed).fork(index as u64);
+    // The variety draws come from a fork of their own, so a config without variety draws the
+    // same people as before it existed.
+    let mut variety = rng.fork(STREAM_VARIETY);
+    let cfg = SynthConfig {
+        camera_radius: match cfg.camera_radius_range {
+            Some([near, far]) => variety.range(f64::from(near), f64::from(far)) as f32,
+            None => cfg.camera_radius,
+        },
+        ..cfg.clone()
+    };
+    let mut rng = rng;
+    let mut person = Person::sample(template, &cfg, Family::Stream, name, &mut rng)?;
+    if cfg.shading == Shading::RandomLight {
+        person.light = random_light(&mut variety, (25.0, 80.0));
+        person.ambient = variety.range(0.3, 0.6) as f32;
+    }
+    subject_from(template, &cfg, person, rng, name, val_inputs, only)
+}
+
+/// Fork key of a stream subject's drawn camera distance and light (design.md §8.11).
+const STREAM_VARIETY: u64 = 0x5641_5249_4554_5900;
+
+/// Fork key of the held-out family's subjects (design.md §8.11), kept apart from the split's.
+const HELD_OUT_SUBJECTS: u64 = 0x4845_4c44_4f55_5400;
+
+/// Held-out subject `index` (design.md §8.11) in the validation layout with `n_inputs` inputs:
+/// a person of [`Family::HeldOut`], rendered at `held_out_scale` times `image_size`, Lambert
+/// shaded under its own light, the camera ring at a distance of 1.7–2.7 m (the stream's is
+/// `camera_radius`).
+pub fn generate_held_out_subject(
+    template: &BodyTemplate,
+    cfg: &SynthConfig,
+    seed: u64,
+    index: usize,
+    name: &str,
+    n_inputs: usize,
+) -> Result<SyntheticSubject> {
+    let mut rng = Rng::new(seed).fork(HELD_OUT_SUBJECTS).fork(index as u64);
+    let render = SynthConfig {
+        camera_radius: rng.range(1.7, 2.7) as f32,
+        ..cfg.held_out_render()
+    };
+    let person = Person::sample(template, &render, Family::HeldOut, name, &mut rng)?;
+    subject_from(template, &render, person, rng, name, Some(n_inputs), None)
+}
+
+/// The frames of `person`, with the pose, cameras and so on drawn from `rng`.
+fn subject_from(
+    template: &BodyTemplate,
+    cfg: &SynthConfig,
+    person: Person,
+    mut rng: Rng,
+    name: &str,
+    val_inputs: Option<usize>,
+    only: Option<&[usize]>,
+) -> Result<SyntheticSubject> {
     let frames = match cfg.setting {
         SynthSetting::MultiView => {
             multi_view_frames(template, cfg, &person, name, val_inputs, only, &mut rng)?
@@ -855,7 +1060,7 @@ impl SequenceMotion {
         })?;
         let motion = Motion::ALL[rng.below(Motion::ALL.len())];
         // A skirt is part of the legs' skin: wide leg swings would tear it.
-        let skirt = if person.outfit.bottom == body::Bottom::Skirt {
+        let skirt = if person.outfit.bottom.is_skirt() {
             0.5
         } else {
             1.0
@@ -1086,6 +1291,8 @@ pub struct SplitSummary {
     pub train: Vec<String>,
     /// Validation subject names.
     pub val: Vec<String>,
+    /// Held-out subject names (design.md §8.11).
+    pub held_out: Vec<String>,
     /// Frames written.
     pub frames: usize,
 }
@@ -1104,7 +1311,7 @@ pub fn generate_split(
     let (train_names, val_names) = cfg.subject_names();
     let names: Vec<String> = train_names.iter().chain(&val_names).cloned().collect();
     let n = data.n_input_frames;
-    let frames = names
+    let frames: usize = names
         .par_iter()
         .enumerate()
         .map(|(i, name)| {
@@ -1131,6 +1338,7 @@ pub fn generate_split(
         lifegom_render::atomic_file::write_atomic(&path, text.as_bytes())
             .map_err(|e| DataError::write(Location::file(&path), e))
     };
+    let frames = frames + generate_held_out_split(&template, cfg, data, out, seed, progress)?;
     write_json(out.join(&data.train_split), serde_json::json!(train))?;
     // A config whose validation subjects are listed in `[data] val_subjects` may share one
     // split file with training (as the AIST++ experiment does): it holds the training list.
@@ -1146,8 +1354,61 @@ pub fn generate_split(
     Ok(SplitSummary {
         train: train.to_vec(),
         val: val.to_vec(),
+        held_out: if data.held_out().is_some() {
+            cfg.held_out_names()
+        } else {
+            Vec::new()
+        },
         frames,
     })
+}
+
+/// Writes the held-out subjects (design.md §8.11) into `data.held_out_dir` with their split
+/// file; returns the frames written (none when the config asks for none).
+fn generate_held_out_split(
+    template: &BodyTemplate,
+    cfg: &SynthConfig,
+    data: &DataConfig,
+    out: &Path,
+    seed: u64,
+    progress: &(dyn Fn() + Sync),
+) -> Result<usize> {
+    let Some(held) = data.held_out().filter(|_| cfg.held_out_subjects > 0) else {
+        return Ok(0);
+    };
+    let names = cfg.held_out_names();
+    let dir = out.join(&held.val_dir);
+    let n = data.n_input_frames;
+    let frames: usize = names
+        .par_iter()
+        .enumerate()
+        .map(|(i, name)| {
+            let subject = generate_held_out_subject(template, cfg, seed, i, name, n)?;
+            write_subject(template, &subject, &dir)?;
+            progress();
+            Ok(subject.frames.len())
+        })
+        .collect::<Result<Vec<_>>>()?
+        .iter()
+        .sum();
+    let path = out.join(&held.val_split);
+    if let Some(parent) = path.parent() {
+        std::fs::create_dir_all(parent).map_err(|e| DataError::io(Location::file(parent), e))?;
+    }
+    let meta: Vec<serde_json::Value> = names
+        .iter()
+        .map(|s| serde_json::json!({"scene": s, "input_frames": (0..n).collect::<Vec<_>>(), "output_frame": n}))
+        .collect();
+    let meta_path = out.join(format!("{}_meta.json", held.val_dir.display()));
+    for (path, value) in [
+        (path, serde_json::json!(names)),
+        (meta_path, serde_json::json!(meta)),
+    ] {
+        let text = serde_json::to_string_pretty(&value).unwrap_or_default();
+        lifegom_render::atomic_file::write_atomic(&path, text.as_bytes())
+            .map_err(|e| DataError::write(Location::file(&path), e))?;
+    }
+    Ok(frames)
 }
 
 /// A contact sheet of generated subjects: per subject, `views` images then their masks, in one

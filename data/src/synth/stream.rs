@@ -64,7 +64,7 @@ impl SubjectStream {
     pub fn with_template(template: BodyTemplate, synth: &SynthConfig, data: &DataConfig) -> Self {
         Self {
             template,
-            synth: synth.clone(),
+            synth: synth.for_stream(),
             rule: FrameRule {
                 protocol: data.protocol,
                 split: Split::Train,
@@ -202,12 +202,16 @@ mod tests {
             target_views: 48,
             val_target_views: 3,
             camera_radius: 2.0,
+            camera_radius_range: None,
+            stream_variety: None,
             camera_pitch_deg: -8.0,
             focal_factor: 0.8,
             shape_estimate: ShapeEstimate::Noisy,
             shape_noise: 0.2,
             shading: Shading::Albedo,
             supersample: 1,
+            held_out_subjects: 0,
+            held_out_scale: 4,
             seed: 0,
         };
         let data = DataConfig {
@@ -224,6 +228,8 @@ mod tests {
             train_background: Background::Random,
             test_background: Background::Fixed([0, 0, 0]),
             resize: ResizeMode::default(),
+            held_out_dir: None,
+            held_out_split: None,
         };
         (synth, data)
     }

@@ -2,7 +2,9 @@
 //! point, so a pattern sticks to the body when it moves and needs no UV map (the low-res
 //! template has none).
 //!
-//! Patterns: solid, horizontal stripes, 3D checks, value noise, and "prints" (a dot lattice).
+//! Patterns: solid, horizontal stripes, 3D checks, value noise, and "prints" (a dot lattice) for
+//! the training stream; plaid, diagonal stripes and colour ramps only for the held-out family
+//! ([`Material::held_out_cloth`], design.md §8.11), which no training subject wears.
 //! Colours are linear `[0, 1]` RGB, written to PNG as they are (albedo is the default look).
 
 use glam::Vec3;
@@ -38,6 +40,22 @@ pub enum Pattern {
         period: f32,
         /// Dot radius, metres.
         radius: f32,
+    },
+    /// Two crossed sets of bands (vertical and around the body): three tones (held out).
+    Plaid {
+        /// Band period, metres.
+        period: f32,
+    },
+    /// Bands running diagonally across the body, `period` metres apart (held out).
+    Diagonal {
+        /// Band period, metres.
+        period: f32,
+    },
+    /// A smooth ramp from one colour to the other and back over `length` metres of height
+    /// (held out).
+    Ramp {
+        /// Half period, metres.
+        length: f32,
     },
 }
 
@@ -90,6 +108,22 @@ impl Material {
                     0.0
                 }
             }
+            Pattern::Plaid { period } => {
+                let band = |x: f32| f32::from(u8::from((x / period).rem_euclid(1.0) < 0.35));
+                0.5 * (band(p.y) + band(p.x + p.z))
+            }
+            Pattern::Diagonal { period } => {
+                if ((p.y + p.x) / period).rem_euclid(1.0) < 0.5 {
+                    0.0
+                } else {
+                    1.0
+                }
+            }
+            Pattern::Ramp { length } => {
+                // A triangle wave: 0 → 1 over `length`, back to 0 over the next.
+                let u = (p.y / length).rem_euclid(2.0);
+                if u < 1.0 { u } else { 2.0 - u }
+            }
         };
         std::array::from_fn(|i| self.base[i] * (1.0 - t) + self.accent[i] * t)
     }
@@ -126,6 +160,53 @@ impl Material {
             base,
             accent,
             pattern,
+        }
+    }
+
+    /// A held-out garment material (design.md §8.11): plaid, diagonal stripes or a colour ramp,
+    /// patterns the stream's [`Material::random_cloth`] never draws.
+    pub fn held_out_cloth(rng: &mut Rng) -> Self {
+        let base = random_colour(rng);
+        let mut accent = random_colour(rng);
+        if (0..3).map(|i| (base[i] - accent[i]).abs()).sum::<f32>() < 0.4 {
+            accent = base.map(|c| 1.0 - c);
+        }
+        let pattern = match rng.below(3) {
+            0 => Pattern::Plaid {
+                period: rng.range(0.05, 0.12) as f32,
+            },
+            1 => Pattern::Diagonal {
+                period: rng.range(0.04, 0.1) as f32,
+            },
+            _ => Pattern::Ramp {
+                length: rng.range(0.15, 0.4) as f32,
+            },
+        };
+        Self {
+            base,
+            accent,
+            pattern,
+        }
+    }
+
+    /// Held-out hair: dyed colours (blue, pink, green, platinum, violet) the stream's
+    /// [`Material::random_hair`] never draws, with coarser strands.
+    pub fn held_out_hair(rng: &mut Rng) -> Self {
+        const DYED: [[f32; 3]; 5] = [
+            [0.15, 0.25, 0.7],
+            [0.85, 0.4, 0.6],
+            [0.2, 0.55, 0.3],
+            [0.9, 0.88, 0.8],
+            [0.45, 0.2, 0.6],
+        ];
+        let base = DYED[rng.below(DYED.len())];
+        Self {
+            base,
+            accent: base.map(|c| c * 0.6),
+            pattern: Pattern::Noise {
+                scale: 0.02,
+                seed: rng.next_u64() as u32,
+            },
         }
     }
 
@@ -247,6 +328,27 @@ mod tests {
             patterned > 20 && varied * 10 >= patterned * 8,
             "{varied}/{patterned}"
         );
+    }
+
+    #[test]
+    fn held_out_patterns_are_never_drawn_by_the_stream_and_vary() {
+        let held_out = |m: &Material| {
+            matches!(
+                m.pattern,
+                Pattern::Plaid { .. } | Pattern::Diagonal { .. } | Pattern::Ramp { .. }
+            )
+        };
+        let mut rng = Rng::new(9);
+        for _ in 0..300 {
+            assert!(!held_out(&Material::random_cloth(&mut rng)));
+            let m = Material::held_out_cloth(&mut rng);
+            assert!(held_out(&m), "{m:?}");
+            let values: Vec<[f32; 3]> = (0..200)
+                .map(|k| m.albedo(Vec3::new(k as f32 * 0.011, k as f32 * 0.009, 0.02)))
+                .collect();
+            assert!(values.iter().flatten().all(|c| (0.0..=1.0).contains(c)));
+            assert!(values.iter().any(|a| a != &values[0]), "{m:?}");
+        }
     }
 
     #[test]
