@@ -431,3 +431,50 @@ fn a_second_process_on_a_run_folder_in_use_stops_at_once() {
     );
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// With a held-out set (design.md §8.11) the run validates on it beside the validation split:
+/// each `validation.jsonl` line carries its scores per feedback step, its baselines and curve
+/// are written, and `best.lgck` is judged by the mean of both sets' final PSNR.
+#[test]
+fn a_held_out_set_is_validated_beside_the_validation_split() {
+    let _serial = serial();
+    let root = out_dir("held-out-data");
+    let mut cfg = experiment().with_root(&root);
+    cfg.file.data.held_out_dir = Some("held_out".into());
+    cfg.file.data.held_out_split = Some("held_out.json".into());
+    let s = synth::SynthConfig {
+        held_out_subjects: 1,
+        ..cfg.file.synthetic.clone().unwrap()
+    };
+    synth::generate_split(&s, &cfg.file.data, &root, s.seed, &|| {}).unwrap();
+    cfg.train.validate_every = 1;
+    cfg.train.validate_subjects = 1;
+    let out = out_dir("held-out");
+    train(&cfg, &run_options(out.clone(), 2, false), never()).unwrap();
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(out.join("validation.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 2);
+    let t = cfg.reconstructor().iterations;
+    let finals = |v: &serde_json::Value| {
+        let own = v["psnr"].as_array().unwrap();
+        let held = v["held_out"]["psnr"].as_array().unwrap();
+        assert_eq!((own.len(), held.len()), (t, t), "{v}");
+        let last = |a: &[serde_json::Value]| a.last().unwrap().as_f64().unwrap();
+        0.5 * (last(own) + last(held))
+    };
+    let best = lines.iter().map(finals).fold(f64::NEG_INFINITY, f64::max);
+    for file in [
+        "validation_baselines_held_out.json",
+        "validation_curve_held_out.png",
+        "validation_curve.png",
+    ] {
+        assert!(out.join(file).is_file(), "{file} missing");
+    }
+    let header =
+        lifegom_model::trained::read_header(&lifegom_cli::train_run::best_checkpoint(&out))
+            .unwrap();
+    assert_eq!(header.meta["validation"]["psnr"].as_f64(), Some(best));
+}
