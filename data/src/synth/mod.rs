@@ -944,8 +944,8 @@ const HELD_OUT_SUBJECTS: u64 = 0x4845_4c44_4f55_5400;
 
 /// Held-out subject `index` (design.md §8.11) in the validation layout with `n_inputs` inputs:
 /// a person of [`Family::HeldOut`], rendered at `held_out_scale` times `image_size`, Lambert
-/// shaded under its own light, the camera ring at a distance of 1.7–2.7 m (the stream's is
-/// `camera_radius`).
+/// shaded under its own light, the cameras at 0.85–1.35 times `camera_radius` (1.7–2.7 m for
+/// the THuman ring).
 pub fn generate_held_out_subject(
     template: &BodyTemplate,
     cfg: &SynthConfig,
@@ -956,7 +956,8 @@ pub fn generate_held_out_subject(
 ) -> Result<SyntheticSubject> {
     let mut rng = Rng::new(seed).fork(HELD_OUT_SUBJECTS).fork(index as u64);
     let render = SynthConfig {
-        camera_radius: rng.range(1.7, 2.7) as f32,
+        // 0.85–1.35 times the split's distance: 1.7–2.7 m for the THuman ring's 2 m.
+        camera_radius: (f64::from(cfg.camera_radius) * rng.range(0.85, 1.35)) as f32,
         ..cfg.held_out_render()
     };
     let person = Person::sample(template, &render, Family::HeldOut, name, &mut rng)?;
