@@ -707,6 +707,21 @@ fn stream_variety_moves_the_camera_and_the_light_but_keeps_the_person() {
     let c = synth::generate_subject(&template, &albedo, 7, 1, "x", Some(3)).unwrap();
     assert_eq!(c.frames[0].mask, b.frames[0].mask);
     assert_ne!(c.frames[0].rgb, b.frames[0].rgb);
+    // `[synthetic.stream_variety]` draws the same for its share of the subjects and nothing
+    // for the others.
+    let stream = |share: f32| synth::SynthConfig {
+        stream_variety: Some(synth::StreamVariety {
+            camera_radius: [2.5, 2.5],
+            shading: synth::Shading::RandomLight,
+            share,
+        }),
+        ..s.clone()
+    };
+    let all = synth::generate_subject(&template, &stream(1.0), 7, 1, "x", Some(3)).unwrap();
+    let none = synth::generate_subject(&template, &stream(0.0), 7, 1, "x", Some(3)).unwrap();
+    assert_eq!(all.frames[0].mask, b.frames[0].mask);
+    assert_ne!(all.frames[0].rgb, a.frames[0].rgb);
+    assert_eq!(none.frames[0].rgb, a.frames[0].rgb);
     let bad = synth::SynthConfig {
         camera_radius_range: Some([3.0, 2.0]),
         ..s

@@ -215,6 +215,14 @@ pub struct StreamVariety {
     pub camera_radius: [f32; 2],
     /// The subjects' look.
     pub shading: Shading,
+    /// The share of subjects drawn with this variety; the others are drawn as the split's
+    /// (so the stream keeps the people its validation split shows).
+    #[serde(default = "default_share")]
+    pub share: f32,
+}
+
+fn default_share() -> f32 {
+    1.0
 }
 
 /// Which people a subject is drawn from (design.md §8.11).
@@ -441,6 +449,14 @@ impl SynthConfig {
                 ));
             }
         }
+        if let Some(v) = self.stream_variety
+            && !(0.0..=1.0).contains(&v.share)
+        {
+            return Err(bad(
+                "stream_variety.share",
+                format!("must be in 0..=1, got {}", v.share),
+            ));
+        }
         if !(self.focal_factor > 0.0 && self.focal_factor.is_finite()) {
             return Err(bad(
                 "focal_factor",
@@ -493,20 +509,6 @@ impl SynthConfig {
         };
         let (train, val) = names.split_at(self.train_subjects);
         (train.to_vec(), val.to_vec())
-    }
-
-    /// The settings the training stream draws its subjects with: these, with the stream's
-    /// variety (when configured) in place of the camera distance and look.
-    pub fn for_stream(&self) -> Self {
-        match self.stream_variety {
-            Some(v) => Self {
-                camera_radius_range: Some(v.camera_radius),
-                shading: v.shading,
-                stream_variety: None,
-                ..self.clone()
-            },
-            None => self.clone(),
-        }
     }
 
     /// Folder names of the held-out subjects: `held_000`, `held_001`, ...
@@ -920,11 +922,18 @@ pub fn generate_subject_frames(
     // The variety draws come from a fork of their own, so a config without variety draws the
     // same people as before it existed.
     let mut variety = rng.fork(STREAM_VARIETY);
+    // The stream's variety, for its share of the subjects (the written split has none).
+    let (range, shading) = match cfg.stream_variety {
+        Some(v) if variety.uniform() < f64::from(v.share) => (Some(v.camera_radius), v.shading),
+        _ => (cfg.camera_radius_range, cfg.shading),
+    };
     let cfg = SynthConfig {
-        camera_radius: match cfg.camera_radius_range {
+        camera_radius: match range {
             Some([near, far]) => variety.range(f64::from(near), f64::from(far)) as f32,
             None => cfg.camera_radius,
         },
+        shading,
+        stream_variety: None,
         ..cfg.clone()
     };
     let mut rng = rng;
@@ -1309,6 +1318,11 @@ pub fn generate_split(
 ) -> Result<SplitSummary> {
     let template = BodyTemplate::load(cfg.template.path())
         .map_err(|e| DataError::render(Location::file(cfg.template.path()), e))?;
+    // The stream's variety is the stream's: the split on disk is drawn without it.
+    let cfg = &SynthConfig {
+        stream_variety: None,
+        ..cfg.clone()
+    };
     let (train_names, val_names) = cfg.subject_names();
     let names: Vec<String> = train_names.iter().chain(&val_names).cloned().collect();
     let n = data.n_input_frames;

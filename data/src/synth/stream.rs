@@ -64,7 +64,7 @@ impl SubjectStream {
     pub fn with_template(template: BodyTemplate, synth: &SynthConfig, data: &DataConfig) -> Self {
         Self {
             template,
-            synth: synth.for_stream(),
+            synth: synth.clone(),
             rule: FrameRule {
                 protocol: data.protocol,
                 split: Split::Train,
