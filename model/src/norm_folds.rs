@@ -23,9 +23,9 @@ use burn::tensor::{Device, Tensor};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::split::join_columns;
 
-use crate::activation::Activation;
-use crate::activation::relu;
-use crate::shared_linear::SharedLinear;
+use lifegom_ops::activation::Activation;
+use lifegom_ops::activation::relu;
+use lifegom_ops::shared_linear::SharedLinear;
 
 /// Anything a reconstruction keeps under a layer's address and a name ([`NormFolds::keep`]).
 type KeptValue = Box<dyn Any>;
@@ -160,8 +160,8 @@ impl<'a> NormFolds<'a> {
     ) -> Tensor<D> {
         match (&linear.bias, activation) {
             (Some(_), _) => self.shared_layer(linear).forward_with(x, activation),
-            (None, Activation::Identity) => crate::linear_op::forward(linear, x),
-            (None, Activation::Relu) => relu(crate::linear_op::forward(linear, x)),
+            (None, Activation::Identity) => lifegom_ops::linear_op::forward(linear, x),
+            (None, Activation::Relu) => relu(lifegom_ops::linear_op::forward(linear, x)),
         }
     }
 
@@ -177,7 +177,7 @@ impl<'a> NormFolds<'a> {
         if let Some(found) = self.affine.borrow().get(&key) {
             return found.clone();
         }
-        let (scale, shift) = crate::frozen_affine::frozen_affine(bn, device);
+        let (scale, shift) = lifegom_ops::frozen_affine::frozen_affine(bn, device);
         self.affine
             .borrow_mut()
             .insert(key, (scale.clone(), shift.clone()));

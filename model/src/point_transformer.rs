@@ -85,20 +85,20 @@
 //! import. (The official code's ScanNet-pretrained initialisation skips `enc1.0.linear.weight`,
 //! whose input width differs; design.md §11.2.)
 
-use crate::activation::Activation;
-use crate::activation::relu;
-use crate::handoff::Handoff;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
 use burn::tensor::{Device, Int, Tensor, TensorData};
+use lifegom_ops::activation::Activation;
+use lifegom_ops::activation::relu;
+use lifegom_ops::handoff::Handoff;
 use lifegom_render::device::runs_on_host;
 use lifegom_render::readback::{self, ReadbackError};
 
 use crate::knn::{Neighbours, farthest_point_sampling, knn};
-use crate::linear_op;
 pub use crate::norm_folds::NormFolds;
-use crate::vector_attention;
+use lifegom_ops::linear_op;
+use lifegom_ops::vector_attention;
 use lifegom_render::select::select_rows;
 
 /// Weight-sharing groups must divide every width; this is the paper's value.
@@ -274,7 +274,7 @@ fn bn_last<'a, const D: usize>(
 /// `[rows, out]` activations it saves the BN's multiply and add (and their backward), and runs a
 /// bias-free layer through the Linear op too ([`linear_op`]); on CubeCL devices the activation
 /// is in the product's launch
-/// ([`SharedLinear::forward_with`](crate::shared_linear::SharedLinear::forward_with)). Equal to
+/// ([`SharedLinear::forward_with`](lifegom_ops::shared_linear::SharedLinear::forward_with)). Equal to
 /// `bn_last(bn, linear.forward(x))` up to float summation order (tested below).
 fn linear_bn<'a, const D: usize>(
     folds: &NormFolds<'a>,
@@ -490,7 +490,7 @@ impl PointTransformer {
     /// On the CPU backends each level's positions are gathered from the previous level's and
     /// the offsets from them. On devices every level's points are kept as rows of the input
     /// points, and each offset table is one op over the input positions
-    /// ([`crate::grouping::relative_positions`]): the same values, in fewer launches.
+    /// ([`lifegom_ops::grouping::relative_positions`]): the same values, in fewer launches.
     fn levels(&self, positions: Tensor<2>, plan: HostHierarchy) -> Vec<Level> {
         let device = positions.device();
         let on_host = runs_on_host(&device);
@@ -509,13 +509,13 @@ impl PointTransformer {
                         .collect()
                 };
                 let centres: Vec<i64> = query.1.iter().map(|&r| i64::from(r)).collect();
-                let table = crate::grouping::GroupTable::new(
+                let table = lifegom_ops::grouping::GroupTable::new(
                     &input(&nb.indices),
                     &centres,
                     positions.dims()[0],
                     &device,
                 );
-                let rel = crate::grouping::relative_positions(positions.clone(), &table);
+                let rel = lifegom_ops::grouping::relative_positions(positions.clone(), &table);
                 (index_tensor(&nb.indices, &device), rel)
             }
         };
@@ -723,7 +723,7 @@ impl TransitionDown {
             lifegom_render::split::join_columns(vec![rel, grouped]),
             Activation::Relu,
         );
-        crate::neighbour_max::max_over_neighbours(h)
+        lifegom_ops::neighbour_max::max_over_neighbours(h)
     }
 }
 
@@ -766,7 +766,7 @@ impl PointTransformerBlock {
         nbr: Tensor<1, Int>,
     ) -> Tensor<2> {
         let identity = x.clone();
-        // The residual's gradient is added in `linear1`'s `∂x` launch (`crate::handoff`).
+        // The residual's gradient is added in `linear1`'s `∂x` launch (`lifegom_ops::handoff`).
         let skip = Handoff::new();
         let h = folds
             .shared_fold(&self.linear1, &self.bn1, &x.device())
@@ -981,7 +981,7 @@ impl PointTransformerLayer {
 /// Inverse-distance weights of the 3 nearest coarse points of every fine point.
 struct Interpolation {
     /// `[n_fine·3]` indices into the coarse level, and their inverse.
-    table: crate::interpolation::NeighbourTable,
+    table: lifegom_ops::interpolation::NeighbourTable,
     /// `[n_fine, 3]` normalised weights (no gradient, like the reference's).
     weights: Tensor<2>,
 }
@@ -1001,15 +1001,20 @@ impl Interpolation {
         }
         let indices: Vec<i64> = nb.indices.iter().map(|&i| i64::from(i)).collect();
         Self {
-            table: crate::interpolation::NeighbourTable::new(&indices, coarse.n, &device),
+            table: lifegom_ops::interpolation::NeighbourTable::new(&indices, coarse.n, &device),
             weights: Tensor::from_data(TensorData::new(w, [fine.n, INTERP_K]), &device),
         }
     }
 
-    /// `[n_coarse, c] → [n_fine, c]` ([`crate::interpolation::interpolate`]).
+    /// `[n_coarse, c] → [n_fine, c]` ([`lifegom_ops::interpolation::interpolate`]).
     /// `base + Σ_j w_ij·x[nbr_ij]`, the sum in the interpolation's launch on devices.
     fn apply_onto(&self, base: Tensor<2>, x: Tensor<2>) -> Tensor<2> {
-        crate::interpolation::interpolate_onto(Some(base), x, &self.table, self.weights.clone())
+        lifegom_ops::interpolation::interpolate_onto(
+            Some(base),
+            x,
+            &self.table,
+            self.weights.clone(),
+        )
     }
 }
 
@@ -1213,7 +1218,7 @@ mod tests {
     lifegom_render::cpu_backend_tests!(linear_bn_fold_equals_linear_then_bn => check_linear_bn_fold);
 
     /// The same on lavapipe, where the fold is one kernel and its backward is the shared layer's
-    /// (`crate::shared_linear`).
+    /// (`lifegom_ops::shared_linear`).
     #[test]
     fn linear_bn_fold_equals_linear_then_bn_wgpu() {
         if let Some(device) = lifegom_render::testing::wgpu_test_device() {

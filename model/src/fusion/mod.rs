@@ -16,13 +16,8 @@
 //!
 //! The attention core (scores, softmax, weighted values, for all heads) and each `LN(a + b)` run
 //! as single custom ops with hand-written backwards ([`op`]): slice code on the CPU backends
-//! (math in [`kernels`]), CubeCL kernels on the devices. Their test reference is the tensor-op
+//! (math in [`lifegom_ops::fusion::kernels`]), CubeCL kernels on the devices. Their test reference is the tensor-op
 //! composition written here.
-
-mod attention_cube;
-mod cube;
-pub mod kernels;
-pub mod op;
 
 use burn::config::Config;
 use burn::module::Module;
@@ -32,11 +27,12 @@ use burn::tensor::{Device, Distribution, Int, Tensor, TensorData};
 use lifegom_render::select::select_rows;
 use lifegom_render::split::split_columns;
 
-use crate::activation::Activation;
-use crate::dropout::{
+use crate::norm_folds::NormFolds;
+use lifegom_ops::activation::Activation;
+use lifegom_ops::dropout::{
     MaskSeed, draw_seed, draws_device_mask, draws_host_mask, dropout_with, drops_nothing,
 };
-use crate::norm_folds::NormFolds;
+use lifegom_ops::fusion::{MAX_KEYS, op};
 use lifegom_render::device::runs_on_host;
 use op::{
     AddDroppedLayerNormOps, AddLayerNormOps, AttentionHeads, DropoutSlot, FusionAttentionOps,
@@ -228,7 +224,7 @@ impl AttentionLayer {
         folds: &NormFolds<'a>,
         layers: &[&'a Linear],
         x: &Tensor<D>,
-    ) -> Option<crate::shared_linear::SharedLinear> {
+    ) -> Option<lifegom_ops::shared_linear::SharedLinear> {
         let device = x.device();
         if runs_on_host(&device) || layers.iter().any(|l| l.bias.is_none()) {
             return None;
@@ -363,7 +359,7 @@ impl AttentionLayer {
         let op = match kernel {
             FusionKernel::HostOps => true,
             // The CubeCL kernels keep one query's scores in a local array.
-            FusionKernel::DeviceOps => k.dims()[1] <= attention_cube::MAX_KEYS,
+            FusionKernel::DeviceOps => k.dims()[1] <= MAX_KEYS,
             FusionKernel::TensorOps => false,
         };
         match op {
@@ -768,7 +764,7 @@ mod tests {
     use super::*;
     use burn::tensor::Distribution;
 
-    use crate::activation::relu;
+    use lifegom_ops::activation::relu;
 
     use lifegom_render::testing::read;
 
@@ -989,7 +985,7 @@ mod tests {
 
     /// On wgpu, a training call's masks drawn inside the LayerNorm kernels from draws `[a, b]`
     /// (`AttentionLayer::feed_drawn`) give the output and gradients of the tensor-op
-    /// composition with the host's masks ([`crate::dropout::kernel_mask`]): `a`'s after the
+    /// composition with the host's masks ([`lifegom_ops::dropout::kernel_mask`]): `a`'s after the
     /// attention, `b`'s after the feed-forward block, each on the residual branch.
     #[test]
     fn masks_drawn_in_kernels_wgpu() {
@@ -1012,7 +1008,7 @@ mod tests {
         let (q, c, w) = (draw([b, l, d]), draw([b, l, d]), draw([b, l, d]).detach());
         let draws = [0.375f32, 0.8125];
         let mask = |draw: f32| {
-            let values = crate::dropout::kernel_mask(b * l * d, keep, draw);
+            let values = lifegom_ops::dropout::kernel_mask(b * l * d, keep, draw);
             Tensor::<3>::from_data(TensorData::new(values, [b, l, d]), &ad)
         };
         let folds = NormFolds::new();

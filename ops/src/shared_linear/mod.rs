@@ -103,7 +103,7 @@ impl SharedLinear {
     /// # Panics
     ///
     /// On a CPU backend, or if the BN's width is not the layer's output width.
-    pub(crate) fn folded(linear: &Linear, bn: &BatchNorm, device: &Device) -> Self {
+    pub fn folded(linear: &Linear, bn: &BatchNorm, device: &Device) -> Self {
         assert!(
             !runs_on_host(device),
             "the CPU backends fold with tensor ops"
@@ -354,13 +354,12 @@ mod tests {
     use lifegom_render::device::DeviceChoice;
     use lifegom_render::testing::{Rng, assert_close_to_scale, read, wgpu_test_device};
 
-    use crate::norm_folds::NormFolds;
     use crate::split_k::force_split_k_rows;
 
     /// How the passes run the layer.
     #[derive(Debug, Clone, Copy, PartialEq)]
     enum Layer {
-        /// [`SharedLinear`] (through [`NormFolds::shared_fold`] for a folded layer).
+        /// [`SharedLinear`] (through [`SharedLinear::folded`] for a folded layer on a device).
         Shared,
         /// Burn's `linear` (the CPU op on the CPU backends), folded with tensor ops.
         Composed,
@@ -456,14 +455,23 @@ mod tests {
         bn.beta = Param::from_tensor(beta).set_require_grad(false);
         bn.running_mean = RunningState::new(mean);
         bn.running_var = RunningState::new(var);
-        let folds = NormFolds::new();
-        let shared = match norm {
-            Norm::None => SharedLinear::new(weight.clone(), bias.clone()),
-            Norm::Folded(_) => folds.shared_fold(&linear, &bn, device),
-        };
         let (w, b) = match norm {
             Norm::None => (weight.clone(), bias.clone()),
-            Norm::Folded(_) => folds.linear(&linear, &bn, device),
+            Norm::Folded(_) => {
+                // The fold with tensor ops, as the CPU backends make it.
+                let (scale, shift) = crate::frozen_affine::frozen_affine(&bn, device);
+                let w = linear.weight.val() * scale.clone().unsqueeze_dim(0);
+                let b = match &linear.bias {
+                    Some(b) => b.val() * scale + shift,
+                    None => shift,
+                };
+                (w, b)
+            }
+        };
+        let shared = match norm {
+            Norm::None => SharedLinear::new(weight.clone(), bias.clone()),
+            Norm::Folded(_) if runs_on_host(device) => SharedLinear::new(w.clone(), b.clone()),
+            Norm::Folded(_) => SharedLinear::folded(&linear, &bn, device),
         };
         let mut x = x0.clone();
         let mut total = None;
