@@ -934,7 +934,7 @@ impl PointTransformerLayer {
         let device = x.device();
         let qkv = folds
             .shared(&self.linear_q, "query, key, value", || {
-                crate::norm_folds::stacked(
+                lifegom_ops::shared_linear::stacked(
                     &[&self.linear_q, &self.linear_k, &self.linear_v],
                     &device,
                 )

@@ -76,8 +76,8 @@ fn main() -> anyhow::Result<()> {
     let dropout = [11, 12, 13, 14].map(MaskSeed::Given);
     let no_dropout = [MaskSeed::Off; 4];
     let variants = [
-        (FusionKernel::HostOps, dropout),
-        (FusionKernel::HostOps, no_dropout),
+        (FusionKernel::Ops, dropout),
+        (FusionKernel::Ops, no_dropout),
         (FusionKernel::TensorOps, dropout),
         (FusionKernel::TensorOps, no_dropout),
     ];

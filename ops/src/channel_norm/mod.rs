@@ -14,7 +14,7 @@
 //! turns them into `∂γ`, `∂β` (the `op` module, the same scheme as the Point Transformer's
 //! shared weights).
 //!
-//! The CPU backends keep the tensor ops (`crate::encoder`), whose float order is the network's.
+//! The CPU backends keep the tensor ops (`lifegom_model::encoder`), whose float order is the network's.
 
 mod cube;
 pub mod op;

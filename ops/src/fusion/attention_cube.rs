@@ -32,8 +32,8 @@ use super::op::{AttentionHeads, AttentionInputs, AttentionKernels, FusionAttenti
 const CUBE_THREADS: u32 = 64;
 
 /// The longest key sequence the kernels take (the scores of one query live in a local array);
-/// longer ones run as Burn's composition (`lifegom_model::fusion::AttentionLayer`).
-pub const MAX_KEYS: usize = 16;
+/// longer ones run as Burn's composition (`super::attention`).
+pub(crate) const MAX_KEYS: usize = 16;
 
 /// The sizes every kernel indexes with.
 #[derive(CubeType, CubeLaunch)]
