@@ -67,7 +67,6 @@ use lifegom_ops::channel_norm::ChannelNorm;
 use lifegom_ops::conv_norm::ConvNorm;
 use lifegom_ops::gemm_conv::gemm_patches;
 use lifegom_ops::sampling::{PreparedMaps, SamplingError};
-use lifegom_render::device::runs_on_host;
 
 /// ImageNet normalisation used by torchvision's ResNet weights.
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -270,13 +269,10 @@ fn batch_norm(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
 }
 
 /// BatchNorm with running statistics, whatever the device or the layer's flag: `x·scale + shift`
-/// per channel, the fold kept in `folds` for the reconstruction's other encoder passes
-/// ([`crate::norm_folds`]). Two ops on the activations instead of Burn's six-op inference
-/// `batch_norm`.
-///
-/// On CubeCL devices it is one [`ChannelNorm`] op per pass, `activation` included, with one
-/// `[γ; β]` per reconstruction whose gradient is summed over every pass in one launch
-/// ([`lifegom_ops::channel_norm`]).
+/// per channel, then `activation`, as a [`ChannelNorm`] kept in `folds` for the
+/// reconstruction's other encoder passes ([`crate::norm_folds`]): two tensor ops on the CPU
+/// backends instead of Burn's six-op inference `batch_norm`, one launch per pass on CubeCL
+/// devices with one gradient of `[γ; β]` for every pass.
 fn frozen_bn<'a>(
     folds: &NormFolds<'a>,
     bn: &'a BatchNorm,
@@ -284,18 +280,9 @@ fn frozen_bn<'a>(
     activation: Activation,
 ) -> Tensor<4> {
     let device = x.device();
-    if !runs_on_host(&device) {
-        return folds
-            .keep(bn, "channel norm", || ChannelNorm::new(bn, &device))
-            .apply(x, activation);
-    }
-    let c = x.dims()[1];
-    let (scale, shift) = folds.affine(bn, &device);
-    let y = x * scale.reshape([1, c, 1, 1]) + shift.reshape([1, c, 1, 1]);
-    match activation {
-        Activation::Identity => y,
-        Activation::Relu => relu(y),
-    }
+    folds
+        .keep(bn, "channel norm", || ChannelNorm::new(bn, &device))
+        .apply(x, activation)
 }
 
 /// What follows a convolution's BatchNorm: an activation, or a residual block's
