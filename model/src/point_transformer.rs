@@ -92,6 +92,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_ops::activation::Activation;
 use lifegom_ops::activation::relu;
 use lifegom_ops::handoff::Handoff;
+use lifegom_ops::vector_attention::{PositionWeights, QueryKeyValue};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::readback::{self, ReadbackError};
 
@@ -256,6 +257,7 @@ pub fn frozen_bn(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
 /// which matters on the `[n, k, c]` attention tensors; it also needs no reshape to put channels
 /// on axis 1. It uses the running statistics whatever the layer's training flag says (the flag
 /// is off anyway, see [`frozen_bn`]).
+#[cfg(test)]
 fn bn_last<'a, const D: usize>(
     folds: &NormFolds<'a>,
     bn: &'a BatchNorm,
@@ -860,41 +862,7 @@ impl PointTransformerLayer {
         rel: Tensor<3>,
         nbr: Tensor<1, Int>,
     ) -> Tensor<2> {
-        if !runs_on_host(&x.device()) {
-            return self.forward_stacked(folds, x, rel, nbr, None);
-        }
-        let [n, c] = x.dims();
-        let [_, k, _] = rel.dims();
-        let s = self.share_planes;
-        let q = linear_op::forward(&self.linear_q, x.clone());
-        // Project before gathering: n rows instead of n·k.
-        let kf = select_rows(
-            linear_op::forward(&self.linear_k, x.clone()),
-            0,
-            nbr.clone(),
-        )
-        .reshape([n, k, c]);
-        let vf = select_rows(linear_op::forward(&self.linear_v, x), 0, nbr).reshape([n, k, c]);
-
-        let mp = &self.linear_p;
-        let delta = linear_op::forward(
-            &mp.fc3,
-            linear_bn(folds, &mp.fc0, &mp.bn1, rel, Activation::Relu),
-        ); // [n, k, c]
-
-        let mw = &self.linear_w;
-        let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
-        let w = linear_bn(
-            folds,
-            &mw.fc2,
-            &mw.bn3,
-            relu(bn_last(folds, &mw.bn0, w)),
-            Activation::Identity,
-        );
-        let w = linear_op::forward(&mw.fc5, relu(w)); // [n, k, c/s]
-
-        let values = (vf + delta).reshape([n, k, s, c / s]);
-        vector_attention::aggregate(values, w)
+        self.attend(folds, x, rel, nbr, None)
     }
 
     /// `relu(BN(self.forward(…)))` for a frozen BatchNorm `bn` over the output: the block's
@@ -908,65 +876,31 @@ impl PointTransformerLayer {
         nbr: Tensor<1, Int>,
         bn: &'a BatchNorm,
     ) -> Tensor<2> {
-        if runs_on_host(&x.device()) {
-            return relu(bn_last(folds, bn, self.forward(folds, x, rel, nbr)));
-        }
-        let (scale, shift) = folds.affine(bn, &x.device());
-        let norm = vector_attention::OutputNorm { scale, shift };
-        self.forward_stacked(folds, x, rel, nbr, Some(norm))
+        self.attend(folds, x, rel, nbr, Some(bn))
     }
 
-    /// [`Self::forward`] on CubeCL devices, then `output_norm` when given: the query, key and
-    /// value as one `[n, 3c]` product
-    /// (weights stacked once per [`NormFolds`]), `MLP_p` as [`vector_attention::position_encoding`],
-    /// and the neighbourhood work around `MLP_w` as the two ops of [`vector_attention::relation`]
-    /// and [`vector_attention::aggregate_gathered`],
-    /// which gather from that product themselves: the same maths as the composition in fewer
-    /// launches (BENCHMARKS.md, session 23).
-    fn forward_stacked<'a>(
+    /// The layer (module docs), then `relu(BN(·))` with `output_norm` when given:
+    /// `y_i = Σ_j softmax(MLP_w(k_j − q_i + δ_ij)) ⊙ (v_j + δ_ij)`, `δ_ij = MLP_p(p_j − p_i)`.
+    /// Each step is an op that picks its CPU or CubeCL path ([`vector_attention::attend`] gathers
+    /// the neighbours' keys and values itself); where products stack, the query, key and value
+    /// are one `[n, 3c]` product (weights stacked once per [`NormFolds`]).
+    fn attend<'a>(
         &'a self,
         folds: &NormFolds<'a>,
         x: Tensor<2>,
         rel: Tensor<3>,
         nbr: Tensor<1, Int>,
-        output_norm: Option<vector_attention::OutputNorm>,
+        output_norm: Option<&'a BatchNorm>,
     ) -> Tensor<2> {
         let device = x.device();
-        let qkv = folds
-            .shared(&self.linear_q, "query, key, value", || {
-                lifegom_ops::shared_linear::stacked(
-                    &[&self.linear_q, &self.linear_k, &self.linear_v],
-                    &device,
-                )
-            })
-            .forward(x);
-
-        let mp = &self.linear_p;
-        let position = folds.keep(&mp.fc3, "position weights", || {
-            let b3 = mp.fc3.bias.as_ref().expect("MLP_p's last layer has a bias");
-            let (w3, b3) = (mp.fc3.weight.val(), b3.val());
-            let frozen =
-                !mp.bn1.gamma.val().is_require_grad() && !mp.bn1.beta.val().is_require_grad();
-            match (&mp.fc0.bias, frozen) {
-                // The fold inside the weights' own launches (`PositionWeights::folded`).
-                (Some(b0), true) => {
-                    let (scale, shift) = folds.affine(&mp.bn1, &device);
-                    vector_attention::PositionWeights::folded(
-                        mp.fc0.weight.val(),
-                        b0.val(),
-                        scale,
-                        shift,
-                        w3,
-                        b3,
-                    )
-                }
-                _ => {
-                    let (w0, b0) = folds.linear(&mp.fc0, &mp.bn1, &device);
-                    vector_attention::PositionWeights::new(w0, b0, w3, b3)
-                }
+        let (q, k, v) = (&self.linear_q, &self.linear_k, &self.linear_v);
+        let qkv = match folds.stacked(&[q, k, v], "query, key, value", &device) {
+            Some(layer) => QueryKeyValue::Stacked(layer.forward(x)),
+            None => {
+                QueryKeyValue::Apart([q, k, v].map(|layer| linear_op::forward(layer, x.clone())))
             }
-        });
-        let delta = position.apply(rel);
+        };
+        let delta = self.linear_p.weights(folds, &device).apply(rel); // [n, k, c]
 
         let mw = &self.linear_w;
         let (scale, shift) = folds.affine(&mw.bn0, &device);
@@ -974,7 +908,39 @@ impl PointTransformerLayer {
             let w = linear_bn(folds, &mw.fc2, &mw.bn3, related, Activation::Relu);
             folds.shared_layer(&mw.fc5).forward(w) // [n, k, c/s]
         };
+        let output_norm = output_norm.map(|bn| {
+            let (scale, shift) = folds.affine(bn, &device);
+            vector_attention::OutputNorm { scale, shift }
+        });
         vector_attention::attend(qkv, nbr, delta, scale, shift, mlp, output_norm)
+    }
+}
+
+impl PositionMlp {
+    /// `MLP_p`'s weights with its BatchNorm folded into the first layer, kept for the
+    /// reconstruction in `folds`.
+    fn weights<'a>(&'a self, folds: &NormFolds<'a>, device: &Device) -> PositionWeights {
+        folds.keep(&self.fc3, "position weights", || {
+            let b3 = self
+                .fc3
+                .bias
+                .as_ref()
+                .expect("MLP_p's last layer has a bias");
+            let (w3, b3) = (self.fc3.weight.val(), b3.val());
+            let frozen =
+                !self.bn1.gamma.val().is_require_grad() && !self.bn1.beta.val().is_require_grad();
+            match (&self.fc0.bias, frozen) {
+                // The fold inside the weights' own launches (`PositionWeights::folded`).
+                (Some(b0), true) => {
+                    let (scale, shift) = folds.affine(&self.bn1, device);
+                    PositionWeights::folded(self.fc0.weight.val(), b0.val(), scale, shift, w3, b3)
+                }
+                _ => {
+                    let (w0, b0) = folds.linear(&self.fc0, &self.bn1, device);
+                    PositionWeights::new(w0, b0, w3, b3)
+                }
+            }
+        })
     }
 }
 
