@@ -39,7 +39,7 @@
 //! | [`encoder`] | ResNet-18 feature pyramid + 1×1 rgb embedding (1152 channels), torchvision/official weight import |
 //! | [`fusion`] | multi-source fusion: self-attention over views, cross-attention with a per-vertex query |
 //! | [`norm_folds`] | frozen BatchNorms and the layers they follow, folded once per reconstruction |
-//! | [`knn`], [`point_transformer`] | farthest point sampling, kNN, the Point Transformer encoder–decoder |
+//! | [`point_transformer`] | the Point Transformer encoder–decoder (its farthest point sampling and kNN: `lifegom_ops::knn`) |
 //! | [`heads`] | update heads: residual vertex update, new embedding, per-face Gaussian parameters |
 //! | [`reconstructor`] | the reconstructor: T steps of render → encode → fuse → update |
 //! | [`avatar`] | the result: render in any pose and view, save/load, 3DGS `.ply` export |
@@ -64,7 +64,6 @@ pub mod error;
 pub mod fusion;
 pub mod heads;
 pub mod inputs;
-pub mod knn;
 pub mod norm_folds;
 pub mod point_transformer;
 pub mod reconstructor;

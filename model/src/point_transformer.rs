@@ -96,8 +96,8 @@ use lifegom_ops::vector_attention::{PositionWeights, QueryKeyValue};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::readback::{self, ReadbackError};
 
-use crate::knn::{Neighbours, farthest_point_sampling, knn};
 pub use crate::norm_folds::NormFolds;
+use lifegom_ops::knn::{Neighbours, farthest_point_sampling, knn};
 use lifegom_ops::linear_op;
 use lifegom_ops::vector_attention;
 use lifegom_render::select::select_rows;

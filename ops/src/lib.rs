@@ -23,6 +23,7 @@
 //! | [`sampling`] | projection of posed vertices and torch-exact bilinear feature sampling |
 //! | [`dropout`] | the fusion layers' dropout, with masks drawn on the host on CPU backends |
 //! | [`fusion`] | the fusion layers' attention core and residual LayerNorms |
+//! | [`knn`] | farthest point sampling and kNN on the host, the Point Transformer's hierarchy |
 //! | [`grouping`] | the Point Transformer's offsets `p_j − p_i`, one op on devices |
 //! | [`vector_attention`] | the Point Transformer layer's positional encoding, relation and aggregation |
 //! | [`neighbour_max`] | the Point Transformer's max over each point's neighbours |
@@ -39,6 +40,7 @@ pub mod grouping;
 pub mod handoff;
 pub mod interpolation;
 mod inverse;
+pub mod knn;
 mod lanes;
 pub mod linear_op;
 pub mod neighbour_max;
