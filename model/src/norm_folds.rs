@@ -170,9 +170,13 @@ impl<'a> NormFolds<'a> {
         }
     }
 
-    /// How many BN and `Linear` folds are kept.
+    /// How many values are kept: BN folds with everything else kept under a layer
+    /// ([`Self::keep`]: the encoder's norms, …), and `Linear` folds with shared layers.
     pub fn kept(&self) -> (usize, usize) {
-        (self.affine.borrow().len(), self.linear.borrow().len())
+        (
+            self.affine.borrow().len() + self.kept.borrow().len(),
+            self.linear.borrow().len() + self.shared.borrow().len(),
+        )
     }
 
     /// The eval-mode BN as `x·scale + shift` per channel: `scale = γ/√(σ²+ε)`,

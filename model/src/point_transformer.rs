@@ -895,10 +895,10 @@ impl PointTransformerLayer {
         let device = x.device();
         let (q, k, v) = (&self.linear_q, &self.linear_k, &self.linear_v);
         let qkv = match folds.stacked(&[q, k, v], "query, key, value", &device) {
-            Some(layer) => QueryKeyValue::Stacked(layer.forward(x)),
-            None => {
-                QueryKeyValue::Apart([q, k, v].map(|layer| linear_op::forward(layer, x.clone())))
-            }
+            Some(layer) => QueryKeyValue::Stacked(Box::new(layer.forward(x))),
+            None => QueryKeyValue::Apart(Box::new(
+                [q, k, v].map(|layer| linear_op::forward(layer, x.clone())),
+            )),
         };
         let delta = self.linear_p.weights(folds, &device).apply(rel); // [n, k, c]
 

@@ -38,17 +38,21 @@ pub struct ChannelNorm {
 enum NormPath {
     /// The CPU backends: the per-channel `(s, t)` as tensors, applied with tensor ops, whose
     /// float order is the network's.
-    Host { scale: Tensor<1>, shift: Tensor<1> },
+    Host(Box<(Tensor<1>, Tensor<1>)>),
     /// CubeCL devices: the op, one launch per pass each way.
-    Device {
-        /// `γ` as the parameter node hands it on (the `op` module).
-        params: Tensor<1>,
-        beta: Tensor<1>,
-        mean: Tensor<1>,
-        var: Tensor<1>,
-        epsilon: f32,
-        ledger: NormLedger,
-    },
+    Device(Box<DeviceNorm>),
+}
+
+/// A [`ChannelNorm`]'s op inputs on a CubeCL device.
+#[derive(Debug, Clone)]
+struct DeviceNorm {
+    /// `γ` as the parameter node hands it on (the `op` module).
+    params: Tensor<1>,
+    beta: Tensor<1>,
+    mean: Tensor<1>,
+    var: Tensor<1>,
+    epsilon: f32,
+    ledger: NormLedger,
 }
 
 impl ChannelNorm {
@@ -58,7 +62,7 @@ impl ChannelNorm {
         if lifegom_render::device::runs_on_host(device) {
             let (scale, shift) = crate::frozen_affine::frozen_affine(bn, device);
             return Self {
-                path: NormPath::Host { scale, shift },
+                path: NormPath::Host(Box::new((scale, shift))),
             };
         }
         let mean = bn.running_mean.value().to_device(device);
@@ -74,14 +78,14 @@ impl ChannelNorm {
             ledger.clone(),
         ));
         Self {
-            path: NormPath::Device {
+            path: NormPath::Device(Box::new(DeviceNorm {
                 params,
                 beta: bn.beta.val(),
                 mean,
                 var,
                 epsilon,
                 ledger,
-            },
+            })),
         }
     }
 
@@ -93,7 +97,8 @@ impl ChannelNorm {
     pub fn apply(&self, x: Tensor<4>, activation: Activation) -> Tensor<4> {
         let c = x.dims()[1];
         match &self.path {
-            NormPath::Host { scale, shift } => {
+            NormPath::Host(fold) => {
+                let (scale, shift) = fold.as_ref();
                 assert_eq!(
                     c,
                     scale.dims()[0],
@@ -106,14 +111,15 @@ impl ChannelNorm {
                     Activation::Relu => crate::activation::relu(y),
                 }
             }
-            NormPath::Device {
-                params,
-                beta,
-                mean,
-                var,
-                epsilon,
-                ledger,
-            } => {
+            NormPath::Device(norm) => {
+                let DeviceNorm {
+                    params,
+                    beta,
+                    mean,
+                    var,
+                    epsilon,
+                    ledger,
+                } = norm.as_ref();
                 assert_eq!(
                     c,
                     params.dims()[0],

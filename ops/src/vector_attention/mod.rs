@@ -125,9 +125,9 @@ pub struct OutputNorm {
 #[derive(Debug, Clone)]
 pub enum QueryKeyValue {
     /// `[n, 3c]`, the column blocks `0..c`, `c..2c`, `2c..3c`.
-    Stacked(Tensor<2>),
+    Stacked(Box<Tensor<2>>),
     /// `[q, k, v]`.
-    Apart([Tensor<2>; 3]),
+    Apart(Box<[Tensor<2>; 3]>),
 }
 
 /// The whole neighbourhood part of the layer: [`relation`], then `mlp` (the rest of `MLP_w`) on
@@ -151,8 +151,8 @@ pub fn attend(
     output_norm: Option<OutputNorm>,
 ) -> Tensor<2> {
     let qkv = match qkv {
-        QueryKeyValue::Apart([q, k, v]) if runs_on_host(&q.device()) => {
-            let h = attend_reference([q, k, v], neighbours, delta, scale, shift, mlp);
+        QueryKeyValue::Apart(parts) if runs_on_host(&parts[0].device()) => {
+            let h = attend_reference(*parts, neighbours, delta, scale, shift, mlp);
             return match output_norm {
                 Some(OutputNorm { scale, shift }) => {
                     crate::activation::relu(h * scale.unsqueeze_dim(0) + shift.unsqueeze_dim(0))
@@ -160,8 +160,8 @@ pub fn attend(
                 None => h,
             };
         }
-        QueryKeyValue::Apart(parts) => join_columns(parts.to_vec()),
-        QueryKeyValue::Stacked(qkv) => qkv,
+        QueryKeyValue::Apart(parts) => join_columns(Vec::from(*parts)),
+        QueryKeyValue::Stacked(qkv) => *qkv,
     };
     let pair = neighbour_op::AttentionPair::new();
     let related = relation_paired(
@@ -822,7 +822,7 @@ mod tests {
             });
             let out = if paired {
                 attend(
-                    QueryKeyValue::Stacked(qkv.clone()),
+                    QueryKeyValue::Stacked(Box::new(qkv.clone())),
                     nbr,
                     delta.clone(),
                     scale,
