@@ -171,7 +171,7 @@ impl<'a> NormFolds<'a> {
     }
 
     /// How many values are kept: BN folds with everything else kept under a layer
-    /// ([`Self::keep`]: the encoder's norms, …), and `Linear` folds with shared layers.
+    /// (`Self::keep`: the encoder's norms, …), and `Linear` folds with shared layers.
     pub fn kept(&self) -> (usize, usize) {
         (
             self.affine.borrow().len() + self.kept.borrow().len(),

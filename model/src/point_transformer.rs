@@ -43,7 +43,7 @@
 //! # Geometry (host side, recomputed every forward)
 //!
 //! The positions change between calls (the feedback loop moves the vertices), so FPS and every
-//! kNN are recomputed per forward from a single host readback of `p` ([`crate::knn`]: `O(n·m)`
+//! kNN are recomputed per forward from a single host readback of `p` ([`lifegom_ops::knn`]: `O(n·m)`
 //! FPS, grid kNN). The indices and interpolation weights carry no gradient, exactly like the
 //! reference's `pointops`; the *relative positions* `p_j − p_i` are gathered on the device, so
 //! gradients do reach `p` through them and through `cat(p, x)`. One self-kNN per level serves
