@@ -146,7 +146,7 @@ step fusion-off-recon-wgpu-paper-1024-s2 90 env LIFEGOM_FUSION=off "$BIN/recon-b
 step split-k-off-train-wgpu-quickstart 90 "$BIN/train-bench" --device wgpu "${QUICK[@]}" --split-k-rows 0
 # 1d. The encoder's convolutions with Burn's direct kernel (LIFEGOM_CONV=direct, as before
 #     session 28) beside each convolution and its BatchNorm as one implicit-GEMM product
-#     (model/src/conv_norm.rs, session 32; patch columns and Burn's matmul in sessions 28–31).
+#     (ops/src/conv_norm.rs, session 32; patch columns and Burn's matmul in sessions 28–31).
 step conv-direct-recon-wgpu-paper-1024-s2 90 env LIFEGOM_CONV=direct "$BIN/recon-bench" --device wgpu "${PAPER[@]}"
 # 1e. The Point Transformer's FPS and kNN planned inline, after a read-back that drains the
 #     queue (LIFEGOM_HIERARCHY=inline, as before session 28), beside planned ahead on a thread.

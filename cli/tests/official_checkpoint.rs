@@ -60,11 +60,7 @@ fn run_ok(bin: &str, args: &[&str]) -> String {
 }
 
 fn command(bin: &str, args: &[&str]) -> std::process::Output {
-    Command::new(bin)
-        .args(args)
-        .env("LIFEGOM_THREADS", "2")
-        .output()
-        .unwrap()
+    Command::new(bin).args(args).output().unwrap()
 }
 
 fn s(p: &Path) -> &str {

@@ -16,7 +16,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use lifegom_model::avatar::Avatar;
 use lifegom_model::inputs::ModelInputs;
-use lifegom_model::sampling::project_points;
+use lifegom_ops::sampling::project_points;
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::readback;
 use lifegom_render::skinning::skin_vertices;

@@ -35,7 +35,7 @@
 //! # Sampling without the full-resolution embedding
 //!
 //! [`ImageEncoder::encode`] returns [`EncodedViews`], which samples exactly what
-//! [`crate::sampling::sample_maps`] would sample from `forward`'s six maps, but applies the
+//! [`lifegom_ops::sampling::sample_maps`] would sample from `forward`'s six maps, but applies the
 //! 1×1 `rgb_embed` after sampling (it is affine per pixel), so the 128-channel full-resolution
 //! map never exists. Use it for the reconstructor; `forward` is the literal pyramid.
 //!
@@ -51,7 +51,6 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use crate::activation::relu;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -59,15 +58,15 @@ use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, Initializer, PaddingConfig2d};
 use burn::store::{ApplyResult, KeyRemapper, ModuleSnapshot, PytorchStore, SafetensorsStore};
 use burn::tensor::{Device, Tensor, TensorData, s};
+use lifegom_ops::activation::relu;
 
-use crate::activation::Activation::{self, Identity, Relu};
-use crate::channel_norm::ChannelNorm;
-use crate::conv_norm::ConvNorm;
-use crate::gemm_conv::gemm_patches;
 use crate::norm_folds::NormFolds;
-use crate::sampling::{PreparedMaps, SamplingError};
 use crate::weights_file::WeightsFormat;
-use lifegom_render::device::runs_on_host;
+use lifegom_ops::activation::Activation::{self, Identity, Relu};
+use lifegom_ops::channel_norm::ChannelNorm;
+use lifegom_ops::conv_norm::ConvNorm;
+use lifegom_ops::gemm_conv::gemm_patches;
+use lifegom_ops::sampling::{PreparedMaps, SamplingError};
 
 /// ImageNet normalisation used by torchvision's ResNet weights.
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -270,13 +269,10 @@ fn batch_norm(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
 }
 
 /// BatchNorm with running statistics, whatever the device or the layer's flag: `x·scale + shift`
-/// per channel, the fold kept in `folds` for the reconstruction's other encoder passes
-/// ([`crate::norm_folds`]). Two ops on the activations instead of Burn's six-op inference
-/// `batch_norm`.
-///
-/// On CubeCL devices it is one [`ChannelNorm`] op per pass, `activation` included, with one
-/// `[γ; β]` per reconstruction whose gradient is summed over every pass in one launch
-/// ([`crate::channel_norm`]).
+/// per channel, then `activation`, as a [`ChannelNorm`] kept in `folds` for the
+/// reconstruction's other encoder passes ([`crate::norm_folds`]): two tensor ops on the CPU
+/// backends instead of Burn's six-op inference `batch_norm`, one launch per pass on CubeCL
+/// devices with one gradient of `[γ; β]` for every pass.
 fn frozen_bn<'a>(
     folds: &NormFolds<'a>,
     bn: &'a BatchNorm,
@@ -284,18 +280,9 @@ fn frozen_bn<'a>(
     activation: Activation,
 ) -> Tensor<4> {
     let device = x.device();
-    if !runs_on_host(&device) {
-        return folds
-            .keep(bn, "channel norm", || ChannelNorm::new(bn, &device))
-            .apply(x, activation);
-    }
-    let c = x.dims()[1];
-    let (scale, shift) = folds.affine(bn, &device);
-    let y = x * scale.reshape([1, c, 1, 1]) + shift.reshape([1, c, 1, 1]);
-    match activation {
-        Activation::Identity => y,
-        Activation::Relu => relu(y),
-    }
+    folds
+        .keep(bn, "channel norm", || ChannelNorm::new(bn, &device))
+        .apply(x, activation)
 }
 
 /// What follows a convolution's BatchNorm: an activation, or a residual block's
@@ -310,8 +297,8 @@ enum Ending {
 }
 
 /// `ending(BN(conv(x)))`, the BatchNorm as [`frozen_bn`]. On CubeCL devices whose convolutions
-/// are products ([`crate::gemm_conv::ConvKernel`]) the convolution, the norm and the ending are
-/// one shared product per pass ([`crate::conv_norm`], kept in `folds` for the other passes);
+/// are products ([`lifegom_ops::gemm_conv::ConvKernel`]) the convolution, the norm and the ending are
+/// one shared product per pass ([`lifegom_ops::conv_norm`], kept in `folds` for the other passes);
 /// elsewhere the convolution, then [`frozen_bn`].
 fn conv_bn<'a>(
     folds: &NormFolds<'a>,
@@ -648,7 +635,7 @@ impl ImageEncoder {
 
 /// The encoded source views, ready to be sampled at any pixel positions many times.
 ///
-/// Equivalent to [`crate::sampling::sample_maps`] on [`ImageEncoder::forward`]'s six maps, but
+/// Equivalent to [`lifegom_ops::sampling::sample_maps`] on [`ImageEncoder::forward`]'s six maps, but
 /// the full-resolution rgb embedding (128 channels at `H × W`, 1.5 GB for three 1024² views) is
 /// never built: its 1×1 convolution is affine per pixel, so it is applied after sampling the
 /// 3-channel normalised image (and a ones channel that carries the zero-padding weight).
@@ -912,7 +899,8 @@ mod tests {
             .collect();
         let uv = Tensor::<3>::from_data(TensorData::new(pts, [2, 9, 2]), device);
         let direct =
-            crate::sampling::sample_maps(&enc.forward(img.clone()), uv.clone(), w, h).unwrap();
+            lifegom_ops::sampling::sample_maps(&enc.forward(img.clone()), uv.clone(), w, h)
+                .unwrap();
         let views = enc.encode(img.clone()).unwrap();
         assert_eq!(views.feature_dim(), enc.feature_dim());
         let via = views.sample(uv.clone(), w, h).unwrap();

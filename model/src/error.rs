@@ -2,7 +2,7 @@
 //! the input at fault.
 
 use crate::encoder::EncoderError;
-use crate::sampling::SamplingError;
+use lifegom_ops::sampling::SamplingError;
 use lifegom_render::RenderError;
 
 /// Errors raised by the reconstructor.

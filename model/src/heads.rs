@@ -14,16 +14,16 @@
 //! The last layers of the xyz, so3, scale and offset heads start at U(±1e-5) with zero bias, so
 //! the first steps barely move the template; the rgb head keeps the default initialisation.
 
-use crate::activation::relu;
 use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::module::linear;
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor};
+use lifegom_ops::activation::relu;
 
-use crate::activation::Activation;
-use crate::linear_op;
 use crate::norm_folds::NormFolds;
+use lifegom_ops::activation::Activation;
+use lifegom_ops::linear_op;
 use lifegom_render::gom::GomParams;
 use lifegom_render::select::select_rows;
 
@@ -377,7 +377,7 @@ impl VisibleFaceImages {
 /// - `faces` `[F·3]`: high-res face corners, in face-vertex order;
 /// - `image_features` `[F, N, D]`: source-image features at each face's projected centroid,
 ///   already zero in a view where the face is not fully visible (the reconstructor samples
-///   hidden faces outside the maps, [`crate::sampling::hide_invisible`]).
+///   hidden faces outside the maps, [`lifegom_ops::sampling::hide_invisible`]).
 pub fn face_inputs(
     h: Tensor<2>,
     highres_index: Tensor<1, Int>,

@@ -37,17 +37,9 @@
 //! | module | concept |
 //! |---|---|
 //! | [`encoder`] | ResNet-18 feature pyramid + 1×1 rgb embedding (1152 channels), torchvision/official weight import |
-//! | [`gemm_conv`] | the encoder's convolutions as patch columns and one product on devices |
-//! | [`conv_norm`] | a convolution and its BatchNorm as one shared product on devices |
-//! | [`sampling`] | projection of posed vertices and torch-exact bilinear feature sampling |
-//! | [`dropout`] | the fusion layers' dropout, with masks drawn on the host on CPU backends |
 //! | [`fusion`] | multi-source fusion: self-attention over views, cross-attention with a per-vertex query |
-//! | [`grouping`] | the Point Transformer's offsets `p_j − p_i`, one op on devices |
-//! | [`interpolation`] | the Point Transformer's transition-up interpolation, one op on devices |
-//! | [`knn`], [`point_transformer`] | farthest point sampling, kNN, the Point Transformer encoder–decoder |
-//! | [`shared_linear`] | a layer the feedback passes share: one weight gradient for all passes on devices |
-//! | [`split_k`] | weight gradients over many rows as chunked products and a sum on devices |
-//! | [`handoff`] | a gradient one backward node hands to another, which adds it in its own launch |
+//! | [`norm_folds`] | frozen BatchNorms and the layers they follow, folded once per reconstruction |
+//! | [`point_transformer`] | the Point Transformer encoder–decoder (its farthest point sampling and kNN: `lifegom_ops::knn`) |
 //! | [`heads`] | update heads: residual vertex update, new embedding, per-face Gaussian parameters |
 //! | [`reconstructor`] | the reconstructor: T steps of render → encode → fuse → update |
 //! | [`avatar`] | the result: render in any pose and view, save/load, 3DGS `.ply` export |
@@ -57,40 +49,26 @@
 //! | [`trained`] | our trained-model files: weights + config + payload, written atomically |
 //! | [`weights_file`] | SafeTensors or PyTorch: a weights file's format from its first bytes |
 //!
+//! The fused ops the layers call (projection and sampling, attention, shared products, the
+//! Point Transformer's neighbourhood ops, …) are `lifegom_ops`: each picks its CPU or CubeCL path
+//! itself.
+//!
 //! Model code has no backend generic: modules take a `burn::tensor::Device` and run on ndarray,
 //! Flex and wgpu (CubeCL kernels for the rasterizer and visibility), with `.autodiff()` for training. Without trained
 //! weights every network is randomly initialised; binaries say so when they print results.
 
-pub mod activation;
 pub mod avatar;
-pub mod channel_norm;
 pub mod checkpoint;
-pub mod conv_norm;
-pub mod dropout;
 pub mod encoder;
 pub mod error;
-pub mod frozen_affine;
 pub mod fusion;
-pub mod gemm_conv;
-pub mod grouping;
-pub mod handoff;
 pub mod heads;
 pub mod inputs;
-pub mod interpolation;
-mod inverse;
-pub mod knn;
-mod lanes;
-pub mod linear_op;
-pub mod neighbour_max;
 pub mod norm_folds;
 pub mod point_transformer;
 pub mod reconstructor;
 pub mod rig_export;
-pub mod sampling;
-pub mod shared_linear;
-pub mod split_k;
 #[cfg(test)]
 mod test_grads;
 pub mod trained;
-pub mod vector_attention;
 pub mod weights_file;

@@ -20,12 +20,9 @@ use std::marker::PhantomData;
 use burn::nn::{BatchNorm, Linear};
 use burn::tensor::{Device, Tensor};
 
-use lifegom_render::device::runs_on_host;
-use lifegom_render::split::join_columns;
-
-use crate::activation::Activation;
-use crate::activation::relu;
-use crate::shared_linear::SharedLinear;
+use lifegom_ops::activation::Activation;
+use lifegom_ops::activation::relu;
+use lifegom_ops::shared_linear::{SharedLinear, stacked};
 
 /// Anything a reconstruction keeps under a layer's address and a name ([`NormFolds::keep`]).
 type KeptValue = Box<dyn Any>;
@@ -97,6 +94,22 @@ impl<'a> NormFolds<'a> {
         })
     }
 
+    /// `layers` (which read the same input, like `x`'s) as one shared layer with their weights
+    /// side by side ([`stacked`]), kept under the first layer and `name`: one product and a
+    /// split of its output replace a product per layer. `None` where the products stay apart
+    /// ([`SharedLinear::stacks_on`]) and for layers without biases.
+    pub(crate) fn stacked(
+        &self,
+        layers: &[&'a Linear],
+        name: &'static str,
+        device: &Device,
+    ) -> Option<SharedLinear> {
+        if !SharedLinear::stacks_on(device) || layers.iter().any(|l| l.bias.is_none()) {
+            return None;
+        }
+        Some(self.shared(layers[0], name, || stacked(layers, device)))
+    }
+
     /// The shared layer `make` builds, kept as [`Self::shared`] keeps its own.
     fn shared_made(
         &self,
@@ -113,9 +126,7 @@ impl<'a> NormFolds<'a> {
         made
     }
 
-    /// `BN(Linear(·))` folded as a shared layer: on a CubeCL device with a frozen BN by
-    /// [`SharedLinear::folded`] (the norm in the product's launch), else with the tensor ops
-    /// of [`Self::linear`].
+    /// `BN(Linear(·))` folded as a shared layer ([`SharedLinear::folded`]).
     pub(crate) fn shared_fold(
         &self,
         linear: &'a Linear,
@@ -123,13 +134,7 @@ impl<'a> NormFolds<'a> {
         device: &Device,
     ) -> SharedLinear {
         self.shared_made(linear, "folded", || {
-            let frozen = !bn.gamma.val().is_require_grad() && !bn.beta.val().is_require_grad();
-            if frozen && !runs_on_host(device) {
-                SharedLinear::folded(linear, bn, device)
-            } else {
-                let (weight, bias) = self.linear(linear, bn, device);
-                SharedLinear::new(weight, bias)
-            }
+            SharedLinear::folded(linear, bn, device)
         })
     }
 
@@ -160,14 +165,18 @@ impl<'a> NormFolds<'a> {
     ) -> Tensor<D> {
         match (&linear.bias, activation) {
             (Some(_), _) => self.shared_layer(linear).forward_with(x, activation),
-            (None, Activation::Identity) => crate::linear_op::forward(linear, x),
-            (None, Activation::Relu) => relu(crate::linear_op::forward(linear, x)),
+            (None, Activation::Identity) => lifegom_ops::linear_op::forward(linear, x),
+            (None, Activation::Relu) => relu(lifegom_ops::linear_op::forward(linear, x)),
         }
     }
 
-    /// How many BN and `Linear` folds are kept.
+    /// How many values are kept: BN folds with everything else kept under a layer
+    /// (`Self::keep`: the encoder's norms, …), and `Linear` folds with shared layers.
     pub fn kept(&self) -> (usize, usize) {
-        (self.affine.borrow().len(), self.linear.borrow().len())
+        (
+            self.affine.borrow().len() + self.kept.borrow().len(),
+            self.linear.borrow().len() + self.shared.borrow().len(),
+        )
     }
 
     /// The eval-mode BN as `x·scale + shift` per channel: `scale = γ/√(σ²+ε)`,
@@ -177,7 +186,7 @@ impl<'a> NormFolds<'a> {
         if let Some(found) = self.affine.borrow().get(&key) {
             return found.clone();
         }
-        let (scale, shift) = crate::frozen_affine::frozen_affine(bn, device);
+        let (scale, shift) = lifegom_ops::frozen_affine::frozen_affine(bn, device);
         self.affine
             .borrow_mut()
             .insert(key, (scale.clone(), shift.clone()));
@@ -207,25 +216,4 @@ impl<'a> NormFolds<'a> {
             .insert(key, (weight.clone(), bias.clone()));
         (weight, bias)
     }
-}
-
-/// Layers with biases that read the same input, as one layer whose outputs are theirs side by
-/// side: `(cat(W₁, W₂, …) [in, Σ out], cat(b₁, b₂, …))` on `device`. One product then replaces
-/// several, forward and backward (the Point Transformer's query, key and value); keep it for a
-/// reconstruction through [`NormFolds::shared`].
-///
-/// # Panics
-///
-/// If `layers` is empty or a layer has no bias.
-pub(crate) fn stacked(layers: &[&Linear], device: &Device) -> (Tensor<2>, Tensor<1>) {
-    // One launch each way per stack on a GPU, where `cat` takes one per layer forward and a
-    // slice per layer backward.
-    let weight = join_columns(layers.iter().map(|l| l.weight.val()).collect());
-    let bias = join_columns(
-        layers
-            .iter()
-            .map(|l| l.bias.as_ref().expect("stacked layers have biases").val())
-            .collect(),
-    );
-    (weight.to_device(device), bias.to_device(device))
 }

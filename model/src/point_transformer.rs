@@ -43,7 +43,7 @@
 //! # Geometry (host side, recomputed every forward)
 //!
 //! The positions change between calls (the feedback loop moves the vertices), so FPS and every
-//! kNN are recomputed per forward from a single host readback of `p` ([`crate::knn`]: `O(n·m)`
+//! kNN are recomputed per forward from a single host readback of `p` ([`lifegom_ops::knn`]: `O(n·m)`
 //! FPS, grid kNN). The indices and interpolation weights carry no gradient, exactly like the
 //! reference's `pointops`; the *relative positions* `p_j − p_i` are gathered on the device, so
 //! gradients do reach `p` through them and through `cat(p, x)`. One self-kNN per level serves
@@ -85,20 +85,21 @@
 //! import. (The official code's ScanNet-pretrained initialisation skips `enc1.0.linear.weight`,
 //! whose input width differs; design.md §11.2.)
 
-use crate::activation::Activation;
-use crate::activation::relu;
-use crate::handoff::Handoff;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
 use burn::tensor::{Device, Int, Tensor, TensorData};
+use lifegom_ops::activation::Activation;
+use lifegom_ops::activation::relu;
+use lifegom_ops::handoff::Handoff;
+use lifegom_ops::vector_attention::{PositionWeights, QueryKeyValue};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::readback::{self, ReadbackError};
 
-use crate::knn::{Neighbours, farthest_point_sampling, knn};
-use crate::linear_op;
 pub use crate::norm_folds::NormFolds;
-use crate::vector_attention;
+use lifegom_ops::knn::{Neighbours, farthest_point_sampling, knn};
+use lifegom_ops::linear_op;
+use lifegom_ops::vector_attention;
 use lifegom_render::select::select_rows;
 
 /// Weight-sharing groups must divide every width; this is the paper's value.
@@ -256,6 +257,7 @@ pub fn frozen_bn(channels: usize, epsilon: f64, device: &Device) -> BatchNorm {
 /// which matters on the `[n, k, c]` attention tensors; it also needs no reshape to put channels
 /// on axis 1. It uses the running statistics whatever the layer's training flag says (the flag
 /// is off anyway, see [`frozen_bn`]).
+#[cfg(test)]
 fn bn_last<'a, const D: usize>(
     folds: &NormFolds<'a>,
     bn: &'a BatchNorm,
@@ -274,7 +276,7 @@ fn bn_last<'a, const D: usize>(
 /// `[rows, out]` activations it saves the BN's multiply and add (and their backward), and runs a
 /// bias-free layer through the Linear op too ([`linear_op`]); on CubeCL devices the activation
 /// is in the product's launch
-/// ([`SharedLinear::forward_with`](crate::shared_linear::SharedLinear::forward_with)). Equal to
+/// ([`SharedLinear::forward_with`](lifegom_ops::shared_linear::SharedLinear::forward_with)). Equal to
 /// `bn_last(bn, linear.forward(x))` up to float summation order (tested below).
 fn linear_bn<'a, const D: usize>(
     folds: &NormFolds<'a>,
@@ -490,7 +492,7 @@ impl PointTransformer {
     /// On the CPU backends each level's positions are gathered from the previous level's and
     /// the offsets from them. On devices every level's points are kept as rows of the input
     /// points, and each offset table is one op over the input positions
-    /// ([`crate::grouping::relative_positions`]): the same values, in fewer launches.
+    /// ([`lifegom_ops::grouping::relative_positions`]): the same values, in fewer launches.
     fn levels(&self, positions: Tensor<2>, plan: HostHierarchy) -> Vec<Level> {
         let device = positions.device();
         let on_host = runs_on_host(&device);
@@ -509,13 +511,13 @@ impl PointTransformer {
                         .collect()
                 };
                 let centres: Vec<i64> = query.1.iter().map(|&r| i64::from(r)).collect();
-                let table = crate::grouping::GroupTable::new(
+                let table = lifegom_ops::grouping::GroupTable::new(
                     &input(&nb.indices),
                     &centres,
                     positions.dims()[0],
                     &device,
                 );
-                let rel = crate::grouping::relative_positions(positions.clone(), &table);
+                let rel = lifegom_ops::grouping::relative_positions(positions.clone(), &table);
                 (index_tensor(&nb.indices, &device), rel)
             }
         };
@@ -723,7 +725,7 @@ impl TransitionDown {
             lifegom_render::split::join_columns(vec![rel, grouped]),
             Activation::Relu,
         );
-        crate::neighbour_max::max_over_neighbours(h)
+        lifegom_ops::neighbour_max::max_over_neighbours(h)
     }
 }
 
@@ -766,7 +768,7 @@ impl PointTransformerBlock {
         nbr: Tensor<1, Int>,
     ) -> Tensor<2> {
         let identity = x.clone();
-        // The residual's gradient is added in `linear1`'s `∂x` launch (`crate::handoff`).
+        // The residual's gradient is added in `linear1`'s `∂x` launch (`lifegom_ops::handoff`).
         let skip = Handoff::new();
         let h = folds
             .shared_fold(&self.linear1, &self.bn1, &x.device())
@@ -860,41 +862,7 @@ impl PointTransformerLayer {
         rel: Tensor<3>,
         nbr: Tensor<1, Int>,
     ) -> Tensor<2> {
-        if !runs_on_host(&x.device()) {
-            return self.forward_stacked(folds, x, rel, nbr, None);
-        }
-        let [n, c] = x.dims();
-        let [_, k, _] = rel.dims();
-        let s = self.share_planes;
-        let q = linear_op::forward(&self.linear_q, x.clone());
-        // Project before gathering: n rows instead of n·k.
-        let kf = select_rows(
-            linear_op::forward(&self.linear_k, x.clone()),
-            0,
-            nbr.clone(),
-        )
-        .reshape([n, k, c]);
-        let vf = select_rows(linear_op::forward(&self.linear_v, x), 0, nbr).reshape([n, k, c]);
-
-        let mp = &self.linear_p;
-        let delta = linear_op::forward(
-            &mp.fc3,
-            linear_bn(folds, &mp.fc0, &mp.bn1, rel, Activation::Relu),
-        ); // [n, k, c]
-
-        let mw = &self.linear_w;
-        let w = kf - q.unsqueeze_dim::<3>(1) + delta.clone();
-        let w = linear_bn(
-            folds,
-            &mw.fc2,
-            &mw.bn3,
-            relu(bn_last(folds, &mw.bn0, w)),
-            Activation::Identity,
-        );
-        let w = linear_op::forward(&mw.fc5, relu(w)); // [n, k, c/s]
-
-        let values = (vf + delta).reshape([n, k, s, c / s]);
-        vector_attention::aggregate(values, w)
+        self.attend(folds, x, rel, nbr, None)
     }
 
     /// `relu(BN(self.forward(…)))` for a frozen BatchNorm `bn` over the output: the block's
@@ -908,65 +876,31 @@ impl PointTransformerLayer {
         nbr: Tensor<1, Int>,
         bn: &'a BatchNorm,
     ) -> Tensor<2> {
-        if runs_on_host(&x.device()) {
-            return relu(bn_last(folds, bn, self.forward(folds, x, rel, nbr)));
-        }
-        let (scale, shift) = folds.affine(bn, &x.device());
-        let norm = vector_attention::OutputNorm { scale, shift };
-        self.forward_stacked(folds, x, rel, nbr, Some(norm))
+        self.attend(folds, x, rel, nbr, Some(bn))
     }
 
-    /// [`Self::forward`] on CubeCL devices, then `output_norm` when given: the query, key and
-    /// value as one `[n, 3c]` product
-    /// (weights stacked once per [`NormFolds`]), `MLP_p` as [`vector_attention::position_encoding`],
-    /// and the neighbourhood work around `MLP_w` as the two ops of [`vector_attention::relation`]
-    /// and [`vector_attention::aggregate_gathered`],
-    /// which gather from that product themselves: the same maths as the composition in fewer
-    /// launches (BENCHMARKS.md, session 23).
-    fn forward_stacked<'a>(
+    /// The layer (module docs), then `relu(BN(·))` with `output_norm` when given:
+    /// `y_i = Σ_j softmax(MLP_w(k_j − q_i + δ_ij)) ⊙ (v_j + δ_ij)`, `δ_ij = MLP_p(p_j − p_i)`.
+    /// Each step is an op that picks its CPU or CubeCL path ([`vector_attention::attend`] gathers
+    /// the neighbours' keys and values itself); where products stack, the query, key and value
+    /// are one `[n, 3c]` product (weights stacked once per [`NormFolds`]).
+    fn attend<'a>(
         &'a self,
         folds: &NormFolds<'a>,
         x: Tensor<2>,
         rel: Tensor<3>,
         nbr: Tensor<1, Int>,
-        output_norm: Option<vector_attention::OutputNorm>,
+        output_norm: Option<&'a BatchNorm>,
     ) -> Tensor<2> {
         let device = x.device();
-        let qkv = folds
-            .shared(&self.linear_q, "query, key, value", || {
-                crate::norm_folds::stacked(
-                    &[&self.linear_q, &self.linear_k, &self.linear_v],
-                    &device,
-                )
-            })
-            .forward(x);
-
-        let mp = &self.linear_p;
-        let position = folds.keep(&mp.fc3, "position weights", || {
-            let b3 = mp.fc3.bias.as_ref().expect("MLP_p's last layer has a bias");
-            let (w3, b3) = (mp.fc3.weight.val(), b3.val());
-            let frozen =
-                !mp.bn1.gamma.val().is_require_grad() && !mp.bn1.beta.val().is_require_grad();
-            match (&mp.fc0.bias, frozen) {
-                // The fold inside the weights' own launches (`PositionWeights::folded`).
-                (Some(b0), true) => {
-                    let (scale, shift) = folds.affine(&mp.bn1, &device);
-                    vector_attention::PositionWeights::folded(
-                        mp.fc0.weight.val(),
-                        b0.val(),
-                        scale,
-                        shift,
-                        w3,
-                        b3,
-                    )
-                }
-                _ => {
-                    let (w0, b0) = folds.linear(&mp.fc0, &mp.bn1, &device);
-                    vector_attention::PositionWeights::new(w0, b0, w3, b3)
-                }
-            }
-        });
-        let delta = position.apply(rel);
+        let (q, k, v) = (&self.linear_q, &self.linear_k, &self.linear_v);
+        let qkv = match folds.stacked(&[q, k, v], "query, key, value", &device) {
+            Some(layer) => QueryKeyValue::Stacked(Box::new(layer.forward(x))),
+            None => QueryKeyValue::Apart(Box::new(
+                [q, k, v].map(|layer| linear_op::forward(layer, x.clone())),
+            )),
+        };
+        let delta = self.linear_p.weights(folds, &device).apply(rel); // [n, k, c]
 
         let mw = &self.linear_w;
         let (scale, shift) = folds.affine(&mw.bn0, &device);
@@ -974,14 +908,46 @@ impl PointTransformerLayer {
             let w = linear_bn(folds, &mw.fc2, &mw.bn3, related, Activation::Relu);
             folds.shared_layer(&mw.fc5).forward(w) // [n, k, c/s]
         };
+        let output_norm = output_norm.map(|bn| {
+            let (scale, shift) = folds.affine(bn, &device);
+            vector_attention::OutputNorm { scale, shift }
+        });
         vector_attention::attend(qkv, nbr, delta, scale, shift, mlp, output_norm)
+    }
+}
+
+impl PositionMlp {
+    /// `MLP_p`'s weights with its BatchNorm folded into the first layer, kept for the
+    /// reconstruction in `folds`.
+    fn weights<'a>(&'a self, folds: &NormFolds<'a>, device: &Device) -> PositionWeights {
+        folds.keep(&self.fc3, "position weights", || {
+            let b3 = self
+                .fc3
+                .bias
+                .as_ref()
+                .expect("MLP_p's last layer has a bias");
+            let (w3, b3) = (self.fc3.weight.val(), b3.val());
+            let frozen =
+                !self.bn1.gamma.val().is_require_grad() && !self.bn1.beta.val().is_require_grad();
+            match (&self.fc0.bias, frozen) {
+                // The fold inside the weights' own launches (`PositionWeights::folded`).
+                (Some(b0), true) => {
+                    let (scale, shift) = folds.affine(&self.bn1, device);
+                    PositionWeights::folded(self.fc0.weight.val(), b0.val(), scale, shift, w3, b3)
+                }
+                _ => {
+                    let (w0, b0) = folds.linear(&self.fc0, &self.bn1, device);
+                    PositionWeights::new(w0, b0, w3, b3)
+                }
+            }
+        })
     }
 }
 
 /// Inverse-distance weights of the 3 nearest coarse points of every fine point.
 struct Interpolation {
     /// `[n_fine·3]` indices into the coarse level, and their inverse.
-    table: crate::interpolation::NeighbourTable,
+    table: lifegom_ops::interpolation::NeighbourTable,
     /// `[n_fine, 3]` normalised weights (no gradient, like the reference's).
     weights: Tensor<2>,
 }
@@ -1001,15 +967,20 @@ impl Interpolation {
         }
         let indices: Vec<i64> = nb.indices.iter().map(|&i| i64::from(i)).collect();
         Self {
-            table: crate::interpolation::NeighbourTable::new(&indices, coarse.n, &device),
+            table: lifegom_ops::interpolation::NeighbourTable::new(&indices, coarse.n, &device),
             weights: Tensor::from_data(TensorData::new(w, [fine.n, INTERP_K]), &device),
         }
     }
 
-    /// `[n_coarse, c] → [n_fine, c]` ([`crate::interpolation::interpolate`]).
+    /// `[n_coarse, c] → [n_fine, c]` ([`lifegom_ops::interpolation::interpolate`]).
     /// `base + Σ_j w_ij·x[nbr_ij]`, the sum in the interpolation's launch on devices.
     fn apply_onto(&self, base: Tensor<2>, x: Tensor<2>) -> Tensor<2> {
-        crate::interpolation::interpolate_onto(Some(base), x, &self.table, self.weights.clone())
+        lifegom_ops::interpolation::interpolate_onto(
+            Some(base),
+            x,
+            &self.table,
+            self.weights.clone(),
+        )
     }
 }
 
@@ -1213,7 +1184,7 @@ mod tests {
     lifegom_render::cpu_backend_tests!(linear_bn_fold_equals_linear_then_bn => check_linear_bn_fold);
 
     /// The same on lavapipe, where the fold is one kernel and its backward is the shared layer's
-    /// (`crate::shared_linear`).
+    /// (`lifegom_ops::shared_linear`).
     #[test]
     fn linear_bn_fold_equals_linear_then_bn_wgpu() {
         if let Some(device) = lifegom_render::testing::wgpu_test_device() {

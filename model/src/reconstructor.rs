@@ -50,7 +50,7 @@ use crate::norm_folds::NormFolds;
 use crate::point_transformer::{
     HierarchyPlanning, HostHierarchy, PointTransformer, PointTransformerConfig, read_points,
 };
-use crate::sampling::{hide_invisible, project_points, sample_single};
+use lifegom_ops::sampling::{hide_invisible, project_points, sample_single};
 use lifegom_render::select::select_rows;
 use lifegom_render::split::join_columns;
 
@@ -620,7 +620,7 @@ impl Reconstructor {
             // The rendered branch carries no gradient into the encoder (design.md §7.3, §12).
             let feats_ren = {
                 let _span = tracing::debug_span!("encode_renders").entered();
-                crate::shared_linear::detached_passes(|| {
+                lifegom_ops::shared_linear::detached_passes(|| {
                     self.encoder
                         .encode_folded(&folds, renders.rgb.clone().detach())
                 })?
@@ -732,7 +732,7 @@ impl Reconstructor {
             };
             let fused_ren = {
                 let _span = tracing::debug_span!("rendered").entered();
-                crate::shared_linear::detached_passes(|| {
+                lifegom_ops::shared_linear::detached_passes(|| {
                     self.fusion.forward_folded(folds, ren, embed.clone())
                 })
                 .detach()

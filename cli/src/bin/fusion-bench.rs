@@ -20,9 +20,9 @@ use std::time::Instant;
 use anyhow::Context;
 use burn::tensor::{Device, Distribution, Tensor};
 use clap::{Parser, ValueEnum};
-use lifegom_model::dropout::MaskSeed;
 use lifegom_model::fusion::{FusionConfig, FusionKernel};
 use lifegom_model::reconstructor::ReconstructorConfig;
+use lifegom_ops::dropout::MaskSeed;
 use lifegom_render::readback;
 use lifegom_render::template::{BodyTemplate, full_template_path, lowres_template_path};
 
@@ -76,8 +76,8 @@ fn main() -> anyhow::Result<()> {
     let dropout = [11, 12, 13, 14].map(MaskSeed::Given);
     let no_dropout = [MaskSeed::Off; 4];
     let variants = [
-        (FusionKernel::HostOps, dropout),
-        (FusionKernel::HostOps, no_dropout),
+        (FusionKernel::Ops, dropout),
+        (FusionKernel::Ops, no_dropout),
         (FusionKernel::TensorOps, dropout),
         (FusionKernel::TensorOps, no_dropout),
     ];

@@ -20,7 +20,7 @@
 //! - `batched`: `[b, m, k]·[1, k, n]`, the Point Transformer's per-group products;
 //! - `layer`: `relu(x·W + b)`, a layer with its bias and ReLU, as Burn's product and
 //!   elementwise ops (`"kernel": "burn"`) and as the shared layer's product kernel with both in
-//!   its launch (`"kernel": "shared"`, `lifegom_model::shared_linear`);
+//!   its launch (`"kernel": "shared"`, `lifegom_ops::shared_linear`);
 //! - `layer_backward`: the same layer run by [`PASSES`] passes (as the feedback loop runs the
 //!   Point Transformer's), forward and backward: `∂x` of each pass, `∂W` and `∂b`. Burn's
 //!   autodiff (`"kernel": "burn"`: per pass a product for `∂x`, a weight-gradient product, a
@@ -43,8 +43,8 @@ use anyhow::Context;
 use burn::tensor::{Distribution, Tensor};
 use clap::Parser;
 use lifegom_cli::launches::{KernelTiming, LaunchCounter, LaunchTally};
-use lifegom_model::activation::Activation;
-use lifegom_model::shared_linear::SharedLinear;
+use lifegom_ops::activation::Activation;
+use lifegom_ops::shared_linear::SharedLinear;
 use lifegom_render::device::{DeviceChoice, wait_for_values};
 
 #[derive(Parser, Debug)]

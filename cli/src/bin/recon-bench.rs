@@ -238,7 +238,7 @@ fn main() -> anyhow::Result<()> {
             .collect::<serde_json::Map<_, _>>(),
         "runtime": lifegom_render::device::cube_runtime_name(&device),
         "kernel_fusion": lifegom_render::device::KernelFusion::on_device(&device).map(|k| k.name()),
-        "conv_kernel": lifegom_model::gemm_conv::ConvKernel::on_device(&device).map(|k| k.name()),
+        "conv_kernel": lifegom_ops::gemm_conv::ConvKernel::on_device(&device).map(|k| k.name()),
         "hierarchy_planning": lifegom_model::point_transformer::HierarchyPlanning::on_device(&device).name(),
         "threads": rayon::current_num_threads(),
         "max_buffer_bytes": lifegom_render::device::max_buffer_bytes(&device),

@@ -137,7 +137,7 @@ struct Args {
     #[arg(long)]
     attribute_launches: bool,
     /// Rows per chunk of split-k weight gradients on a CubeCL device (`0`: one product each, as
-    /// before session 28); by default the `lifegom_model::split_k` rule.
+    /// before session 28); by default the `lifegom_ops::split_k` rule.
     #[arg(long)]
     split_k_rows: Option<usize>,
 }
@@ -152,7 +152,7 @@ fn main() -> anyhow::Result<()> {
     // SAFETY: the first thing `main` does after parsing; no thread has started yet.
     unsafe { lifegom_cli::make_default_device(args.device) };
     // The training loop, and so every backward, runs on this thread.
-    lifegom_model::split_k::force_split_k_rows(args.split_k_rows);
+    lifegom_ops::split_k::force_split_k_rows(args.split_k_rows);
     let mut cfg = ExperimentConfig::load(&args.config)?;
     let stem = args
         .config
@@ -363,7 +363,7 @@ fn main() -> anyhow::Result<()> {
         "peak_rss_mib": peak_resident_mib().map(f64::round),
         "runtime": lifegom_render::device::cube_runtime_name(&device),
         "kernel_fusion": lifegom_render::device::KernelFusion::on_device(&device).map(|k| k.name()),
-        "conv_kernel": lifegom_model::gemm_conv::ConvKernel::on_device(&device).map(|k| k.name()),
+        "conv_kernel": lifegom_ops::gemm_conv::ConvKernel::on_device(&device).map(|k| k.name()),
         "hierarchy_planning": lifegom_model::point_transformer::HierarchyPlanning::on_device(&device).name(),
         "threads": rayon::current_num_threads(),
         "split_k_rows": args.split_k_rows.map_or_else(|| "default".to_owned(), |r| r.to_string()),

@@ -15,55 +15,32 @@
 //! (`multiview_embed.{0,1}.self_attn.W_{q,k,v,o}`, `feed_forward.fc{1,2}`, `norm{1,2}`).
 //!
 //! The attention core (scores, softmax, weighted values, for all heads) and each `LN(a + b)` run
-//! as single custom ops with hand-written backwards ([`op`]): slice code on the CPU backends
-//! (math in [`kernels`]), CubeCL kernels on the devices. Their test reference is the tensor-op
-//! composition written here.
-
-mod attention_cube;
-mod cube;
-pub mod kernels;
-pub mod op;
+//! as single custom ops with hand-written backwards ([`lifegom_ops::fusion`]): slice code on the
+//! CPU backends, CubeCL kernels on the devices. Their test reference is the tensor-op
+//! composition ([`FusionKernel::TensorOps`]).
 
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
-use burn::tensor::activation::softmax;
 use burn::tensor::{Device, Distribution, Int, Tensor, TensorData};
 use lifegom_render::select::select_rows;
 use lifegom_render::split::split_columns;
 
-use crate::activation::Activation;
-use crate::dropout::{
-    MaskSeed, draw_seed, draws_device_mask, draws_host_mask, dropout_with, drops_nothing,
-};
 use crate::norm_folds::NormFolds;
-use lifegom_render::device::runs_on_host;
-use op::{
-    AddDroppedLayerNormOps, AddLayerNormOps, AttentionHeads, DropoutSlot, FusionAttentionOps,
-    LayerNormEpsilon,
+use lifegom_ops::activation::Activation;
+use lifegom_ops::dropout::{
+    MaskSeed, draws_device_mask, dropout_with, drops_nothing, host_mask_seeds,
 };
+use lifegom_ops::fusion::{add_dropped_layer_norm, add_layer_norm, attention, attention_reference};
 
 /// How the attention core and the residual LayerNorms are computed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum FusionKernel {
-    /// Both as the custom ops of [`op`] (CPU backends: slice code).
-    HostOps,
-    /// Both as the custom ops' CubeCL kernels (CubeCL devices); attention over more keys than
-    /// the kernels hold (16 views) as tensor ops.
-    DeviceOps,
+    /// Both as the custom ops of [`lifegom_ops::fusion`], which run slice code on the CPU
+    /// backends and CubeCL kernels on the devices.
+    Ops,
     /// Both as Burn tensor-op compositions (the reference in tests).
     TensorOps,
-}
-
-impl FusionKernel {
-    /// The fast choice for `device`.
-    pub fn for_device(device: &Device) -> Self {
-        if runs_on_host(device) {
-            Self::HostOps
-        } else {
-            Self::DeviceOps
-        }
-    }
 }
 
 /// One post-norm attention layer.
@@ -133,12 +110,11 @@ impl AttentionLayerConfig {
 impl AttentionLayer {
     /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`; returns `[B, Lq, D]`.
     pub fn forward(&self, query: Tensor<3>, context: Tensor<3>) -> Tensor<3> {
-        let kernel = FusionKernel::for_device(&query.device());
         self.forward_with(
             &NormFolds::new(),
             query,
             context,
-            kernel,
+            FusionKernel::Ops,
             [MaskSeed::Device; 2],
         )
     }
@@ -218,28 +194,19 @@ impl AttentionLayer {
         self.feed(folds, tokens, attn, kernel, masks)
     }
 
-    /// `layers` (which read the same input, like `x`'s) as one shared layer with their weights
-    /// side by side, on CubeCL devices: one product and one split of its output replace a product
-    /// per layer, forward and backward, and the input's gradient is summed inside the product
-    /// instead of by an addition per further layer. `None` on the CPU backends, whose products
-    /// stay apart (their float order is the network's), and for layers without biases.
+    /// `layers` (which read the same input, like `x`'s) as one shared layer where products stack
+    /// ([`NormFolds::stacked`]).
     fn stacked<'a, const D: usize>(
         &'a self,
         folds: &NormFolds<'a>,
         layers: &[&'a Linear],
         x: &Tensor<D>,
-    ) -> Option<crate::shared_linear::SharedLinear> {
-        let device = x.device();
-        if runs_on_host(&device) || layers.iter().any(|l| l.bias.is_none()) {
-            return None;
-        }
+    ) -> Option<lifegom_ops::shared_linear::SharedLinear> {
         let name = match layers.len() {
             3 => "query, key, value",
             _ => "key, value",
         };
-        Some(folds.shared(layers[0], name, || {
-            crate::norm_folds::stacked(layers, &device)
-        }))
+        folds.stacked(layers, name, &x.device())
     }
 
     /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`: the attention's output after
@@ -282,7 +249,7 @@ impl AttentionLayer {
     }
 
     /// Where [`Self::feed`]'s masks are drawn inside the LayerNorm's kernels
-    /// (`op::AddDroppedLayerNormOps`), the draws and the slot of each: on a CubeCL device, for
+    /// ([`add_dropped_layer_norm`]), the draws and the slot of each: on a CubeCL device, for
     /// the masks Burn's dropout would draw there. One uniform draw per mask from the device's
     /// RNG, both in one launch.
     fn kernel_draws(
@@ -292,7 +259,7 @@ impl AttentionLayer {
         masks: [MaskSeed; 2],
     ) -> [Option<(Tensor<1>, usize)>; 2] {
         let in_kernel = masks.map(|mask| {
-            kernel == FusionKernel::DeviceOps
+            kernel == FusionKernel::Ops
                 && mask == MaskSeed::Device
                 && draws_device_mask(&self.dropout, device)
         });
@@ -339,19 +306,14 @@ impl AttentionLayer {
         kernel: FusionKernel,
     ) -> Tensor<3> {
         match (drawn, &norm.beta) {
-            (Some((draws, slot)), Some(beta)) => Tensor::from_dispatch(
-                <burn::backend::Dispatch as AddDroppedLayerNormOps>::add_dropped_layer_norm(
-                    x.into_dispatch(),
-                    r.into_dispatch(),
-                    norm.gamma.val().into_dispatch(),
-                    beta.val().into_dispatch(),
-                    draws.into_dispatch(),
-                    DropoutSlot {
-                        slot,
-                        keep: 1.0 - self.dropout.prob,
-                    },
-                    LayerNormEpsilon(self.layer_norm_eps),
-                ),
+            (Some(drawn), Some(beta)) => add_dropped_layer_norm(
+                x,
+                r,
+                norm.gamma.val(),
+                beta.val(),
+                drawn,
+                1.0 - self.dropout.prob,
+                self.layer_norm_eps,
             ),
             _ => self.add_norm(norm, x, dropout_with(&self.dropout, r, mask), kernel),
         }
@@ -360,34 +322,9 @@ impl AttentionLayer {
     /// Scaled dot-product attention of projected `q` `[B, Lq, D]` over `k`, `v` `[B, Lk, D]`,
     /// heads side by side in the channels; `[B, Lq, D]`.
     fn attend(&self, q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, kernel: FusionKernel) -> Tensor<3> {
-        let op = match kernel {
-            FusionKernel::HostOps => true,
-            // The CubeCL kernels keep one query's scores in a local array.
-            FusionKernel::DeviceOps => k.dims()[1] <= attention_cube::MAX_KEYS,
-            FusionKernel::TensorOps => false,
-        };
-        match op {
-            true => Tensor::from_dispatch(
-                <burn::backend::Dispatch as FusionAttentionOps>::fusion_attention(
-                    q.into_dispatch(),
-                    k.into_dispatch(),
-                    v.into_dispatch(),
-                    AttentionHeads(self.n_heads),
-                ),
-            ),
-            false => {
-                let [b, lq, d] = q.dims();
-                let [_, lk, _] = k.dims();
-                let h = self.n_heads;
-                let dk = d / h;
-                let heads = |t: Tensor<3>, l: usize| t.reshape([b, l, h, dk]).swap_dims(1, 2); // [B,H,L,dk]
-                let (q, k, v) = (heads(q, lq), heads(k, lk), heads(v, lk));
-                let scores = q.matmul(k.swap_dims(2, 3)) / (dk as f64).sqrt();
-                softmax(scores, 3)
-                    .matmul(v) // [B,H,Lq,dk]
-                    .swap_dims(1, 2)
-                    .reshape([b, lq, d])
-            }
+        match kernel {
+            FusionKernel::Ops => attention(q, k, v, self.n_heads),
+            FusionKernel::TensorOps => attention_reference(q, k, v, self.n_heads),
         }
     }
 
@@ -400,14 +337,12 @@ impl AttentionLayer {
         kernel: FusionKernel,
     ) -> Tensor<3> {
         match (kernel, &norm.beta) {
-            (FusionKernel::HostOps | FusionKernel::DeviceOps, Some(beta)) => Tensor::from_dispatch(
-                <burn::backend::Dispatch as AddLayerNormOps>::add_layer_norm(
-                    x.into_dispatch(),
-                    residual.into_dispatch(),
-                    norm.gamma.val().into_dispatch(),
-                    beta.val().into_dispatch(),
-                    LayerNormEpsilon(self.layer_norm_eps),
-                ),
+            (FusionKernel::Ops, Some(beta)) => add_layer_norm(
+                x,
+                residual,
+                norm.gamma.val(),
+                beta.val(),
+                self.layer_norm_eps,
             ),
             _ => norm.forward(x + residual),
         }
@@ -499,7 +434,7 @@ impl Fusion {
         repeats: Option<&RepeatedTokens>,
     ) -> Tensor<2> {
         let [v, _, d] = features.dims();
-        let kernel = FusionKernel::for_device(&features.device());
+        let kernel = FusionKernel::Ops;
         let seeds = match masks {
             FusionMasks::Device => [MaskSeed::Device; 4],
             FusionMasks::Given(seeds) => seeds,
@@ -607,17 +542,8 @@ impl Fusion {
     /// of the weights ([`Module::valid`]) applies the same masks without building a graph, on
     /// any thread.
     pub fn draw_mask_seeds(&self, device: &Device) -> Option<[MaskSeed; 4]> {
-        if !runs_on_host(device) {
-            return None;
-        }
-        let layers = [&self.views, &self.views, &self.query, &self.query];
-        Some(layers.map(|l| {
-            if draws_host_mask(&l.dropout, device) {
-                MaskSeed::Given(draw_seed(device))
-            } else {
-                MaskSeed::Off
-            }
-        }))
+        let (views, query) = (&self.views.dropout, &self.query.dropout);
+        host_mask_seeds([views, views, query, query], device)
     }
 }
 
@@ -768,7 +694,7 @@ mod tests {
     use super::*;
     use burn::tensor::Distribution;
 
-    use crate::activation::relu;
+    use lifegom_ops::activation::relu;
 
     use lifegom_render::testing::read;
 
@@ -925,7 +851,7 @@ mod tests {
                 let grads = (out.clone() * w.clone()).sum().backward();
                 (out, grads)
             };
-            let (out_ops, g_ops) = run(FusionKernel::for_device(device));
+            let (out_ops, g_ops) = run(FusionKernel::Ops);
             let (out_ref, g_ref) = run(FusionKernel::TensorOps);
             let close = |a: Tensor<3>, b: Tensor<3>, what: &str| {
                 let (a, b) = (read(a), read(b));
@@ -978,18 +904,17 @@ mod tests {
     lifegom_render::cpu_backend_tests!(host_ops => host_ops_equal_tensor_ops);
 
     /// On wgpu the residual LayerNorm and the attention core run as the ops' CubeCL kernels
-    /// ([`FusionKernel::DeviceOps`]).
+    /// ([`FusionKernel::Ops`] on a CubeCL device).
     #[test]
     fn device_ops_equal_tensor_ops_wgpu() {
         if let Some(device) = lifegom_render::testing::wgpu_test_device() {
-            assert_eq!(FusionKernel::for_device(&device), FusionKernel::DeviceOps);
             host_ops_equal_tensor_ops(&device);
         }
     }
 
     /// On wgpu, a training call's masks drawn inside the LayerNorm kernels from draws `[a, b]`
     /// (`AttentionLayer::feed_drawn`) give the output and gradients of the tensor-op
-    /// composition with the host's masks ([`crate::dropout::kernel_mask`]): `a`'s after the
+    /// composition with the host's masks ([`lifegom_ops::dropout::kernel_mask`]): `a`'s after the
     /// attention, `b`'s after the feed-forward block, each on the residual branch.
     #[test]
     fn masks_drawn_in_kernels_wgpu() {
@@ -1012,11 +937,11 @@ mod tests {
         let (q, c, w) = (draw([b, l, d]), draw([b, l, d]), draw([b, l, d]).detach());
         let draws = [0.375f32, 0.8125];
         let mask = |draw: f32| {
-            let values = crate::dropout::kernel_mask(b * l * d, keep, draw);
+            let values = lifegom_ops::dropout::kernel_mask(b * l * d, keep, draw);
             Tensor::<3>::from_data(TensorData::new(values, [b, l, d]), &ad)
         };
         let folds = NormFolds::new();
-        let kernel = FusionKernel::DeviceOps;
+        let kernel = FusionKernel::Ops;
         let drawn = Tensor::<1>::from_floats(draws, &ad);
         let attn = layer.attention_output(&folds, q.clone(), c.clone(), kernel);
         let got = layer.feed_drawn(

@@ -1,6 +1,6 @@
 //! Image tensors `[N, C, H, W]` read in the layout they come in.
 //!
-//! Burn's convolutions, and the image encoder's own (`lifegom_model::gemm_conv`), answer an NCHW
+//! Burn's convolutions, and the image encoder's own (`lifegom_ops::gemm_conv`), answer an NCHW
 //! view of channels-last memory; the ops after them (BatchNorm, the next convolution's patch
 //! columns) would each copy such an image to row-major order before a kernel that indexes flat
 //! buffers could read it: a launch per layer and pass, each way. A kernel that takes an

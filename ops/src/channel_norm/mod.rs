@@ -14,7 +14,7 @@
 //! turns them into `∂γ`, `∂β` (the `op` module, the same scheme as the Point Transformer's
 //! shared weights).
 //!
-//! The CPU backends keep the tensor ops (`crate::encoder`), whose float order is the network's.
+//! On the CPU backends [`ChannelNorm`] keeps the tensor ops, whose float order is the network's.
 
 mod cube;
 pub mod op;
@@ -26,10 +26,26 @@ use burn::tensor::{Device, Tensor};
 use crate::activation::Activation;
 use op::{ChannelNormOps, NormLedger};
 
-/// One BatchNorm's `γ`, `β` and statistics, kept for every pass of a reconstruction on a CubeCL
-/// device (module docs).
+/// One BatchNorm's `γ`, `β` and statistics, kept for every pass of a reconstruction (module
+/// docs).
 #[derive(Debug, Clone)]
 pub struct ChannelNorm {
+    path: NormPath,
+}
+
+/// How a [`ChannelNorm`] runs on its device.
+#[derive(Debug, Clone)]
+enum NormPath {
+    /// The CPU backends: the per-channel `(s, t)` as tensors, applied with tensor ops, whose
+    /// float order is the network's.
+    Host(Box<(Tensor<1>, Tensor<1>)>),
+    /// CubeCL devices: the op, one launch per pass each way.
+    Device(Box<DeviceNorm>),
+}
+
+/// A [`ChannelNorm`]'s op inputs on a CubeCL device.
+#[derive(Debug, Clone)]
+struct DeviceNorm {
     /// `γ` as the parameter node hands it on (the `op` module).
     params: Tensor<1>,
     beta: Tensor<1>,
@@ -40,16 +56,15 @@ pub struct ChannelNorm {
 }
 
 impl ChannelNorm {
-    /// The BatchNorm `bn` on `device` (no launch).
-    ///
-    /// # Panics
-    ///
-    /// On a CPU backend (the encoder composes tensor ops there).
+    /// The BatchNorm `bn` on `device` (no launch on a CubeCL device; its fold
+    /// [`crate::frozen_affine::frozen_affine`] on the CPU backends).
     pub fn new(bn: &BatchNorm, device: &Device) -> Self {
-        assert!(
-            !lifegom_render::device::runs_on_host(device),
-            "the CPU backends compose the BatchNorm from tensor ops"
-        );
+        if lifegom_render::device::runs_on_host(device) {
+            let (scale, shift) = crate::frozen_affine::frozen_affine(bn, device);
+            return Self {
+                path: NormPath::Host(Box::new((scale, shift))),
+            };
+        }
         let mean = bn.running_mean.value().to_device(device);
         let var = bn.running_var.value().to_device(device);
         let epsilon = bn.epsilon as f32;
@@ -63,12 +78,14 @@ impl ChannelNorm {
             ledger.clone(),
         ));
         Self {
-            params,
-            beta: bn.beta.val(),
-            mean,
-            var,
-            epsilon,
-            ledger,
+            path: NormPath::Device(Box::new(DeviceNorm {
+                params,
+                beta: bn.beta.val(),
+                mean,
+                var,
+                epsilon,
+                ledger,
+            })),
         }
     }
 
@@ -78,21 +95,48 @@ impl ChannelNorm {
     ///
     /// If `x`'s channels are not the BatchNorm's.
     pub fn apply(&self, x: Tensor<4>, activation: Activation) -> Tensor<4> {
-        assert_eq!(
-            x.dims()[1],
-            self.params.dims()[0],
-            "one BatchNorm channel per image channel"
-        );
-        Tensor::from_dispatch(<Dispatch as ChannelNormOps>::channel_norm(
-            x.into_dispatch(),
-            self.params.clone().into_dispatch(),
-            self.beta.clone().into_dispatch(),
-            self.mean.clone().into_dispatch(),
-            self.var.clone().into_dispatch(),
-            self.epsilon,
-            activation,
-            self.ledger.clone(),
-        ))
+        let c = x.dims()[1];
+        match &self.path {
+            NormPath::Host(fold) => {
+                let (scale, shift) = fold.as_ref();
+                assert_eq!(
+                    c,
+                    scale.dims()[0],
+                    "one BatchNorm channel per image channel"
+                );
+                let y =
+                    x * scale.clone().reshape([1, c, 1, 1]) + shift.clone().reshape([1, c, 1, 1]);
+                match activation {
+                    Activation::Identity => y,
+                    Activation::Relu => crate::activation::relu(y),
+                }
+            }
+            NormPath::Device(norm) => {
+                let DeviceNorm {
+                    params,
+                    beta,
+                    mean,
+                    var,
+                    epsilon,
+                    ledger,
+                } = norm.as_ref();
+                assert_eq!(
+                    c,
+                    params.dims()[0],
+                    "one BatchNorm channel per image channel"
+                );
+                Tensor::from_dispatch(<Dispatch as ChannelNormOps>::channel_norm(
+                    x.into_dispatch(),
+                    params.clone().into_dispatch(),
+                    beta.clone().into_dispatch(),
+                    mean.clone().into_dispatch(),
+                    var.clone().into_dispatch(),
+                    *epsilon,
+                    activation,
+                    ledger.clone(),
+                ))
+            }
+        }
     }
 }
 

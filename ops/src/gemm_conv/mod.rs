@@ -78,7 +78,7 @@ impl ConvKernel {
 /// The window of `layer` when this device runs it as patch columns and a product
 /// ([`ConvKernel::Gemm`] on a CubeCL device) and the window fits `x`: where the encoder runs the
 /// layer and its BatchNorm as one shared product ([`crate::conv_norm`]).
-pub(crate) fn gemm_patches(layer: &Conv2d, x: &Tensor<4>) -> Option<Patches> {
+pub fn gemm_patches(layer: &Conv2d, x: &Tensor<4>) -> Option<Patches> {
     let patches = patches(layer)?;
     let dims = x.dims();
     (ConvKernel::on_device(&x.device()) == Some(ConvKernel::Gemm) && patches.fits(dims[2], dims[3]))

@@ -2,7 +2,7 @@
 //! gradient for all passes on CubeCL devices (design.md §7.5).
 //!
 //! A reconstruction runs the Point Transformer `T` times with the same weights, kept in one
-//! [`crate::norm_folds::NormFolds`]. Burn's autodiff differentiates each pass's product alone:
+//! `NormFolds` (`lifegom_model::norm_folds`). Burn's autodiff differentiates each pass's product alone:
 //! a weight-gradient product `xₜᵀ·gₜ` and a bias reduction per pass, then an addition per pass
 //! into each parameter's gradient. On a GPU that is `2T + 2(T − 1)` launches per layer (10 at
 //! the paper's `T = 3`) for what is one product and one reduction over every pass's rows:
@@ -37,6 +37,7 @@ use burn::backend::Dispatch;
 use burn::nn::{BatchNorm, Linear};
 use burn::tensor::{Device, Tensor};
 use lifegom_render::device::runs_on_host;
+use lifegom_render::split::join_columns;
 
 use crate::activation::Activation;
 use crate::gemm_conv::op::Patches;
@@ -59,7 +60,36 @@ pub struct SharedLinear {
     ledger: Option<Ledger>,
 }
 
+/// Layers with biases that read the same input, as one layer whose outputs are theirs side by
+/// side: `(cat(W₁, W₂, …) [in, Σ out], cat(b₁, b₂, …))` on `device`. One product then replaces
+/// several, forward and backward (the Point Transformer's query, key and value); where that
+/// pays is [`SharedLinear::stacks_on`].
+///
+/// # Panics
+///
+/// If `layers` is empty or a layer has no bias.
+pub fn stacked(layers: &[&Linear], device: &Device) -> (Tensor<2>, Tensor<1>) {
+    // One launch each way per stack on a GPU, where `cat` takes one per layer forward and a
+    // slice per layer backward.
+    let weight = join_columns(layers.iter().map(|l| l.weight.val()).collect());
+    let bias = join_columns(
+        layers
+            .iter()
+            .map(|l| l.bias.as_ref().expect("stacked layers have biases").val())
+            .collect(),
+    );
+    (weight.to_device(device), bias.to_device(device))
+}
+
 impl SharedLinear {
+    /// Whether layers that read one input run as one [`stacked`] product on `device`: on CubeCL
+    /// devices, where it saves a launch per layer each way and sums the input's gradient inside
+    /// the product. The CPU backends keep a product per layer: their float order is the
+    /// network's.
+    pub fn stacks_on(device: &Device) -> bool {
+        !runs_on_host(device)
+    }
+
     /// The layer `x·weight + bias`.
     ///
     /// # Panics
@@ -91,26 +121,29 @@ impl SharedLinear {
         }
     }
 
-    /// `BN(linear(·))` for a BatchNorm on its running statistics whose `γ`, `β` take no
-    /// gradient, as one shared layer on a CubeCL device: `(x·W + b)·s + t` (`x·W·s + t` without
-    /// a bias) with `s = γ/√(σ²+ε)`, `t = β − μ·s`, made once per process
-    /// ([`crate::frozen_affine`]) and applied in the product's epilogue, forward and backward
-    /// (module docs): no launch of its own.
-    ///
-    /// The CPU backends fold with tensor ops and use [`Self::new`]
-    /// ([`crate::norm_folds::NormFolds::shared_fold`]).
+    /// `BN(linear(·))` for a BatchNorm on its running statistics, as one shared layer, with
+    /// `s = γ/√(σ²+ε)`, `t = β − μ·s` ([`crate::frozen_affine`]). On a CubeCL device, when the
+    /// BN's `γ`, `β` take no gradient, `(x·W + b)·s + t` (`x·W·s + t` without a bias) with the
+    /// norm applied in the product's epilogue, forward and backward (module docs): no launch of
+    /// its own. Elsewhere the fold as tensor ops, `(W·diag(s), b·s + t)`, in [`Self::new`]: the
+    /// CPU backends' float order is the network's, and a BN that trains needs its gradient.
     ///
     /// # Panics
     ///
-    /// On a CPU backend, or if the BN's width is not the layer's output width.
-    pub(crate) fn folded(linear: &Linear, bn: &BatchNorm, device: &Device) -> Self {
-        assert!(
-            !runs_on_host(device),
-            "the CPU backends fold with tensor ops"
-        );
+    /// If the BN's width is not the layer's output width.
+    pub fn folded(linear: &Linear, bn: &BatchNorm, device: &Device) -> Self {
         let d_out = linear.weight.dims()[1];
         assert_eq!(bn.gamma.dims()[0], d_out, "one BN channel per output");
         let (scale, shift) = crate::frozen_affine::frozen_affine(bn, device);
+        let frozen = !bn.gamma.val().is_require_grad() && !bn.beta.val().is_require_grad();
+        if runs_on_host(device) || !frozen {
+            let weight = linear.weight.val() * scale.clone().unsqueeze_dim(0);
+            let bias = match &linear.bias {
+                Some(b) => b.val() * scale + shift,
+                None => shift,
+            };
+            return Self::new(weight, bias);
+        }
         let ledger = Ledger::default();
         let (bias, map) = match &linear.bias {
             Some(b) => (shared(b.val(), &ledger, Role::Bias), OutputMap::NormedBias),
@@ -354,13 +387,12 @@ mod tests {
     use lifegom_render::device::DeviceChoice;
     use lifegom_render::testing::{Rng, assert_close_to_scale, read, wgpu_test_device};
 
-    use crate::norm_folds::NormFolds;
     use crate::split_k::force_split_k_rows;
 
     /// How the passes run the layer.
     #[derive(Debug, Clone, Copy, PartialEq)]
     enum Layer {
-        /// [`SharedLinear`] (through [`NormFolds::shared_fold`] for a folded layer).
+        /// [`SharedLinear`] (through [`SharedLinear::folded`] for a folded layer on a device).
         Shared,
         /// Burn's `linear` (the CPU op on the CPU backends), folded with tensor ops.
         Composed,
@@ -456,14 +488,22 @@ mod tests {
         bn.beta = Param::from_tensor(beta).set_require_grad(false);
         bn.running_mean = RunningState::new(mean);
         bn.running_var = RunningState::new(var);
-        let folds = NormFolds::new();
         let shared = match norm {
             Norm::None => SharedLinear::new(weight.clone(), bias.clone()),
-            Norm::Folded(_) => folds.shared_fold(&linear, &bn, device),
+            Norm::Folded(_) => SharedLinear::folded(&linear, &bn, device),
         };
+        // The composed reference folds with tensor ops.
         let (w, b) = match norm {
             Norm::None => (weight.clone(), bias.clone()),
-            Norm::Folded(_) => folds.linear(&linear, &bn, device),
+            Norm::Folded(_) => {
+                let (scale, shift) = crate::frozen_affine::frozen_affine(&bn, device);
+                let w = linear.weight.val() * scale.clone().unsqueeze_dim(0);
+                let b = match &linear.bias {
+                    Some(b) => b.val() * scale + shift,
+                    None => shift,
+                };
+                (w, b)
+            }
         };
         let mut x = x0.clone();
         let mut total = None;

@@ -1,4 +1,5 @@
-//! ReLU on Burn's CubeCL backend: one thread per element each way.
+//! ReLU on Burn's CubeCL backend: one thread per element each way; and the [`Activation`] the
+//! other ops' kernels end with.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -9,7 +10,28 @@ use lifegom_render::cube::host::{
     THREADS_1D, arg, cast_to, count_1d, prepare, tensor_arg, tensor_f32,
 };
 
+use super::Activation;
 use super::op::{ReluKernels, ReluOps};
+
+/// `activation(v)`, in a kernel's epilogue. The match is exhaustive: a new [`Activation`] fails
+/// to compile here until the kernels know it.
+#[cube]
+pub(crate) fn activate(v: f32, #[comptime] activation: Activation) -> f32 {
+    match activation {
+        Activation::Identity => v,
+        // Burn's ReLU: `v ≤ 0 → 0`, NaN passes.
+        Activation::Relu => select(v <= 0.0f32, 0.0f32, v),
+    }
+}
+
+/// The gradient `g` of `activation(y)` carried back to `y`, for the activation's input `y`.
+#[cube]
+pub(crate) fn activation_gradient(y: f32, g: f32, #[comptime] activation: Activation) -> f32 {
+    match activation {
+        Activation::Identity => g,
+        Activation::Relu => select(y <= 0.0f32, 0.0f32, g),
+    }
+}
 
 /// `x ≤ 0 → 0`, else `x` (NaN passes), as Burn's comparison and masked fill.
 #[cube(launch)]

@@ -211,7 +211,7 @@ pub fn hide_invisible(uv: Tensor<3>, visible: Tensor<2>) -> Tensor<3> {
 ///
 /// The last level may carry a per-texel linear map, its **tail** `[C_last, C_out]`, applied
 /// after sampling (bilinear weights are linear, so this equals sampling the mapped level; the
-/// encoder uses it for its rgb embedding, [`crate::encoder::EncodedViews`]).
+/// encoder uses it for its rgb embedding, `lifegom_model::encoder::EncodedViews`).
 #[derive(Debug, Clone)]
 pub struct PreparedMaps {
     storage: Storage,

@@ -1209,7 +1209,11 @@ where
     match backward.prepare::<C>(nodes).compute_bound().stateful() {
         OpsKind::Tracked(prep) => {
             let output = forward(inputs.clone());
-            let activated = (activation == Activation::Relu).then(|| output.clone());
+            // The backward masks the gradient with a ReLU's output.
+            let activated = match activation {
+                Activation::Identity => None,
+                Activation::Relu => Some(output.clone()),
+            };
             let state = ProductInputs {
                 activated,
                 ..inputs

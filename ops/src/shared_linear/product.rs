@@ -40,6 +40,7 @@ use crate::gemm_conv::op::Patches;
 
 use super::op::{Ledger, OutputMap, ProductKernels, SharedLinearOps};
 use crate::activation::Activation;
+use crate::activation::cube::activate;
 use crate::handoff::Handoff;
 
 /// Output rows and columns of a cube's block.
@@ -131,7 +132,7 @@ fn affine_product_kernel(
     #[comptime] biased: bool,
     #[comptime] normed: bool,
     #[comptime] residual_added: bool,
-    #[comptime] relu: bool,
+    #[comptime] activation: Activation,
 ) {
     let mut a_tile = Shared::<[f32]>::new_slice(DEPTH * A_STRIDE);
     let mut b_tile = Shared::<[f32]>::new_slice(DEPTH * TILE);
@@ -210,11 +211,7 @@ fn affine_product_kernel(
                 if residual_added {
                     v += residual[row * dims.cols + col];
                 }
-                if relu {
-                    // Burn's ReLU: `v ≤ 0 → 0`, NaN passes.
-                    v = select(v <= 0.0f32, 0.0f32, v);
-                }
-                out[row * dims.cols + col] = v;
+                out[row * dims.cols + col] = activate(v, activation);
             }
         }
     }
@@ -333,7 +330,7 @@ fn launch_product(
             bias.is_some(),
             norm.is_some(),
             residual.is_some(),
-            activation == Activation::Relu,
+            activation,
         );
     }
     let masked_out = masked_out.map(|h| tensor_f32(client, device, h, &[rows, inner]));

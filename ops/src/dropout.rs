@@ -71,6 +71,25 @@ pub fn draw_seed(device: &burn::tensor::Device) -> u64 {
         })
 }
 
+/// The seeds of the masks `layers` draw in one training call on `device`, drawn now from the
+/// device's RNG in the same order ([`MaskSeed::Off`] where a layer draws none). `None` on a
+/// CubeCL device, whose masks are drawn on the device as the call goes.
+pub fn host_mask_seeds<const N: usize>(
+    layers: [&Dropout; N],
+    device: &burn::tensor::Device,
+) -> Option<[MaskSeed; N]> {
+    if !runs_on_host(device) {
+        return None;
+    }
+    Some(layers.map(|layer| {
+        if draws_host_mask(layer, device) {
+            MaskSeed::Given(draw_seed(device))
+        } else {
+            MaskSeed::Off
+        }
+    }))
+}
+
 /// Whether [`dropout_with`]`(layer, _, seed)` is the identity whatever the device: no mask
 /// (`Off`), or a given seed with no positive `prob`. What a `Device` seed does depends on the
 /// device and the training flag, so it does not count.

@@ -54,8 +54,9 @@ pub fn frozen_affine(bn: &BatchNorm, device: &Device) -> (Tensor<1>, Tensor<1>) 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::point_transformer::frozen_bn;
+    use burn::module::Module;
     use burn::module::Param;
+    use burn::nn::BatchNormConfig;
     use burn::tensor::TensorData;
     use lifegom_render::testing::{Rng, read, wgpu_test_device};
 
@@ -66,7 +67,10 @@ mod tests {
             let v: Vec<f32> = (0..c).map(|_| rng.range_f32(lo, hi)).collect();
             Tensor::from_data(TensorData::new(v, [c]), device)
         };
-        let mut bn = frozen_bn(c, 1e-5, device);
+        let mut bn = BatchNormConfig::new(c)
+            .with_epsilon(1e-5)
+            .init(device)
+            .freeze();
         bn.gamma = Param::from_tensor(draw(-2.0, 2.0)).set_require_grad(false);
         bn.beta = Param::from_tensor(draw(-1.0, 1.0)).set_require_grad(false);
         bn.running_mean = burn::module::RunningState::new(draw(-1.0, 1.0));

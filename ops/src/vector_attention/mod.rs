@@ -42,6 +42,7 @@ use burn::tensor::activation::softmax;
 use burn::tensor::{Int, Tensor, TensorData};
 use lifegom_render::device::runs_on_host;
 use lifegom_render::select::select_rows;
+use lifegom_render::split::join_columns;
 
 /// `Σ_κ softmax_κ(logits)·values` (module docs): `values` `[n, k, S, C/S]`, `logits`
 /// `[n, k, C/S]` → `[n, C]`.
@@ -119,6 +120,16 @@ pub struct OutputNorm {
     pub shift: Tensor<1>,
 }
 
+/// The layer's queries, keys and values, `[n, c]` each: one `[n, 3c]` product's output where
+/// products stack (`crate::shared_linear::SharedLinear::stacks_on`), else three.
+#[derive(Debug, Clone)]
+pub enum QueryKeyValue {
+    /// `[n, 3c]`, the column blocks `0..c`, `c..2c`, `2c..3c`.
+    Stacked(Box<Tensor<2>>),
+    /// `[q, k, v]`.
+    Apart(Box<[Tensor<2>; 3]>),
+}
+
 /// The whole neighbourhood part of the layer: [`relation`], then `mlp` (the rest of `MLP_w`) on
 /// it for the logits, then [`aggregate_gathered`], then `relu(··scale + shift)` with
 /// `output_norm`'s when given; `[n, c]`. On CubeCL devices the two ops are paired
@@ -131,7 +142,7 @@ pub struct OutputNorm {
 ///
 /// As [`relation`] and [`aggregate_gathered`], or if the norm's vectors are not `[c]`.
 pub fn attend(
-    qkv: Tensor<2>,
+    qkv: QueryKeyValue,
     neighbours: Tensor<1, Int>,
     delta: Tensor<3>,
     scale: Tensor<1>,
@@ -139,6 +150,19 @@ pub fn attend(
     mlp: impl FnOnce(Tensor<3>) -> Tensor<3>,
     output_norm: Option<OutputNorm>,
 ) -> Tensor<2> {
+    let qkv = match qkv {
+        QueryKeyValue::Apart(parts) if runs_on_host(&parts[0].device()) => {
+            let h = attend_reference(*parts, neighbours, delta, scale, shift, mlp);
+            return match output_norm {
+                Some(OutputNorm { scale, shift }) => {
+                    crate::activation::relu(h * scale.unsqueeze_dim(0) + shift.unsqueeze_dim(0))
+                }
+                None => h,
+            };
+        }
+        QueryKeyValue::Apart(parts) => join_columns(Vec::from(*parts)),
+        QueryKeyValue::Stacked(qkv) => *qkv,
+    };
     let pair = neighbour_op::AttentionPair::new();
     let related = relation_paired(
         qkv.clone(),
@@ -149,6 +173,27 @@ pub fn attend(
         pair.clone(),
     );
     aggregate_gathered_paired(qkv, neighbours, delta, mlp(related), pair, output_norm)
+}
+
+/// [`attend`] without an output norm as the CPU backends compose it from queries, keys and
+/// values apart: each neighbour's key and value gathered, `relu((k_j − q_i + δ)·scale + shift)`
+/// into `mlp`, and [`aggregate`] of `v_j + δ`.
+pub fn attend_reference(
+    [q, k, v]: [Tensor<2>; 3],
+    neighbours: Tensor<1, Int>,
+    delta: Tensor<3>,
+    scale: Tensor<1>,
+    shift: Tensor<1>,
+    mlp: impl FnOnce(Tensor<3>) -> Tensor<3>,
+) -> Tensor<2> {
+    let [n, kn, c] = delta.dims();
+    let keys = select_rows(k, 0, neighbours.clone()).reshape([n, kn, c]);
+    let values = select_rows(v, 0, neighbours).reshape([n, kn, c]);
+    let w = keys - q.unsqueeze_dim::<3>(1) + delta.clone();
+    let w = crate::activation::relu(w * scale.reshape([1, 1, c]) + shift.reshape([1, 1, c]));
+    let w = mlp(w); // [n, k, c/s]
+    let cs = w.dims()[2];
+    aggregate((values + delta).reshape([n, kn, c / cs, cs]), w)
 }
 
 fn relation_paired(
@@ -776,7 +821,15 @@ mod tests {
                 shift: t(&out_shift, [c], &ad),
             });
             let out = if paired {
-                attend(qkv.clone(), nbr, delta.clone(), scale, shift, mlp, norm)
+                attend(
+                    QueryKeyValue::Stacked(Box::new(qkv.clone())),
+                    nbr,
+                    delta.clone(),
+                    scale,
+                    shift,
+                    mlp,
+                    norm,
+                )
             } else {
                 let related =
                     relation_reference(qkv.clone(), nbr.clone(), delta.clone(), scale, shift);

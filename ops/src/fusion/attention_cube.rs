@@ -32,7 +32,7 @@ use super::op::{AttentionHeads, AttentionInputs, AttentionKernels, FusionAttenti
 const CUBE_THREADS: u32 = 64;
 
 /// The longest key sequence the kernels take (the scores of one query live in a local array);
-/// longer ones run as Burn's composition (`super::AttentionLayer`).
+/// longer ones run as Burn's composition (`super::attention`).
 pub(crate) const MAX_KEYS: usize = 16;
 
 /// The sizes every kernel indexes with.

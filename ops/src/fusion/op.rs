@@ -10,9 +10,10 @@
 //! intermediate; on a CPU those cost more than the arithmetic (BENCHMARKS.md, "Training step
 //! profile").
 //!
-//! On CubeCL devices the residual LayerNorm is this op too, as CubeCL kernels (`super::cube`),
-//! while the attention core keeps the tensor-op composition ([`super::FusionKernel`] says which
-//! runs where); the compositions are the reference the ops are tested against. The autodiff
+//! On CubeCL devices both are these ops too, as CubeCL kernels (`super::cube`,
+//! `super::attention_cube`), except attention over more keys than the kernels hold, which keeps
+//! the tensor-op composition ([`super::attention`] says which runs where); the compositions are
+//! the reference the ops are tested against. The autodiff
 //! nodes keep the inputs (handles, no copies) and recompute what the backward needs.
 
 // NdArray is deprecated in Burn 0.22 in favour of Flex; ndarray is the CI backend the project
@@ -40,7 +41,7 @@ use lifegom_render::readback::{HostLend, cpu_float_from};
 ///
 /// Inputs: `query` `[B, L_q, D]`, `key` and `value` `[B, L_k, D]` (already projected, heads
 /// side by side in the channels); output `[B, L_q, D]` in `query`'s dtype. Gradients flow to all
-/// three. Callers check shapes (see [`super::AttentionLayer`]).
+/// three. Callers check shapes (see `lifegom_model::fusion::AttentionLayer`).
 #[backend_extension(NdArray, Flex, Cube, Fusion, Autodiff)]
 pub trait FusionAttentionOps: Backend {
     /// Attends every problem's queries to its keys, `heads` heads at once.

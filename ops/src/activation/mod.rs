@@ -13,8 +13,12 @@
 //! - on CubeCL devices with fusion off the [`op::ReluOps`] extension: one elementwise kernel
 //!   forward and one backward (`cube`), with Burn's semantics to the bit (`x ≤ 0 → 0`, NaN
 //!   passes; the backward zeroes the gradient where the output is `≤ 0`).
+//!
+//! The fusion-off path stays because `tools/gpu-figures.sh` times fusion on against fusion off
+//! on a card; the backward kernel serves the shared layers too (`crate::shared_linear`, a ReLU's
+//! mask when no `∂x` is wanted).
 
-mod cube;
+pub(crate) mod cube;
 pub mod op;
 
 use burn::tensor::Tensor;
@@ -23,7 +27,11 @@ use lifegom_render::device::{KernelFusion, runs_on_host};
 /// What a layer applies after its affine map, inside the op's own launch where the op has one
 /// (the encoder's norms, [`crate::channel_norm`]; the shared layers' products,
 /// [`crate::shared_linear`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+///
+/// Kernels take it as a compile-time argument and `match` on it (`cube::activate`,
+/// `cube::activation_gradient`), and host code matches on it too, never comparing with one
+/// variant: a new variant fails to compile until every kernel and op handles it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Activation {
     /// Nothing.
     Identity,

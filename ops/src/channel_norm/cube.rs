@@ -28,6 +28,7 @@ use lifegom_render::cube::image::{ImageLayout, dense, image_layout};
 
 use super::op::{ChannelNormKernels, ChannelNormOps, NormLedger, TOTAL_PARTS};
 use crate::activation::Activation;
+use crate::activation::cube::{activate, activation_gradient};
 
 /// Pixels of one image and channel each partial sum covers.
 const PIXELS_PER_CHUNK: usize = 256;
@@ -63,7 +64,7 @@ fn channel_norm_forward_kernel(
     channels: usize,
     channel_stride: usize,
     eps: f32,
-    relu: u32,
+    #[comptime] activation: Activation,
 ) {
     // `e` walks the buffer: in a permuted contiguous layout the channel of offset `e` is
     // `(e / stride_c) mod C`, and the output keeps the input's layout.
@@ -72,11 +73,7 @@ fn channel_norm_forward_kernel(
         let c = (e / channel_stride) % channels;
         let s = scale_of(gamma, var, c, eps);
         let t = shift_of(beta, mean, c, s);
-        let mut y = x[e] * s + t;
-        if relu != 0 {
-            y = f32::max(y, 0.0);
-        }
-        out[e] = y;
+        out[e] = activate(x[e] * s + t, activation);
     }
 }
 
@@ -98,7 +95,7 @@ fn channel_norm_partials_kernel(
     chunks: usize,
     chunk_len: usize,
     eps: f32,
-    relu: u32,
+    #[comptime] activation: Activation,
     x_layout: &ImageLayout,
     grad_layout: &ImageLayout,
 ) {
@@ -117,10 +114,11 @@ fn channel_norm_partials_kernel(
         for i in start..end {
             let at = x_layout.at_pixel(n, c, i, width);
             let xi = x[at];
-            let mut g = grad[grad_layout.at_pixel(n, c, i, width)];
-            if relu != 0 && xi * s + t <= 0.0 {
-                g = 0.0;
-            }
+            let g = activation_gradient(
+                xi * s + t,
+                grad[grad_layout.at_pixel(n, c, i, width)],
+                activation,
+            );
             dx[at] = g * s;
             gx += g * xi;
             g_sum += g;
@@ -240,7 +238,7 @@ impl ChannelNormOps for CubeBackend {
                 c,
                 channel_stride,
                 epsilon,
-                u32::from(activation == Activation::Relu),
+                activation,
             );
         }
         cast_to(laid_out_as(&x, out), dtype)
@@ -290,7 +288,7 @@ impl ChannelNormKernels for CubeBackend {
                 chunks,
                 PIXELS_PER_CHUNK,
                 epsilon,
-                u32::from(activation == Activation::Relu),
+                activation,
                 image_layout(&x),
                 image_layout(&grad),
             );
