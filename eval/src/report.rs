@@ -234,7 +234,7 @@ impl Report {
             for s in first {
                 let _ = write!(md, " | t = {}", s.t);
             }
-            md.push_str(" | t = T − t = 1 (dB) |\n|---|");
+            md.push_str(" | gain, t = 1 → T (dB) |\n|---|");
             md.push_str(&"---|".repeat(first.len() + 1));
             md.push('\n');
             for (name, steps) in &self.feedback_steps {
