@@ -87,6 +87,72 @@ pub fn relative_positions(p: Tensor<2>, table: &GroupTable) -> Tensor<3> {
     )
 }
 
+/// One level of a point hierarchy whose every level is a subset of the input points (the
+/// Point Transformer's FPS levels), kept the way [`level_offsets`] reads it on this backend:
+/// its rows in the input points and, on the CPU backends, its own positions, gathered from the
+/// previous level's (the composition of the module docs; on CubeCL devices the offsets read the
+/// input positions through the rows, and no level keeps a tensor).
+#[derive(Debug, Clone)]
+pub struct LevelPoints {
+    rows: Vec<u32>,
+    positions: Option<Tensor<2>>,
+}
+
+impl LevelPoints {
+    /// The finest level: the input points `positions` `[n, 3]`, as rows `rows` of themselves.
+    pub fn input(positions: &Tensor<2>, rows: Vec<u32>) -> Self {
+        let positions = runs_on_host(&positions.device()).then(|| positions.clone());
+        Self { rows, positions }
+    }
+
+    /// The level of this level's points `picks`, which are rows `rows` of the input points.
+    pub fn pick(&self, picks: &[u32], rows: Vec<u32>) -> Self {
+        let positions = self
+            .positions
+            .as_ref()
+            .map(|p| select_rows(p.clone(), 0, index_tensor(picks, &p.device())));
+        Self { rows, positions }
+    }
+
+    /// Its points' rows in the input points.
+    pub fn rows(&self) -> &[u32] {
+        &self.rows
+    }
+}
+
+/// The neighbours `nb` (points of `reference`) of each point of `query`, as rows of
+/// `reference` `[m·k]`, and their offsets from that point, `[m, k, 3]`, for levels of the input
+/// points `positions` `[n, 3]`: on the CPU backends a gather of `reference`'s positions less
+/// `query`'s, on CubeCL devices one [`relative_positions`] over the input positions (the same
+/// values, in fewer launches). The gradient reaches `positions`.
+pub fn level_offsets(
+    positions: &Tensor<2>,
+    nb: &crate::knn::Neighbours,
+    reference: &LevelPoints,
+    query: &LevelPoints,
+) -> (Tensor<1, Int>, Tensor<3>) {
+    let device = positions.device();
+    let indices = index_tensor(&nb.indices, &device);
+    if let (Some(p_ref), Some(p_query)) = (&reference.positions, &query.positions) {
+        let rel = select_rows(p_ref.clone(), 0, indices.clone()).reshape([nb.len(), nb.k, 3])
+            - p_query.clone().unsqueeze_dim::<3>(1);
+        return (indices, rel);
+    }
+    let neighbours: Vec<i64> = nb
+        .indices
+        .iter()
+        .map(|&r| i64::from(reference.rows[r as usize]))
+        .collect();
+    let centres: Vec<i64> = query.rows.iter().map(|&r| i64::from(r)).collect();
+    let table = GroupTable::new(&neighbours, &centres, positions.dims()[0], &device);
+    (indices, relative_positions(positions.clone(), &table))
+}
+
+fn index_tensor(idx: &[u32], device: &Device) -> Tensor<1, Int> {
+    let data: Vec<i64> = idx.iter().map(|&i| i64::from(i)).collect();
+    Tensor::from_data(TensorData::new(data, [idx.len()]), device)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
