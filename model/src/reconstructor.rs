@@ -32,7 +32,7 @@ use lifegom_render::camera::Camera;
 use lifegom_render::device::{on_pool_thread, rows_per_block, runs_on_host};
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::mesh::MeshTopology;
-use lifegom_render::rasterizer::{Gaussians, RasterSettings, rasterize, rasterize_views};
+use lifegom_render::rasterizer::{Gaussians, RasterSettings, composite_views};
 use lifegom_render::readback;
 use lifegom_render::skeleton::Skeleton;
 use lifegom_render::skinning::skin_vertices;
@@ -364,63 +364,43 @@ pub fn render_views(
     background: [f32; 3],
 ) -> Result<SourceRenders> {
     let _span = tracing::debug_span!("render_views", views = cameras.len()).entered();
-    // On a CubeCL device, each run of consecutive views of one pose in one call of the
-    // rasterizer (every stage one launch for all of them). The CPU backends keep a call per view:
-    // the same values, and the Gaussians' gradients summed in the order they always were.
-    if cameras.len() > 1 && !runs_on_host(&state_xyz.device()) {
-        let mut runs = Vec::new();
-        let mut start = 0;
-        while start < cameras.len() {
-            let end = (start..cameras.len())
-                .find(|&k| skinning[k] != skinning[start])
-                .unwrap_or(cameras.len());
-            let posed = skin_vertices(
-                state_xyz.clone(),
-                subject.lbs_weights.clone(),
-                &skinning[start],
-            )?;
-            let gaussians = mesh.gaussians(posed, faces);
-            let settings: Vec<RasterSettings> = cameras[start..end]
-                .iter()
-                .map(|&c| RasterSettings::new(c))
-                .collect();
-            runs.push(rasterize_views(&gaussians, &settings)?.composite_reference(background));
-            start = end;
-        }
-        let (rgb, alpha): (Vec<_>, Vec<_>) = runs.into_iter().unzip();
-        let join = |mut parts: Vec<Tensor<4>>| match parts.len() {
-            1 => parts.pop().expect("one run"),
-            _ => Tensor::cat(parts, 0),
-        };
-        return Ok(SourceRenders {
-            rgb: join(rgb).permute([0, 3, 1, 2]),
-            alpha: join(alpha).permute([0, 3, 1, 2]),
-        });
-    }
-    let mut rgb = Vec::with_capacity(cameras.len());
-    let mut alpha = Vec::with_capacity(cameras.len());
+    // Each run of consecutive views of one pose is one call of the renderer
+    // ([`composite_views`], which batches the views where that saves launches).
+    let mut rgb = Vec::new();
+    let mut alpha = Vec::new();
     let mut posed_gaussians: Vec<(&[Affine3A], Gaussians)> = Vec::new();
-    for (camera, transforms) in cameras.iter().zip(skinning) {
-        let known = posed_gaussians
-            .iter()
-            .find(|(pose, _)| *pose == transforms.as_slice());
+    let mut start = 0;
+    while start < cameras.len() {
+        let pose = skinning[start].as_slice();
+        let end = (start..cameras.len())
+            .find(|&k| skinning[k] != pose)
+            .unwrap_or(cameras.len());
+        let known = posed_gaussians.iter().find(|(seen, _)| *seen == pose);
         let gaussians = match known {
             Some((_, gaussians)) => gaussians.clone(),
             None => {
-                let posed =
-                    skin_vertices(state_xyz.clone(), subject.lbs_weights.clone(), transforms)?;
+                let posed = skin_vertices(state_xyz.clone(), subject.lbs_weights.clone(), pose)?;
                 let gaussians = mesh.gaussians(posed, faces);
-                posed_gaussians.push((transforms, gaussians.clone()));
+                posed_gaussians.push((pose, gaussians.clone()));
                 gaussians
             }
         };
-        let rendered = rasterize(&gaussians, &RasterSettings::new(*camera))?;
-        rgb.push(rendered.composite_reference(background).permute([2, 0, 1]));
-        alpha.push(rendered.alpha().unsqueeze_dim::<3>(0));
+        let settings: Vec<RasterSettings> = cameras[start..end]
+            .iter()
+            .map(|&c| RasterSettings::new(c))
+            .collect();
+        let (run_rgb, run_alpha) = composite_views(&gaussians, &settings, background)?;
+        rgb.push(run_rgb);
+        alpha.push(run_alpha);
+        start = end;
     }
+    let join = |mut parts: Vec<Tensor<4>>| match parts.len() {
+        1 => parts.pop().expect("one run"),
+        _ => Tensor::cat(parts, 0),
+    };
     Ok(SourceRenders {
-        rgb: Tensor::stack(rgb, 0),
-        alpha: Tensor::stack(alpha, 0),
+        rgb: join(rgb).permute([0, 3, 1, 2]),
+        alpha: join(alpha).permute([0, 3, 1, 2]),
     })
 }
 
