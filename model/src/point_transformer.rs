@@ -94,7 +94,7 @@ use lifegom_ops::activation::relu;
 use lifegom_ops::grouping::{LevelPoints, level_offsets};
 use lifegom_ops::handoff::Handoff;
 use lifegom_ops::vector_attention::{PositionWeights, QueryKeyValue};
-use lifegom_render::device::runs_on_host;
+use lifegom_render::device::CostModel;
 use lifegom_render::readback::{self, ReadbackError};
 
 pub use crate::norm_folds::NormFolds;
@@ -541,10 +541,10 @@ impl HierarchyPlanning {
         })
     }
 
-    /// What a reconstruction on `device` does: this process's choice on CubeCL devices,
-    /// [`Self::Inline`] on the CPU backends (whose read-backs wait for nothing).
+    /// What a reconstruction on `device` does: this process's choice where a read-back waits
+    /// for queued work, [`Self::Inline`] where it waits for nothing ([`CostModel`]).
     pub fn on_device(device: &Device) -> Self {
-        if runs_on_host(device) {
+        if CostModel::of(device).free_readback() {
             HierarchyPlanning::Inline
         } else {
             Self::current()

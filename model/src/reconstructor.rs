@@ -29,7 +29,7 @@ use burn::tensor::{Device, Distribution, Int, Tensor, TensorData};
 use glam::Affine3A;
 
 use lifegom_render::camera::Camera;
-use lifegom_render::device::{on_pool_thread, rows_per_block, runs_on_host};
+use lifegom_render::device::{CostModel, on_pool_thread, rows_per_block};
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::mesh::MeshTopology;
 use lifegom_render::rasterizer::{Gaussians, RasterSettings, composite_views};
@@ -571,12 +571,13 @@ impl Reconstructor {
             renders: Vec::new(),
             timings: Vec::new(),
         };
-        // On a CubeCL device the targets are rendered with the sources, in one rasterizer call
-        // per pose; on the CPU backends after the feedback loop, one render per state, as the
-        // trainer rendered them before it passed its target here (the same ops in the same
-        // order: the same gradients to the bit).
+        // Where merged passes pay ([`CostModel`]) the targets are rendered with the sources, in
+        // one rasterizer call per pose; elsewhere after the feedback loop, one render per state,
+        // as the trainer rendered them before it passed its target here (the same ops in the
+        // same order: the same gradients to the bit).
         let n = sources.cameras.len();
-        let targets_with_sources = !runs_on_host(&device) && !targets.cameras.is_empty();
+        let targets_with_sources =
+            CostModel::of(&device).merge_passes() && !targets.cameras.is_empty();
         let (cameras, skinning) = if targets_with_sources {
             let cameras: Vec<Camera> = sources
                 .cameras
@@ -690,7 +691,7 @@ impl Reconstructor {
         src_repeats: Option<&RepeatedTokens>,
     ) -> Tensor<2> {
         let device = src.device();
-        if !runs_on_host(&device) && !device.is_autodiff() {
+        if CostModel::of(&device).merge_passes() && !device.is_autodiff() {
             return self.fuse_stacked(folds, src, ren, embed);
         }
         // The inference copy first: Burn initialises parameters lazily from the same RNG, and a
@@ -773,7 +774,7 @@ impl Reconstructor {
     /// views on `device`: the first fusion layer's stacked query, key and value, `3·D` per view
     /// token, for both branches at once where they are one pass (inference on a CubeCL device).
     fn fusion_floats_per_vertex(&self, n: usize, device: &Device) -> usize {
-        let branches = match !runs_on_host(device) && !device.is_autodiff() {
+        let branches = match CostModel::of(device).merge_passes() && !device.is_autodiff() {
             true => 2,
             false => 1,
         };
@@ -846,11 +847,11 @@ impl Reconstructor {
             let flags = visibility_in_views(posed_hr.clone().detach(), faces_hr, &views)?;
             (flags.vertices.reshape([v, n, 1]), flags.faces)
         };
-        // On the CPU backends, the source tokens of hidden (vertex, view) pairs are all e_vis:
-        // 80–90 % of them at the small presets (BENCHMARKS.md, session 13), projected once in
-        // the fusion. The visibility is the no-gradient raster's result; reading it costs no
-        // sync on those backends.
-        let src_repeats = if runs_on_host(&state.xyz.device()) {
+        // The source tokens of hidden (vertex, view) pairs are all e_vis: 80–90 % of them at
+        // the small presets (BENCHMARKS.md, session 13), projected once in the fusion where
+        // reading the visibility (the no-gradient raster's result) back costs no sync
+        // ([`CostModel`]).
+        let src_repeats = if CostModel::of(&state.xyz.device()).free_readback() {
             let host: Vec<f32> = readback::read("vertex visibility", vis.clone())?;
             let hidden: Vec<bool> = host.iter().map(|&x| x < 0.5).collect();
             RepeatedTokens::from_mask(&hidden, n, &state.xyz.device())
@@ -951,10 +952,11 @@ impl Reconstructor {
                     faces_flat.clone().narrow(0, 3 * start, 3 * len),
                 )
             };
-            // On the CPU backends the whole stage is one block, and only the visible (face,
-            // view) pairs are sampled and multiplied (`FaceImages::Visible`); the dense layout
-            // stays for blocks and CubeCL devices, and as the reference in tests.
-            let visible_only = len == f && runs_on_host(&state.xyz.device());
+            // Where a read-back is free ([`CostModel`]) and the whole stage is one block, only
+            // the visible (face, view) pairs are sampled and multiplied (`FaceImages::Visible`);
+            // the dense layout stays for blocks and queued devices, and as the reference in
+            // tests.
+            let visible_only = len == f && CostModel::of(&state.xyz.device()).free_readback();
             let face_feats = {
                 let _span = tracing::debug_span!("face_sampling").entered();
                 let _span = tracing::debug_span!("sample_maps").entered();
@@ -980,13 +982,13 @@ impl Reconstructor {
                 corners: face_corners(h_hr, corners),
                 images: face_feats,
             };
-            // On a GPU the heads' stacked weights are made once per reconstruction; the CPU
-            // backends make them per step as before, so their training gradients keep their
-            // summation order to the bit.
-            blocks.push(if runs_on_host(&state.xyz.device()) {
-                self.heads.faces(inputs)
-            } else {
+            // Where merged passes pay ([`CostModel`]) the heads' stacked weights are made once
+            // per reconstruction; elsewhere per step as before, so that training's gradients
+            // keep their summation order to the bit.
+            blocks.push(if CostModel::of(&state.xyz.device()).merge_passes() {
                 self.heads.faces_folded(folds, inputs)
+            } else {
+                self.heads.faces(inputs)
             });
         }
         let faces = GomParams::cat(blocks, &state.xyz.device());
