@@ -192,4 +192,48 @@ mod tests {
         }
         assert!(want_grad.iter().any(|&g| g != 0.0));
     }
+
+    /// Two levels' offsets and the positions' gradient: the finest level's self-neighbours,
+    /// then a picked level's neighbours in the finest one.
+    fn level_offsets_and_gradient(device: &Device) -> (Vec<f32>, Vec<f32>) {
+        let ad = device.clone().autodiff();
+        let mut rng = Rng::new(9);
+        let (n, k) = (9, 3);
+        let p: Vec<f32> = (0..n * 3).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let p = Tensor::<2>::from_data(TensorData::new(p, [n, 3]), &ad).require_grad();
+        let neighbours = |m: usize, of: usize| crate::knn::Neighbours {
+            k,
+            indices: (0..m * k).map(|s| ((s * 5 + 1) % of) as u32).collect(),
+            dist2: vec![0.0; m * k],
+        };
+        let fine = LevelPoints::input(&p, (0..n as u32).collect());
+        let picks = [7, 2, 4];
+        let coarse = fine.pick(&picks, picks.to_vec());
+        let (_, self_rel) = level_offsets(&p, &neighbours(n, n), &fine, &fine);
+        let (idx, down_rel) = level_offsets(&p, &neighbours(3, n), &fine, &coarse);
+        assert_eq!(idx.dims(), [3 * k]);
+        let rel = Tensor::cat(vec![self_rel, down_rel], 0);
+        let w: Vec<f32> = (0..(n + 3) * k * 3)
+            .map(|_| rng.range_f32(-1.0, 1.0))
+            .collect();
+        let w = Tensor::<3>::from_data(TensorData::new(w, [n + 3, k, 3]), &ad);
+        let grads = (rel.clone() * w).sum().backward();
+        (read(rel), read(p.grad(&grads).expect("a gradient")))
+    }
+
+    /// The levels' offsets on lavapipe (one op over the input positions) against Flex (each
+    /// level's own positions): equal offsets, the gradient within float summation order.
+    #[test]
+    fn level_offsets_match_across_backends_wgpu() {
+        let Some(device) = wgpu_test_device() else {
+            return;
+        };
+        let (want, want_grad) = level_offsets_and_gradient(&Device::flex());
+        let (got, got_grad) = level_offsets_and_gradient(&device);
+        assert_eq!(got, want);
+        for (i, (a, b)) in got_grad.iter().zip(&want_grad).enumerate() {
+            assert!((a - b).abs() <= 1e-5, "∂p[{i}]: {a} against {b}");
+        }
+        assert!(want_grad.iter().any(|&g| g != 0.0));
+    }
 }
