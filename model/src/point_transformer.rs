@@ -91,9 +91,10 @@ use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use lifegom_ops::activation::Activation;
 use lifegom_ops::activation::relu;
+use lifegom_ops::grouping::{LevelPoints, level_offsets};
 use lifegom_ops::handoff::Handoff;
 use lifegom_ops::vector_attention::{PositionWeights, QueryKeyValue};
-use lifegom_render::device::runs_on_host;
+use lifegom_render::device::CostModel;
 use lifegom_render::readback::{self, ReadbackError};
 
 pub use crate::norm_folds::NormFolds;
@@ -321,13 +322,10 @@ pub struct DecoderStage {
 struct Level {
     /// Points at this level.
     n: usize,
-    /// Their positions on the device (in the autodiff graph: an FPS gather of the input), on
-    /// the CPU backends; `None` on devices, where the offsets read the input positions.
-    p: Option<Tensor<2>>,
     /// Their positions, read back.
     host: Vec<[f32; 3]>,
-    /// Their rows in the input points.
-    input_rows: Vec<u32>,
+    /// Their rows in the input points, and what the offsets read of their positions.
+    points: LevelPoints,
     /// Self-kNN: flattened neighbour indices `[n·k]` and relative positions `[n, k, 3]`.
     nbr: Tensor<1, Int>,
     rel: Tensor<3>,
@@ -335,12 +333,14 @@ struct Level {
     down: Option<(Tensor<1, Int>, Tensor<3>)>,
 }
 
+#[cfg(test)]
 fn index_tensor(idx: &[u32], device: &Device) -> Tensor<1, Int> {
     let data: Vec<i64> = idx.iter().map(|&i| i64::from(i)).collect();
     Tensor::from_data(TensorData::new(data, [idx.len()]), device)
 }
 
 /// `(indices [m·k], p_ref[j] − p_query[i] as [m, k, 3])` for a kNN result.
+#[cfg(test)]
 fn group_positions(
     nb: &Neighbours,
     p_ref: &Tensor<2>,
@@ -487,64 +487,25 @@ impl PointTransformer {
             .collect()
     }
 
-    /// The levels of `plan` on `positions`' device.
-    ///
-    /// On the CPU backends each level's positions are gathered from the previous level's and
-    /// the offsets from them. On devices every level's points are kept as rows of the input
-    /// points, and each offset table is one op over the input positions
-    /// ([`lifegom_ops::grouping::relative_positions`]): the same values, in fewer launches.
+    /// The levels of `plan` on `positions`' device, their offset tables made by
+    /// [`lifegom_ops::grouping::level_offsets`].
     fn levels(&self, positions: Tensor<2>, plan: HostHierarchy) -> Vec<Level> {
-        let device = positions.device();
-        let on_host = runs_on_host(&device);
-        // Offsets of the neighbours `nb` (rows of the level `reference`) from the points of
-        // `query`, each level given as its positions (CPU backends) and its input rows.
-        type Points<'l> = (&'l Option<Tensor<2>>, &'l [u32]);
-        let offsets = |nb: &Neighbours, reference: Points<'_>, query: Points<'_>| match (
-            reference.0,
-            query.0,
-        ) {
-            (Some(p_ref), Some(p_query)) if on_host => group_positions(nb, p_ref, p_query),
-            _ => {
-                let input = |rows: &[u32]| -> Vec<i64> {
-                    rows.iter()
-                        .map(|&r| i64::from(reference.1[r as usize]))
-                        .collect()
-                };
-                let centres: Vec<i64> = query.1.iter().map(|&r| i64::from(r)).collect();
-                let table = lifegom_ops::grouping::GroupTable::new(
-                    &input(&nb.indices),
-                    &centres,
-                    positions.dims()[0],
-                    &device,
-                );
-                let rel = lifegom_ops::grouping::relative_positions(positions.clone(), &table);
-                (index_tensor(&nb.indices, &device), rel)
-            }
-        };
         let mut levels: Vec<Level> = Vec::with_capacity(plan.levels.len());
         for planned in plan.levels {
-            let (p, down) = match (levels.last(), &planned.picks) {
-                (None, _) => (on_host.then(|| positions.clone()), None),
-                (Some(prev), None) => (prev.p.clone(), None),
+            let (points, down) = match (levels.last(), &planned.picks) {
+                (None, _) => (LevelPoints::input(&positions, planned.input_rows), None),
+                (Some(prev), None) => (prev.points.clone(), None),
                 (Some(prev), Some((sel, nb))) => {
-                    let p = prev
-                        .p
-                        .as_ref()
-                        .map(|p| select_rows(p.clone(), 0, index_tensor(sel, &device)));
-                    let down = offsets(nb, (&prev.p, &prev.input_rows), (&p, &planned.input_rows));
-                    (p, Some(down))
+                    let points = prev.points.pick(sel, planned.input_rows);
+                    let down = level_offsets(&positions, nb, &prev.points, &points);
+                    (points, Some(down))
                 }
             };
-            let (nbr, rel) = offsets(
-                &planned.neighbours,
-                (&p, &planned.input_rows),
-                (&p, &planned.input_rows),
-            );
+            let (nbr, rel) = level_offsets(&positions, &planned.neighbours, &points, &points);
             levels.push(Level {
                 n: planned.host.len(),
-                p,
                 host: planned.host,
-                input_rows: planned.input_rows,
+                points,
                 nbr,
                 rel,
                 down,
@@ -580,10 +541,10 @@ impl HierarchyPlanning {
         })
     }
 
-    /// What a reconstruction on `device` does: this process's choice on CubeCL devices,
-    /// [`Self::Inline`] on the CPU backends (whose read-backs wait for nothing).
+    /// What a reconstruction on `device` does: this process's choice where a read-back waits
+    /// for queued work, [`Self::Inline`] where it waits for nothing ([`CostModel`]).
     pub fn on_device(device: &Device) -> Self {
-        if runs_on_host(device) {
+        if CostModel::of(device).free_readback() {
             HierarchyPlanning::Inline
         } else {
             Self::current()

@@ -29,10 +29,10 @@ use burn::tensor::{Device, Distribution, Int, Tensor, TensorData};
 use glam::Affine3A;
 
 use lifegom_render::camera::Camera;
-use lifegom_render::device::{on_pool_thread, rows_per_block, runs_on_host};
+use lifegom_render::device::{CostModel, on_pool_thread, rows_per_block};
 use lifegom_render::gom::{GomMesh, GomParams};
 use lifegom_render::mesh::MeshTopology;
-use lifegom_render::rasterizer::{Gaussians, RasterSettings, rasterize, rasterize_views};
+use lifegom_render::rasterizer::{Gaussians, RasterSettings, composite_views};
 use lifegom_render::readback;
 use lifegom_render::skeleton::Skeleton;
 use lifegom_render::skinning::skin_vertices;
@@ -364,63 +364,43 @@ pub fn render_views(
     background: [f32; 3],
 ) -> Result<SourceRenders> {
     let _span = tracing::debug_span!("render_views", views = cameras.len()).entered();
-    // On a CubeCL device, each run of consecutive views of one pose in one call of the
-    // rasterizer (every stage one launch for all of them). The CPU backends keep a call per view:
-    // the same values, and the Gaussians' gradients summed in the order they always were.
-    if cameras.len() > 1 && !runs_on_host(&state_xyz.device()) {
-        let mut runs = Vec::new();
-        let mut start = 0;
-        while start < cameras.len() {
-            let end = (start..cameras.len())
-                .find(|&k| skinning[k] != skinning[start])
-                .unwrap_or(cameras.len());
-            let posed = skin_vertices(
-                state_xyz.clone(),
-                subject.lbs_weights.clone(),
-                &skinning[start],
-            )?;
-            let gaussians = mesh.gaussians(posed, faces);
-            let settings: Vec<RasterSettings> = cameras[start..end]
-                .iter()
-                .map(|&c| RasterSettings::new(c))
-                .collect();
-            runs.push(rasterize_views(&gaussians, &settings)?.composite_reference(background));
-            start = end;
-        }
-        let (rgb, alpha): (Vec<_>, Vec<_>) = runs.into_iter().unzip();
-        let join = |mut parts: Vec<Tensor<4>>| match parts.len() {
-            1 => parts.pop().expect("one run"),
-            _ => Tensor::cat(parts, 0),
-        };
-        return Ok(SourceRenders {
-            rgb: join(rgb).permute([0, 3, 1, 2]),
-            alpha: join(alpha).permute([0, 3, 1, 2]),
-        });
-    }
-    let mut rgb = Vec::with_capacity(cameras.len());
-    let mut alpha = Vec::with_capacity(cameras.len());
+    // Each run of consecutive views of one pose is one call of the renderer
+    // ([`composite_views`], which batches the views where that saves launches).
+    let mut rgb = Vec::new();
+    let mut alpha = Vec::new();
     let mut posed_gaussians: Vec<(&[Affine3A], Gaussians)> = Vec::new();
-    for (camera, transforms) in cameras.iter().zip(skinning) {
-        let known = posed_gaussians
-            .iter()
-            .find(|(pose, _)| *pose == transforms.as_slice());
+    let mut start = 0;
+    while start < cameras.len() {
+        let pose = skinning[start].as_slice();
+        let end = (start..cameras.len())
+            .find(|&k| skinning[k] != pose)
+            .unwrap_or(cameras.len());
+        let known = posed_gaussians.iter().find(|(seen, _)| *seen == pose);
         let gaussians = match known {
             Some((_, gaussians)) => gaussians.clone(),
             None => {
-                let posed =
-                    skin_vertices(state_xyz.clone(), subject.lbs_weights.clone(), transforms)?;
+                let posed = skin_vertices(state_xyz.clone(), subject.lbs_weights.clone(), pose)?;
                 let gaussians = mesh.gaussians(posed, faces);
-                posed_gaussians.push((transforms, gaussians.clone()));
+                posed_gaussians.push((pose, gaussians.clone()));
                 gaussians
             }
         };
-        let rendered = rasterize(&gaussians, &RasterSettings::new(*camera))?;
-        rgb.push(rendered.composite_reference(background).permute([2, 0, 1]));
-        alpha.push(rendered.alpha().unsqueeze_dim::<3>(0));
+        let settings: Vec<RasterSettings> = cameras[start..end]
+            .iter()
+            .map(|&c| RasterSettings::new(c))
+            .collect();
+        let (run_rgb, run_alpha) = composite_views(&gaussians, &settings, background)?;
+        rgb.push(run_rgb);
+        alpha.push(run_alpha);
+        start = end;
     }
+    let join = |mut parts: Vec<Tensor<4>>| match parts.len() {
+        1 => parts.pop().expect("one run"),
+        _ => Tensor::cat(parts, 0),
+    };
     Ok(SourceRenders {
-        rgb: Tensor::stack(rgb, 0),
-        alpha: Tensor::stack(alpha, 0),
+        rgb: join(rgb).permute([0, 3, 1, 2]),
+        alpha: join(alpha).permute([0, 3, 1, 2]),
     })
 }
 
@@ -591,12 +571,13 @@ impl Reconstructor {
             renders: Vec::new(),
             timings: Vec::new(),
         };
-        // On a CubeCL device the targets are rendered with the sources, in one rasterizer call
-        // per pose; on the CPU backends after the feedback loop, one render per state, as the
-        // trainer rendered them before it passed its target here (the same ops in the same
-        // order: the same gradients to the bit).
+        // Where merged passes pay ([`CostModel`]) the targets are rendered with the sources, in
+        // one rasterizer call per pose; elsewhere after the feedback loop, one render per state,
+        // as the trainer rendered them before it passed its target here (the same ops in the
+        // same order: the same gradients to the bit).
         let n = sources.cameras.len();
-        let targets_with_sources = !runs_on_host(&device) && !targets.cameras.is_empty();
+        let targets_with_sources =
+            CostModel::of(&device).merge_passes() && !targets.cameras.is_empty();
         let (cameras, skinning) = if targets_with_sources {
             let cameras: Vec<Camera> = sources
                 .cameras
@@ -710,7 +691,7 @@ impl Reconstructor {
         src_repeats: Option<&RepeatedTokens>,
     ) -> Tensor<2> {
         let device = src.device();
-        if !runs_on_host(&device) && !device.is_autodiff() {
+        if CostModel::of(&device).merge_passes() && !device.is_autodiff() {
             return self.fuse_stacked(folds, src, ren, embed);
         }
         // The inference copy first: Burn initialises parameters lazily from the same RNG, and a
@@ -793,7 +774,7 @@ impl Reconstructor {
     /// views on `device`: the first fusion layer's stacked query, key and value, `3·D` per view
     /// token, for both branches at once where they are one pass (inference on a CubeCL device).
     fn fusion_floats_per_vertex(&self, n: usize, device: &Device) -> usize {
-        let branches = match !runs_on_host(device) && !device.is_autodiff() {
+        let branches = match CostModel::of(device).merge_passes() && !device.is_autodiff() {
             true => 2,
             false => 1,
         };
@@ -866,11 +847,11 @@ impl Reconstructor {
             let flags = visibility_in_views(posed_hr.clone().detach(), faces_hr, &views)?;
             (flags.vertices.reshape([v, n, 1]), flags.faces)
         };
-        // On the CPU backends, the source tokens of hidden (vertex, view) pairs are all e_vis:
-        // 80–90 % of them at the small presets (BENCHMARKS.md, session 13), projected once in
-        // the fusion. The visibility is the no-gradient raster's result; reading it costs no
-        // sync on those backends.
-        let src_repeats = if runs_on_host(&state.xyz.device()) {
+        // The source tokens of hidden (vertex, view) pairs are all e_vis: 80–90 % of them at
+        // the small presets (BENCHMARKS.md, session 13), projected once in the fusion where
+        // reading the visibility (the no-gradient raster's result) back costs no sync
+        // ([`CostModel`]).
+        let src_repeats = if CostModel::of(&state.xyz.device()).free_readback() {
             let host: Vec<f32> = readback::read("vertex visibility", vis.clone())?;
             let hidden: Vec<bool> = host.iter().map(|&x| x < 0.5).collect();
             RepeatedTokens::from_mask(&hidden, n, &state.xyz.device())
@@ -971,10 +952,11 @@ impl Reconstructor {
                     faces_flat.clone().narrow(0, 3 * start, 3 * len),
                 )
             };
-            // On the CPU backends the whole stage is one block, and only the visible (face,
-            // view) pairs are sampled and multiplied (`FaceImages::Visible`); the dense layout
-            // stays for blocks and CubeCL devices, and as the reference in tests.
-            let visible_only = len == f && runs_on_host(&state.xyz.device());
+            // Where a read-back is free ([`CostModel`]) and the whole stage is one block, only
+            // the visible (face, view) pairs are sampled and multiplied (`FaceImages::Visible`);
+            // the dense layout stays for blocks and queued devices, and as the reference in
+            // tests.
+            let visible_only = len == f && CostModel::of(&state.xyz.device()).free_readback();
             let face_feats = {
                 let _span = tracing::debug_span!("face_sampling").entered();
                 let _span = tracing::debug_span!("sample_maps").entered();
@@ -1000,13 +982,13 @@ impl Reconstructor {
                 corners: face_corners(h_hr, corners),
                 images: face_feats,
             };
-            // On a GPU the heads' stacked weights are made once per reconstruction; the CPU
-            // backends make them per step as before, so their training gradients keep their
-            // summation order to the bit.
-            blocks.push(if runs_on_host(&state.xyz.device()) {
-                self.heads.faces(inputs)
-            } else {
+            // Where merged passes pay ([`CostModel`]) the heads' stacked weights are made once
+            // per reconstruction; elsewhere per step as before, so that training's gradients
+            // keep their summation order to the bit.
+            blocks.push(if CostModel::of(&state.xyz.device()).merge_passes() {
                 self.heads.faces_folded(folds, inputs)
+            } else {
+                self.heads.faces(inputs)
             });
         }
         let faces = GomParams::cat(blocks, &state.xyz.device());

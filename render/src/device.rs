@@ -242,6 +242,51 @@ pub fn runs_on_host(device: &Device) -> bool {
     )
 }
 
+/// What work costs on a device: the one thing a model's scheduling reads about its backend,
+/// for the choices above the ops (which pick their own paths) — whether to merge independent
+/// passes, whether to read a result back to skip work, where to plan on the host.
+///
+/// The paper's layers are the same on every backend; the two kinds of backend price their
+/// work differently, so the same forward is best scheduled differently:
+/// - [`CostModel::Eager`] (ndarray, Flex): each op runs to completion on the host before it
+///   returns. A read-back waits for nothing, so reading a no-gradient result to skip work pays
+///   (tokens that repeat, faces hidden in a view) and host planning runs inline. Passes stay
+///   as separate as the paper writes them, so training sums its gradients in the order it
+///   always has (the ten-step metrics to the bit).
+/// - [`CostModel::Queued`] (CubeCL: wgpu, lavapipe, CUDA): ops are queued and launched; a
+///   launch is the unit of cost and a read-back drains the queue. So independent views and
+///   branches are merged into fewer, taller launches, weights that do not change are stacked
+///   once per reconstruction, and host planning runs ahead, beside the queued work.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CostModel {
+    /// Ops run to completion as they are called: read-backs are free.
+    Eager,
+    /// Ops are queued: launches cost, read-backs wait for the queue.
+    Queued,
+}
+
+impl CostModel {
+    /// How `device` (or the device an autodiff device wraps) prices its work.
+    pub fn of(device: &Device) -> Self {
+        match runs_on_host(device) {
+            true => CostModel::Eager,
+            false => CostModel::Queued,
+        }
+    }
+
+    /// Whether reading values back returns at once (nothing queued to wait for), so that work
+    /// skipped by reading a no-gradient result back is saved.
+    pub fn free_readback(self) -> bool {
+        self == CostModel::Eager
+    }
+
+    /// Whether merging independent passes into fewer, taller launches saves time (the
+    /// merged pass sums its gradients in another order).
+    pub fn merge_passes(self) -> bool {
+        self == CostModel::Queued
+    }
+}
+
 /// Runs `f` on one of rayon's threads when `device` computes on the host (the calling thread if
 /// it is one already, or on CubeCL devices), handing it the caller's current span so that its
 /// own span can name it as parent (tracing's current span is per thread).

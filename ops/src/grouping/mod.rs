@@ -87,6 +87,72 @@ pub fn relative_positions(p: Tensor<2>, table: &GroupTable) -> Tensor<3> {
     )
 }
 
+/// One level of a point hierarchy whose every level is a subset of the input points (the
+/// Point Transformer's FPS levels), kept the way [`level_offsets`] reads it on this backend:
+/// its rows in the input points and, on the CPU backends, its own positions, gathered from the
+/// previous level's (the composition of the module docs; on CubeCL devices the offsets read the
+/// input positions through the rows, and no level keeps a tensor).
+#[derive(Debug, Clone)]
+pub struct LevelPoints {
+    rows: Vec<u32>,
+    positions: Option<Tensor<2>>,
+}
+
+impl LevelPoints {
+    /// The finest level: the input points `positions` `[n, 3]`, as rows `rows` of themselves.
+    pub fn input(positions: &Tensor<2>, rows: Vec<u32>) -> Self {
+        let positions = runs_on_host(&positions.device()).then(|| positions.clone());
+        Self { rows, positions }
+    }
+
+    /// The level of this level's points `picks`, which are rows `rows` of the input points.
+    pub fn pick(&self, picks: &[u32], rows: Vec<u32>) -> Self {
+        let positions = self
+            .positions
+            .as_ref()
+            .map(|p| select_rows(p.clone(), 0, index_tensor(picks, &p.device())));
+        Self { rows, positions }
+    }
+
+    /// Its points' rows in the input points.
+    pub fn rows(&self) -> &[u32] {
+        &self.rows
+    }
+}
+
+/// The neighbours `nb` (points of `reference`) of each point of `query`, as rows of
+/// `reference` `[m·k]`, and their offsets from that point, `[m, k, 3]`, for levels of the input
+/// points `positions` `[n, 3]`: on the CPU backends a gather of `reference`'s positions less
+/// `query`'s, on CubeCL devices one [`relative_positions`] over the input positions (the same
+/// values, in fewer launches). The gradient reaches `positions`.
+pub fn level_offsets(
+    positions: &Tensor<2>,
+    nb: &crate::knn::Neighbours,
+    reference: &LevelPoints,
+    query: &LevelPoints,
+) -> (Tensor<1, Int>, Tensor<3>) {
+    let device = positions.device();
+    let indices = index_tensor(&nb.indices, &device);
+    if let (Some(p_ref), Some(p_query)) = (&reference.positions, &query.positions) {
+        let rel = select_rows(p_ref.clone(), 0, indices.clone()).reshape([nb.len(), nb.k, 3])
+            - p_query.clone().unsqueeze_dim::<3>(1);
+        return (indices, rel);
+    }
+    let neighbours: Vec<i64> = nb
+        .indices
+        .iter()
+        .map(|&r| i64::from(reference.rows[r as usize]))
+        .collect();
+    let centres: Vec<i64> = query.rows.iter().map(|&r| i64::from(r)).collect();
+    let table = GroupTable::new(&neighbours, &centres, positions.dims()[0], &device);
+    (indices, relative_positions(positions.clone(), &table))
+}
+
+fn index_tensor(idx: &[u32], device: &Device) -> Tensor<1, Int> {
+    let data: Vec<i64> = idx.iter().map(|&i| i64::from(i)).collect();
+    Tensor::from_data(TensorData::new(data, [idx.len()]), device)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -120,6 +186,50 @@ mod tests {
         };
         let (want, want_grad) = offsets_and_gradient(&Device::flex());
         let (got, got_grad) = offsets_and_gradient(&device);
+        assert_eq!(got, want);
+        for (i, (a, b)) in got_grad.iter().zip(&want_grad).enumerate() {
+            assert!((a - b).abs() <= 1e-5, "∂p[{i}]: {a} against {b}");
+        }
+        assert!(want_grad.iter().any(|&g| g != 0.0));
+    }
+
+    /// Two levels' offsets and the positions' gradient: the finest level's self-neighbours,
+    /// then a picked level's neighbours in the finest one.
+    fn level_offsets_and_gradient(device: &Device) -> (Vec<f32>, Vec<f32>) {
+        let ad = device.clone().autodiff();
+        let mut rng = Rng::new(9);
+        let (n, k) = (9, 3);
+        let p: Vec<f32> = (0..n * 3).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let p = Tensor::<2>::from_data(TensorData::new(p, [n, 3]), &ad).require_grad();
+        let neighbours = |m: usize, of: usize| crate::knn::Neighbours {
+            k,
+            indices: (0..m * k).map(|s| ((s * 5 + 1) % of) as u32).collect(),
+            dist2: vec![0.0; m * k],
+        };
+        let fine = LevelPoints::input(&p, (0..n as u32).collect());
+        let picks = [7, 2, 4];
+        let coarse = fine.pick(&picks, picks.to_vec());
+        let (_, self_rel) = level_offsets(&p, &neighbours(n, n), &fine, &fine);
+        let (idx, down_rel) = level_offsets(&p, &neighbours(3, n), &fine, &coarse);
+        assert_eq!(idx.dims(), [3 * k]);
+        let rel = Tensor::cat(vec![self_rel, down_rel], 0);
+        let w: Vec<f32> = (0..(n + 3) * k * 3)
+            .map(|_| rng.range_f32(-1.0, 1.0))
+            .collect();
+        let w = Tensor::<3>::from_data(TensorData::new(w, [n + 3, k, 3]), &ad);
+        let grads = (rel.clone() * w).sum().backward();
+        (read(rel), read(p.grad(&grads).expect("a gradient")))
+    }
+
+    /// The levels' offsets on lavapipe (one op over the input positions) against Flex (each
+    /// level's own positions): equal offsets, the gradient within float summation order.
+    #[test]
+    fn level_offsets_match_across_backends_wgpu() {
+        let Some(device) = wgpu_test_device() else {
+            return;
+        };
+        let (want, want_grad) = level_offsets_and_gradient(&Device::flex());
+        let (got, got_grad) = level_offsets_and_gradient(&device);
         assert_eq!(got, want);
         for (i, (a, b)) in got_grad.iter().zip(&want_grad).enumerate() {
             assert!((a - b).abs() <= 1e-5, "∂p[{i}]: {a} against {b}");

@@ -376,6 +376,40 @@ pub fn rasterize_views(
     })
 }
 
+/// Renders `gaussians` in every view of `settings` and composites each onto `background` as
+/// the official code does ([`Rendered::composite_reference`]): the colour `[n, H, W, 3]` and
+/// the alpha `[n, H, W, 1]`, differentiably.
+///
+/// Several views on a CubeCL device are one [`rasterize_views`] call (every stage one launch
+/// for all of them). The CPU backends, and a single view, take a [`rasterize`] call per view:
+/// the same values, and the Gaussians' gradients summed view by view, in the order a caller
+/// rendering one view at a time sums them (training's gradients to the bit).
+///
+/// Errors as [`rasterize_views`].
+pub fn composite_views(
+    gaussians: &Gaussians,
+    settings: &[RasterSettings],
+    background: [f32; 3],
+) -> Result<(Tensor<4>, Tensor<4>)> {
+    if settings.is_empty() {
+        return Err(RenderError::InvalidInput {
+            what: "cameras",
+            reason: "no view".into(),
+        });
+    }
+    if settings.len() > 1 && !crate::device::runs_on_host(&gaussians.means.device()) {
+        return Ok(rasterize_views(gaussians, settings)?.composite_reference(background));
+    }
+    let mut rgb = Vec::with_capacity(settings.len());
+    let mut alpha = Vec::with_capacity(settings.len());
+    for view in settings {
+        let rendered = rasterize(gaussians, view)?;
+        rgb.push(rendered.composite_reference(background));
+        alpha.push(rendered.alpha().unsqueeze_dim::<3>(2));
+    }
+    Ok((Tensor::stack(rgb, 0), Tensor::stack(alpha, 0)))
+}
+
 /// Makes the GPU backward use its emulated (atomic-exchange) float adds even where the device has
 /// native ones (process-wide; both paths compute the same sums). For tests and benchmarks.
 #[doc(hidden)]

@@ -497,3 +497,31 @@ fn non_finite_inputs_are_rejected(device: &Device) {
     let out = rasterize(&empty.gaussians(device), &RasterSettings::new(cam)).unwrap();
     assert!(read(out.image).iter().all(|&v| v == 0.0));
 }
+
+/// [`composite_views`] of three views on lavapipe (one batched call) against Flex (a call per
+/// view): the same colour and alpha within float rounding, `[n, H, W, C]` each.
+#[test]
+fn composite_views_match_across_backends_wgpu() {
+    let Some(device) = crate::testing::wgpu_test_device() else {
+        return;
+    };
+    let scene = Scene::random(&mut Rng::new(3), 24);
+    let settings: Vec<RasterSettings> = [40.0, 50.0, 60.0]
+        .iter()
+        .map(|&f| RasterSettings::new(axis_camera(20, 16, f)))
+        .collect();
+    let render = |device: &Device| {
+        let (rgb, alpha) = composite_views(&scene.gaussians(device), &settings, [0.2, 0.4, 0.6])
+            .expect("valid views");
+        assert_eq!(rgb.dims(), [3, 16, 20, 3]);
+        assert_eq!(alpha.dims(), [3, 16, 20, 1]);
+        (read(rgb), read(alpha))
+    };
+    let (want_rgb, want_alpha) = render(&Device::flex());
+    let (got_rgb, got_alpha) = render(&device);
+    for (got, want) in [(got_rgb, want_rgb), (got_alpha, want_alpha)] {
+        for (i, (a, b)) in got.iter().zip(&want).enumerate() {
+            assert!((a - b).abs() <= 1e-5, "value {i}: {a} against {b}");
+        }
+    }
+}
