@@ -1344,15 +1344,6 @@ pub fn generate_split(
         .iter()
         .sum();
     let (train, val) = names.split_at(cfg.train_subjects);
-    let write_json = |path: PathBuf, value: serde_json::Value| -> Result<()> {
-        if let Some(parent) = path.parent() {
-            std::fs::create_dir_all(parent)
-                .map_err(|e| DataError::io(Location::file(parent), e))?;
-        }
-        let text = serde_json::to_string_pretty(&value).unwrap_or_default();
-        lifegom_render::atomic_file::write_atomic(&path, text.as_bytes())
-            .map_err(|e| DataError::write(Location::file(&path), e))
-    };
     let frames = frames + generate_held_out_split(&template, cfg, data, out, seed, progress)?;
     write_json(out.join(&data.train_split), serde_json::json!(train))?;
     // A config whose validation subjects are listed in `[data] val_subjects` may share one
@@ -1360,12 +1351,8 @@ pub fn generate_split(
     if data.val_split != data.train_split {
         write_json(out.join(&data.val_split), serde_json::json!(val))?;
     }
-    let meta: Vec<serde_json::Value> = val
-        .iter()
-        .map(|s| serde_json::json!({"scene": s, "input_frames": (0..n).collect::<Vec<_>>(), "output_frame": n}))
-        .collect();
     let meta_name = format!("{}_meta.json", data.val_dir.display());
-    write_json(out.join(meta_name), serde_json::json!(meta))?;
+    write_json(out.join(meta_name), split_meta(val, n))?;
     Ok(SplitSummary {
         train: train.to_vec(),
         val: val.to_vec(),
@@ -1406,24 +1393,28 @@ fn generate_held_out_split(
         .collect::<Result<Vec<_>>>()?
         .iter()
         .sum();
-    let path = out.join(&held.val_split);
+    write_json(out.join(&held.val_split), serde_json::json!(names))?;
+    let meta_name = format!("{}_meta.json", held.val_dir.display());
+    write_json(out.join(meta_name), split_meta(&names, n))?;
+    Ok(frames)
+}
+
+/// Writes `value` as pretty JSON to `path` by rename, creating its folder.
+fn write_json(path: PathBuf, value: serde_json::Value) -> Result<()> {
     if let Some(parent) = path.parent() {
         std::fs::create_dir_all(parent).map_err(|e| DataError::io(Location::file(parent), e))?;
     }
-    let meta: Vec<serde_json::Value> = names
+    let text = serde_json::to_string_pretty(&value).unwrap_or_default();
+    lifegom_render::atomic_file::write_atomic(&path, text.as_bytes())
+        .map_err(|e| DataError::write(Location::file(&path), e))
+}
+
+/// The `<split>_meta.json` list of validation subjects: each one's N inputs and its first target.
+fn split_meta(subjects: &[String], n_inputs: usize) -> serde_json::Value {
+    subjects
         .iter()
-        .map(|s| serde_json::json!({"scene": s, "input_frames": (0..n).collect::<Vec<_>>(), "output_frame": n}))
-        .collect();
-    let meta_path = out.join(format!("{}_meta.json", held.val_dir.display()));
-    for (path, value) in [
-        (path, serde_json::json!(names)),
-        (meta_path, serde_json::json!(meta)),
-    ] {
-        let text = serde_json::to_string_pretty(&value).unwrap_or_default();
-        lifegom_render::atomic_file::write_atomic(&path, text.as_bytes())
-            .map_err(|e| DataError::write(Location::file(&path), e))?;
-    }
-    Ok(frames)
+        .map(|s| serde_json::json!({"scene": s, "input_frames": (0..n_inputs).collect::<Vec<_>>(), "output_frame": n_inputs}))
+        .collect()
 }
 
 /// A contact sheet of generated subjects: per subject, `views` images then their masks, in one

@@ -130,12 +130,7 @@ impl Material {
 
     /// A random garment material: one of the five patterns with random colours.
     pub fn random_cloth(rng: &mut Rng) -> Self {
-        let base = random_colour(rng);
-        let mut accent = random_colour(rng);
-        // Keep the accent visibly different from the base.
-        if (0..3).map(|i| (base[i] - accent[i]).abs()).sum::<f32>() < 0.4 {
-            accent = base.map(|c| 1.0 - c);
-        }
+        let (base, accent) = two_colours(rng);
         let pattern = match rng.below(5) {
             0 => Pattern::Solid,
             1 => Pattern::Stripes {
@@ -166,11 +161,7 @@ impl Material {
     /// A held-out garment material (design.md §8.11): plaid, diagonal stripes or a colour ramp,
     /// patterns the stream's [`Material::random_cloth`] never draws.
     pub fn held_out_cloth(rng: &mut Rng) -> Self {
-        let base = random_colour(rng);
-        let mut accent = random_colour(rng);
-        if (0..3).map(|i| (base[i] - accent[i]).abs()).sum::<f32>() < 0.4 {
-            accent = base.map(|c| 1.0 - c);
-        }
+        let (base, accent) = two_colours(rng);
         let pattern = match rng.below(3) {
             0 => Pattern::Plaid {
                 period: rng.range(0.05, 0.12) as f32,
@@ -245,6 +236,16 @@ impl Material {
             },
         }
     }
+}
+
+/// A garment's base and accent colours, the accent kept visibly different from the base.
+fn two_colours(rng: &mut Rng) -> ([f32; 3], [f32; 3]) {
+    let base = random_colour(rng);
+    let mut accent = random_colour(rng);
+    if (0..3).map(|i| (base[i] - accent[i]).abs()).sum::<f32>() < 0.4 {
+        accent = base.map(|c| 1.0 - c);
+    }
+    (base, accent)
 }
 
 /// A saturated-enough random colour.
