@@ -15,7 +15,8 @@ use anyhow::Context;
 use burn::tensor::{Distribution, Tensor};
 use clap::{Parser, ValueEnum};
 use lifegom_cli::launches::{KernelTiming, LaunchCounter, LaunchTally};
-use lifegom_model::point_transformer::NormFolds;
+use lifegom_model::fusion::FusionRun;
+use lifegom_model::point_transformer::{Hierarchy, NormFolds};
 use lifegom_model::reconstructor::ReconstructorConfig;
 use lifegom_render::device::DeviceChoice;
 use lifegom_render::readback;
@@ -87,15 +88,20 @@ fn main() -> anyhow::Result<()> {
                 readback::read::<f32, 1, _>("probe input", x.clone().sum())?;
                 readback::read::<f32, 1, _>("probe input", p.clone().sum())?;
                 counter.take();
-                let mut out =
-                    model
-                        .point_transformer
-                        .forward_folded(&folds, p.clone(), x.clone())?;
+                let mut out = model.point_transformer.forward(
+                    &folds,
+                    p.clone(),
+                    x.clone(),
+                    Hierarchy::Plan,
+                )?;
                 for _ in 1..args.repeat {
                     out = out
-                        + model
-                            .point_transformer
-                            .forward_folded(&folds, p.clone(), x.clone())?;
+                        + model.point_transformer.forward(
+                            &folds,
+                            p.clone(),
+                            x.clone(),
+                            Hierarchy::Plan,
+                        )?;
                 }
                 let w = Tensor::<2>::random(out.dims(), Distribution::Normal(0.0, 1.0), &base);
                 (out, w)
@@ -111,9 +117,20 @@ fn main() -> anyhow::Result<()> {
                 let embed = model.vertex_embed.val();
                 readback::read::<f32, 1, _>("probe input", feats.clone().sum())?;
                 counter.take();
-                let mut out = model.fusion.forward(feats.clone(), embed.clone());
+                let mut out = model.fusion.forward(
+                    &NormFolds::new(),
+                    feats.clone(),
+                    embed.clone(),
+                    FusionRun::default(),
+                );
                 for _ in 1..args.repeat {
-                    out = out + model.fusion.forward(feats.clone(), embed.clone());
+                    out = out
+                        + model.fusion.forward(
+                            &NormFolds::new(),
+                            feats.clone(),
+                            embed.clone(),
+                            FusionRun::default(),
+                        );
                 }
                 let w = Tensor::<2>::random(out.dims(), Distribution::Normal(0.0, 1.0), &base);
                 (out, w)

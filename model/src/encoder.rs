@@ -489,14 +489,9 @@ impl ImageEncoder {
     }
 
     /// The backbone maps plus what is needed to sample the rgb embedding without building it
-    /// at full resolution; see [`EncodedViews`].
-    pub fn encode(&self, images: Tensor<4>) -> Result<EncodedViews, SamplingError> {
-        self.encode_folded(&NormFolds::new(), images)
-    }
-
-    /// [`Self::encode`] with the BN folds of `folds`, made on first use and kept there for the
-    /// next call ([`crate::norm_folds`]).
-    pub fn encode_folded<'a>(
+    /// at full resolution; see [`EncodedViews`]. The BN folds are those of `folds`, made on first
+    /// use and kept there for the next call ([`crate::norm_folds`]).
+    pub fn encode<'a>(
         &'a self,
         folds: &NormFolds<'a>,
         images: Tensor<4>,
@@ -901,7 +896,7 @@ mod tests {
         let direct =
             lifegom_ops::sampling::sample_maps(&enc.forward(img.clone()), uv.clone(), w, h)
                 .unwrap();
-        let views = enc.encode(img.clone()).unwrap();
+        let views = enc.encode(&NormFolds::new(), img.clone()).unwrap();
         assert_eq!(views.feature_dim(), enc.feature_dim());
         let via = views.sample(uv.clone(), w, h).unwrap();
         assert_eq!(via.dims(), [9, 2, 144]);
@@ -914,7 +909,7 @@ mod tests {
         let ad = device.clone().autodiff();
         let enc = enc.fork(&ad).train();
         let sampled = enc
-            .encode(img.clone().to_device(&ad))
+            .encode(&NormFolds::new(), img.clone().to_device(&ad))
             .unwrap()
             .sample(uv.to_device(&ad), w, h)
             .unwrap();
@@ -929,7 +924,7 @@ mod tests {
     }
     lifegom_render::cpu_backend_tests!(encoded_views_match_sampled_forward => encoded_views);
 
-    /// A second `encode_folded` with the first one's folds gives the same maps bit for bit and
+    /// A second `encode` with the first one's folds gives the same maps bit for bit and
     /// folds nothing new: one fold per BatchNorm (20 in ResNet-18).
     fn kept_folds(device: &Device) {
         let enc = small().init(device);
@@ -944,11 +939,11 @@ mod tests {
         );
         let sample =
             |views: EncodedViews| read(views.sample(uv.clone(), w as u32, h as u32).unwrap());
-        let fresh = sample(enc.encode(img.clone()).unwrap());
+        let fresh = sample(enc.encode(&NormFolds::new(), img.clone()).unwrap());
         let folds = NormFolds::new();
-        let first = sample(enc.encode_folded(&folds, img.clone()).unwrap());
+        let first = sample(enc.encode(&folds, img.clone()).unwrap());
         assert_eq!(folds.kept(), (20, 0));
-        let second = sample(enc.encode_folded(&folds, img).unwrap());
+        let second = sample(enc.encode(&folds, img).unwrap());
         assert_eq!(folds.kept(), (20, 0), "the second pass folded again");
         assert_eq!(first, fresh);
         assert_eq!(second, fresh);

@@ -68,14 +68,9 @@ impl Mlp {
         Self { l0, l2 }
     }
 
-    /// `[.., input] → [.., output]`.
-    pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        self.forward_folded(&NormFolds::new(), x)
-    }
-
-    /// [`Self::forward`] with both layers shared through `folds` (a reconstruction's feedback
-    /// steps run it once each).
-    pub fn forward_folded<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
+    /// `[.., input] → [.., output]`, both layers shared through `folds` (a reconstruction's
+    /// feedback steps run it once each).
+    pub fn forward<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
         folds.apply(&self.l2, folds.apply_with(&self.l0, x, Activation::Relu))
     }
 }
@@ -143,16 +138,12 @@ pub struct VertexUpdate {
 }
 
 impl UpdateHeads {
-    /// Vertex update from the per-vertex features `h` `[V↓, point_dim]`.
-    pub fn vertices(&self, h: Tensor<2>) -> VertexUpdate {
-        self.vertices_folded(&NormFolds::new(), h)
-    }
-
-    /// [`Self::vertices`] with the layers shared through `folds` (one gradient product per
-    /// layer for all of a reconstruction's feedback steps on devices).
-    pub fn vertices_folded<'a>(&'a self, folds: &NormFolds<'a>, h: Tensor<2>) -> VertexUpdate {
+    /// Vertex update from the per-vertex features `h` `[V↓, point_dim]`, the layers shared
+    /// through `folds` (one gradient product per layer for all of a reconstruction's feedback
+    /// steps on devices).
+    pub fn vertices<'a>(&'a self, folds: &NormFolds<'a>, h: Tensor<2>) -> VertexUpdate {
         VertexUpdate {
-            delta_xyz: self.xyz.forward_folded(folds, h.clone()),
+            delta_xyz: self.xyz.forward(folds, h.clone()),
             embed: folds.apply(&self.embed, h),
         }
     }
@@ -169,15 +160,11 @@ impl UpdateHeads {
     /// slicing its gradient apart again). The second layers run as one block-diagonal product
     /// likewise. The parameters keep their own names and shapes, so
     /// checkpoints and their import are unchanged; the result equals four separate heads on the
-    /// concatenated input up to float summation order (tested below).
-    pub fn faces(&self, inputs: FaceInputs) -> GomParams {
-        self.faces_folded(&NormFolds::new(), inputs)
-    }
-
-    /// [`Self::faces`] with the stacked first layers and the block-diagonal second layers made
-    /// once per `folds` (a reconstruction's feedback steps share them; on a GPU each is a few
-    /// concatenation launches, and their backward as many slices).
-    pub fn faces_folded<'a>(&'a self, folds: &NormFolds<'a>, inputs: FaceInputs) -> GomParams {
+    /// concatenated input up to float summation order (tested below). The stacked first layers
+    /// and the block-diagonal second layers are made once per `folds` (a reconstruction's
+    /// feedback steps share them; on a GPU each is a few concatenation launches, and their
+    /// backward as many slices).
+    pub fn faces<'a>(&'a self, folds: &NormFolds<'a>, inputs: FaceInputs) -> GomParams {
         let FaceInputs { corners, images } = inputs;
         let [f, corner_width] = corners.dims();
         let device = corners.device();
@@ -481,7 +468,7 @@ mod tests {
         let heads = cfg.init(device);
         // Near-zero heads: the first step barely moves vertices and faces start at their init.
         let h = Tensor::<2>::random([5, 4], Distribution::Normal(0.0, 1.0), device);
-        let v = heads.vertices(h.clone());
+        let v = heads.vertices(&NormFolds::new(), h.clone());
         assert_eq!(v.delta_xyz.dims(), [5, 3]);
         assert_eq!(v.embed.dims(), [5, 8]);
         assert!(read(v.delta_xyz).iter().all(|x| x.abs() < 1e-3));
@@ -512,7 +499,7 @@ mod tests {
         for c in 0..4 {
             assert!((row0[c] - h4v[c]).abs() < 1e-6);
         }
-        let params = heads.faces(inputs);
+        let params = heads.faces(&NormFolds::new(), inputs);
         let scales = read(params.scales);
         assert!(
             scales.iter().all(|s| (s - 1.0).abs() < 1e-3),
@@ -536,15 +523,18 @@ mod tests {
             Tensor::<2>::random([11, 3 * 16], Distribution::Normal(0.0, 1.0), &ad).require_grad();
         let x = Tensor::cat(vec![corners.clone(), images.clone()], 1);
         let w = Tensor::<2>::random([11, 3], Distribution::Normal(0.0, 1.0), &ad);
-        let fused = heads.faces(FaceInputs {
-            corners: corners.clone(),
-            images: FaceImages::Dense(images.clone()),
-        });
+        let fused = heads.faces(
+            &NormFolds::new(),
+            FaceInputs {
+                corners: corners.clone(),
+                images: FaceImages::Dense(images.clone()),
+            },
+        );
         let separate = [
-            heads.so3.forward(x.clone()),
-            heads.scale.forward(x.clone()) + 1.0,
-            heads.offset.forward(x.clone()),
-            heads.rgb.forward(x.clone()),
+            heads.so3.forward(&NormFolds::new(), x.clone()),
+            heads.scale.forward(&NormFolds::new(), x.clone()) + 1.0,
+            heads.offset.forward(&NormFolds::new(), x.clone()),
+            heads.rgb.forward(&NormFolds::new(), x.clone()),
         ];
         let fused_out = [fused.so3, fused.scales, fused.offsets, fused.colors];
         let loss = |outs: &[Tensor<2>]| {
@@ -615,21 +605,23 @@ mod tests {
         let h = Tensor::<2>::random([4, 5], Distribution::Normal(0.0, 1.0), device);
         let feats = Tensor::<3>::random([f, 2, 16], Distribution::Normal(0.0, 1.0), device);
         let h_hr = highres_features(h, tables.index.clone(), tables.weight.clone());
-        let whole = heads.faces(face_inputs_from_highres(
-            h_hr.clone(),
-            faces.clone(),
-            feats.clone(),
-        ));
+        let whole = heads.faces(
+            &NormFolds::new(),
+            face_inputs_from_highres(h_hr.clone(), faces.clone(), feats.clone()),
+        );
         let block = 5;
         let blocks = (0..f)
             .step_by(block)
             .map(|start| {
                 let len = block.min(f - start);
-                heads.faces(face_inputs_from_highres(
-                    h_hr.clone(),
-                    faces.clone().narrow(0, 3 * start, 3 * len),
-                    feats.clone().narrow(0, start, len),
-                ))
+                heads.faces(
+                    &NormFolds::new(),
+                    face_inputs_from_highres(
+                        h_hr.clone(),
+                        faces.clone().narrow(0, 3 * start, 3 * len),
+                        feats.clone().narrow(0, start, len),
+                    ),
+                )
             })
             .collect();
         let blocked = GomParams::cat(blocks, device);
@@ -711,10 +703,13 @@ mod tests {
 
         let w = Tensor::<2>::random([f, 3], Distribution::Normal(0.0, 1.0), &ad);
         let run = |images: FaceImages| {
-            let out = heads.faces(FaceInputs {
-                corners: corners.clone(),
-                images,
-            });
+            let out = heads.faces(
+                &NormFolds::new(),
+                FaceInputs {
+                    corners: corners.clone(),
+                    images,
+                },
+            );
             let loss = [out.so3, out.scales, out.offsets, out.colors]
                 .into_iter()
                 .enumerate()
@@ -785,9 +780,9 @@ mod tests {
                     images: FaceImages::Dense(m.clone()),
                 };
                 let p = if kept {
-                    heads.faces_folded(&folds, face)
+                    heads.faces(&folds, face)
                 } else {
-                    heads.faces(face)
+                    heads.faces(&NormFolds::new(), face)
                 };
                 let term = (p.so3 + p.scales.mul_scalar(2.0) + p.offsets.mul_scalar(3.0)
                     - p.colors.mul_scalar(k as f32 + 0.5))

@@ -356,65 +356,43 @@ fn group_positions(
 
 impl PointTransformer {
     /// Per-vertex features `[V, planes[0]]` from positions `[V, 3]` and features
-    /// `[V, in_dim − 3]`; the network concatenates `cat(p, x)` itself (module docs).
+    /// `[V, in_dim − 3]`; the network concatenates `cat(p, x)` itself (module docs). The BN
+    /// folds are those of `folds`, made on first use and kept there for the next pass.
+    ///
+    /// # Errors
+    ///
+    /// When [`Hierarchy::Plan`] cannot read the positions back.
     ///
     /// # Panics
     ///
-    /// If `V = 0` or the widths do not match the configuration.
-    pub fn forward(
-        &self,
-        positions: Tensor<2>,
-        features: Tensor<2>,
-    ) -> Result<Tensor<2>, ReadbackError> {
-        self.forward_folded(&NormFolds::new(), positions, features)
-    }
-
-    /// [`Self::forward`] with the BN folds of `folds`, made on first use and kept there for the
-    /// next pass (module docs).
-    ///
-    /// # Panics
-    ///
-    /// As [`Self::forward`].
-    pub fn forward_folded<'a>(
+    /// If `V = 0`, the widths do not match the configuration, or a [`Hierarchy::Planned`] plan
+    /// was made for another number of points.
+    pub fn forward<'a>(
         &'a self,
         folds: &NormFolds<'a>,
         positions: Tensor<2>,
         features: Tensor<2>,
+        hierarchy: Hierarchy,
     ) -> Result<Tensor<2>, ReadbackError> {
         Self::check_points(&positions, &features);
         let levels = {
             let _span = tracing::debug_span!("hierarchy").entered();
-            self.hierarchy(positions.clone())?
-        };
-        Ok(self.forward_levels(folds, positions, features, levels))
-    }
-
-    /// [`Self::forward_folded`] on levels planned beforehand from the same positions, read
-    /// back by the caller ([`HostHierarchy::plan`] with [`Self::level_windows`]): no read-back
-    /// here, so a caller that planned on another thread while the device worked has the
-    /// device wait for nothing (design.md §7.6).
-    ///
-    /// # Panics
-    ///
-    /// As [`Self::forward`], or if `plan` was made for another number of points.
-    pub fn forward_planned<'a>(
-        &'a self,
-        folds: &NormFolds<'a>,
-        positions: Tensor<2>,
-        features: Tensor<2>,
-        plan: HostHierarchy,
-    ) -> Tensor<2> {
-        Self::check_points(&positions, &features);
-        assert_eq!(
-            plan.levels.first().map(|l| l.host.len()),
-            Some(positions.dims()[0]),
-            "a hierarchy planned for these points"
-        );
-        let levels = {
-            let _span = tracing::debug_span!("hierarchy").entered();
+            let plan = match hierarchy {
+                Hierarchy::Plan => {
+                    HostHierarchy::plan(&self.level_windows(), read_points(positions.clone())?)
+                }
+                Hierarchy::Planned(plan) => {
+                    assert_eq!(
+                        plan.levels.first().map(|l| l.host.len()),
+                        Some(positions.dims()[0]),
+                        "a hierarchy planned for these points"
+                    );
+                    plan
+                }
+            };
             self.levels(positions.clone(), plan)
         };
-        self.forward_levels(folds, positions, features, levels)
+        Ok(self.forward_levels(folds, positions, features, levels))
     }
 
     fn check_points(positions: &Tensor<2>, features: &Tensor<2>) {
@@ -433,16 +411,25 @@ impl PointTransformer {
         levels: Vec<Level>,
     ) -> Tensor<2> {
         // Encoder. The first transition-down (stride 1) consumes cat(p, x).
-        let mut x = self.enc[0].down.forward_input(folds, positions, features);
+        let mut x = self.enc[0].down.forward(
+            folds,
+            DownInput::Points {
+                positions,
+                features,
+            },
+        );
         let mut skips = Vec::with_capacity(self.enc.len());
         for (l, stage) in self.enc.iter().enumerate() {
             x = match (l, &levels[l].down) {
                 (0, _) => x,
-                (_, None) => stage.down.forward_pointwise(folds, x),
+                (_, None) => stage.down.forward(folds, DownInput::Pointwise(x)),
                 (_, Some((idx, rel))) => {
-                    stage
-                        .down
-                        .forward_grouped(folds, x, idx.clone(), rel.clone())
+                    let grouped = DownInput::Grouped {
+                        x,
+                        idx: idx.clone(),
+                        rel: rel.clone(),
+                    };
+                    stage.down.forward(folds, grouped)
                 }
             };
             for block in &stage.blocks {
@@ -453,7 +440,7 @@ impl PointTransformer {
 
         // Decoder, coarsest first.
         let last = self.dec.len() - 1;
-        let mut y = self.dec[last].up.forward_head(folds, skips.pop().unwrap());
+        let mut y = self.dec[last].up.forward(folds, skips.pop().unwrap(), None);
         for block in &self.dec[last].blocks {
             y = block.forward(folds, y, levels[last].rel.clone(), levels[last].nbr.clone());
         }
@@ -464,19 +451,12 @@ impl PointTransformer {
             };
             y = self.dec[l]
                 .up
-                .forward(folds, skips.pop().unwrap(), y, &interp);
+                .forward(folds, skips.pop().unwrap(), Some((y, &interp)));
             for block in &self.dec[l].blocks {
                 y = block.forward(folds, y, levels[l].rel.clone(), levels[l].nbr.clone());
             }
         }
         y
-    }
-
-    /// FPS levels and every kNN of one forward: the host plan ([`HostHierarchy`], from the
-    /// positions read back here) and its device half.
-    fn hierarchy(&self, positions: Tensor<2>) -> Result<Vec<Level>, ReadbackError> {
-        let plan = HostHierarchy::plan(&self.level_windows(), read_points(positions.clone())?);
-        Ok(self.levels(positions, plan))
     }
 
     /// Each encoder stage's `(stride, nsample)`: what [`HostHierarchy::plan`] needs.
@@ -567,9 +547,21 @@ pub fn read_points(positions: Tensor<2>) -> Result<Vec<[f32; 3]>, ReadbackError>
     Ok(host.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
 }
 
+/// Where a [`PointTransformer::forward`] takes its levels (FPS picks and kNN tables) from.
+#[derive(Debug, Clone)]
+pub enum Hierarchy {
+    /// Planned in the call, from the positions read back.
+    Plan,
+    /// Planned beforehand from the same positions ([`HostHierarchy::plan`] with
+    /// [`PointTransformer::level_windows`]): no read-back in the call, so a caller that planned
+    /// on another thread while the device worked has the device wait for nothing
+    /// (design.md §7.6).
+    Planned(HostHierarchy),
+}
+
 /// The host half of one forward's levels: FPS picks and kNN tables computed from the input
 /// positions alone, with no tensor, so a caller may compute it on another thread while the
-/// device works ([`PointTransformer::forward_planned`]).
+/// device works ([`Hierarchy::Planned`]).
 #[derive(Debug, Clone)]
 pub struct HostHierarchy {
     levels: Vec<PlannedLevel>,
@@ -636,16 +628,63 @@ pub struct TransitionDown {
     pub nsample: usize,
 }
 
+/// What a [`TransitionDown`] reads.
+#[derive(Debug, Clone)]
+pub enum DownInput {
+    /// The network's input at stride 1: `cat(p, x)` taken as `p·W[0..3] + x·W[3..]` without
+    /// forming it. For the paper's 2307-wide input the concatenation would copy the whole
+    /// `[V, 2307]` feature matrix (and its gradient) for three extra columns.
+    Points {
+        /// `[V, 3]`.
+        positions: Tensor<2>,
+        /// `[V, in − 3]`.
+        features: Tensor<2>,
+    },
+    /// Stride 1: the previous level's features `[n, in]`.
+    Pointwise(Tensor<2>),
+    /// Stride > 1: the previous level's features `x` `[n, in]`, the neighbours of each sampled
+    /// point `idx` `[m·k]` (rows of `x`) and their positions relative to it `rel` `[m, k, 3]`.
+    Grouped {
+        /// `[n, in]`.
+        x: Tensor<2>,
+        /// `[m·k]`.
+        idx: Tensor<1, Int>,
+        /// `[m, k, 3]`.
+        rel: Tensor<3>,
+    },
+}
+
 impl TransitionDown {
-    /// Stride 1: `ReLU(BN(Linear(x)))`, `[n, in] → [n, out]`.
-    pub fn forward_pointwise<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
-        linear_bn(folds, &self.linear, &self.bn, x, Activation::Relu)
+    /// At stride 1 `ReLU(BN(Linear(x)))`, `[n, in] → [n, out]`; at stride > 1 the same on each
+    /// sampled point's neighbours `cat(p_j − p_i, x_j)`, then the maximum over them,
+    /// `[m, out]`.
+    pub fn forward<'a>(&'a self, folds: &NormFolds<'a>, input: DownInput) -> Tensor<2> {
+        match input {
+            DownInput::Points {
+                positions,
+                features,
+            } => self.points(folds, positions, features),
+            DownInput::Pointwise(x) => {
+                linear_bn(folds, &self.linear, &self.bn, x, Activation::Relu)
+            }
+            DownInput::Grouped { x, idx, rel } => {
+                let [m, k, _] = rel.dims();
+                let c_in = x.dims()[1];
+                let grouped = select_rows(x, 0, idx).reshape([m, k, c_in]);
+                let h = linear_bn(
+                    folds,
+                    &self.linear,
+                    &self.bn,
+                    lifegom_render::split::join_columns(vec![rel, grouped]),
+                    Activation::Relu,
+                );
+                lifegom_ops::neighbour_max::max_over_neighbours(h)
+            }
+        }
     }
 
-    /// Stride 1 on `cat(p, x)` without forming it: `p·W[0..3] + x·W[3..]`. For the paper's
-    /// 2307-wide input the concatenation would copy the whole `[V, 2307]` feature matrix (and
-    /// its gradient) for three extra columns.
-    pub fn forward_input<'a>(
+    /// [`DownInput::Points`].
+    fn points<'a>(
         &'a self,
         folds: &NormFolds<'a>,
         positions: Tensor<2>,
@@ -665,28 +704,6 @@ impl TransitionDown {
             })
             .forward(features);
         relu(positions.matmul(w.slice([0..3, 0..d_out])) + from_features)
-    }
-
-    /// Stride > 1: `x` `[n, in]` of the previous level, `idx` `[m·k]` neighbour indices into
-    /// it and `rel` `[m, k, 3]` their positions relative to the sampled points → `[m, out]`.
-    pub fn forward_grouped<'a>(
-        &'a self,
-        folds: &NormFolds<'a>,
-        x: Tensor<2>,
-        idx: Tensor<1, Int>,
-        rel: Tensor<3>,
-    ) -> Tensor<2> {
-        let [m, k, _] = rel.dims();
-        let c_in = x.dims()[1];
-        let grouped = select_rows(x, 0, idx).reshape([m, k, c_in]);
-        let h = linear_bn(
-            folds,
-            &self.linear,
-            &self.bn,
-            lifegom_render::split::join_columns(vec![rel, grouped]),
-            Activation::Relu,
-        );
-        lifegom_ops::neighbour_max::max_over_neighbours(h)
     }
 }
 
@@ -736,7 +753,7 @@ impl PointTransformerBlock {
             .forward_receiving(x, Activation::Relu, &skip);
         let h = self
             .transformer2
-            .forward_then_norm(folds, h, rel, nbr, &self.bn2);
+            .forward(folds, h, rel, nbr, Then::NormRelu(&self.bn2));
         folds
             .shared_fold(&self.linear3, &self.bn3, &h.device())
             .forward_residual_relu(h, identity, &skip)
@@ -814,44 +831,21 @@ impl PointTransformerLayer {
         }
     }
 
-    /// `x` `[n, c]`, relative neighbour positions `rel` `[n, k, 3]` (`p_j − p_i`) and the
-    /// flattened neighbour indices `nbr` `[n·k]` → `[n, c]`.
+    /// `y_i = Σ_j softmax(MLP_w(k_j − q_i + δ_ij)) ⊙ (v_j + δ_ij)`, `δ_ij = MLP_p(p_j − p_i)`
+    /// (module docs), for `x` `[n, c]`, the relative neighbour positions `rel` `[n, k, 3]`
+    /// (`p_j − p_i`) and the flattened neighbour indices `nbr` `[n·k]` → `[n, c]`; then what
+    /// `then` says.
+    ///
+    /// Each step is an op that picks its CPU or CubeCL path ([`vector_attention::attend`] gathers
+    /// the neighbours' keys and values itself); where products stack, the query, key and value
+    /// are one `[n, 3c]` product (weights stacked once per [`NormFolds`]).
     pub fn forward<'a>(
         &'a self,
         folds: &NormFolds<'a>,
         x: Tensor<2>,
         rel: Tensor<3>,
         nbr: Tensor<1, Int>,
-    ) -> Tensor<2> {
-        self.attend(folds, x, rel, nbr, None)
-    }
-
-    /// `relu(BN(self.forward(…)))` for a frozen BatchNorm `bn` over the output: the block's
-    /// `bn2` and ReLU, on CubeCL devices in the aggregation's launch
-    /// ([`vector_attention::OutputNorm`]).
-    pub fn forward_then_norm<'a>(
-        &'a self,
-        folds: &NormFolds<'a>,
-        x: Tensor<2>,
-        rel: Tensor<3>,
-        nbr: Tensor<1, Int>,
-        bn: &'a BatchNorm,
-    ) -> Tensor<2> {
-        self.attend(folds, x, rel, nbr, Some(bn))
-    }
-
-    /// The layer (module docs), then `relu(BN(·))` with `output_norm` when given:
-    /// `y_i = Σ_j softmax(MLP_w(k_j − q_i + δ_ij)) ⊙ (v_j + δ_ij)`, `δ_ij = MLP_p(p_j − p_i)`.
-    /// Each step is an op that picks its CPU or CubeCL path ([`vector_attention::attend`] gathers
-    /// the neighbours' keys and values itself); where products stack, the query, key and value
-    /// are one `[n, 3c]` product (weights stacked once per [`NormFolds`]).
-    fn attend<'a>(
-        &'a self,
-        folds: &NormFolds<'a>,
-        x: Tensor<2>,
-        rel: Tensor<3>,
-        nbr: Tensor<1, Int>,
-        output_norm: Option<&'a BatchNorm>,
+        then: Then<'a>,
     ) -> Tensor<2> {
         let device = x.device();
         let (q, k, v) = (&self.linear_q, &self.linear_k, &self.linear_v);
@@ -869,12 +863,25 @@ impl PointTransformerLayer {
             let w = linear_bn(folds, &mw.fc2, &mw.bn3, related, Activation::Relu);
             folds.shared_layer(&mw.fc5).forward(w) // [n, k, c/s]
         };
-        let output_norm = output_norm.map(|bn| {
-            let (scale, shift) = folds.affine(bn, &device);
-            vector_attention::OutputNorm { scale, shift }
-        });
+        let output_norm = match then {
+            Then::Nothing => None,
+            Then::NormRelu(bn) => {
+                let (scale, shift) = folds.affine(bn, &device);
+                Some(vector_attention::OutputNorm { scale, shift })
+            }
+        };
         vector_attention::attend(qkv, nbr, delta, scale, shift, mlp, output_norm)
     }
+}
+
+/// What a [`PointTransformerLayer`] applies to its output.
+#[derive(Debug, Clone, Copy)]
+pub enum Then<'a> {
+    /// Nothing.
+    Nothing,
+    /// `relu(BN(·))` with this frozen BatchNorm: the block's `bn2` and ReLU, on CubeCL devices
+    /// in the aggregation's launch ([`vector_attention::OutputNorm`]).
+    NormRelu(&'a BatchNorm),
 }
 
 impl PositionMlp {
@@ -960,31 +967,29 @@ pub struct TransitionUp {
 }
 
 impl TransitionUp {
-    /// Head (coarsest level, global context): `[n, c] → [n, c]`.
-    pub fn forward_head<'a>(&'a self, folds: &NormFolds<'a>, x: Tensor<2>) -> Tensor<2> {
-        let [n, c] = x.dims();
-        let global = folds
-            .shared_layer(&self.linear2)
-            .forward_with(x.clone().mean_dim(0), Activation::Relu)
-            .expand([n, c]);
-        linear_bn(
-            folds,
-            &self.linear1,
-            &self.bn1,
-            lifegom_render::split::join_columns(vec![x, global]),
-            Activation::Relu,
-        )
-    }
-
-    /// `skip` `[n_fine, c]` (encoder features of this level) plus the interpolated decoder
-    /// features of the coarser level `coarse` `[n_coarse, c_coarse]` → `[n_fine, c]`.
+    /// `skip` `[n_fine, c]`, this level's encoder features, plus the interpolated decoder
+    /// features of the coarser level `[n_coarse, c_coarse]` → `[n_fine, c]`. Without a coarser
+    /// level (the head) the global context instead: `[n, c] → [n, c]`.
     fn forward<'a>(
         &'a self,
         folds: &NormFolds<'a>,
         skip: Tensor<2>,
-        coarse: Tensor<2>,
-        interp: &Interpolation,
+        coarse: Option<(Tensor<2>, &Interpolation)>,
     ) -> Tensor<2> {
+        let Some((coarse, interp)) = coarse else {
+            let [n, c] = skip.dims();
+            let global = folds
+                .shared_layer(&self.linear2)
+                .forward_with(skip.clone().mean_dim(0), Activation::Relu)
+                .expand([n, c]);
+            return linear_bn(
+                folds,
+                &self.linear1,
+                &self.bn1,
+                lifegom_render::split::join_columns(vec![skip, global]),
+                Activation::Relu,
+            );
+        };
         let fine = linear_bn(folds, &self.linear1, &self.bn1, skip, Activation::Relu);
         let up = match &self.bn2 {
             Some(bn) => linear_bn(folds, &self.linear2, bn, coarse, Activation::Relu),
@@ -1041,6 +1046,7 @@ mod tests {
             random_tensor(&mut rng, [n, c], device),
             rel.clone(),
             nbr.clone(),
+            Then::Nothing,
         );
         assert_eq!(out.dims(), [n, c]);
         assert!(read(out).iter().all(|v| v.is_finite()));
@@ -1066,8 +1072,17 @@ mod tests {
             random_tensor(&mut rng, [30, 3], device),
             random_tensor(&mut rng, [30, 10], device),
         );
-        let a = read(down.forward_input(&NormFolds::new(), p.clone(), x.clone()));
-        let b = read(down.forward_pointwise(&NormFolds::new(), Tensor::cat(vec![p, x], 1)));
+        let a = read(down.forward(
+            &NormFolds::new(),
+            DownInput::Points {
+                positions: p.clone(),
+                features: x.clone(),
+            },
+        ));
+        let b = read(down.forward(
+            &NormFolds::new(),
+            DownInput::Pointwise(Tensor::cat(vec![p, x], 1)),
+        ));
         assert!(a.iter().zip(&b).all(|(a, b)| (a - b).abs() < 1e-5));
     }
 
@@ -1169,7 +1184,7 @@ mod tests {
             .collect();
         let nb = knn(&host, &host, k);
         let (nbr, rel) = group_positions(&nb, &p, &p);
-        let out = read(layer.forward(&NormFolds::new(), x.clone(), rel, nbr));
+        let out = read(layer.forward(&NormFolds::new(), x.clone(), rel, nbr, Then::Nothing));
 
         // Reference computation on the host, f64.
         let lin = |l: &Linear, v: &[f64]| -> Vec<f64> {
@@ -1237,7 +1252,9 @@ mod tests {
         let cfg = PointTransformerConfig::tiny(3 + 13);
         let net = cfg.init(device);
         let x = random_tensor(&mut Rng::new(2), [v, 13], device);
-        let a = net.forward(p.clone(), x.clone()).unwrap();
+        let a = net
+            .forward(&NormFolds::new(), p.clone(), x.clone(), Hierarchy::Plan)
+            .unwrap();
         assert_eq!(a.dims(), [v, 8]);
         let a = read(a);
         assert!(a.iter().all(|v| v.is_finite()));
@@ -1245,11 +1262,14 @@ mod tests {
         // Same input twice → same output (deterministic FPS/kNN, no batch statistics), also
         // when a pass reuses an earlier pass's BN folds, to which it then adds nothing.
         let folds = NormFolds::new();
-        let b = read(net.forward_folded(&folds, p.clone(), x.clone()).unwrap());
+        let b = read(
+            net.forward(&folds, p.clone(), x.clone(), Hierarchy::Plan)
+                .unwrap(),
+        );
         assert_eq!(a, b);
         let kept = folds.kept();
         assert!(kept.0 > 0 && kept.1 > 0, "no folds kept");
-        let c = read(net.forward_folded(&folds, p, x).unwrap());
+        let c = read(net.forward(&folds, p, x, Hierarchy::Plan).unwrap());
         assert_eq!(a, c);
         let after = folds.kept();
         assert_eq!(after, kept, "the second pass folded again");
@@ -1265,7 +1285,10 @@ mod tests {
         let v = p.dims()[0];
         let net = PointTransformerConfig::tiny(3 + 13).init(device);
         let x = random_tensor(&mut Rng::new(5), [v, 13], device);
-        let inline = read(net.forward(p.clone(), x.clone()).unwrap());
+        let inline = read(
+            net.forward(&NormFolds::new(), p.clone(), x.clone(), Hierarchy::Plan)
+                .unwrap(),
+        );
         let host: Vec<[f32; 3]> = read(p.clone())
             .chunks_exact(3)
             .map(|c| [c[0], c[1], c[2]])
@@ -1274,7 +1297,10 @@ mod tests {
         let plan = std::thread::spawn(move || HostHierarchy::plan(&windows, host))
             .join()
             .expect("planning");
-        let planned = read(net.forward_planned(&NormFolds::new(), p, x, plan));
+        let planned = read(
+            net.forward(&NormFolds::new(), p, x, Hierarchy::Planned(plan))
+                .unwrap(),
+        );
         assert_eq!(planned, inline);
     }
 
@@ -1292,7 +1318,9 @@ mod tests {
         // All points identical.
         let p = Tensor::<2>::ones([40, 3], device);
         let x = random_tensor(&mut Rng::new(3), [40, 4], device);
-        let out = net.forward(p, x).unwrap();
+        let out = net
+            .forward(&NormFolds::new(), p, x, Hierarchy::Plan)
+            .unwrap();
         assert_eq!(out.dims(), [40, 8]);
         assert!(read(out).iter().all(|v| v.is_finite()));
         // Fewer points than nsample and than the strides' product.
@@ -1300,8 +1328,10 @@ mod tests {
             let mut rng = Rng::new(4);
             let out = net
                 .forward(
+                    &NormFolds::new(),
                     random_tensor(&mut rng, [v, 3], device),
                     random_tensor(&mut rng, [v, 4], device),
+                    Hierarchy::Plan,
                 )
                 .unwrap();
             assert_eq!(out.dims(), [v, 8]);
@@ -1404,12 +1434,19 @@ mod tests {
         let x = random_tensor(&mut rng, [v, 5], &device).require_grad();
         let probe = random_tensor(&mut rng, [v, c_out], &device);
         let means_before = read(net.enc[1].blocks[0].bn1.running_mean.value());
-        let out = net.forward(p.clone(), x.clone()).unwrap();
+        let out = net
+            .forward(&NormFolds::new(), p.clone(), x.clone(), Hierarchy::Plan)
+            .unwrap();
         // Frozen BN: the autodiff forward equals the inference forward (running statistics,
         // not the batch's, which differ from the initial 0/1 for these inputs).
         let out_inner = net
             .valid()
-            .forward(p.clone().inner(), x.clone().inner())
+            .forward(
+                &NormFolds::new(),
+                p.clone().inner(),
+                x.clone().inner(),
+                Hierarchy::Plan,
+            )
             .unwrap();
         let (a, b) = (read(out.clone()), read(out_inner));
         assert!(
@@ -1491,9 +1528,14 @@ mod tests {
             let x = random_tensor(&mut rng, [600, 5], &device).require_grad();
             let probe = random_tensor(&mut rng, [600, 8], &device);
             let folds = NormFolds::new();
-            let first = net.forward_folded(&folds, p.clone(), x.clone()).unwrap();
+            let first = net
+                .forward(&folds, p.clone(), x.clone(), Hierarchy::Plan)
+                .unwrap();
             let fed_back = x.clone() + first.clone().slice([0..600, 0..5]).tanh();
-            let out = first + net.forward_folded(&folds, p.clone(), fed_back).unwrap();
+            let out = first
+                + net
+                    .forward(&folds, p.clone(), fed_back, Hierarchy::Plan)
+                    .unwrap();
             let grads = (out.clone() * probe).sum().backward();
             let mut collect = CollectGrads {
                 grads: &grads,
@@ -1607,7 +1649,10 @@ mod tests {
             let net = cfg.init(&device);
             println!("{name}: {} parameters", net.num_params());
             let t0 = Instant::now();
-            let levels = net.hierarchy(p.clone()).unwrap();
+            let levels = net.levels(
+                p.clone(),
+                HostHierarchy::plan(&net.level_windows(), read_points(p.clone()).unwrap()),
+            );
             let _ = read(levels.last().unwrap().rel.clone());
             println!("{name}: geometry of one forward {:?}", t0.elapsed());
             // Per-level cost of the first block and transition-down, at this level's size.
@@ -1615,14 +1660,18 @@ mod tests {
             for (l, stage) in net.enc.iter().enumerate() {
                 let t0 = Instant::now();
                 xl = match &levels[l].down {
-                    None => stage
-                        .down
-                        .forward_pointwise(&NormFolds::new(), Tensor::cat(vec![p.clone(), xl], 1)),
-                    Some((idx, rel)) => {
-                        stage
-                            .down
-                            .forward_grouped(&NormFolds::new(), xl, idx.clone(), rel.clone())
-                    }
+                    None => stage.down.forward(
+                        &NormFolds::new(),
+                        DownInput::Pointwise(Tensor::cat(vec![p.clone(), xl], 1)),
+                    ),
+                    Some((idx, rel)) => stage.down.forward(
+                        &NormFolds::new(),
+                        DownInput::Grouped {
+                            x: xl,
+                            idx: idx.clone(),
+                            rel: rel.clone(),
+                        },
+                    ),
                 };
                 let xl2 = xl.clone().add_scalar(0.0);
                 let _ = read(xl2.clone().narrow(0, 0, 1));
@@ -1650,7 +1699,10 @@ mod tests {
             let best = (0..5)
                 .map(|_| {
                     let t0 = Instant::now();
-                    let _ = read(net.forward(p.clone(), x.clone()).unwrap());
+                    let _ = read(
+                        net.forward(&NormFolds::new(), p.clone(), x.clone(), Hierarchy::Plan)
+                            .unwrap(),
+                    );
                     t0.elapsed()
                 })
                 .min()
@@ -1664,7 +1716,7 @@ mod tests {
                 .map(|_| {
                     let t0 = Instant::now();
                     let grads = net
-                        .forward(pa.clone(), xa.clone())
+                        .forward(&NormFolds::new(), pa.clone(), xa.clone(), Hierarchy::Plan)
                         .unwrap()
                         .sum()
                         .backward();

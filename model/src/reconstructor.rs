@@ -41,14 +41,15 @@ use lifegom_render::visibility::{ViewSet, visibility_in_views};
 use crate::avatar::Avatar;
 use crate::encoder::{EncodedViews, ImageEncoder, ImageEncoderConfig};
 use crate::error::{ModelError, Result};
-use crate::fusion::{Fusion, FusionConfig, FusionMasks, RepeatedTokens};
+use crate::fusion::{Fusion, FusionConfig, FusionMasks, FusionRun, RepeatedTokens};
 use crate::heads::{
     FaceImages, FaceInputs, UpdateHeads, UpdateHeadsConfig, VisibleFaceImages, face_corners,
     faces_per_block, highres_features,
 };
 use crate::norm_folds::NormFolds;
 use crate::point_transformer::{
-    HierarchyPlanning, HostHierarchy, PointTransformer, PointTransformerConfig, read_points,
+    Hierarchy, HierarchyPlanning, HostHierarchy, PointTransformer, PointTransformerConfig,
+    read_points,
 };
 use lifegom_ops::sampling::{hide_invisible, project_points, sample_single};
 use lifegom_render::select::select_rows;
@@ -548,7 +549,7 @@ impl Reconstructor {
         let folds = NormFolds::new();
         let feats_src = {
             let _span = tracing::debug_span!("encode_sources").entered();
-            self.encoder.encode_folded(&folds, sources.images.clone())?
+            self.encoder.encode(&folds, sources.images.clone())?
         };
         lap("encode_sources".into(), &mut timings);
         let mut state = GomState {
@@ -602,8 +603,7 @@ impl Reconstructor {
             let feats_ren = {
                 let _span = tracing::debug_span!("encode_renders").entered();
                 lifegom_ops::shared_linear::detached_passes(|| {
-                    self.encoder
-                        .encode_folded(&folds, renders.rgb.clone().detach())
+                    self.encoder.encode(&folds, renders.rgb.clone().detach())
                 })?
                 .detach()
             };
@@ -681,7 +681,7 @@ impl Reconstructor {
     ///
     /// `src_repeats`, where given, lists the source tokens that are the visibility embedding
     /// (a vertex hidden in a view), whose first-layer projections are then computed once
-    /// ([`Fusion::forward_repeated`]).
+    /// ([`FusionRun::repeats`](crate::fusion::FusionRun::repeats)).
     fn fuse_branches<'a>(
         &'a self,
         folds: &NormFolds<'a>,
@@ -709,12 +709,14 @@ impl Reconstructor {
         let Some((src_masks, ren_masks)) = masks else {
             let fused_src = {
                 let _span = tracing::debug_span!("source").entered();
-                self.fusion.forward_folded(folds, src, embed.clone())
+                self.fusion
+                    .forward(folds, src, embed.clone(), FusionRun::default())
             };
             let fused_ren = {
                 let _span = tracing::debug_span!("rendered").entered();
                 lifegom_ops::shared_linear::detached_passes(|| {
-                    self.fusion.forward_folded(folds, ren, embed.clone())
+                    self.fusion
+                        .forward(folds, ren, embed.clone(), FusionRun::default())
                 })
                 .detach()
             };
@@ -724,12 +726,27 @@ impl Reconstructor {
         let (ren, ren_embed) = (ren.inner(), embed.clone().inner());
         let rendered = move || {
             let _span = tracing::debug_span!(parent: &parent, "rendered").entered();
-            inference.forward_with(ren, ren_embed, ren_masks)
+            inference.forward(
+                &NormFolds::new(),
+                ren,
+                ren_embed,
+                FusionRun {
+                    masks: ren_masks,
+                    repeats: None,
+                },
+            )
         };
         let source = || {
             let _span = tracing::debug_span!("source").entered();
-            self.fusion
-                .forward_repeated(src, embed.clone(), src_masks, src_repeats)
+            self.fusion.forward(
+                &NormFolds::new(),
+                src,
+                embed.clone(),
+                FusionRun {
+                    masks: src_masks,
+                    repeats: src_repeats,
+                },
+            )
         };
         // A rayon task, not a thread of its own: the pass runs on a rayon worker
         // (`on_pool_thread`), and a worker blocked joining a thread whose ops wait for the pool
@@ -766,7 +783,7 @@ impl Reconstructor {
             .expand([v, 2, d])
             .reshape([2 * v, d]);
         self.fusion
-            .forward_folded(folds, tokens, queries)
+            .forward(folds, tokens, queries, FusionRun::default())
             .reshape([v, 2 * d])
     }
 
@@ -905,17 +922,23 @@ impl Reconstructor {
                     let plan = handle
                         .join()
                         .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-                    self.point_transformer
-                        .forward_planned(folds, state.xyz.clone(), features, plan)
+                    self.point_transformer.forward(
+                        folds,
+                        state.xyz.clone(),
+                        features,
+                        Hierarchy::Planned(plan),
+                    )?
                 }
-                None => {
-                    self.point_transformer
-                        .forward_folded(folds, state.xyz.clone(), features)?
-                }
+                None => self.point_transformer.forward(
+                    folds,
+                    state.xyz.clone(),
+                    features,
+                    Hierarchy::Plan,
+                )?,
             }
         };
         let span = tracing::debug_span!("vertex_heads").entered();
-        let vertex = self.heads.vertices_folded(folds, h_pt.clone());
+        let vertex = self.heads.vertices(folds, h_pt.clone());
         drop(span);
 
         // Faces: source features at the projected centroid of each high-res face of the current
@@ -986,9 +1009,9 @@ impl Reconstructor {
             // per reconstruction; elsewhere per step as before, so that training's gradients
             // keep their summation order to the bit.
             blocks.push(if CostModel::of(&state.xyz.device()).merge_passes() {
-                self.heads.faces_folded(folds, inputs)
+                self.heads.faces(folds, inputs)
             } else {
-                self.heads.faces(inputs)
+                self.heads.faces(&NormFolds::new(), inputs)
             });
         }
         let faces = GomParams::cat(blocks, &state.xyz.device());

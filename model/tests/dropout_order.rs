@@ -5,7 +5,8 @@
 
 use burn::module::Module;
 use burn::tensor::{Device, Distribution, Tensor};
-use lifegom_model::fusion::{FusionConfig, FusionMasks};
+use lifegom_model::fusion::{FusionConfig, FusionMasks, FusionRun};
+use lifegom_model::norm_folds::NormFolds;
 
 fn read(t: Tensor<2>) -> Vec<f32> {
     t.into_data().try_into_vec_as::<f32>().unwrap()
@@ -24,23 +25,47 @@ fn sequential_and_drawn_ahead_agree(device: &Device) {
 
     // Burn initialises parameters lazily, from the same RNG, on their first use: one call
     // first, so that only dropout draws between `seed` and the comparison.
-    let _ = fusion.forward(src.clone(), embed.clone());
+    let _ = fusion.forward(
+        &NormFolds::new(),
+        src.clone(),
+        embed.clone(),
+        FusionRun::default(),
+    );
 
     // Sequential: each call draws its four masks from the device RNG as it goes.
     ad.seed(5);
-    let seq_src = read(fusion.forward(src.clone(), embed.clone()));
-    let seq_ren = read(fusion.forward(ren.clone(), embed.clone()).detach());
+    let seq_src = read(fusion.forward(
+        &NormFolds::new(),
+        src.clone(),
+        embed.clone(),
+        FusionRun::default(),
+    ));
+    let seq_ren = read(
+        fusion
+            .forward(
+                &NormFolds::new(),
+                ren.clone(),
+                embed.clone(),
+                FusionRun::default(),
+            )
+            .detach(),
+    );
 
     // Ahead: both calls' seeds first, source then rendered; the rendered call on an inference
     // copy of the weights, as on the second thread.
     ad.seed(5);
     let src_masks = fusion.draw_mask_seeds(&ad).expect("a host device");
     let ren_masks = fusion.draw_mask_seeds(&ad).expect("a host device");
-    let ahead_src = read(fusion.forward_with(src, embed.clone(), FusionMasks::Given(src_masks)));
-    let ahead_ren = read(fusion.valid().forward_with(
+    let given = |seeds| FusionRun {
+        masks: FusionMasks::Given(seeds),
+        repeats: None,
+    };
+    let ahead_src = read(fusion.forward(&NormFolds::new(), src, embed.clone(), given(src_masks)));
+    let ahead_ren = read(fusion.valid().forward(
+        &NormFolds::new(),
         ren.inner(),
         embed.inner(),
-        FusionMasks::Given(ren_masks),
+        given(ren_masks),
     ));
     assert_eq!(seq_src, ahead_src, "source branch");
     assert_eq!(seq_ren, ahead_ren, "rendered branch");

@@ -20,7 +20,7 @@ use std::time::Instant;
 use anyhow::Context;
 use burn::tensor::{Device, Distribution, Tensor};
 use clap::{Parser, ValueEnum};
-use lifegom_model::fusion::{FusionConfig, FusionKernel};
+use lifegom_model::fusion::{Attend, FusionConfig, FusionKernel, LayerRun};
 use lifegom_model::reconstructor::ReconstructorConfig;
 use lifegom_ops::dropout::MaskSeed;
 use lifegom_render::readback;
@@ -84,17 +84,21 @@ fn main() -> anyhow::Result<()> {
     let call = |(kernel, masks): (FusionKernel, [MaskSeed; 4])| -> anyhow::Result<f64> {
         let start = Instant::now();
         let folds = NormFolds::new();
-        let views = fusion.views.forward_with(
-            &folds,
-            features.clone(),
-            features.clone(),
-            kernel,
-            [masks[0], masks[1]],
-        );
-        let out =
-            fusion
-                .query
-                .forward_with(&folds, embed.clone(), views, kernel, [masks[2], masks[3]]);
+        let run = |masks| LayerRun { kernel, masks };
+        let across_views = Attend::Cross {
+            query: features.clone(),
+            context: features.clone(),
+        };
+        let views = fusion
+            .views
+            .forward(&folds, across_views, run([masks[0], masks[1]]));
+        let into_vertex = Attend::Cross {
+            query: embed.clone(),
+            context: views,
+        };
+        let out = fusion
+            .query
+            .forward(&folds, into_vertex, run([masks[2], masks[3]]));
         let grads = (out * weights.clone()).sum().backward();
         let grad = features.grad(&grads).context("the features take part")?;
         readback::read::<f32, 3, _>("feature gradient", grad)?;

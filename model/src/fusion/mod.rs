@@ -107,91 +107,145 @@ impl AttentionLayerConfig {
     }
 }
 
+/// What an [`AttentionLayer`] attends with.
+#[derive(Debug, Clone)]
+pub enum Attend<'r> {
+    /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]` (the fusion's second layer).
+    Cross {
+        /// The queries, and the residual the layer adds its attention to.
+        query: Tensor<3>,
+        /// The keys' and values' tokens.
+        context: Tensor<3>,
+    },
+    /// `tokens` `[B, L, D]` attend to themselves (the fusion's first layer, across views).
+    Within {
+        /// The tokens.
+        tokens: Tensor<3>,
+        /// Rows known to repeat one value, whose `W_q`, `W_k`, `W_v` projections are then
+        /// computed once: the same values as without, and the same gradients up to the order
+        /// of their sums.
+        repeats: Option<&'r RepeatedTokens>,
+    },
+}
+
+/// How one call of an [`AttentionLayer`] computes, beside what it attends with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LayerRun {
+    /// The attention core's and the residual LayerNorms' implementation (tests compare both).
+    pub kernel: FusionKernel,
+    /// The seeds of the two dropout masks: after attention, after the feed-forward block.
+    pub masks: [MaskSeed; 2],
+}
+
+impl Default for LayerRun {
+    /// The custom ops, with masks drawn from the device's RNG as the call goes.
+    fn default() -> Self {
+        Self {
+            kernel: FusionKernel::Ops,
+            masks: [MaskSeed::Device; 2],
+        }
+    }
+}
+
 impl AttentionLayer {
-    /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`; returns `[B, Lq, D]`.
-    pub fn forward(&self, query: Tensor<3>, context: Tensor<3>) -> Tensor<3> {
-        self.forward_with(
-            &NormFolds::new(),
-            query,
-            context,
-            FusionKernel::Ops,
-            [MaskSeed::Device; 2],
-        )
+    /// `x = LN₁(q + Dropout(MHA(q, k, v)))`, `out = LN₂(x + Dropout(FFN(x)))`: `[B, Lq, D]`.
+    /// The layers are shared through `folds` with every other call on them (design.md §7.4).
+    pub fn forward<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        input: Attend<'_>,
+        run: LayerRun,
+    ) -> Tensor<3> {
+        let (query, attn) = self.multi_head_attention(folds, input, run.kernel);
+        self.feed(folds, query, attn, run.kernel, run.masks)
     }
 
-    /// [`Self::forward`] with the kernel chosen by the caller (tests compare the two) and the
-    /// seeds of its two dropout masks (after attention, after the feed-forward block).
-    /// Its layers are shared through `folds` with every other call on them (design.md §7.4).
-    pub fn forward_with<'a>(
+    /// `MHA(q, k, v)` after `W_o`, with the query the residual adds it to. Where products stack
+    /// ([`NormFolds::stacked`]), the projections reading the same tokens are one product.
+    fn multi_head_attention<'a>(
+        &'a self,
+        folds: &NormFolds<'a>,
+        input: Attend<'_>,
+        kernel: FusionKernel,
+    ) -> (Tensor<3>, Tensor<3>) {
+        let (query, [q, k, v]) = match input {
+            Attend::Cross { query, context } => {
+                let qkv = self.project_cross(folds, query.clone(), context);
+                (query, qkv)
+            }
+            Attend::Within {
+                tokens,
+                repeats: Some(repeats),
+            } => {
+                let qkv = self.project_repeated(folds, tokens.clone(), repeats);
+                (tokens, qkv)
+            }
+            Attend::Within {
+                tokens,
+                repeats: None,
+            } => {
+                let d = tokens.dims()[2];
+                let qkv = match self.stacked(folds, &[&self.w_q, &self.w_k, &self.w_v], &tokens) {
+                    Some(layer) => split3(layer.forward(tokens.clone()), d),
+                    None => self.project_cross(folds, tokens.clone(), tokens.clone()),
+                };
+                (tokens, qkv)
+            }
+        };
+        let attn = folds.apply(&self.w_o, self.attend(q, k, v, kernel));
+        (query, attn)
+    }
+
+    /// `W_q·query`, `W_k·context`, `W_v·context`, the last two as one product where they stack.
+    fn project_cross<'a>(
         &'a self,
         folds: &NormFolds<'a>,
         query: Tensor<3>,
         context: Tensor<3>,
-        kernel: FusionKernel,
-        masks: [MaskSeed; 2],
-    ) -> Tensor<3> {
-        let attn = self.attention_output(folds, query.clone(), context, kernel);
-        self.feed(folds, query, attn, kernel, masks)
+    ) -> [Tensor<3>; 3] {
+        let q = folds.apply(&self.w_q, query);
+        match self.stacked(folds, &[&self.w_k, &self.w_v], &context) {
+            Some(layer) => {
+                let d = context.dims()[2];
+                let mut kv = split_columns(layer.forward(context), &[d, d]).into_iter();
+                let mut next = || kv.next().expect("two blocks");
+                [q, next(), next()]
+            }
+            None => [
+                q,
+                folds.apply(&self.w_k, context.clone()),
+                folds.apply(&self.w_v, context),
+            ],
+        }
     }
 
-    /// Self-attention over `tokens` `[B, L, D]` (query = context), where the rows of
-    /// `repeats` that repeat one value have their `W_q`, `W_k`, `W_v` projections computed
-    /// once. The same values as [`Self::forward_with`]`(tokens, tokens, …)`, and the same
-    /// gradients up to the order of their sums.
-    pub fn self_attention_repeated<'a>(
+    /// The three projections of `tokens`, each distinct row of `repeats` computed once.
+    fn project_repeated<'a>(
         &'a self,
         folds: &NormFolds<'a>,
         tokens: Tensor<3>,
         repeats: &RepeatedTokens,
-        kernel: FusionKernel,
-        masks: [MaskSeed; 2],
-    ) -> Tensor<3> {
+    ) -> [Tensor<3>; 3] {
         let [b, l, d] = tokens.dims();
-        let rows = select_rows(
-            tokens.clone().reshape([b * l, d]),
-            0,
-            repeats.computed.clone(),
-        );
-        let (q, k, v) = match self.stacked(folds, &[&self.w_q, &self.w_k, &self.w_v], &rows) {
+        let rows = select_rows(tokens.reshape([b * l, d]), 0, repeats.computed.clone());
+        match self.stacked(folds, &[&self.w_q, &self.w_k, &self.w_v], &rows) {
             // One product, one gather back to the tokens, one split (`Self::stacked`).
             Some(layer) => {
-                let qkv = select_rows(layer.forward(rows), 0, repeats.token_from_computed.clone())
-                    .reshape([b, l, 3 * d]);
-                let [q, k, v] = split3(qkv, d);
-                (q, k, v)
+                split3(
+                    select_rows(layer.forward(rows), 0, repeats.token_from_computed.clone())
+                        .reshape([b, l, 3 * d]),
+                    d,
+                )
             }
-            None => {
-                let project = |layer: &'a Linear| {
-                    select_rows(
-                        folds.apply(layer, rows.clone()),
-                        0,
-                        repeats.token_from_computed.clone(),
-                    )
-                    .reshape([b, l, d])
-                };
-                (project(&self.w_q), project(&self.w_k), project(&self.w_v))
-            }
-        };
-        let attn = folds.apply(&self.w_o, self.attend(q, k, v, kernel));
-        self.feed(folds, tokens, attn, kernel, masks)
-    }
-
-    /// Self-attention over `tokens` `[B, L, D]`: [`Self::forward_with`]`(tokens, tokens, …)`,
-    /// with the query, key and value as one product on CubeCL devices (`Self::stacked`).
-    pub fn self_attention<'a>(
-        &'a self,
-        folds: &NormFolds<'a>,
-        tokens: Tensor<3>,
-        kernel: FusionKernel,
-        masks: [MaskSeed; 2],
-    ) -> Tensor<3> {
-        let d = tokens.dims()[2];
-        let Some(layer) = self.stacked(folds, &[&self.w_q, &self.w_k, &self.w_v], &tokens) else {
-            return self.forward_with(folds, tokens.clone(), tokens, kernel, masks);
-        };
-        let [q, k, v] = split3(layer.forward(tokens.clone()), d);
-        let attn = folds.apply(&self.w_o, self.attend(q, k, v, kernel));
-        self.feed(folds, tokens, attn, kernel, masks)
+            None => [&self.w_q, &self.w_k, &self.w_v].map(|layer| {
+                select_rows(
+                    folds.apply(layer, rows.clone()),
+                    0,
+                    repeats.token_from_computed.clone(),
+                )
+                .reshape([b, l, d])
+            }),
+        }
     }
 
     /// `layers` (which read the same input, like `x`'s) as one shared layer where products stack
@@ -208,32 +262,6 @@ impl AttentionLayer {
         };
         folds.stacked(layers, name, &x.device())
     }
-
-    /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]`: the attention's output after
-    /// `W_o`, before the residual (what [`Self::feed`] takes).
-    fn attention_output<'a>(
-        &'a self,
-        folds: &NormFolds<'a>,
-        query: Tensor<3>,
-        context: Tensor<3>,
-        kernel: FusionKernel,
-    ) -> Tensor<3> {
-        let q = folds.apply(&self.w_q, query);
-        let (k, v) = match self.stacked(folds, &[&self.w_k, &self.w_v], &context) {
-            Some(layer) => {
-                let d = context.dims()[2];
-                let mut kv = split_columns(layer.forward(context), &[d, d]).into_iter();
-                let mut next = || kv.next().expect("two blocks");
-                (next(), next())
-            }
-            None => (
-                folds.apply(&self.w_k, context.clone()),
-                folds.apply(&self.w_v, context),
-            ),
-        };
-        folds.apply(&self.w_o, self.attend(q, k, v, kernel))
-    }
-
     /// The layer after its attention: `x = LN₁(query + Dropout(attn))`, then
     /// `LN₂(x + Dropout(FFN(x)))`.
     fn feed<'a>(
@@ -385,83 +413,42 @@ impl FusionConfig {
 
 impl Fusion {
     /// Fuses per-view features `[V, N, D]` into one `[V, D]` per vertex, queried by `embed`
-    /// `[V, D]`.
-    pub fn forward(&self, features: Tensor<3>, embed: Tensor<2>) -> Tensor<2> {
-        self.forward_with(features, embed, FusionMasks::Device)
-    }
-
-    /// [`Self::forward`] with its layers shared through `folds`: a reconstruction's feedback
-    /// steps then take one gradient product per layer on devices (design.md §7.4).
-    pub fn forward_folded<'a>(
+    /// `[V, D]`: self-attention across each vertex's views, then cross-attention from its
+    /// embedding into them. The layers are shared through `folds` with every other call on them
+    /// (a reconstruction's feedback steps: one gradient product per layer on devices,
+    /// design.md §7.4).
+    pub fn forward<'a>(
         &'a self,
         folds: &NormFolds<'a>,
         features: Tensor<3>,
         embed: Tensor<2>,
-    ) -> Tensor<2> {
-        self.forward_shared(folds, features, embed, FusionMasks::Device, None)
-    }
-
-    /// [`Self::forward`] with its four dropout masks' seeds chosen by the caller.
-    pub fn forward_with(
-        &self,
-        features: Tensor<3>,
-        embed: Tensor<2>,
-        masks: FusionMasks,
-    ) -> Tensor<2> {
-        self.forward_shared(&NormFolds::new(), features, embed, masks, None)
-    }
-
-    /// [`Self::forward_with`] where the view tokens listed in `repeats`, if any, are known to
-    /// repeat one value (a vertex hidden in a view has the visibility embedding as its token
-    /// there): their first-layer `q`, `k`, `v` projections are computed once (design.md §7.4).
-    pub fn forward_repeated(
-        &self,
-        features: Tensor<3>,
-        embed: Tensor<2>,
-        masks: FusionMasks,
-        repeats: Option<&RepeatedTokens>,
-    ) -> Tensor<2> {
-        self.forward_shared(&NormFolds::new(), features, embed, masks, repeats)
-    }
-
-    /// [`Self::forward_repeated`] with its layers shared through `folds`.
-    pub fn forward_shared<'a>(
-        &'a self,
-        folds: &NormFolds<'a>,
-        features: Tensor<3>,
-        embed: Tensor<2>,
-        masks: FusionMasks,
-        repeats: Option<&RepeatedTokens>,
+        run: FusionRun<'_>,
     ) -> Tensor<2> {
         let [v, _, d] = features.dims();
-        let kernel = FusionKernel::Ops;
-        let seeds = match masks {
-            FusionMasks::Device => [MaskSeed::Device; 4],
-            FusionMasks::Given(seeds) => seeds,
-        };
-        if let Some(whole) = repeats.and_then(|r| r.whole.as_ref())
+        let seeds = run.masks.seeds();
+        if let Some(whole) = run.repeats.and_then(|r| r.whole.as_ref())
             && self.masks_are_identity(&seeds)
         {
-            return self.fuse_whole_vertices(folds, features, embed, masks, whole, kernel);
+            return self.fuse_whole_vertices(folds, features, embed, run, whole);
         }
-        let layer_masks = [seeds[0], seeds[1]];
-        let across_views = match repeats {
-            Some(repeats) => {
-                self.views
-                    .self_attention_repeated(folds, features, repeats, kernel, layer_masks)
-            }
-            None => self
-                .views
-                .self_attention(folds, features, kernel, layer_masks),
+        let layer = |masks| LayerRun {
+            kernel: FusionKernel::Ops,
+            masks,
+        };
+        let across_views = self.views.forward(
+            folds,
+            Attend::Within {
+                tokens: features,
+                repeats: run.repeats,
+            },
+            layer([seeds[0], seeds[1]]),
+        );
+        let into_vertex = Attend::Cross {
+            query: embed.reshape([v, 1, d]),
+            context: across_views,
         };
         self.query
-            .forward_with(
-                folds,
-                embed.reshape([v, 1, d]),
-                across_views,
-                kernel,
-                [seeds[2], seeds[3]],
-            )
+            .forward(folds, into_vertex, layer([seeds[2], seeds[3]]))
             .reshape([v, d])
     }
 
@@ -476,7 +463,7 @@ impl Fusion {
             .all(|(&seed, layer)| drops_nothing(&layer.dropout, seed))
     }
 
-    /// [`Self::forward_repeated`] without dropout, where the vertices listed in `whole` have every token
+    /// [`Self::forward`] without dropout, where the vertices listed in `whole` have every token
     /// equal to the repeated value (hidden in every view).
     ///
     /// For such a vertex the self-attention across views sees N equal tokens, so its N outputs
@@ -491,19 +478,33 @@ impl Fusion {
         folds: &NormFolds<'a>,
         features: Tensor<3>,
         embed: Tensor<2>,
-        masks: FusionMasks,
+        run: FusionRun<'_>,
         whole: &WholeVertices,
-        kernel: FusionKernel,
     ) -> Tensor<2> {
         let [_, _, d] = features.dims();
         let h = whole.repeated.dims()[0];
+        let kernel = FusionKernel::Ops;
         let off = [MaskSeed::Off; 2];
         // One wholly repeated vertex stands for all: its views, then the constant attention.
         let first = whole.repeated.clone().slice(0..1);
         let tokens = select_rows(features.clone(), 0, first.clone());
-        let across = self.views.self_attention(folds, tokens, kernel, off);
+        let across = self.views.forward(
+            folds,
+            Attend::Within {
+                tokens,
+                repeats: None,
+            },
+            LayerRun { kernel, masks: off },
+        );
         let query = select_rows(embed.clone(), 0, first).reshape([1, 1, d]);
-        let constant = self.query.attention_output(folds, query, across, kernel);
+        let (_, constant) = self.query.multi_head_attention(
+            folds,
+            Attend::Cross {
+                query,
+                context: across,
+            },
+            kernel,
+        );
         let repeated_embed =
             select_rows(embed.clone(), 0, whole.repeated.clone()).reshape([h, 1, d]);
         let repeated_out = self
@@ -520,12 +521,14 @@ impl Fusion {
             return repeated_out;
         };
         let kept_count = kept.vertices.dims()[0];
-        let kept_out = self.forward_shared(
+        let kept_out = self.forward(
             folds,
             select_rows(features, 0, kept.vertices.clone()),
             select_rows(embed, 0, kept.vertices.clone()),
-            masks,
-            kept.tokens.as_ref(),
+            FusionRun {
+                masks: run.masks,
+                repeats: kept.tokens.as_ref(),
+            },
         );
         debug_assert_eq!(kept_out.dims(), [kept_count, d]);
         select_rows(
@@ -548,17 +551,40 @@ impl Fusion {
 }
 
 /// Where a [`Fusion`] call's four dropout masks come from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum FusionMasks {
     /// Drawn from the device's RNG as the call goes (Burn's training rule).
+    #[default]
     Device,
     /// From [`Fusion::draw_mask_seeds`]: fixed before the call, so the call may run on
     /// inference weights and on any thread.
     Given([MaskSeed; 4]),
 }
 
+impl FusionMasks {
+    /// The seed of each mask, in the order the layers apply them.
+    fn seeds(self) -> [MaskSeed; 4] {
+        match self {
+            Self::Device => [MaskSeed::Device; 4],
+            Self::Given(seeds) => seeds,
+        }
+    }
+}
+
+/// How one [`Fusion::forward`] call computes, beside its inputs.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FusionRun<'r> {
+    /// Where its four dropout masks come from.
+    pub masks: FusionMasks,
+    /// The view tokens known to repeat one value, if any (a vertex hidden in a view has the
+    /// visibility embedding as its token there): their first-layer projections are computed
+    /// once, and vertices hidden in every view once for all where nothing is dropped
+    /// (design.md §7.4).
+    pub repeats: Option<&'r RepeatedTokens>,
+}
+
 /// Which of a `[V, N]` grid of view tokens repeat one value, so that the fusion's first layer
-/// projects each distinct row once ([`Fusion::forward_repeated`]).
+/// projects each distinct row once ([`FusionRun::repeats`]).
 ///
 /// `computed` `[U]` lists the flat token indices (`vertex·N + view`) whose rows are projected:
 /// every token that is its own, then one representative of the repeated ones.
@@ -711,9 +737,9 @@ mod tests {
         let feats = draw([7, 3, 24]);
         let embed = draw([1, 7, 24]).reshape([7, 24]);
         let folds = NormFolds::new();
-        let first = fusion.forward_folded(&folds, feats.clone(), embed.clone());
+        let first = fusion.forward(&folds, feats.clone(), embed.clone(), FusionRun::default());
         let again = feats * 0.5 + first.clone().unsqueeze_dim::<3>(1);
-        let out = fusion.forward_folded(&folds, again, embed);
+        let out = fusion.forward(&folds, again, embed, FusionRun::default());
         let grads = (out.clone() * out.clone().sin()).sum().backward();
         let mut all = vec![("output".to_string(), read(out))];
         all.extend(crate::test_grads::parameter_grads(fusion, &grads));
@@ -758,14 +784,24 @@ mod tests {
         let fusion = FusionConfig::new(24).with_n_heads(3).init(device);
         let feats = Tensor::<3>::random([5, 4, 24], Distribution::Normal(0.0, 1.0), device);
         let embed = Tensor::<2>::random([5, 24], Distribution::Normal(0.0, 1.0), device);
-        let out = fusion.forward(feats.clone(), embed.clone());
+        let out = fusion.forward(
+            &NormFolds::new(),
+            feats.clone(),
+            embed.clone(),
+            FusionRun::default(),
+        );
         assert_eq!(out.dims(), [5, 24]);
         // Views are a set: permuting them leaves the fused vertex feature unchanged.
         let perm = Tensor::<1, burn::tensor::Int>::from_data(
             TensorData::new(vec![2i64, 0, 3, 1], [4]),
             device,
         );
-        let out_perm = fusion.forward(feats.select(1, perm), embed);
+        let out_perm = fusion.forward(
+            &NormFolds::new(),
+            feats.select(1, perm),
+            embed,
+            FusionRun::default(),
+        );
         for (a, b) in read(out).iter().zip(read(out_perm)) {
             assert!((a - b).abs() < 1e-4, "{a} vs {b}");
         }
@@ -779,7 +815,11 @@ mod tests {
             .init(device);
         let q = Tensor::<3>::random([2, 1, 4], Distribution::Normal(0.0, 1.0), device);
         let c = Tensor::<3>::random([2, 1, 4], Distribution::Normal(0.0, 1.0), device);
-        let out = layer.forward(q.clone(), c.clone());
+        let cross = Attend::Cross {
+            query: q.clone(),
+            context: c.clone(),
+        };
+        let out = layer.forward(&NormFolds::new(), cross, LayerRun::default());
         let attn = layer.w_o.forward(layer.w_v.forward(c));
         let x = layer.norm1.forward(q + attn);
         let expect = layer
@@ -799,9 +839,16 @@ mod tests {
         let feats = Tensor::<3>::random([3, 2, 12], Distribution::Normal(0.0, 1.0), &ad);
         let embed =
             Tensor::<2>::random([3, 12], Distribution::Normal(0.0, 1.0), &ad).require_grad();
-        let grads = (fusion.forward(feats, embed.clone()).powi_scalar(2))
-            .sum()
-            .backward();
+        let grads = (fusion
+            .forward(
+                &NormFolds::new(),
+                feats,
+                embed.clone(),
+                FusionRun::default(),
+            )
+            .powi_scalar(2))
+        .sum()
+        .backward();
         assert!(embed.grad(&grads).is_some());
         for layer in [&fusion.views, &fusion.query] {
             for lin in [
@@ -841,12 +888,17 @@ mod tests {
                 Tensor::<3>::random([b, lk, d], Distribution::Normal(0.0, 1.0), &ad).require_grad();
             let w = Tensor::<3>::random([b, lq, d], Distribution::Normal(0.0, 1.0), &ad);
             let run = |kernel| {
-                let out = layer.forward_with(
+                let input = Attend::Cross {
+                    query: q.clone(),
+                    context: c.clone(),
+                };
+                let out = layer.forward(
                     &NormFolds::new(),
-                    q.clone(),
-                    c.clone(),
-                    kernel,
-                    [MaskSeed::Device; 2],
+                    input,
+                    LayerRun {
+                        kernel,
+                        ..LayerRun::default()
+                    },
                 );
                 let grads = (out.clone() * w.clone()).sum().backward();
                 (out, grads)
@@ -913,7 +965,7 @@ mod tests {
     }
 
     /// On wgpu, a training call's masks drawn inside the LayerNorm kernels from draws `[a, b]`
-    /// (`AttentionLayer::feed_drawn`) give the output and gradients of the tensor-op
+    /// (`AttentionLayer`'s `feed_drawn`) give the output and gradients of the tensor-op
     /// composition with the host's masks ([`lifegom_ops::dropout::kernel_mask`]): `a`'s after the
     /// attention, `b`'s after the feed-forward block, each on the residual branch.
     #[test]
@@ -943,7 +995,11 @@ mod tests {
         let folds = NormFolds::new();
         let kernel = FusionKernel::Ops;
         let drawn = Tensor::<1>::from_floats(draws, &ad);
-        let attn = layer.attention_output(&folds, q.clone(), c.clone(), kernel);
+        let cross = || Attend::Cross {
+            query: q.clone(),
+            context: c.clone(),
+        };
+        let (_, attn) = layer.multi_head_attention(&folds, cross(), kernel);
         let got = layer.feed_drawn(
             &folds,
             q.clone(),
@@ -952,7 +1008,7 @@ mod tests {
             [MaskSeed::Device; 2],
             [Some((drawn.clone(), 0)), Some((drawn, 1))],
         );
-        let attn = layer.attention_output(&NormFolds::new(), q.clone(), c.clone(), kernel);
+        let (_, attn) = layer.multi_head_attention(&NormFolds::new(), cross(), kernel);
         let x = layer.norm1.forward(q.clone() + attn * mask(draws[0]));
         let ff = layer.fc2.forward(relu(layer.fc1.forward(x.clone())));
         let want = layer.norm2.forward(x + ff * mask(draws[1]));
@@ -997,16 +1053,26 @@ mod tests {
             masks.iter().all(|m| matches!(m, MaskSeed::Given(_))),
             "a training call draws four masks"
         );
+        let given = FusionRun {
+            masks: FusionMasks::Given(masks),
+            repeats: None,
+        };
         let tracked =
-            read(fusion.forward_with(features.clone(), embed.clone(), FusionMasks::Given(masks)));
+            read(fusion.forward(&NormFolds::new(), features.clone(), embed.clone(), given));
         let inference = fusion.valid();
-        let copy = read(inference.forward_with(
+        let copy = read(inference.forward(
+            &NormFolds::new(),
             features.clone().inner(),
             embed.clone().inner(),
-            FusionMasks::Given(masks),
+            given,
         ));
         assert_eq!(tracked, copy);
-        let unmasked = read(inference.forward(features.inner(), embed.inner()));
+        let unmasked = read(inference.forward(
+            &NormFolds::new(),
+            features.inner(),
+            embed.inner(),
+            FusionRun::default(),
+        ));
         assert_ne!(copy, unmasked, "the masks were applied");
         // Off the autodiff device, and on frozen (inference) layers, no mask is drawn.
         assert_eq!(fusion.draw_mask_seeds(device), Some([MaskSeed::Off; 4]));
@@ -1015,7 +1081,7 @@ mod tests {
 
     lifegom_render::cpu_backend_tests!(given_masks => given_masks_on_inference_weights);
 
-    /// Projecting repeated tokens once (`forward_repeated`) against the plain call, in training
+    /// Projecting repeated tokens once (`FusionRun::repeats`) against the plain call, in training
     /// (dropout on, the same masks): output, and the gradients of the per-view features, of the
     /// shared value, of the vertex embeddings and of the first layer's projections. The tokens
     /// are blended as the reconstructor blends them (`f·vis + e·(1 − vis)`), with vertices
@@ -1062,9 +1128,25 @@ mod tests {
             let tokens = f.clone() * vis.clone()
                 + e.clone().reshape([1, 1, d]) * (vis.ones_like() - vis.clone());
             let out = if repeated {
-                fusion.forward_repeated(tokens.clone(), embed.clone(), masks, Some(&repeats))
+                fusion.forward(
+                    &NormFolds::new(),
+                    tokens.clone(),
+                    embed.clone(),
+                    FusionRun {
+                        masks,
+                        repeats: Some(&repeats),
+                    },
+                )
             } else {
-                fusion.forward_with(tokens.clone(), embed.clone(), masks)
+                fusion.forward(
+                    &NormFolds::new(),
+                    tokens.clone(),
+                    embed.clone(),
+                    FusionRun {
+                        masks,
+                        repeats: None,
+                    },
+                )
             };
             let g = (out.clone() * w.clone()).sum().backward();
             let mut all = vec![
@@ -1161,9 +1243,25 @@ mod tests {
                     let masks = FusionMasks::Given(masks);
                     let query = embed.clone().reshape([v, d]);
                     let out = if repeated {
-                        fusion.forward_repeated(tokens, query, masks, Some(&repeats))
+                        fusion.forward(
+                            &NormFolds::new(),
+                            tokens,
+                            query,
+                            FusionRun {
+                                masks,
+                                repeats: Some(&repeats),
+                            },
+                        )
                     } else {
-                        fusion.forward_with(tokens, query, masks)
+                        fusion.forward(
+                            &NormFolds::new(),
+                            tokens,
+                            query,
+                            FusionRun {
+                                masks,
+                                repeats: None,
+                            },
+                        )
                     };
                     let mut all = vec![read(out.clone())];
                     if ad.is_autodiff() {
