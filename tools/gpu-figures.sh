@@ -14,7 +14,7 @@
 # Every figure is one JSON line from a benchmark binary (recon-bench, train-bench, render-bench),
 # appended to $OUT/figures.jsonl with the step's name. On wgpu the lines carry
 # `kernel_launches` and `top_kernels` (lifegom_cli::launches). The set took 4 min 34 s on an
-# H200 in session 28 (without before binaries and test binaries):
+# H200 on 2026-11-28 (84f90d8; without before binaries and test binaries):
 #   1. the quickstart training step and the paper-setting reconstruction on wgpu, alternated
 #      with the same commands from the binaries of each folder in $BIN_BEFORE (a space-separated
 #      list; a folder may hold only some of the binaries) when it is set: before/after pairs
@@ -70,7 +70,7 @@ fi
 export RUST_LOG=warn
 
 # Binaries travel compressed (`strip --strip-all`, then `xz -9`: ≈ 12 MB each). A call carries
-# at most 64 MiB, the repository's tracked files included (53 MB in session 27), so a folder's
+# at most 64 MiB, the repository's tracked files included (53 MB on 2026-11-28), so a folder's
 # binaries travel best as ONE solid archive, `bins.tar.xz`: the binaries share most of their
 # code (Burn, CubeCL, wgpu), and one xz stream with a dictionary as large as a binary stores
 # that code once (tools/pack-gpu-bins.sh makes it). Single `NAME.xz` files still work.
@@ -142,14 +142,16 @@ step fusion-off-train-wgpu-quickstart 90 env LIFEGOM_FUSION=off "$BIN/train-benc
 step fusion-off-recon-wgpu-paper-1024-s2 90 env LIFEGOM_FUSION=off "$BIN/recon-bench" --device wgpu "${PAPER[@]}"
 
 # 1c. The training steps with the shared layers' weight gradients as one product each
-#     (`--split-k-rows 0`, as before session 28) beside the default split-k (design.md §1.4).
+#     (`--split-k-rows 0`, as before f6dd65c, 2026-11-28) beside the default split-k (design.md
+#     §1.4).
 step split-k-off-train-wgpu-quickstart 90 "$BIN/train-bench" --device wgpu "${QUICK[@]}" --split-k-rows 0
 # 1d. The encoder's convolutions with Burn's direct kernel (LIFEGOM_CONV=direct, as before
-#     session 28) beside each convolution and its BatchNorm as one implicit-GEMM product
-#     (ops/src/conv_norm.rs, session 32; patch columns and Burn's matmul in sessions 28–31).
+#     84f90d8, 2026-11-28) beside each convolution and its BatchNorm as one implicit-GEMM product
+#     (ops/src/conv_norm.rs, since b406b80; patch columns and Burn's matmul from 84f90d8 to it).
 step conv-direct-recon-wgpu-paper-1024-s2 90 env LIFEGOM_CONV=direct "$BIN/recon-bench" --device wgpu "${PAPER[@]}"
 # 1e. The Point Transformer's FPS and kNN planned inline, after a read-back that drains the
-#     queue (LIFEGOM_HIERARCHY=inline, as before session 28), beside planned ahead on a thread.
+#     queue (LIFEGOM_HIERARCHY=inline, as before ad62627, 2026-11-28), beside planned ahead on a
+#     thread.
 step hierarchy-inline-recon-wgpu-paper-1024-s2 90 env LIFEGOM_HIERARCHY=inline "$BIN/recon-bench" --device wgpu "${PAPER[@]}"
 
 GPU_DEVICE=wgpu
@@ -188,8 +190,8 @@ done
 # 5. Optional: which matmul and convolution kernels Burn's autotune picks at the paper setting,
 #    from binaries built with "autotune" in the workspace's `burn` and `burn-cubecl` features
 #    (folder $AUTOTUNE_BIN): CubeCL's autotune log, read from a cubecl.toml in the working
-#    folder, to choose those kernels without tuning at run time (BENCHMARKS.md, session 19:
-#    tuning costs minutes per process).
+#    folder, to choose those kernels without tuning at run time (BENCHMARKS.md, "On a
+#    GPU (NVIDIA H200, 2026-11-27)": tuning costs minutes per process).
 if [ -n "${AUTOTUNE_BIN:-}" ] && [ -x "$AUTOTUNE_BIN/recon-bench" ]; then
     tune_dir=$(mktemp -d)
     printf '[autotune]\nlevel = "minimal"\n\n[autotune.logger]\nlevel = "minimal"\nfile = "%s"\n' \

@@ -13,8 +13,9 @@
 //! threads freed were faulted in again on their next use. Training steps and
 //! reconstructions run on rayon's threads (`lifegom_render::device::on_pool_thread`), and with
 //! per-thread arenas the cpu preset's reconstruction was 10–13 % slower there than on `main`
-//! (BENCHMARKS.md, session 11). All threads allocating from one arena share its lock, which the
-//! step's few hundred large allocations do not contend for.
+//! (BENCHMARKS.md, 2026-11-25: "the step on rayon's threads with one malloc arena"). All threads
+//! allocating from one arena share its lock, which the step's few hundred large allocations do
+//! not contend for.
 //!
 //! The cost is resident memory: the heap keeps what it once held (cpu preset: 16.5 GB peak,
 //! against 14.2 GB before, with the step 3–4× faster). jemalloc and mimalloc with their default

@@ -4,7 +4,7 @@
 //! At the quickstart's size a GPU training step is bound by how many kernels it launches, not by
 //! what they compute (BENCHMARKS.md, "On a GPU"): the launch count is the figure to drive down,
 //! and it needs no GPU to read: lavapipe launches the same kernels as a card (to within 0.1 % in
-//! BENCHMARKS.md, session 17).
+//! BENCHMARKS.md, "On a GPU (NVIDIA H200, 2026-11-26, 2b993fa)").
 //!
 //! CubeCL calls an installed [`LaunchObserver`] on the issuing thread for every kernel, before it
 //! reaches the server. [`LaunchCounter`] tallies those calls per kernel name; with

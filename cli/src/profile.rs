@@ -76,8 +76,9 @@ impl StageTimer {
     ///
     /// That clock sums every thread's run time, and for a thread running on another core the
     /// kernel first brings that thread's count up to date there: on the 2-core VM a training
-    /// step timed this way took a few per cent longer (BENCHMARKS.md, session 15). Use it to
-    /// see which stages leave a core idle, and the plain timer for step times.
+    /// step timed this way took a few per cent longer (BENCHMARKS.md, 2026-11-26: "which stages
+    /// leave a core idle"). Use it to see which stages leave a core idle, and the plain timer for
+    /// step times.
     pub fn with_process_cpu() -> Self {
         Self {
             process_cpu: true,

@@ -503,7 +503,7 @@ pub enum HierarchyPlanning {
     /// are planned on another thread while the device renders, encodes and fuses (the default).
     Ahead,
     /// In the Point Transformer's forward, after a read-back that drains the device's queue
-    /// (`LIFEGOM_HIERARCHY=inline`, as before session 28; the CPU backends always).
+    /// (`LIFEGOM_HIERARCHY=inline`, as before ad62627, 2026-11-28; the CPU backends always).
     Inline,
 }
 

@@ -865,9 +865,9 @@ impl Reconstructor {
             (flags.vertices.reshape([v, n, 1]), flags.faces)
         };
         // The source tokens of hidden (vertex, view) pairs are all e_vis: 80–90 % of them at
-        // the small presets (BENCHMARKS.md, session 13), projected once in the fusion where
-        // reading the visibility (the no-gradient raster's result) back costs no sync
-        // ([`CostModel`]).
+        // the small presets (BENCHMARKS.md, 2026-11-26: "the issue's own starting code against
+        // today's"), projected once in the fusion where reading the visibility (the no-gradient
+        // raster's result) back costs no sync ([`CostModel`]).
         let src_repeats = if CostModel::of(&state.xyz.device()).free_readback() {
             let host: Vec<f32> = readback::read("vertex visibility", vis.clone())?;
             let hidden: Vec<bool> = host.iter().map(|&x| x < 0.5).collect();

@@ -5,7 +5,8 @@
 //! byte buffer that is then copied once more into an aligned allocation; the autodiff backward
 //! repeats that for both of its products and reduces the bias gradient as a third op. The
 //! fusion block alone calls twelve of them per call, so on the quickstart's training step that
-//! bookkeeping was about 35 ms of one core's time (BENCHMARKS.md, session 8).
+//! bookkeeping was about 35 ms of one core's time (BENCHMARKS.md, 2026-11-25: "where the serial
+//! time is").
 //!
 //! Here the forward writes the bias into the output rows and accumulates `x·W` onto them with
 //! one `gemm` call; the backward is `∂x = g·Wᵀ`, `∂W = xᵀ·g` (the transposes are strides, not

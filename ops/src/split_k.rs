@@ -22,9 +22,9 @@
 //!
 //! [`SplitK::plan`] may leave the last chunk short ([`SplitK::padded_rows`] covers the rows; the
 //! gradient kernel bounds each chunk by the rows, so nothing is padded). The result is the
-//! gradient up to float summation order. (Until session 32 the convolutions' weight gradients
-//! were Burn's batched products over chunks that divide the rows; the convolutions are shared
-//! products now, `crate::conv_norm`.)
+//! gradient up to float summation order. (Until b406b80, 2026-11-28, the convolutions' weight
+//! gradients were Burn's batched products over chunks that divide the rows; the convolutions are
+//! shared products now, `crate::conv_norm`.)
 
 use std::cell::Cell;
 

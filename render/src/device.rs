@@ -295,9 +295,10 @@ impl CostModel {
 /// thread outside the pool, each op is handed to the pool's workers while the caller sleeps: two
 /// futex wake-ups per op, hundreds of ops per step. Called from a worker, the op splits its work
 /// between that worker and the others and nothing sleeps. A quickstart training step took 7–9 %
-/// less time so (BENCHMARKS.md, session 11). That needs the binaries' allocator to keep one
-/// arena (`lifegom_cli::allocator`): with glibc's per-thread arenas the workers' large blocks
-/// were unmapped and faulted in again, and the cpu preset ran 10 % slower in the pool.
+/// less time so (BENCHMARKS.md, 2026-11-25: "the step on rayon's threads with one malloc
+/// arena"). That needs the binaries' allocator to keep one arena (`lifegom_cli::allocator`): with
+/// glibc's per-thread arenas the workers' large blocks were unmapped and faulted in again, and
+/// the cpu preset ran 10 % slower in the pool.
 pub fn on_pool_thread<R: Send>(device: &Device, f: impl FnOnce(&tracing::Span) -> R + Send) -> R {
     let parent = tracing::Span::current();
     if runs_on_host(device) {

@@ -3,8 +3,9 @@
 //! A kernel's output must exist, initialised, before its parallel tasks accumulate into it: the
 //! Linear op writes the bias into every row and then accumulates the product onto it. For
 //! outputs of megabytes, copying one row after another on the calling thread (plus the first
-//! touch of fresh pages) ran while the other core waited (BENCHMARKS.md, session 9). Here it is
-//! split over rayon's threads above [`PARALLEL_FILL`] elements.
+//! touch of fresh pages) ran while the other core waited (BENCHMARKS.md, 2026-11-25: "five more
+//! cuts of the serial part"). Here it is split over rayon's threads above [`PARALLEL_FILL`]
+//! elements.
 //!
 //! Zero-filled buffers are not here: `vec![0.0; n]` asks the allocator for zeroed memory, which
 //! for large sizes is fresh pages that cost no write at all until the kernel writes them. A

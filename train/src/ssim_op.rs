@@ -6,7 +6,8 @@
 //! reference. As tensor ops the loss is a five-block concatenation, two grouped convolutions, a
 //! five-way split and about twenty elementwise ops on the whole image batch (the T·(N+1)
 //! renders of a step), each with an autodiff node; on Flex the convolutions' backward alone
-//! (`conv_transpose`) was ≈ 24 ms of CPU per quickstart step (BENCHMARKS.md, session 9).
+//! (`conv_transpose`) was ≈ 24 ms of CPU per quickstart step (BENCHMARKS.md, 2026-11-25: "five
+//! more cuts of the serial part").
 //!
 //! **Forward.** Per image and channel, the five local moments `μx = G∗x`, `μy = G∗y`,
 //! `Exx = G∗x²`, `Eyy = G∗y²`, `Exy = G∗xy` (`G` the separable Gaussian window with zero

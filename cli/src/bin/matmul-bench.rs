@@ -6,8 +6,9 @@
 //!
 //! On an H200 a quickstart training step spent 220 of its 409 ms of kernel time in Burn's matmul,
 //! 364 µs a launch, though its products are small (at most `[3,687 × 144]·[144 × 432]`;
-//! BENCHMARKS.md, session 27). The shapes below are the ones `BURN_FUSION_LOG=full` lists for
-//! that step, plus the paper network's largest, in the three forms a step uses them:
+//! BENCHMARKS.md, "On a GPU (NVIDIA H200, 2026-11-28, 954c62a → 6ad3593)"). The shapes below
+//! are the ones `BURN_FUSION_LOG=full` lists for that step, plus the paper network's largest, in
+//! the three forms a step uses them:
 //!
 //! - `forward`: `[m, k]·[k, n]`, a layer's product;
 //! - `weight_grad`: `xᵀ·g` with `x: [k, m]` read through a transposed view, a layer's weight

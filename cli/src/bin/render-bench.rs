@@ -49,7 +49,7 @@ struct Args {
     #[arg(long)]
     json: bool,
     /// Pixel groups per tile in the GPU backward (1, 2, 4 or 8; by default 8). `1` is the
-    /// one-cube-per-tile backward of session 26 and before.
+    /// one-cube-per-tile backward of 954c62a (2026-11-28) and before.
     #[arg(long)]
     pixel_groups: Option<u32>,
 }

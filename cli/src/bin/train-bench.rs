@@ -137,7 +137,7 @@ struct Args {
     #[arg(long)]
     attribute_launches: bool,
     /// Rows per chunk of split-k weight gradients on a CubeCL device (`0`: one product each, as
-    /// before session 28); by default the `lifegom_ops::split_k` rule.
+    /// before f6dd65c, 2026-11-28); by default the `lifegom_ops::split_k` rule.
     #[arg(long)]
     split_k_rows: Option<usize>,
 }

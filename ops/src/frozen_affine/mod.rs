@@ -101,9 +101,10 @@ mod tests {
 
     /// On wgpu (lavapipe in CI) the op equals the tensor ops on Flex; asked again for the same
     /// statistics it gives the same values (that it launches nothing then is shown by the launch
-    /// counts, BENCHMARKS.md session 26, not here), and new statistics of the same shape — made
-    /// after the first ones were dropped, where an allocator could reuse their memory — get their
-    /// own values, never the cached ones. Also under an autodiff device, as the trainer calls it.
+    /// counts, BENCHMARKS.md 2026-11-27: "Adam in a few launches, frozen affines cached", not
+    /// here), and new statistics of the same shape — made after the first ones were dropped, where
+    /// an allocator could reuse their memory — get their own values, never the cached ones. Also
+    /// under an autodiff device, as the trainer calls it.
     #[test]
     fn frozen_affine_matches_tensor_ops_and_caches_wgpu() {
         let Some(device) = wgpu_test_device() else {

@@ -9,14 +9,14 @@
 //!   recomputes the statistics the same way and writes `∂z = rstd·(a − mean(a) − x̂·mean(a·x̂))`
 //!   with `a = g·γ`, and each thread adds `g·x̂` and `g` of its channels onto the chunk's sums;
 //!   `layer_norm_columns_total_kernel` adds the chunks' sums in order: `∂γ` and `∂β`, with no
-//!   atomics. (Until session 33 a kernel of its own, one thread per channel and chunk, formed
-//!   the chunks' sums from statistics the rows' kernel wrote: one launch more per call.)
+//!   atomics. (Until 5ddcc72, 2026-11-29, a kernel of its own, one thread per channel and chunk,
+//!   formed the chunks' sums from statistics the rows' kernel wrote: one launch more per call.)
 //!
 //! An earlier version ran one thread per row (forward) and one per channel (the column sums):
 //! a thread per row reads its row alone, so a warp's loads touch as many cache lines as it has
 //! threads, and a thread per channel leaves a GPU nearly idle at a thousand channels. At the paper
 //! preset those kernels took 49 ms of a reconstruction and 205 ms of a training step on an H200
-//! (BENCHMARKS.md, "On a GPU", session 19).
+//! (BENCHMARKS.md, "On a GPU (NVIDIA H200, 2026-11-27)").
 //!
 //! Burn's `LayerNorm` composition is about ten launches forward and fifteen backward per call.
 //!

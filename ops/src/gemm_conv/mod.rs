@@ -1,11 +1,11 @@
 //! Convolutions as products on CubeCL devices (design.md §1.4, §7.1).
 //!
 //! Burn 0.22.1's CubeCL backend, without its `autotune` feature (which tunes for minutes per
-//! process, BENCHMARKS.md session 19), runs every convolution with its direct kernel: at the
-//! paper's setting the image encoder's ResNet-18 at 1024² took 530 of a reconstruction's
-//! 1,147 ms of device time on an H200, where the same arithmetic as products runs at
-//! 20 TFLOP/s. A convolution without bias is the product of its patch columns (im2col) and its
-//! weight,
+//! process, BENCHMARKS.md "On a GPU (NVIDIA H200, 2026-11-27)"), runs every convolution with its
+//! direct kernel: at the paper's setting the image encoder's ResNet-18 at 1024² took 530 of a
+//! reconstruction's 1,147 ms of device time on an H200, where the same arithmetic as products
+//! runs at 20 TFLOP/s. A convolution without bias is the product of its patch columns (im2col)
+//! and its weight,
 //!
 //! ```text
 //! columns[(n, y, x), (c, ky, kx)] = x[n, c, y·sy + ky − py, x·sx + kx − px]   (0 outside)
@@ -18,8 +18,8 @@
 //! module holds the window ([`op::Patches`]), the column arithmetic those kernels share
 //! (`cube::patch_value`), and the backward's gather of the columns' gradient onto the input
 //! ([`op::PatchKernels::patch_columns_backward`]: each input element sums the column entries
-//! that read it). Until session 32 the convolution was an op of its own here, the columns
-//! written by one launch and multiplied by Burn's matmul.
+//! that read it). Until b406b80 (2026-11-28) the convolution was an op of its own here, the
+//! columns written by one launch and multiplied by Burn's matmul.
 //!
 //! The CPU backends, layers with a bias, groups or dilation, and CubeCL devices with
 //! `LIFEGOM_CONV=direct` ([`ConvKernel`], for benchmarks to compare against) keep Burn's

@@ -231,8 +231,8 @@ fn corner(geom: &LevelGeom, view: usize, x: f32, y: f32, k: u32) -> Corner {
 /// The four corners of a map point's footprint, computed once per thread where a loop over
 /// channels reads them (the last level's channels, the tail's inputs). Computed per channel
 /// instead, a tail column cost `4·C_last` corner evaluations; the forward kernel then took 81 ms
-/// of device time in a paper-setting reconstruction on an H200 (BENCHMARKS.md, "On a GPU",
-/// session 19).
+/// of device time in a paper-setting reconstruction on an H200 (BENCHMARKS.md, "On a GPU
+/// (NVIDIA H200, 2026-11-27)").
 #[derive(CubeType, Clone, Copy)]
 struct Footprint {
     c00: Corner,

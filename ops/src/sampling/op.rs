@@ -10,9 +10,10 @@
 //! shift and a clamp per axis), about fifteen ops of index arithmetic, gather and weighted sum,
 //! and then a concatenation of the levels and the tail's product: on a CPU their intermediates
 //! and autodiff nodes cost more than the sampling, and the concatenation's backward handed each
-//! level a strided slice of the gradient to copy (BENCHMARKS.md, sessions 5 and 9); on a GPU
-//! each of those ops, forward and backward, was a kernel launch of its own (about 2,800 of a
-//! quickstart step's launches went to sampling's forward alone).
+//! level a strided slice of the gradient to copy (BENCHMARKS.md, 2026-11-24: "After the fused
+//! feature sampling", and 2026-11-25: "five more cuts of the serial part"); on a GPU each of
+//! those ops, forward and backward, was a kernel launch of its own (about 2,800 of a quickstart
+//! step's launches went to sampling's forward alone).
 //!
 //! The autodiff node keeps the op's inputs (handles, no copies); the backward recomputes each
 //! point's footprint, which costs about what storing it would.

@@ -22,7 +22,7 @@
 //! (`SharedLinear::folded`, [`op::OutputMap`]): `(x·W + b)·s + t`, the BN's `s`, `t` made once
 //! per process; backward, the scale enters `∂x` where the product stages the gradient and the
 //! parameters' gradient where the rows are read, so the norm costs no launch of its own. (Until
-//! session 32 the layer was folded with it each step: a launch per layer.)
+//! c9ab074, 2026-11-28, the layer was folded with it each step: a launch per layer.)
 //!
 //! On the CPU backends a shared layer is the layer it wraps ([`crate::linear_op::affine`]): their
 //! gradients stay the same to the bit.

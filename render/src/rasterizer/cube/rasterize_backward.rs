@@ -15,7 +15,8 @@
 //! steps instead of `256 + 31`, and there are as many times more cubes, for as many times more
 //! atomic adds. On an H200 the most groups ([`BWD_PIXEL_GROUPS`], eight 32-pixel groups) were the
 //! fastest at every size measured, from a 96² image (36 tiles: one cube per tile left the card
-//! nearly idle) to 1024² (backward 36.4 → 9.8 ms; BENCHMARKS.md, session 27).
+//! nearly idle) to 1024² (backward 36.4 → 9.8 ms; BENCHMARKS.md, "On a GPU (NVIDIA H200,
+//! 2026-11-28, 954c62a → 6ad3593)").
 
 // `(a + b - 1) / b` stays spelled out because `#[cube]` traces the arithmetic operators, not
 // `u32::div_ceil`.
