@@ -1,9 +1,9 @@
 //! The official code's checkpoints in the commands, end to end: `lifegom-eval`,
 //! `lifegom-reconstruct` and `lifegom-train --init` run from a checkpoint written by real
 //! `torch.save` in the official structure (`{iter, network, optimizer}`;
-//! `tests/fixtures/official/demo-v2.pth`, made from the shipped demo model by
+//! `tests/fixtures/official/demo-v2.pth`, made from demo model v2 by
 //! `tools/official-fixture/make_official_pth.py`) and must give exactly what the same weights
-//! give as a `.lgck` (`assets/demo/demo.lgck`). A file that does not fit the config's network
+//! give as a `.lgck` (`assets/demo/v2/demo.lgck`). A file that does not fit the config's network
 //! is one error naming the key and both shapes.
 
 mod common;
@@ -27,7 +27,7 @@ fn official_fixture() -> PathBuf {
 }
 
 fn demo_lgck() -> PathBuf {
-    repo("assets/demo/demo.lgck")
+    repo("assets/demo/v2/demo.lgck")
 }
 
 /// The tiny split (64 px, 3 inputs), and a config for it whose `[model]` is the demo model's

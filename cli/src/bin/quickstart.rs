@@ -83,11 +83,11 @@ struct Args {
     #[arg(long)]
     sweep: bool,
     /// Other trained models scored on the same people beside it (comma-separated; by default
-    /// the first demo model, when present; `--compare ""` for none).
+    /// the earlier demo models, when present; `--compare ""` for none).
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "assets/demo/v1/demo.lgck"
+        default_value = "assets/demo/v2/demo.lgck,assets/demo/v1/demo.lgck"
     )]
     compare: Vec<String>,
     /// Do not fetch the LPIPS / FID weights when they are missing (the report then says LPIPS
