@@ -630,6 +630,10 @@ pub struct TransitionDown {
 
 /// What a [`TransitionDown`] reads.
 #[derive(Debug, Clone)]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "built for one call and consumed by it, never stored"
+)]
 pub enum DownInput {
     /// The network's input at stride 1: `cat(p, x)` taken as `p·W[0..3] + x·W[3..]` without
     /// forming it. For the paper's 2307-wide input the concatenation would copy the whole

@@ -109,6 +109,10 @@ impl AttentionLayerConfig {
 
 /// What an [`AttentionLayer`] attends with.
 #[derive(Debug, Clone)]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "built for one call and consumed by it, never stored"
+)]
 pub enum Attend<'r> {
     /// `query` `[B, Lq, D]` attends to `context` `[B, Lk, D]` (the fusion's second layer).
     Cross {
