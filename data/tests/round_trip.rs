@@ -724,7 +724,7 @@ fn stream_variety_moves_the_camera_and_the_light_but_keeps_the_person() {
     assert_eq!(none.frames[0].rgb, a.frames[0].rgb);
     let bad = synth::SynthConfig {
         camera_radius_range: Some([3.0, 2.0]),
-        ..s
+        ..s.clone()
     };
     let cfg = tiny_config();
     let err = bad
@@ -732,4 +732,17 @@ fn stream_variety_moves_the_camera_and_the_light_but_keeps_the_person() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("camera_radius_range"), "{err}");
+    // Targets from other cameras are a multi-frame choice; the multi-view split refuses it.
+    let bad = synth::SynthConfig {
+        stream_target_camera: synth::TargetCamera::Others,
+        ..s
+    };
+    let err = bad
+        .validate(&cfg.data, Path::new("tiny.toml"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("tiny.toml") && err.contains("synthetic.stream_target_camera"),
+        "{err}"
+    );
 }

@@ -190,6 +190,9 @@ pub struct SynthConfig {
     /// (each person turns by a random angle within ±this, so the one camera sees more sides).
     #[serde(default = "default_max_turn")]
     pub max_turn_deg: f32,
+    /// Multi-frame: which camera the training stream's target is seen from ([`TargetCamera`]).
+    #[serde(default)]
+    pub stream_target_camera: TargetCamera,
     /// Variety only the training stream draws (`[synthetic.stream_variety]`, design.md §8.11);
     /// the split written to disk ignores it, so the validation people stay the same.
     #[serde(default)]
@@ -205,6 +208,20 @@ pub struct SynthConfig {
     /// Base seed (`--seed` overrides it).
     #[serde(default)]
     pub seed: u64,
+}
+
+/// Multi-frame: which camera the training stream's target is seen from (design.md §8.10).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TargetCamera {
+    /// The sources' camera, at another time of the sequence: the official AIST++ training
+    /// (camera 1 only).
+    #[default]
+    Sources,
+    /// One of the `val_target_views` other cameras of the validation layout, at another time:
+    /// what validation and evaluation score. The sources are then that layout's N evenly
+    /// spaced frames.
+    Others,
 }
 
 /// How the training stream's subjects vary beyond the written split's (design.md §8.11).
@@ -455,6 +472,14 @@ impl SynthConfig {
             return Err(bad(
                 "stream_variety.share",
                 format!("must be in 0..=1, got {}", v.share),
+            ));
+        }
+        if self.stream_target_camera == TargetCamera::Others
+            && (self.setting != SynthSetting::MultiFrame || self.val_target_views == 0)
+        {
+            return Err(bad(
+                "stream_target_camera",
+                "\"others\" needs setting = \"multi_frame\" and val_target_views >= 1 (the cameras the targets are drawn from)".into(),
             ));
         }
         if !(self.focal_factor > 0.0 && self.focal_factor.is_finite()) {

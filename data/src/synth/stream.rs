@@ -16,7 +16,7 @@
 use lifegom_render::rng::Rng;
 use lifegom_render::template::BodyTemplate;
 
-use super::{SynthConfig, generate_subject_frames};
+use super::{SynthConfig, SynthSetting, TargetCamera, generate_subject_frames};
 use crate::dataset::{Background, DataConfig, FrameRule, Sample, Split, prepare_view};
 use crate::error::{DataError, Location, Result};
 use crate::format::CanonicalBody;
@@ -110,6 +110,13 @@ impl SubjectStream {
         self.synth.train_frames()
     }
 
+    /// Whether a sample takes its target from another camera than its sources' (multi-frame
+    /// with [`TargetCamera::Others`]): then it is drawn in the validation layout.
+    fn targets_other_cameras(&self) -> bool {
+        self.synth.setting == SynthSetting::MultiFrame
+            && self.synth.stream_target_camera == TargetCamera::Others
+    }
+
     /// The generator seed of the subjects of run seed `seed`.
     fn subject_seed(&self, seed: u64) -> u64 {
         Rng::new(self.seed).fork(SUBJECT_SEED).fork(seed).next_u64()
@@ -122,9 +129,17 @@ impl SubjectStream {
         let name = Self::subject_name(index);
         let subject_seed = self.subject_seed(seed);
         let mut rng = Rng::new(subject_seed).fork(index).fork(SAMPLE_CHOICES);
-        let num_frames = self.num_frames();
-        let s = rng.below(self.rule.samples_per_subject(num_frames).max(1));
-        let (inputs, target) = self.rule.frames(s, num_frames, &mut rng);
+        let (inputs, target, layout) = if self.targets_other_cameras() {
+            // The validation layout: N inputs from the sources' camera, then the targets.
+            let n = self.rule.n_inputs;
+            let target = n + rng.below(self.synth.val_target_views.max(1));
+            ((0..n).collect::<Vec<_>>(), target, Some(n))
+        } else {
+            let num_frames = self.num_frames();
+            let s = rng.below(self.rule.samples_per_subject(num_frames).max(1));
+            let (inputs, target) = self.rule.frames(s, num_frames, &mut rng);
+            (inputs, target, None)
+        };
         let bg = self.background.draw(&mut rng);
         let wanted: Vec<usize> = inputs.iter().copied().chain([target]).collect();
         let subject = generate_subject_frames(
@@ -133,7 +148,7 @@ impl SubjectStream {
             subject_seed,
             index as usize,
             &name,
-            None,
+            layout,
             Some(&wanted),
         )?;
         let views = wanted
@@ -204,6 +219,7 @@ mod tests {
             camera_radius: 2.0,
             camera_radius_range: None,
             stream_variety: None,
+            stream_target_camera: TargetCamera::Sources,
             camera_pitch_deg: -8.0,
             focal_factor: 0.8,
             shape_estimate: ShapeEstimate::Noisy,
@@ -308,6 +324,70 @@ mod tests {
                 crate::dataset::load_view(&subject, f, [255.0; 3], (16, 16), ResizeMode::default())
                     .unwrap();
             assert_eq!(&read, view, "frame {}", view.frame);
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// With `stream_target_camera = "others"` a multi-frame sample is the validation layout:
+    /// the N evenly spaced inputs from the sources' camera, and a target seen from one of the
+    /// other cameras, equal to the subject written in that layout and read back.
+    #[test]
+    fn multi_frame_targets_from_other_cameras_are_the_validation_layout() {
+        let (mut synth, mut data) = configs(32);
+        synth.setting = SynthSetting::MultiFrame;
+        synth.sequence_frames = 9;
+        synth.val_target_views = 6;
+        synth.stream_target_camera = TargetCamera::Others;
+        data.protocol = Protocol::Aistpp;
+        data.n_input_frames = 5;
+        data.train_background = Background::Fixed([255, 255, 255]);
+        let stream = SubjectStream::new(&synth, &data).unwrap();
+        let name = SubjectStream::subject_name(4);
+        let seed = stream.subject_seed(5);
+        let full = generate_subject(stream.template(), &synth, seed, 4, &name, Some(5)).unwrap();
+        assert_eq!(full.frames.len(), 11);
+        let dir = std::env::temp_dir().join(format!("lifegom-stream-oc-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        write_subject(stream.template(), &full, &dir).unwrap();
+        let subject = Subject::load(&dir.join(&name), KinematicTree::Stored).unwrap();
+        let mut targets = std::collections::BTreeSet::new();
+        for draw in 0..2 {
+            // The same index and seed: the same person, inputs and target.
+            let got = stream.sample(5, 4).unwrap();
+            assert_eq!(got.sample.views.len(), 6, "draw {draw}");
+            let idx: Vec<usize> = got
+                .sample
+                .views
+                .iter()
+                .map(|v| v.frame["frame_".len()..].parse().unwrap())
+                .collect();
+            assert_eq!(idx[..5], [0, 1, 2, 3, 4], "the validation layout's inputs");
+            assert!((5..11).contains(&idx[5]), "a target of the layout: {idx:?}");
+            targets.insert(idx[5]);
+            for view in &got.sample.views {
+                let f = subject
+                    .frames
+                    .iter()
+                    .position(|n| *n == view.frame)
+                    .unwrap();
+                let read = crate::dataset::load_view(
+                    &subject,
+                    f,
+                    [255.0; 3],
+                    (16, 16),
+                    ResizeMode::default(),
+                )
+                .unwrap();
+                assert_eq!(&read, view, "frame {}", view.frame);
+            }
+        }
+        // The inputs share one camera; every target of the layout has another.
+        let centre = |f: usize| full.frames[f].camera.center();
+        for f in 1..5 {
+            assert!((centre(f) - centre(0)).length() < 1e-4, "input {f}");
+        }
+        for &t in &targets {
+            assert!((centre(t) - centre(0)).length() > 0.5, "target {t}");
         }
         let _ = std::fs::remove_dir_all(&dir);
     }
