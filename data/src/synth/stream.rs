@@ -250,6 +250,21 @@ mod tests {
         (synth, data)
     }
 
+    /// Every view of `sample` equals the same frame of `subject` read from disk over `bg` at
+    /// `size`: a stream sample is the written subject read back.
+    fn assert_views_read_back(subject: &Subject, sample: &Sample, bg: [f32; 3], size: (u32, u32)) {
+        for view in &sample.views {
+            let f = subject
+                .frames
+                .iter()
+                .position(|n| *n == view.frame)
+                .unwrap();
+            let read =
+                crate::dataset::load_view(subject, f, bg, size, ResizeMode::default()).unwrap();
+            assert_eq!(&read, view, "frame {}", view.frame);
+        }
+    }
+
     /// A stream sample is exactly what the reader gives for the same subject written to disk:
     /// same views (pixels, masks, cameras, poses), canonical body and background.
     #[test]
@@ -267,16 +282,7 @@ mod tests {
         assert_eq!(subject.canonical, got.canonical);
         assert_eq!(got.sample.views.len(), 4);
         let bg = got.sample.bgcolor.map(|c| c * 255.0);
-        for view in &got.sample.views {
-            let f = subject
-                .frames
-                .iter()
-                .position(|n| *n == view.frame)
-                .unwrap();
-            let read = crate::dataset::load_view(&subject, f, bg, (24, 24), ResizeMode::default())
-                .unwrap();
-            assert_eq!(&read, view, "frame {}", view.frame);
-        }
+        assert_views_read_back(&subject, &got.sample, bg, (24, 24));
         let _ = std::fs::remove_dir_all(&dir);
         // Inputs follow the THuman view3 training rule: ring frames 5 or 6 apart; the target is
         // one of the 48 in-gap views.
@@ -314,17 +320,7 @@ mod tests {
         assert_eq!(full.frames.len(), 9);
         write_subject(stream.template(), &full, &dir).unwrap();
         let subject = Subject::load(&dir.join(&name), KinematicTree::Stored).unwrap();
-        for view in &got.sample.views {
-            let f = subject
-                .frames
-                .iter()
-                .position(|n| *n == view.frame)
-                .unwrap();
-            let read =
-                crate::dataset::load_view(&subject, f, [255.0; 3], (16, 16), ResizeMode::default())
-                    .unwrap();
-            assert_eq!(&read, view, "frame {}", view.frame);
-        }
+        assert_views_read_back(&subject, &got.sample, [255.0; 3], (16, 16));
         let _ = std::fs::remove_dir_all(&dir);
     }
 
@@ -364,22 +360,7 @@ mod tests {
             assert_eq!(idx[..5], [0, 1, 2, 3, 4], "the validation layout's inputs");
             assert!((5..11).contains(&idx[5]), "a target of the layout: {idx:?}");
             targets.insert(idx[5]);
-            for view in &got.sample.views {
-                let f = subject
-                    .frames
-                    .iter()
-                    .position(|n| *n == view.frame)
-                    .unwrap();
-                let read = crate::dataset::load_view(
-                    &subject,
-                    f,
-                    [255.0; 3],
-                    (16, 16),
-                    ResizeMode::default(),
-                )
-                .unwrap();
-                assert_eq!(&read, view, "frame {}", view.frame);
-            }
+            assert_views_read_back(&subject, &got.sample, [255.0; 3], (16, 16));
         }
         // The inputs share one camera; every target of the layout has another.
         let centre = |f: usize| full.frames[f].camera.center();

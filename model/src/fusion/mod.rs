@@ -1131,27 +1131,15 @@ mod tests {
             // Built per run: a backward consumes the graph it walks.
             let tokens = f.clone() * vis.clone()
                 + e.clone().reshape([1, 1, d]) * (vis.ones_like() - vis.clone());
-            let out = if repeated {
-                fusion.forward(
-                    &NormFolds::new(),
-                    tokens.clone(),
-                    embed.clone(),
-                    FusionRun {
-                        masks,
-                        repeats: Some(&repeats),
-                    },
-                )
-            } else {
-                fusion.forward(
-                    &NormFolds::new(),
-                    tokens.clone(),
-                    embed.clone(),
-                    FusionRun {
-                        masks,
-                        repeats: None,
-                    },
-                )
-            };
+            let out = fusion.forward(
+                &NormFolds::new(),
+                tokens.clone(),
+                embed.clone(),
+                FusionRun {
+                    masks,
+                    repeats: repeated.then_some(&repeats),
+                },
+            );
             let g = (out.clone() * w.clone()).sum().backward();
             let mut all = vec![
                 read(out),
@@ -1246,27 +1234,15 @@ mod tests {
                         f.clone() * vis.clone() + e.clone() * (vis.ones_like() - vis.clone());
                     let masks = FusionMasks::Given(masks);
                     let query = embed.clone().reshape([v, d]);
-                    let out = if repeated {
-                        fusion.forward(
-                            &NormFolds::new(),
-                            tokens,
-                            query,
-                            FusionRun {
-                                masks,
-                                repeats: Some(&repeats),
-                            },
-                        )
-                    } else {
-                        fusion.forward(
-                            &NormFolds::new(),
-                            tokens,
-                            query,
-                            FusionRun {
-                                masks,
-                                repeats: None,
-                            },
-                        )
-                    };
+                    let out = fusion.forward(
+                        &NormFolds::new(),
+                        tokens,
+                        query,
+                        FusionRun {
+                            masks,
+                            repeats: repeated.then_some(&repeats),
+                        },
+                    );
                     let mut all = vec![read(out.clone())];
                     if ad.is_autodiff() {
                         let g = (out * w.clone()).sum().backward();
