@@ -22,7 +22,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use burn::tensor::Device;
 use lifegom_data::dataset::{exposure_warning, load_sample};
-use lifegom_data::format::Subject;
+use lifegom_data::format::{FrameCamera, Subject};
 use lifegom_data::kinematics::KinematicTree;
 use lifegom_eval::animate::{orbit_camera, posed_joint};
 use lifegom_eval::evaluate::{reconstruct_timed, refine, render_timed};
@@ -119,6 +119,79 @@ pub fn load_subject(path: &Path, tree: KinematicTree) -> anyhow::Result<Subject>
         );
     }
     Ok(Subject::load(path, tree)?)
+}
+
+/// How the photos were taken, which picks the shipped model that suits them (README, "Your
+/// own photos").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Capture {
+    /// Views from cameras around the person (THuman-style): the demo model (`assets/demo/`).
+    MultiView,
+    /// Frames of one video, the person moving before one camera (AIST++-style): the multi-frame
+    /// model (`assets/multiframe/`), which takes its first [`ONE_CAMERA_FRAMES`] frames.
+    OneCamera,
+}
+
+/// Input frames of the multi-frame model: a subject whose first this many frames share one
+/// camera is a [`Capture::OneCamera`] capture.
+pub const ONE_CAMERA_FRAMES: usize = 5;
+
+/// A shipped model and the experiment config it was trained with, relative to the repository.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ShippedModel {
+    /// The `.lgck`.
+    pub model: &'static str,
+    /// Its config (image size, test background, kinematic tree).
+    pub config: &'static str,
+}
+
+impl Capture {
+    /// [`Capture::OneCamera`] when the first [`ONE_CAMERA_FRAMES`] frames share a camera.
+    pub fn of(subject: &Subject) -> Self {
+        match subject.cameras.get(..ONE_CAMERA_FRAMES) {
+            Some([first, rest @ ..]) if rest.iter().all(|c| same_camera(c, first)) => {
+                Self::OneCamera
+            }
+            _ => Self::MultiView,
+        }
+    }
+
+    /// The shipped model for this kind of capture.
+    pub fn shipped_model(self) -> ShippedModel {
+        match self {
+            Self::MultiView => ShippedModel {
+                model: "assets/demo/demo.lgck",
+                config: "assets/demo/config.toml",
+            },
+            Self::OneCamera => ShippedModel {
+                model: "assets/multiframe/multiframe.lgck",
+                config: "assets/multiframe/config.toml",
+            },
+        }
+    }
+}
+
+impl std::fmt::Display for Capture {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::MultiView => "multi-view",
+            Self::OneCamera => "one-camera",
+        })
+    }
+}
+
+/// Same intrinsics and extrinsics up to what a camera file's rounding leaves.
+fn same_camera(a: &FrameCamera, b: &FrameCamera) -> bool {
+    let close = |x: f64, y: f64| (x - y).abs() <= 1e-6 * x.abs().max(y.abs()).max(1.0);
+    a.k.iter()
+        .flatten()
+        .zip(b.k.iter().flatten())
+        .all(|(&x, &y)| close(x, y))
+        && a.e
+            .iter()
+            .flatten()
+            .zip(b.e.iter().flatten())
+            .all(|(&x, &y)| close(x, y))
 }
 
 /// Frame indices of the inputs: the named or numbered frames, or the first `n`.

@@ -123,26 +123,31 @@ mod tests {
             .stderr(std::process::Stdio::null())
             .spawn()
             .unwrap();
-        let holder_id = holder.id().to_string();
-        let held = || {
-            RunLock::acquire(dir.path()).is_err()
-                && std::fs::read_to_string(dir.path().join(LOCK_FILE))
-                    .is_ok_and(|s| s.trim() == holder_id)
-        };
-        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
-        while !held() {
+        // Probing with `acquire` would take the lock whenever the holder has not yet, and a
+        // holder refused then would die; the holder says when it holds the lock instead.
+        let ready = dir.path().join(HOLDER_READY);
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+        while !ready.exists() {
             assert!(
                 std::time::Instant::now() < deadline,
                 "the holder never took the lock"
             );
+            assert!(
+                holder.try_wait().unwrap().is_none(),
+                "the holder ended before taking the lock"
+            );
             std::thread::sleep(std::time::Duration::from_millis(20));
         }
+        let e = RunLock::acquire(dir.path()).unwrap_err().to_string();
+        assert!(e.contains(&format!("process {}", holder.id())), "{e}");
         holder.kill().unwrap(); // SIGKILL
         holder.wait().unwrap();
         acquire_soon(dir.path()).expect("no lock left by a killed holder");
     }
 
     const HOLDER_DIR: &str = "LIFEGOM_TEST_LOCK_HOLDER_DIR";
+    /// Written by the holder once it holds the lock.
+    const HOLDER_READY: &str = "holder-ready";
 
     /// The lock holder of [`a_killed_holder_leaves_no_lock`], run in a child process.
     #[test]
@@ -151,7 +156,9 @@ mod tests {
         let Some(dir) = std::env::var_os(HOLDER_DIR) else {
             return;
         };
-        let _lock = RunLock::acquire(Path::new(&dir)).unwrap();
+        let dir = Path::new(&dir);
+        let _lock = acquire_soon(dir).unwrap();
+        std::fs::write(dir.join(HOLDER_READY), b"").unwrap();
         std::thread::sleep(std::time::Duration::from_secs(60));
     }
 }

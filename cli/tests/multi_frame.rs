@@ -12,6 +12,7 @@ use std::sync::atomic::AtomicBool;
 
 use burn::tensor::Device;
 use lifegom_cli::eval_run::{EvalOptions, run};
+use lifegom_cli::reconstruct_run::Capture;
 use lifegom_cli::train_run::{RunOptions, StopReason, train};
 use lifegom_data::dataset::{Dataset, Protocol, Split};
 use lifegom_data::synth;
@@ -31,6 +32,17 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
     assert_eq!(cfg.file.data.protocol, Protocol::Aistpp);
     let s = cfg.file.synthetic.clone().unwrap();
     synth::generate_split(&s, &cfg.file.data, &root, s.seed, &|| {}).unwrap();
+    // Its validation people are frames of one camera: `lifegom-reconstruct` picks the
+    // multi-frame model for them.
+    let (val_dir, _) = cfg.file.data.split_paths(Split::Val);
+    let person = std::fs::read_dir(&val_dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.is_dir())
+        .unwrap();
+    let person =
+        lifegom_data::format::Subject::load(&person, cfg.file.data.kinematic_tree).unwrap();
+    assert_eq!(Capture::of(&person), Capture::OneCamera);
 
     // Train: the AIST++ weights (no mask term) with 1 - SSIM at the LPIPS weight.
     let run_dir = tmp.join("run");

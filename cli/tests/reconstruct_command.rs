@@ -9,7 +9,7 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use burn::tensor::Device;
-use lifegom_cli::reconstruct_run::{ReconstructOptions, run};
+use lifegom_cli::reconstruct_run::{Capture, ReconstructOptions, run};
 use lifegom_data::dataset::Split;
 use lifegom_data::kinematics::KinematicTree;
 use lifegom_data::synth::TemplateChoice;
@@ -29,6 +29,8 @@ fn setup(tag: &str) -> (PathBuf, PathBuf, PathBuf, PathBuf) {
         .find(|p| p.is_dir())
         .unwrap();
     let subject = lifegom_data::format::Subject::load(&official, KinematicTree::Stored).unwrap();
+    // Cameras around the person: the demo model's kind of capture.
+    assert_eq!(Capture::of(&subject), Capture::MultiView);
     let json =
         lifegom_data::custom::write_subject(&subject, TemplateChoice::Lowres, &tmp.join("me"))
             .unwrap();

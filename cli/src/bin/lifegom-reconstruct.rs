@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
-use lifegom_cli::reconstruct_run::{ReconstructOptions, run};
+use lifegom_cli::reconstruct_run::{Capture, ReconstructOptions, load_subject, run};
 use lifegom_data::dataset::Background;
 use lifegom_data::kinematics::KinematicTree;
 use lifegom_render::device::DeviceChoice;
@@ -35,12 +35,17 @@ struct Args {
     out: PathBuf,
     /// The trained model: a `.lgck`, or an official LIFe-GoM checkpoint (`.pth` from
     /// `torch.save`, or `.safetensors`) loaded into the network `--config`'s `[model]` describes.
-    #[arg(long, default_value = "assets/demo/demo.lgck")]
-    model: PathBuf,
+    /// Default: by the capture. When the first 5 frames share one camera (frames of one video),
+    /// the multi-frame model `assets/multiframe/multiframe.lgck`; otherwise the demo model
+    /// `assets/demo/demo.lgck`.
+    #[arg(long)]
+    model: Option<PathBuf>,
     /// The experiment the model was trained with: its image size and test background (and, for
-    /// an official checkpoint, its network: `[model]` and `[data] n_input_frames`).
-    #[arg(long, default_value = "configs/demo-v2.toml")]
-    config: PathBuf,
+    /// an official checkpoint, its network: `[model]` and `[data] n_input_frames`). Default: the
+    /// config shipped beside the capture's model (`assets/multiframe/config.toml` or
+    /// `assets/demo/config.toml`).
+    #[arg(long)]
+    config: Option<PathBuf>,
     /// Input frames, by name or index (default: the first frames, as many as the model takes).
     #[arg(long, value_delimiter = ',')]
     inputs: Option<Vec<String>>,
@@ -85,7 +90,25 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     // SAFETY: the first thing `main` does after parsing; no thread has started yet.
     unsafe { lifegom_cli::make_default_device(args.device) };
-    let experiment = ExperimentConfig::load(&args.config)?;
+    let (model, config) = match (args.model, args.config) {
+        (Some(model), Some(config)) => (model, config),
+        (model, config) => {
+            // Both shipped configs read the tree stored with the data; a capture's cameras do
+            // not depend on it.
+            let tree = args.kinematic_tree.unwrap_or(KinematicTree::Stored);
+            let capture = Capture::of(&load_subject(&args.subject, tree)?);
+            let shipped = capture.shipped_model();
+            let model = model.unwrap_or_else(|| shipped.model.into());
+            let config = config.unwrap_or_else(|| shipped.config.into());
+            eprintln!(
+                "{capture} capture: model {}, config {}",
+                model.display(),
+                config.display()
+            );
+            (model, config)
+        }
+    };
+    let experiment = ExperimentConfig::load(&config)?;
     let cfg = &experiment.file;
     let background = match cfg.data.test_background {
         Background::Fixed(c) => c.map(|v| f32::from(v) / 255.0),
@@ -94,7 +117,7 @@ fn main() -> anyhow::Result<()> {
     };
     let opts = ReconstructOptions {
         subject: args.subject,
-        model: args.model,
+        model,
         official_network: experiment.reconstructor(),
         img_size: cfg.data.img_size,
         resize: cfg.data.resize,
