@@ -8,7 +8,7 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use common::{tiny_split, untrained_tiny_model};
+use common::{first_val_subject, tiny_split, untrained_tiny_model};
 
 /// Runs `exe args` with files limited to `limit_kib` KiB (`None`: unlimited).
 fn run(exe: &str, args: &[&str], limit_kib: Option<u64>) -> Output {
@@ -130,12 +130,7 @@ fn a_full_disk_during_export_leaves_the_previous_files() {
     let (tmp, cfg) = tiny_split("disk-export", |s| {
         (s.train_subjects, s.val_subjects) = (0, 1);
     });
-    let (val_dir, _) = cfg.data.split_paths(lifegom_data::dataset::Split::Val);
-    let subject = std::fs::read_dir(&val_dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .find(|p| p.is_dir())
-        .unwrap();
+    let subject = first_val_subject(&cfg);
     let model = untrained_tiny_model(&tmp, 1, 0);
     let out = tmp.join("out");
     let exe = env!("CARGO_BIN_EXE_lifegom-reconstruct");

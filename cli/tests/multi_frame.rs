@@ -6,6 +6,8 @@
 
 #![allow(deprecated)] // Device::ndarray(): ndarray is the CI backend the project requires (design.md §1.4).
 
+mod common;
+
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
@@ -34,12 +36,7 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
     synth::generate_split(&s, &cfg.file.data, &root, s.seed, &|| {}).unwrap();
     // Its validation people are frames of one camera: `lifegom-reconstruct` picks the
     // multi-frame model for them.
-    let (val_dir, _) = cfg.file.data.split_paths(Split::Val);
-    let person = std::fs::read_dir(&val_dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .find(|p| p.is_dir())
-        .unwrap();
+    let person = common::first_val_subject(&cfg.file);
     let person =
         lifegom_data::format::Subject::load(&person, cfg.file.data.kinematic_tree).unwrap();
     assert_eq!(Capture::of(&person), Capture::OneCamera);

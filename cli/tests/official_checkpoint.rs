@@ -11,10 +11,9 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use lifegom_data::dataset::Split;
 use lifegom_data::kinematics::KinematicTree;
 
-use common::tiny_split;
+use common::{first_val_subject, tiny_split};
 
 fn repo(path: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -106,16 +105,11 @@ fn eval_and_reconstruct_from_an_official_pth_equal_the_same_weights_as_lgck() {
     }
 
     // `lifegom-reconstruct`: the same avatar, byte for byte.
-    let (val_dir, _) = lifegom_data::config::ConfigFile::load(&config)
-        .unwrap()
-        .with_root(&data)
-        .data
-        .split_paths(Split::Val);
-    let subject = std::fs::read_dir(&val_dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .find(|p| p.is_dir())
-        .unwrap();
+    let subject = first_val_subject(
+        &lifegom_data::config::ConfigFile::load(&config)
+            .unwrap()
+            .with_root(&data),
+    );
     lifegom_data::format::Subject::load(&subject, KinematicTree::Stored).unwrap();
     let mut avatars = Vec::new();
     for (name, model) in [("lgck", demo_lgck()), ("pth", official_fixture())] {

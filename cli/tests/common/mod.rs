@@ -24,6 +24,16 @@ pub fn tiny_split(tag: &str, tweak: impl FnOnce(&mut synth::SynthConfig)) -> (Pa
     (tmp, cfg)
 }
 
+/// The first validation person of the split `cfg` names (a subject folder).
+pub fn first_val_subject(cfg: &ConfigFile) -> PathBuf {
+    let (val_dir, _) = cfg.data.split_paths(lifegom_data::dataset::Split::Val);
+    std::fs::read_dir(&val_dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.is_dir())
+        .unwrap_or_else(|| panic!("no subject folder in {}", val_dir.display()))
+}
+
 /// An untrained tiny model for the low-res template (T = `iterations`, tested at `subdivide`
 /// levels), saved as `dir/model.lgck`: it stands in for a checkpoint where a test is about
 /// files and errors, not accuracy.
