@@ -122,7 +122,7 @@ pub fn load_subject(path: &Path, tree: KinematicTree) -> anyhow::Result<Subject>
 }
 
 /// How the photos were taken, which picks the shipped model that suits them (README, "Your
-/// own photos").
+/// own people"; design.md §10.1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Capture {
     /// Views from cameras around the person (THuman-style): the demo model (`assets/demo/`).

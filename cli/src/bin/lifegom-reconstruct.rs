@@ -96,7 +96,9 @@ fn main() -> anyhow::Result<()> {
             // Both shipped configs read the tree stored with the data; a capture's cameras do
             // not depend on it.
             let tree = args.kinematic_tree.unwrap_or(KinematicTree::Stored);
-            let capture = Capture::of(&load_subject(&args.subject, tree)?);
+            let subject = load_subject(&args.subject, tree)
+                .with_context(|| format!("reconstructing {}", args.subject.display()))?;
+            let capture = Capture::of(&subject);
             let shipped = capture.shipped_model();
             let model = model.unwrap_or_else(|| shipped.model.into());
             let config = config.unwrap_or_else(|| shipped.config.into());
