@@ -714,6 +714,7 @@ fn stream_variety_moves_the_camera_and_the_light_but_keeps_the_person() {
             camera_radius: [2.5, 2.5],
             shading: synth::Shading::RandomLight,
             share,
+            prints: synth::StreamPrints::Split,
         }),
         ..s.clone()
     };
@@ -722,6 +723,23 @@ fn stream_variety_moves_the_camera_and_the_light_but_keeps_the_person() {
     assert_eq!(all.frames[0].mask, b.frames[0].mask);
     assert_ne!(all.frames[0].rgb, a.frames[0].rgb);
     assert_eq!(none.frames[0].rgb, a.frames[0].rgb);
+    // `prints = "more"` re-draws garments after the camera and the light: the same silhouettes,
+    // other colours on most people (each of two garments at even odds).
+    let more = synth::SynthConfig {
+        stream_variety: stream(1.0).stream_variety.map(|v| synth::StreamVariety {
+            prints: synth::StreamPrints::More,
+            ..v
+        }),
+        ..s.clone()
+    };
+    let mut reprinted = 0;
+    for index in 0..8 {
+        let split = synth::generate_subject(&template, &stream(1.0), 7, index, "x", Some(3)).unwrap();
+        let extra = synth::generate_subject(&template, &more, 7, index, "x", Some(3)).unwrap();
+        assert_eq!(split.frames[0].mask, extra.frames[0].mask);
+        reprinted += usize::from(split.frames[0].rgb != extra.frames[0].rgb);
+    }
+    assert!(reprinted >= 3, "{reprinted} of 8 re-printed");
     let bad = synth::SynthConfig {
         camera_radius_range: Some([3.0, 2.0]),
         ..s.clone()

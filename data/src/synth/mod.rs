@@ -236,6 +236,22 @@ pub struct StreamVariety {
     /// (so the stream keeps the people its validation split shows).
     #[serde(default = "default_share")]
     pub share: f32,
+    /// The garment prints the varied subjects may wear.
+    #[serde(default)]
+    pub prints: StreamPrints,
+}
+
+/// The garment prints of the stream's varied subjects (design.md §8.11).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StreamPrints {
+    /// The split's: solid, stripes, checks, noise and dots.
+    #[default]
+    Split,
+    /// Each garment, top and legs apart, re-drawn with even odds from the extra prints
+    /// (camouflage, patchwork, ring motifs: [`texture::Material::more_cloth`]), none of them
+    /// the held-out family's.
+    More,
 }
 
 fn default_share() -> f32 {
@@ -948,9 +964,11 @@ pub fn generate_subject_frames(
     // same people as before it existed.
     let mut variety = rng.fork(STREAM_VARIETY);
     // The stream's variety, for its share of the subjects (the written split has none).
-    let (range, shading) = match cfg.stream_variety {
-        Some(v) if variety.uniform() < f64::from(v.share) => (Some(v.camera_radius), v.shading),
-        _ => (cfg.camera_radius_range, cfg.shading),
+    let (range, shading, prints) = match cfg.stream_variety {
+        Some(v) if variety.uniform() < f64::from(v.share) => {
+            (Some(v.camera_radius), v.shading, v.prints)
+        }
+        _ => (cfg.camera_radius_range, cfg.shading, StreamPrints::Split),
     };
     let cfg = SynthConfig {
         camera_radius: match range {
@@ -966,6 +984,14 @@ pub fn generate_subject_frames(
     if cfg.shading == Shading::RandomLight {
         person.light = random_light(&mut variety, (25.0, 80.0));
         person.ambient = variety.range(0.3, 0.6) as f32;
+    }
+    // After the light's draws, so that adding prints leaves a varied person's camera and light.
+    if prints == StreamPrints::More {
+        for garment in [Surface::Top, Surface::Bottom] {
+            if variety.uniform() < 0.5 {
+                person.outfit.materials[garment as usize] = texture::Material::more_cloth(&mut variety);
+            }
+        }
     }
     subject_from(template, &cfg, person, rng, name, val_inputs, only)
 }

@@ -3,7 +3,9 @@
 //! template has none).
 //!
 //! Patterns: solid, horizontal stripes, 3D checks, value noise, and "prints" (a dot lattice) for
-//! the training stream; plaid, diagonal stripes and colour ramps only for the held-out family
+//! the training stream; camouflage, patchwork and ring motifs for the share of it that
+//! `[synthetic.stream_variety] prints = "more"` varies ([`Material::more_cloth`]); plaid,
+//! diagonal stripes and colour ramps only for the held-out family
 //! ([`Material::held_out_cloth`], design.md §8.11), which no training subject wears.
 //! Colours are linear `[0, 1]` RGB, written to PNG as they are (albedo is the default look).
 
@@ -39,6 +41,27 @@ pub enum Pattern {
         /// Lattice period, metres.
         period: f32,
         /// Dot radius, metres.
+        radius: f32,
+    },
+    /// Value noise cut at its median: irregular blots with sharp edges (stream variety).
+    Camo {
+        /// Feature size, metres.
+        scale: f32,
+        /// Lattice hash seed.
+        seed: u32,
+    },
+    /// Cubic patches, each a hashed one of three tones (base, half-way, accent; stream variety).
+    Patchwork {
+        /// Patch size, metres.
+        size: f32,
+        /// Lattice hash seed.
+        seed: u32,
+    },
+    /// A disc inside a ring on a sparse `period` lattice: large printed motifs (stream variety).
+    Motifs {
+        /// Lattice period, metres.
+        period: f32,
+        /// Outer radius of the ring, metres.
         radius: f32,
     },
     /// Two crossed sets of bands (vertical and around the body): three tones (held out).
@@ -108,6 +131,18 @@ impl Material {
                     0.0
                 }
             }
+            Pattern::Camo { scale, seed } => {
+                f32::from(u8::from(value_noise(p / scale, seed) > 0.5))
+            }
+            Pattern::Patchwork { size, seed } => {
+                let c = (p / size).floor();
+                let h = lattice(c.x as i32, c.y as i32, c.z as i32, seed);
+                (h * 3.0).floor().min(2.0) * 0.5
+            }
+            Pattern::Motifs { period, radius } => {
+                let d = (p - (p / period).round() * period).length();
+                f32::from(u8::from(d < 0.5 * radius || (0.75 * radius..radius).contains(&d)))
+            }
             Pattern::Plaid { period } => {
                 let band = |x: f32| f32::from(u8::from((x / period).rem_euclid(1.0) < 0.35));
                 0.5 * (band(p.y) + band(p.x + p.z))
@@ -148,6 +183,35 @@ impl Material {
                 Pattern::Dots {
                     period,
                     radius: period * rng.range(0.15, 0.35) as f32,
+                }
+            }
+        };
+        Self {
+            base,
+            accent,
+            pattern,
+        }
+    }
+
+    /// A garment material of the stream's extra prints (`[synthetic.stream_variety] prints =
+    /// "more"`, design.md §8.11): camouflage, patchwork or ring motifs, sharper-edged and more
+    /// varied in scale than [`Material::random_cloth`]'s, and none of the held-out family's.
+    pub fn more_cloth(rng: &mut Rng) -> Self {
+        let (base, accent) = two_colours(rng);
+        let pattern = match rng.below(3) {
+            0 => Pattern::Camo {
+                scale: rng.range(0.04, 0.12) as f32,
+                seed: rng.next_u64() as u32,
+            },
+            1 => Pattern::Patchwork {
+                size: rng.range(0.04, 0.1) as f32,
+                seed: rng.next_u64() as u32,
+            },
+            _ => {
+                let period = rng.range(0.15, 0.3) as f32;
+                Pattern::Motifs {
+                    period,
+                    radius: period * rng.range(0.25, 0.4) as f32,
                 }
             }
         };
@@ -342,14 +406,41 @@ mod tests {
         let mut rng = Rng::new(9);
         for _ in 0..300 {
             assert!(!held_out(&Material::random_cloth(&mut rng)));
+            let more = Material::more_cloth(&mut rng);
+            assert!(!held_out(&more), "{more:?}");
             let m = Material::held_out_cloth(&mut rng);
             assert!(held_out(&m), "{m:?}");
-            let values: Vec<[f32; 3]> = (0..200)
-                .map(|k| m.albedo(Vec3::new(k as f32 * 0.011, k as f32 * 0.009, 0.02)))
-                .collect();
-            assert!(values.iter().flatten().all(|c| (0.0..=1.0).contains(c)));
-            assert!(values.iter().any(|a| a != &values[0]), "{m:?}");
+            for m in [m, more] {
+                let values: Vec<[f32; 3]> = (0..400)
+                    .map(|k| m.albedo(Vec3::new(k as f32 * 0.011, k as f32 * 0.009, 0.02)))
+                    .collect();
+                assert!(values.iter().flatten().all(|c| (0.0..=1.0).contains(c)));
+                assert!(values.iter().any(|a| a != &values[0]), "{m:?}");
+            }
         }
+    }
+
+    #[test]
+    fn more_prints_are_new_to_the_stream_and_mix_their_colours() {
+        let mut rng = Rng::new(11);
+        let mut kinds = [0usize; 3];
+        for _ in 0..300 {
+            let m = Material::more_cloth(&mut rng);
+            kinds[match m.pattern {
+                Pattern::Camo { .. } => 0,
+                Pattern::Patchwork { .. } => 1,
+                Pattern::Motifs { .. } => 2,
+                other => panic!("{other:?} is not one of the extra prints"),
+            }] += 1;
+            // Camouflage and motifs take only the two colours; patchwork also their midpoint.
+            let mid: [f32; 3] = std::array::from_fn(|i| 0.5 * (m.base[i] + m.accent[i]));
+            for k in 0..100 {
+                let a = m.albedo(Vec3::new(k as f32 * 0.017, 0.4 - k as f32 * 0.013, 0.05));
+                let near = |c: [f32; 3]| (0..3).all(|i| (a[i] - c[i]).abs() < 1e-5);
+                assert!(near(m.base) || near(m.accent) || near(mid), "{a:?} {m:?}");
+            }
+        }
+        assert!(kinds.iter().all(|&k| k > 70), "{kinds:?}");
     }
 
     #[test]
