@@ -734,7 +734,8 @@ fn stream_variety_moves_the_camera_and_the_light_but_keeps_the_person() {
     };
     let mut reprinted = 0;
     for index in 0..8 {
-        let split = synth::generate_subject(&template, &stream(1.0), 7, index, "x", Some(3)).unwrap();
+        let split =
+            synth::generate_subject(&template, &stream(1.0), 7, index, "x", Some(3)).unwrap();
         let extra = synth::generate_subject(&template, &more, 7, index, "x", Some(3)).unwrap();
         assert_eq!(split.frames[0].mask, extra.frames[0].mask);
         reprinted += usize::from(split.frames[0].rgb != extra.frames[0].rgb);

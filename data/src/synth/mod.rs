@@ -989,7 +989,8 @@ pub fn generate_subject_frames(
     if prints == StreamPrints::More {
         for garment in [Surface::Top, Surface::Bottom] {
             if variety.uniform() < 0.5 {
-                person.outfit.materials[garment as usize] = texture::Material::more_cloth(&mut variety);
+                person.outfit.materials[garment as usize] =
+                    texture::Material::more_cloth(&mut variety);
             }
         }
     }

@@ -141,7 +141,9 @@ impl Material {
             }
             Pattern::Motifs { period, radius } => {
                 let d = (p - (p / period).round() * period).length();
-                f32::from(u8::from(d < 0.5 * radius || (0.75 * radius..radius).contains(&d)))
+                f32::from(u8::from(
+                    d < 0.5 * radius || (0.75 * radius..radius).contains(&d),
+                ))
             }
             Pattern::Plaid { period } => {
                 let band = |x: f32| f32::from(u8::from((x / period).rem_euclid(1.0) < 0.35));
