@@ -165,10 +165,19 @@ impl Material {
         std::array::from_fn(|i| self.base[i] * (1.0 - t) + self.accent[i] * t)
     }
 
+    /// A garment of two random colours (drawn first) and the pattern `draw` picks.
+    fn cloth(rng: &mut Rng, draw: impl FnOnce(&mut Rng) -> Pattern) -> Self {
+        let (base, accent) = two_colours(rng);
+        Self {
+            base,
+            accent,
+            pattern: draw(rng),
+        }
+    }
+
     /// A random garment material: one of the five patterns with random colours.
     pub fn random_cloth(rng: &mut Rng) -> Self {
-        let (base, accent) = two_colours(rng);
-        let pattern = match rng.below(5) {
+        Self::cloth(rng, |rng| match rng.below(5) {
             0 => Pattern::Solid,
             1 => Pattern::Stripes {
                 period: rng.range(0.04, 0.12) as f32,
@@ -187,20 +196,14 @@ impl Material {
                     radius: period * rng.range(0.15, 0.35) as f32,
                 }
             }
-        };
-        Self {
-            base,
-            accent,
-            pattern,
-        }
+        })
     }
 
     /// A garment material of the stream's extra prints (`[synthetic.stream_variety] prints =
     /// "more"`, design.md §8.11): camouflage, patchwork or ring motifs, sharper-edged and more
     /// varied in scale than [`Material::random_cloth`]'s, and none of the held-out family's.
     pub fn more_cloth(rng: &mut Rng) -> Self {
-        let (base, accent) = two_colours(rng);
-        let pattern = match rng.below(3) {
+        Self::cloth(rng, |rng| match rng.below(3) {
             0 => Pattern::Camo {
                 scale: rng.range(0.04, 0.12) as f32,
                 seed: rng.next_u64() as u32,
@@ -216,19 +219,13 @@ impl Material {
                     radius: period * rng.range(0.25, 0.4) as f32,
                 }
             }
-        };
-        Self {
-            base,
-            accent,
-            pattern,
-        }
+        })
     }
 
     /// A held-out garment material (design.md §8.11): plaid, diagonal stripes or a colour ramp,
     /// patterns the stream's [`Material::random_cloth`] never draws.
     pub fn held_out_cloth(rng: &mut Rng) -> Self {
-        let (base, accent) = two_colours(rng);
-        let pattern = match rng.below(3) {
+        Self::cloth(rng, |rng| match rng.below(3) {
             0 => Pattern::Plaid {
                 period: rng.range(0.05, 0.12) as f32,
             },
@@ -238,12 +235,7 @@ impl Material {
             _ => Pattern::Ramp {
                 length: rng.range(0.15, 0.4) as f32,
             },
-        };
-        Self {
-            base,
-            accent,
-            pattern,
-        }
+        })
     }
 
     /// Held-out hair: dyed colours (blue, pink, green, platinum, violet) the stream's
