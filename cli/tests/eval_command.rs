@@ -99,6 +99,14 @@ fn eval_on_a_tiny_split_writes_every_file() {
     assert!(report.contains(WEIGHTS_MISSING), "{report}");
     assert!(report.contains("template, one colour") && report.contains("projective texturing"));
     assert!(report.contains("What accuracy costs in time"));
+    // Every method scored on the targets has a row of where its error sits.
+    assert!(report.contains("## Where the error sits"), "{report}");
+    assert!(
+        report.contains("| per-scene optimisation, K = 2 |"),
+        "{report}"
+    );
+    assert!(outcome.summary.regions.is_some());
+    assert!(outcome.per_scene.iter().all(|p| p.regions.is_some()));
     // Every feedback step of the one reconstruction; its last is the model's own score.
     assert!(
         report.contains("Every feedback step") && report.contains("t = 2"),
@@ -160,6 +168,16 @@ fn test_time_refinement_improves_the_template() {
             &device,
         )
         .unwrap();
+        // A view's error by region adds up to its MSE, so to its PSNR.
+        for v in &scores.views {
+            let total = v.regions.expect("the targets have masks").total();
+            assert!(
+                (-10.0 * total.log10() - v.psnr).abs() < 1e-9,
+                "{}: {total} vs {} dB",
+                v.frame_name,
+                v.psnr
+            );
+        }
         (
             mean_of(&scores.views, |v| Some(v.psnr)).unwrap(),
             mean_of(&scores.views, |v| Some(v.recon_ms)).unwrap(),

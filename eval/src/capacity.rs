@@ -166,7 +166,7 @@ pub fn fit_one_subject(
                  gt: Image|
      -> Result<(f64, f64, Image, Image), EvalError> {
         let (pred, _) = render_timed(avatar, fitted, camera, skinning)?;
-        let (m, _, _) = score_region(&pred, &gt, crop_protocol, crop_size, "capacity")?;
+        let (m, _, _, _) = score_region(&pred, &gt, None, crop_protocol, crop_size, "capacity")?;
         Ok((m.psnr, m.ssim, pred, gt))
     };
     let k_max = ks.iter().copied().max().unwrap_or(0);

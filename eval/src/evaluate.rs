@@ -33,7 +33,10 @@ use serde::{Deserialize, Serialize};
 use crate::baselines;
 use crate::error::EvalError;
 use crate::images::{Image, error_map, grid};
-use crate::metrics::{ImageMetrics, ImageRef, crop, full_image_metrics, thuman_crop_box};
+use crate::metrics::{
+    ErrorByRegion, ImageMetrics, ImageRef, SILHOUETTE_BAND_PX, crop, error_by_region,
+    full_image_metrics, thuman_crop_box,
+};
 
 /// What to evaluate and where to write it.
 #[derive(Debug, Clone)]
@@ -77,6 +80,9 @@ pub struct ViewScore {
     pub recon_ms: f64,
     /// Render wall time of this view (ms).
     pub render_ms: f64,
+    /// The region's MSE split by the silhouette (a diagnosis, not a protocol metric).
+    #[serde(default)]
+    pub regions: Option<ErrorByRegion>,
 }
 
 /// The crops (or full images) that metrics were computed on, for FID and LPIPS.
@@ -112,14 +118,16 @@ pub fn thuman_crop_size(h: usize, w: usize) -> [usize; 2] {
 
 /// The protocol's metric region of a prediction/ground-truth pair, after the uint8 round trip
 /// the reference scores (THuman/XHuman: the GT box grown to `crop_size`; AIST++ or an all-black
-/// GT: the full image), and PSNR/SSIM on it.
+/// GT: the full image), PSNR/SSIM on it, and, given the target's mask (`[H, W]`,
+/// [`target_mask`]), where in it the error sits against the silhouette.
 pub(crate) fn score_region(
     pred: &Image,
     gt: &Image,
+    mask: Option<&[f32]>,
     crop_protocol: bool,
     crop_size: [usize; 2],
     frame: &str,
-) -> Result<(ImageMetrics, Image, Image), EvalError> {
+) -> Result<(ImageMetrics, Option<ErrorByRegion>, Image, Image), EvalError> {
     let (pred_q, gt_q) = (pred.quantized(), gt.quantized());
     let shape = [gt.height, gt.width, 3];
     let bbox = if crop_protocol {
@@ -147,11 +155,33 @@ pub(crate) fn score_region(
         }
         None => (pred_q, gt_q),
     };
-    let m = full_image_metrics(
-        ImageRef::new(&p_img.data, [p_img.height, p_img.width, 3])?,
-        ImageRef::new(&g_img.data, [g_img.height, g_img.width, 3])?,
-    )?;
-    Ok((m, p_img, g_img))
+    let region_shape = [p_img.height, p_img.width, 3];
+    let (p_ref, g_ref) = (
+        ImageRef::new(&p_img.data, region_shape)?,
+        ImageRef::new(&g_img.data, region_shape)?,
+    );
+    let m = full_image_metrics(p_ref, g_ref)?;
+    let regions = match mask {
+        Some(mask) => {
+            let full = ImageRef::new(mask, [gt.height, gt.width, 1])?;
+            let cropped = match bbox {
+                Some(bbox) => crop(full, bbox)?.0,
+                None => mask.to_vec(),
+            };
+            let cropped = ImageRef::new(&cropped, [p_img.height, p_img.width, 1])?;
+            Some(error_by_region(p_ref, g_ref, cropped, SILHOUETTE_BAND_PX)?)
+        }
+        None => None,
+    };
+    Ok((m, regions, p_img, g_img))
+}
+
+/// The target's mask of `inputs`, `[H, W]` row-major, for [`score_region`].
+pub(crate) fn target_mask(inputs: &ModelInputs) -> Result<Vec<f32>, EvalError> {
+    Ok(lifegom_render::readback::read(
+        "target mask",
+        inputs.target_mask.clone(),
+    )?)
 }
 
 /// One sample of a validation split, ready for a model.
@@ -342,8 +372,14 @@ pub fn evaluate_split(
             &inputs.target_skinning,
         )?;
         let gt = Image::from_chw(inputs.target_rgb.clone())?;
-        let (m, p_img, g_img) =
-            score_region(&pred, &gt, crop_protocol, crop_size, &sample.frame_name)?;
+        let (m, regions, p_img, g_img) = score_region(
+            &pred,
+            &gt,
+            Some(&target_mask(&inputs)?),
+            crop_protocol,
+            crop_size,
+            &sample.frame_name,
+        )?;
         if model.is_some() && settings.save_predictions {
             // Ground truth beside it under the same name: `lifegom-metrics preds gt` pairs them.
             let name = format!("{}.png", sample.frame_name);
@@ -372,6 +408,7 @@ pub fn evaluate_split(
             lpips_vgg: None,
             recon_ms: rec.ms,
             render_ms,
+            regions,
         });
         images.pred.push(p_img);
         images.gt.push(g_img);

@@ -19,9 +19,10 @@ use serde::{Deserialize, Serialize};
 use crate::baselines::template_one_colour;
 use crate::error::EvalError;
 use crate::evaluate::{
-    ValidationSample, render_timed, score_region, thuman_crop_size, validation_samples,
+    ValidationSample, render_timed, score_region, target_mask, thuman_crop_size, validation_samples,
 };
 use crate::images::Image;
+use crate::metrics::ErrorByRegion;
 
 /// Scores of the fit after `steps` gradient steps, averaged over subjects and target views.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -48,6 +49,9 @@ pub struct FitPoint {
     /// Images per set that FID saw.
     #[serde(default)]
     pub fid_images: Option<usize>,
+    /// Mean MSE split by the silhouette over the target views.
+    #[serde(default)]
+    pub regions: Option<ErrorByRegion>,
 }
 
 /// The validation samples of each subject, in split order (the first sample's inputs are the
@@ -123,8 +127,11 @@ pub fn score_per_scene_fit(
             lpips_vgg: None,
             fid: None,
             fid_images: None,
+            regions: None,
         })
         .collect();
+    // Each K's per-view error by region, averaged at the end.
+    let mut errors: Vec<Vec<ErrorByRegion>> = vec![Vec::new(); ks.len()];
     // Each K's metric regions (prediction, ground truth), for LPIPS and FID at the end.
     let mut regions: Vec<(Vec<Image>, Vec<Image>)> = vec![(Vec::new(), Vec::new()); ks.len()];
     let mut views = 0usize;
@@ -154,12 +161,20 @@ pub fn score_per_scene_fit(
                     )
                     .and_then(|(pred, _)| {
                         let gt = Image::from_chw(inputs.target_rgb.clone())?;
-                        score_region(&pred, &gt, crop_protocol, crop_size, "per-scene fit")
+                        score_region(
+                            &pred,
+                            &gt,
+                            Some(&target_mask(inputs)?),
+                            crop_protocol,
+                            crop_size,
+                            "per-scene fit",
+                        )
                     });
                     match scored {
-                        Ok((m, pred, gt)) => {
+                        Ok((m, region_errors, pred, gt)) => {
                             point.psnr += m.psnr;
                             point.ssim += m.ssim;
+                            errors[at].extend(region_errors);
                             regions[at].0.push(pred);
                             regions[at].1.push(gt);
                         }
@@ -180,7 +195,8 @@ pub fn score_per_scene_fit(
     let (views, subjects) = (views.max(1) as f64, groups.len().max(1) as f64);
     sums.into_iter()
         .zip(&regions)
-        .map(|(p, (pred, gt))| {
+        .zip(&errors)
+        .map(|((p, (pred, gt)), errors)| {
             let perceptual = crate::perceptual_scores::score_pairs(perceptual, pred, gt, device)?;
             Ok(FitPoint {
                 psnr: p.psnr / views,
@@ -191,6 +207,7 @@ pub fn score_per_scene_fit(
                 lpips_vgg: perceptual.lpips_vgg,
                 fid: perceptual.fid,
                 fid_images: perceptual.fid_images,
+                regions: (!errors.is_empty()).then(|| ErrorByRegion::mean(errors)),
                 ..p
             })
         })

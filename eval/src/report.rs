@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::evaluate::{SplitScores, ViewScore, mean_of, per_subject};
+use crate::metrics::{ErrorByRegion, SILHOUETTE_BAND_PX};
 use crate::per_scene::FitPoint;
 use crate::plot::{Chart, PALETTE, Scale, Series, Style, render_panels};
 use crate::validation::StepScore;
@@ -51,6 +52,9 @@ pub struct Summary {
     pub iterations: usize,
     /// Subdivisions.
     pub subdivide: u32,
+    /// Mean MSE split by the silhouette, when the views had masks.
+    #[serde(default)]
+    pub regions: Option<ErrorByRegion>,
 }
 
 impl Summary {
@@ -79,8 +83,33 @@ impl Summary {
             num_gaussians: scores.num_gaussians,
             iterations: scores.iterations,
             subdivide: scores.subdivide,
+            regions: {
+                let errors: Vec<&ErrorByRegion> = scores
+                    .views
+                    .iter()
+                    .filter_map(|v| v.regions.as_ref())
+                    .collect();
+                (!errors.is_empty()).then(|| ErrorByRegion::mean(errors))
+            },
         }
     }
+}
+
+/// One row of the "Where the error sits" table.
+fn region_row(name: &str, e: &ErrorByRegion) -> String {
+    let total = e.total();
+    let share = if total > 0.0 {
+        format!("{:.0} %", 100.0 * e.silhouette / total)
+    } else {
+        "—".into()
+    };
+    format!(
+        "| {name} | {:.1} | {:.1} | {:.1} | {:.1} | {share} |",
+        total * 1e4,
+        e.silhouette * 1e4,
+        e.inside * 1e4,
+        e.outside * 1e4
+    )
 }
 
 fn opt(v: Option<f64>, digits: usize) -> String {
@@ -317,6 +346,31 @@ impl Report {
         if !self.sweep.is_empty() || !self.per_scene.is_empty() {
             md.push_str("\n![accuracy vs time](pareto.png)\n");
         }
+        let region_rows: Vec<String> = self
+            .summary
+            .iter()
+            .map(|s| ("model".to_owned(), s))
+            .chain(
+                self.other_models
+                    .iter()
+                    .chain(&self.baselines)
+                    .map(|(n, s)| (n.clone(), s)),
+            )
+            .filter_map(|(name, s)| s.regions.map(|e| region_row(&name, &e)))
+            .chain(self.per_scene.iter().filter_map(|p| {
+                p.regions
+                    .map(|e| region_row(&format!("per-scene optimisation, K = {}", p.steps), &e))
+            }))
+            .collect();
+        if !region_rows.is_empty() {
+            let _ = writeln!(
+                md,
+                "\n## Where the error sits\n\nThe mean squared error of the metric region (×10⁴; PSNR is −10·log10 of a view's MSE) split by the ground-truth silhouette: the pixels within {SILHOUETTE_BAND_PX} px of it (either side), the foreground farther in and the background farther out. The three add up to the MSE; a gap in the band is geometry (outline, pose, hair and loose clothes), a gap inside is appearance.\n\n| | MSE ×10⁴ | silhouette band | inside | outside | band's share |\n|---|---|---|---|---|---|"
+            );
+            for row in region_rows {
+                let _ = writeln!(md, "{row}");
+            }
+        }
         if !self.sheets.is_empty() {
             md.push_str("\n## Ground truth | prediction | error (×4)\n\n");
             for s in &self.sheets {
@@ -516,6 +570,7 @@ mod tests {
             lpips_vgg: None,
             recon_ms: 100.0,
             render_ms: 5.0,
+            regions: None,
         }
     }
 
@@ -580,11 +635,22 @@ mod tests {
                 lpips_vgg: None,
                 fid: None,
                 fid_images: None,
+                regions: Some(ErrorByRegion {
+                    silhouette: 3e-3,
+                    inside: 2e-3,
+                    outside: 1e-3,
+                }),
             }],
             ..Default::default()
         };
         let md = report.markdown();
         assert!(md.contains("| v1.lgck (step 7) | 2 | 1 | 21.00 |"), "{md}");
+        // Only the per-scene point has masks: the error table has its row alone.
+        assert!(
+            md.contains("| per-scene optimisation, K = 30 | 60.0 | 30.0 | 20.0 | 10.0 | 50 % |\n"),
+            "{md}"
+        );
+        assert!(!md.contains("| model | 0.0"), "{md}");
         let chart = pareto_chart(
             ParetoMetric::Psnr,
             &report.sweep,

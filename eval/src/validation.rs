@@ -87,8 +87,14 @@ pub fn score_feedback_steps(
                 inputs.sources.background,
             )?;
             let pred = Image::from_chw(rendered.rgb.squeeze_dim::<3>(0))?;
-            let (m, pred, gt) =
-                score_region(&pred, &gt, crop_protocol, crop_size, &sample.frame_name)?;
+            let (m, _, pred, gt) = score_region(
+                &pred,
+                &gt,
+                None,
+                crop_protocol,
+                crop_size,
+                &sample.frame_name,
+            )?;
             psnr[t] += m.psnr;
             ssim[t] += m.ssim;
             if let Some(net) = lpips {
