@@ -42,6 +42,7 @@ use burn::tensor::Device;
 use lifegom_data::dataset::{Dataset, Split};
 use lifegom_eval::evaluate::{EvalSettings, Method, evaluate_split, mean_of};
 use lifegom_eval::images::{Image, error_map, grid};
+use lifegom_eval::metrics::ErrorByRegion;
 use lifegom_eval::perceptual::{
     LPIPS_ALEX_FILE, LPIPS_VGG_FILE, Lpips, LpipsNet, PerceptualModels,
 };
@@ -365,6 +366,12 @@ impl Validation {
                     let psnr = mean_of(&s.views, |x| Some(x.psnr));
                     let ssim = mean_of(&s.views, |x| Some(x.ssim));
                     let mut entry = serde_json::json!({"psnr": psnr, "ssim": ssim});
+                    let errors: Vec<_> = s.views.iter().filter_map(|v| v.regions).collect();
+                    if !errors.is_empty() {
+                        let e = ErrorByRegion::mean(&errors);
+                        entry[SILHOUETTE_MSE] = serde_json::json!(e.silhouette * 1e4);
+                        entry[INSIDE_MSE] = serde_json::json!(e.inside * 1e4);
+                    }
                     if let Some(net) = &self.lpips {
                         match mean_lpips(net, &s.images.pred, &s.images.gt, device) {
                             Ok(d) => entry["lpips_alex"] = serde_json::json!(d),
@@ -409,6 +416,16 @@ impl Validation {
             if self.lpips.is_some() {
                 entry["lpips_alex"] =
                     serde_json::json!(scores.iter().map(|s| s.lpips_alex).collect::<Vec<_>>());
+            }
+            if scores.iter().all(|s| s.regions.is_some()) {
+                let per_t = |f: fn(&ErrorByRegion) -> f64| {
+                    scores
+                        .iter()
+                        .filter_map(|s| s.regions.as_ref().map(|e| f(e) * 1e4))
+                        .collect::<Vec<_>>()
+                };
+                entry[SILHOUETTE_MSE] = serde_json::json!(per_t(|e| e.silhouette));
+                entry[INSIDE_MSE] = serde_json::json!(per_t(|e| e.inside));
             }
             match set.key {
                 None => {
@@ -466,16 +483,26 @@ pub fn write_validation_curve(out: &Path) -> anyhow::Result<()> {
             continue;
         };
         let path = out.join(file);
-        match validation_chart(lines, &baselines, "lpips_alex", people) {
-            Some(lpips) => render_panels(&[psnr, lpips], 1280, 420).save_png_and_svg(&path)?,
-            None => psnr.render(720, 420).save_png_and_svg(&path)?,
+        let panels: Vec<Chart> = std::iter::once(psnr)
+            .chain(validation_chart(lines, &baselines, "lpips_alex", people))
+            .chain(validation_chart(lines, &baselines, SILHOUETTE_MSE, people))
+            .collect();
+        match panels.as_slice() {
+            [one] => one.render(720, 420).save_png_and_svg(&path)?,
+            many => render_panels(many, 640 * many.len() as u32, 420).save_png_and_svg(&path)?,
         }
     }
     Ok(())
 }
 
-/// One validation metric (`psnr`, `lpips_alex`) of every feedback step against the training
-/// step, with the baselines' level; `None` when no line logged it.
+/// `validation.jsonl`'s key for the MSE (×10⁴) within 2 px of the ground-truth silhouette, per
+/// feedback step ([`lifegom_eval::metrics::ErrorByRegion`]): where the model's outline stands.
+pub const SILHOUETTE_MSE: &str = "silhouette_mse_x1e4";
+/// The same for the foreground farther in: where its appearance stands.
+pub const INSIDE_MSE: &str = "inside_mse_x1e4";
+
+/// One validation metric (`psnr`, `lpips_alex`, [`SILHOUETTE_MSE`]) of every feedback step
+/// against the training step, with the baselines' level; `None` when no line logged it.
 fn validation_chart(
     lines: &[serde_json::Value],
     baselines: &serde_json::Value,
@@ -521,6 +548,10 @@ fn validation_chart(
         "psnr" => (
             format!("validation PSNR per feedback step ({people})"),
             "PSNR (dB, higher is better)",
+        ),
+        SILHOUETTE_MSE => (
+            format!("MSE near the silhouette per feedback step ({people})"),
+            "MSE ×1e4 within 2 px of the outline (lower is better)",
         ),
         _ => (
             format!("validation LPIPS-alex per feedback step ({people})"),

@@ -462,10 +462,28 @@ fn a_held_out_set_is_validated_beside_the_validation_split() {
         let own = v["psnr"].as_array().unwrap();
         let held = v["held_out"]["psnr"].as_array().unwrap();
         assert_eq!((own.len(), held.len()), (t, t), "{v}");
+        // Each step's error near the silhouette and inside it, on both sets.
+        for key in ["silhouette_mse_x1e4", "inside_mse_x1e4"] {
+            for set in [v, &v["held_out"]] {
+                let per_t = set[key].as_array().unwrap_or_else(|| panic!("{key}: {v}"));
+                assert_eq!(per_t.len(), t, "{v}");
+                assert!(per_t.iter().all(|x| x.as_f64().unwrap() >= 0.0), "{v}");
+            }
+        }
         let last = |a: &[serde_json::Value]| a.last().unwrap().as_f64().unwrap();
         0.5 * (last(own) + last(held))
     };
     let best = lines.iter().map(finals).fold(f64::NEG_INFINITY, f64::max);
+    let baselines: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("validation_baselines_held_out.json")).unwrap(),
+    )
+    .unwrap();
+    for (name, b) in baselines.as_object().unwrap() {
+        assert!(
+            b["silhouette_mse_x1e4"].as_f64().unwrap() > 0.0,
+            "{name}: {b}"
+        );
+    }
     for file in [
         "validation_baselines_held_out.json",
         "validation_curve_held_out.png",

@@ -5,7 +5,9 @@
 //! the final one (protocol region, PSNR, skimage SSIM). Training runs this every
 //! `[train] validate_every` steps, so the curves show, over training, whether later steps help
 //! and how the model compares with the baselines that need no learning. Given the LPIPS-alex
-//! network (cheap: a few ms a view), each step's LPIPS is scored on the same regions.
+//! network (cheap: a few ms a view), each step's LPIPS is scored on the same regions; each
+//! step's error is also split by the silhouette ([`ErrorByRegion`]), so the curves tell outline
+//! from appearance.
 
 use std::collections::HashMap;
 
@@ -17,8 +19,11 @@ use lifegom_render::gom::GomMesh;
 use serde::{Deserialize, Serialize};
 
 use crate::error::EvalError;
-use crate::evaluate::{ValidationSample, score_region, thuman_crop_size, validation_samples};
+use crate::evaluate::{
+    ValidationSample, score_region, target_mask, thuman_crop_size, validation_samples,
+};
 use crate::images::Image;
+use crate::metrics::ErrorByRegion;
 use crate::perceptual::Lpips;
 use crate::perceptual_scores::lpips_of;
 
@@ -34,6 +39,9 @@ pub struct StepScore {
     /// Mean LPIPS-alex over the target views, when the network was given.
     #[serde(default)]
     pub lpips_alex: Option<f64>,
+    /// Mean MSE split by the silhouette over the target views.
+    #[serde(default)]
+    pub regions: Option<ErrorByRegion>,
 }
 
 /// Scores every feedback step of `model` (an inference model: no autodiff) on the targets of
@@ -56,6 +64,7 @@ pub fn score_feedback_steps(
     let mut psnr = vec![0.0; t_max];
     let mut ssim = vec![0.0; t_max];
     let mut lpips_sum = vec![0.0; t_max];
+    let mut regions: Vec<Vec<ErrorByRegion>> = vec![Vec::new(); t_max];
     let mut views = 0usize;
     let mut cache = HashMap::new();
     for item in validation_samples(dataset, &rigs, max_subjects, device) {
@@ -76,6 +85,7 @@ pub fn score_feedback_steps(
             cache.insert(key.clone(), rec.states);
         }
         let gt = Image::from_chw(inputs.target_rgb.clone())?;
+        let mask = target_mask(&inputs)?;
         for (t, state) in cache[&key].iter().enumerate() {
             let rendered = render_views(
                 &mesh,
@@ -87,16 +97,17 @@ pub fn score_feedback_steps(
                 inputs.sources.background,
             )?;
             let pred = Image::from_chw(rendered.rgb.squeeze_dim::<3>(0))?;
-            let (m, _, pred, gt) = score_region(
+            let (m, region_errors, pred, gt) = score_region(
                 &pred,
                 &gt,
-                None,
+                Some(&mask),
                 crop_protocol,
                 crop_size,
                 &sample.frame_name,
             )?;
             psnr[t] += m.psnr;
             ssim[t] += m.ssim;
+            regions[t].extend(region_errors);
             if let Some(net) = lpips {
                 lpips_sum[t] += lpips_of(net, &pred, &gt, device)?;
             }
@@ -110,6 +121,7 @@ pub fn score_feedback_steps(
             psnr: psnr[t] / n,
             ssim: ssim[t] / n,
             lpips_alex: lpips.map(|_| lpips_sum[t] / n),
+            regions: (!regions[t].is_empty()).then(|| ErrorByRegion::mean(&regions[t])),
         })
         .collect())
 }
