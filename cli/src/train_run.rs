@@ -42,12 +42,13 @@ use burn::tensor::Device;
 use lifegom_data::dataset::{Dataset, Split};
 use lifegom_eval::evaluate::{EvalSettings, Method, evaluate_split, mean_of};
 use lifegom_eval::images::{Image, error_map, grid};
-use lifegom_eval::metrics::ErrorByRegion;
+use lifegom_eval::metrics::{ErrorByRegion, SILHOUETTE_BAND_PX};
 use lifegom_eval::perceptual::{
     LPIPS_ALEX_FILE, LPIPS_VGG_FILE, Lpips, LpipsNet, PerceptualModels,
 };
 use lifegom_eval::perceptual_scores::mean_lpips;
 use lifegom_eval::plot::{Chart, PALETTE, Scale, Series, Style, render_panels};
+use lifegom_eval::report::Summary;
 use lifegom_eval::validation::score_feedback_steps;
 use lifegom_model::inputs::model_inputs;
 use lifegom_model::reconstructor::{MeshPurpose, ReconstructorConfig};
@@ -366,9 +367,7 @@ impl Validation {
                     let psnr = mean_of(&s.views, |x| Some(x.psnr));
                     let ssim = mean_of(&s.views, |x| Some(x.ssim));
                     let mut entry = serde_json::json!({"psnr": psnr, "ssim": ssim});
-                    let errors: Vec<_> = s.views.iter().filter_map(|v| v.regions).collect();
-                    if !errors.is_empty() {
-                        let e = ErrorByRegion::mean(&errors);
+                    if let Some(e) = Summary::of(&s, None).regions {
                         entry[SILHOUETTE_MSE] = serde_json::json!(e.silhouette * 1e4);
                         entry[INSIDE_MSE] = serde_json::json!(e.inside * 1e4);
                     }
@@ -417,15 +416,15 @@ impl Validation {
                 entry["lpips_alex"] =
                     serde_json::json!(scores.iter().map(|s| s.lpips_alex).collect::<Vec<_>>());
             }
-            if scores.iter().all(|s| s.regions.is_some()) {
-                let per_t = |f: fn(&ErrorByRegion) -> f64| {
-                    scores
-                        .iter()
-                        .filter_map(|s| s.regions.as_ref().map(|e| f(e) * 1e4))
-                        .collect::<Vec<_>>()
-                };
-                entry[SILHOUETTE_MSE] = serde_json::json!(per_t(|e| e.silhouette));
-                entry[INSIDE_MSE] = serde_json::json!(per_t(|e| e.inside));
+            let per_t = |f: fn(&ErrorByRegion) -> f64| {
+                scores
+                    .iter()
+                    .map(|s| s.regions.as_ref().map(|e| f(e) * 1e4))
+                    .collect::<Option<Vec<_>>>()
+            };
+            if let (Some(band), Some(inside)) = (per_t(|e| e.silhouette), per_t(|e| e.inside)) {
+                entry[SILHOUETTE_MSE] = serde_json::json!(band);
+                entry[INSIDE_MSE] = serde_json::json!(inside);
             }
             match set.key {
                 None => {
@@ -495,8 +494,9 @@ pub fn write_validation_curve(out: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `validation.jsonl`'s key for the MSE (×10⁴) within 2 px of the ground-truth silhouette, per
-/// feedback step ([`lifegom_eval::metrics::ErrorByRegion`]): where the model's outline stands.
+/// `validation.jsonl`'s key for the MSE (×10⁴) within [`SILHOUETTE_BAND_PX`] of the
+/// ground-truth silhouette, per feedback step ([`lifegom_eval::metrics::ErrorByRegion`]):
+/// where the model's outline stands.
 pub const SILHOUETTE_MSE: &str = "silhouette_mse_x1e4";
 /// The same for the foreground farther in: where its appearance stands.
 pub const INSIDE_MSE: &str = "inside_mse_x1e4";
@@ -547,21 +547,21 @@ fn validation_chart(
     let (title, y_label) = match key {
         "psnr" => (
             format!("validation PSNR per feedback step ({people})"),
-            "PSNR (dB, higher is better)",
+            "PSNR (dB, higher is better)".to_owned(),
         ),
         SILHOUETTE_MSE => (
             format!("MSE near the silhouette per feedback step ({people})"),
-            "MSE ×1e4 within 2 px of the outline (lower is better)",
+            format!("MSE ×1e4 within {SILHOUETTE_BAND_PX} px of the outline (lower is better)"),
         ),
         _ => (
             format!("validation LPIPS-alex per feedback step ({people})"),
-            "LPIPS-alex (lower is better)",
+            "LPIPS-alex (lower is better)".to_owned(),
         ),
     };
     Some(Chart {
         title,
         x_label: "training step".into(),
-        y_label: y_label.into(),
+        y_label,
         x_scale: Scale::Linear,
         y_scale: Scale::Linear,
         series,
