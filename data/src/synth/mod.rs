@@ -239,7 +239,15 @@ pub struct StreamVariety {
     /// The garment prints the varied subjects may wear.
     #[serde(default)]
     pub prints: StreamPrints,
+    /// How far the model's template of a varied subject sits inside the body, metres, drawn
+    /// uniformly from `[least, most]` per subject ([`inset_template`]); `[0, 0]` leaves it.
+    #[serde(default)]
+    pub template_inset: [f32; 2],
 }
+
+/// The deepest template inset a config may ask for, metres: deeper, the limbs' clamp
+/// ([`inset_template`]) would leave most of the body at half its thickness.
+pub const MAX_TEMPLATE_INSET: f32 = 0.05;
 
 /// The garment prints of the stream's varied subjects (design.md §8.11).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -488,6 +496,19 @@ impl SynthConfig {
             return Err(bad(
                 "stream_variety.share",
                 format!("must be in 0..=1, got {}", v.share),
+            ));
+        }
+        if let Some(StreamVariety {
+            template_inset: [least, most],
+            ..
+        }) = self.stream_variety
+            && !(0.0 <= least && least <= most && most <= MAX_TEMPLATE_INSET)
+        {
+            return Err(bad(
+                "stream_variety.template_inset",
+                format!(
+                    "must be [least, most] metres with 0 <= least <= most <= {MAX_TEMPLATE_INSET}, got [{least}, {most}]"
+                ),
             ));
         }
         if self.stream_target_camera == TargetCamera::Others
@@ -964,11 +985,11 @@ pub fn generate_subject_frames(
     // same people as before it existed.
     let mut variety = rng.fork(STREAM_VARIETY);
     // The stream's variety, for its share of the subjects (the written split has none).
-    let (range, shading, prints) = match cfg.stream_variety {
+    let (range, shading, prints, inset) = match cfg.stream_variety {
         Some(v) if variety.uniform() < f64::from(v.share) => {
-            (Some(v.camera_radius), v.shading, v.prints)
+            (Some(v.camera_radius), v.shading, v.prints, v.template_inset)
         }
-        _ => (cfg.camera_radius_range, cfg.shading, StreamPrints::Split),
+        _ => (cfg.camera_radius_range, cfg.shading, StreamPrints::Split, [0.0; 2]),
     };
     let cfg = SynthConfig {
         camera_radius: match range {
@@ -994,7 +1015,36 @@ pub fn generate_subject_frames(
             }
         }
     }
+    // Last of all, so that the inset changes the template only, never the pictures.
+    if inset[1] > 0.0 {
+        let depth = variety.range(f64::from(inset[0]), f64::from(inset[1])) as f32;
+        inset_template(template, &mut person, depth);
+    }
     subject_from(template, &cfg, person, rng, name, val_inputs, only)
+}
+
+/// Moves the model's template of `person` (`est_vertices`, what `canonical_joints.pkl` stores)
+/// `depth` metres inward along its vertex normals, so that the gap between the template and the
+/// pictured outline varies by more than the stream's garments alone make it (design.md §8.11).
+/// A vertex moves at most half its distance to its dominant joint, so that fingers, toes and
+/// the nose thin out instead of turning inside out.
+fn inset_template(template: &BodyTemplate, person: &mut Person, depth: f32) {
+    let normals = body::vertex_normals(&person.est_vertices, &template.topology.faces);
+    for ((v, n), (joints, weights)) in person
+        .est_vertices
+        .iter_mut()
+        .zip(normals)
+        .zip(template.skin.joints.iter().zip(&template.skin.weights))
+    {
+        let dominant = (0..4)
+            .max_by(|&a, &b| weights[a].total_cmp(&weights[b]))
+            .unwrap_or(0);
+        let radius = person
+            .est_joints
+            .get(joints[dominant] as usize)
+            .map_or(0.0, |j| j.distance(*v));
+        *v -= n * depth.min(0.5 * radius);
+    }
 }
 
 /// Fork key of a stream subject's drawn camera distance and light (design.md §8.11).
