@@ -772,14 +772,21 @@ fn stream_variety_moves_the_camera_the_light_and_the_template_but_keeps_the_pers
     assert!(depths.iter().all(|&d| (-1e-6..=0.02 + 1e-6).contains(&d)));
     let full = depths.iter().filter(|&&d| d > 0.02 - 1e-5).count();
     // 943 of the low-res template's 1,229 at 2 cm: hands, feet and the face hold the others.
-    assert!(full * 10 > depths.len() * 7, "{full} of {} at full depth", depths.len());
+    assert!(
+        full * 10 > depths.len() * 7,
+        "{full} of {} at full depth",
+        depths.len()
+    );
     let flat = synth::generate_subject(&template, &inset(0.0, 0.0), 7, 1, "x", Some(3)).unwrap();
     assert_eq!(flat.est_vertices, all.est_vertices);
     let err = inset(0.03, 0.01)
         .validate(&tiny_config().data, Path::new("tiny.toml"))
         .unwrap_err()
         .to_string();
-    assert!(err.contains("synthetic.stream_variety.template_inset"), "{err}");
+    assert!(
+        err.contains("synthetic.stream_variety.template_inset"),
+        "{err}"
+    );
     let bad = synth::SynthConfig {
         camera_radius_range: Some([3.0, 2.0]),
         ..s.clone()

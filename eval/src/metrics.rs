@@ -392,6 +392,11 @@ pub struct ErrorByRegion {
     /// Pixels within [`SILHOUETTE_BAND_PX`] (Chebyshev distance) of a pixel on the other side
     /// of the silhouette, either side.
     pub silhouette: f64,
+    /// The part of `silhouette` on the ground truth's foreground side: most of the band when
+    /// the prediction is too small (the person's edge rendered as background), little when it
+    /// spills over. Older logs lack it (zero).
+    #[serde(default)]
+    pub silhouette_foreground: f64,
     /// Foreground pixels farther in.
     pub inside: f64,
     /// Background pixels farther out.
@@ -404,6 +409,7 @@ impl ErrorByRegion {
         let (mut sum, mut n) = (ErrorByRegion::default(), 0usize);
         for e in all {
             sum.silhouette += e.silhouette;
+            sum.silhouette_foreground += e.silhouette_foreground;
             sum.inside += e.inside;
             sum.outside += e.outside;
             n += 1;
@@ -411,6 +417,7 @@ impl ErrorByRegion {
         let k = 1.0 / n.max(1) as f64;
         ErrorByRegion {
             silhouette: sum.silhouette * k,
+            silhouette_foreground: sum.silhouette_foreground * k,
             inside: sum.inside * k,
             outside: sum.outside * k,
         }
@@ -480,6 +487,9 @@ pub fn error_by_region(
             .sum::<f64>()
             * norm;
         let region = if big != small {
+            if fg[i] {
+                out.silhouette_foreground += sq;
+            }
             &mut out.silhouette
         } else if fg[i] {
             &mut out.inside
@@ -763,6 +773,11 @@ mod tests {
         // The outline's corner (5, 5), just outside it (4, 9) and two in (6, 6): the band.
         let band = score(&with_error_at(&[(5, 5), (4, 9), (6, 6)]));
         assert!((band.silhouette - 3.0 * one).abs() < 1e-12, "{band:?}");
+        // Two of them on the body's side.
+        assert!(
+            (band.silhouette_foreground - 2.0 * one).abs() < 1e-12,
+            "{band:?}"
+        );
         assert_eq!((band.inside, band.outside), (0.0, 0.0));
         // Three in from the edge is inside; three out is outside.
         let inside = score(&with_error_at(&[(8, 8), (10, 11)]));
@@ -776,6 +791,7 @@ mod tests {
         let total = mse(img(&noise, shape), img(&gt, shape)).unwrap();
         assert!((e.total() - total).abs() < 1e-12 * total.max(1.0));
         assert!(e.silhouette > 0.0 && e.inside > 0.0 && e.outside > 0.0);
+        assert!(0.0 < e.silhouette_foreground && e.silhouette_foreground < e.silhouette);
         // A mask of another size is an error naming both shapes, not a panic.
         let small = vec![0.0f32; 10];
         assert_eq!(

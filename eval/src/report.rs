@@ -104,11 +104,13 @@ fn region_row(name: &str, e: &ErrorByRegion) -> String {
         "—".into()
     };
     format!(
-        "| {name} | {:.1} | {:.1} | {:.1} | {:.1} | {share} |",
+        "| {name} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {share} |",
         total * 1e4,
         e.silhouette * 1e4,
         e.inside * 1e4,
-        e.outside * 1e4
+        e.outside * 1e4,
+        e.silhouette_foreground * 1e4,
+        (e.silhouette - e.silhouette_foreground) * 1e4,
     )
 }
 
@@ -365,7 +367,7 @@ impl Report {
         if !region_rows.is_empty() {
             let _ = writeln!(
                 md,
-                "\n## Where the error sits\n\nThe mean squared error of the metric region (×10⁴; PSNR is −10·log10 of a view's MSE) split by the ground-truth silhouette: the pixels within {SILHOUETTE_BAND_PX} px of it (either side), the foreground farther in and the background farther out. The three add up to the MSE; a gap in the band is geometry (outline, pose, hair and loose clothes), a gap inside is appearance.\n\n| | MSE ×10⁴ | silhouette band | inside | outside | band's share |\n|---|---|---|---|---|---|"
+                "\n## Where the error sits\n\nThe mean squared error of the metric region (×10⁴; PSNR is −10·log10 of a view's MSE) split by the ground-truth silhouette: the pixels within {SILHOUETTE_BAND_PX} px of it (either side), the foreground farther in and the background farther out. The three add up to the MSE; a gap in the band is geometry (outline, pose, hair and loose clothes), a gap inside is appearance. The band is split by side: on the person's side its error comes from wrong colours at the edge or from an avatar too small to cover it, on the background side only from an avatar spilling over.\n\n| | MSE ×10⁴ | silhouette band | inside | outside | band, person's side | band, background side | band's share |\n|---|---|---|---|---|---|---|---|"
             );
             for row in region_rows {
                 let _ = writeln!(md, "{row}");
@@ -637,6 +639,7 @@ mod tests {
                 fid_images: None,
                 regions: Some(ErrorByRegion {
                     silhouette: 3e-3,
+                    silhouette_foreground: 2.5e-3,
                     inside: 2e-3,
                     outside: 1e-3,
                 }),
@@ -647,7 +650,7 @@ mod tests {
         assert!(md.contains("| v1.lgck (step 7) | 2 | 1 | 21.00 |"), "{md}");
         // Only the per-scene point has masks: the error table has its row alone.
         assert!(
-            md.contains("| per-scene optimisation, K = 30 | 60.0 | 30.0 | 20.0 | 10.0 | 50 % |\n"),
+            md.contains("| per-scene optimisation, K = 30 | 60.0 | 30.0 | 20.0 | 10.0 | 25.0 | 5.0 | 50 % |\n"),
             "{md}"
         );
         assert!(!md.contains("| model | 0.0"), "{md}");

@@ -989,7 +989,12 @@ pub fn generate_subject_frames(
         Some(v) if variety.uniform() < f64::from(v.share) => {
             (Some(v.camera_radius), v.shading, v.prints, v.template_inset)
         }
-        _ => (cfg.camera_radius_range, cfg.shading, StreamPrints::Split, [0.0; 2]),
+        _ => (
+            cfg.camera_radius_range,
+            cfg.shading,
+            StreamPrints::Split,
+            [0.0; 2],
+        ),
     };
     let cfg = SynthConfig {
         camera_radius: match range {
