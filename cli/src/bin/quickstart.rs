@@ -87,7 +87,7 @@ struct Args {
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "assets/demo/v2/demo.lgck,assets/demo/v1/demo.lgck"
+        default_value = "assets/demo/v3/demo.lgck,assets/demo/v2/demo.lgck,assets/demo/v1/demo.lgck"
     )]
     compare: Vec<String>,
     /// Do not fetch the LPIPS / FID weights when they are missing (the report then says LPIPS
