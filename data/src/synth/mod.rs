@@ -240,13 +240,14 @@ pub struct StreamVariety {
     #[serde(default)]
     pub prints: StreamPrints,
     /// How far the model's template of a varied subject sits inside the body, metres, drawn
-    /// uniformly from `[least, most]` per subject ([`inset_template`]); `[0, 0]` leaves it.
+    /// uniformly from `[least, most]` per subject; `[0, 0]` leaves it. Each vertex moves along
+    /// its normal by at most half its distance to its dominant joint (design.md §8.11).
     #[serde(default)]
     pub template_inset: [f32; 2],
 }
 
-/// The deepest template inset a config may ask for, metres: deeper, the limbs' clamp
-/// ([`inset_template`]) would leave most of the body at half its thickness.
+/// The deepest template inset a config may ask for, metres: deeper, the clamp at half a vertex's
+/// distance to its joint would hold most of the limbs at half their thickness.
 pub const MAX_TEMPLATE_INSET: f32 = 0.05;
 
 /// The garment prints of the stream's varied subjects (design.md §8.11).
