@@ -392,9 +392,9 @@ pub struct ErrorByRegion {
     /// Pixels within [`SILHOUETTE_BAND_PX`] (Chebyshev distance) of a pixel on the other side
     /// of the silhouette, either side.
     pub silhouette: f64,
-    /// The part of `silhouette` on the ground truth's foreground side: most of the band when
-    /// the prediction is too small (the person's edge rendered as background), little when it
-    /// spills over. Older logs lack it (zero).
+    /// The part of `silhouette` on the ground truth's foreground side: edge colours and a
+    /// prediction too small to cover the person land here, a prediction spilling over on the
+    /// other side. Older logs lack it (zero).
     #[serde(default)]
     pub silhouette_foreground: f64,
     /// Foreground pixels farther in.

@@ -899,16 +899,7 @@ impl Person {
                 (outfit, random_light(rng, (15.0, 70.0)))
             }
         };
-        let dominant: Vec<usize> = template
-            .skin
-            .joints
-            .iter()
-            .zip(&template.skin.weights)
-            .map(|(j, w)| {
-                let best = (0..4).max_by(|&a, &b| w[a].total_cmp(&w[b])).unwrap_or(0);
-                j[best] as usize
-            })
-            .collect();
+        let dominant = dominant_joints(template);
         let faces = &template.topology.faces;
         let normals = body::vertex_normals(&vertices, faces);
         let surfaces = body::surfaces(&skeleton, &joints, &vertices, &dominant, &outfit);
@@ -1036,21 +1027,29 @@ pub fn generate_subject_frames(
 /// the nose thin out instead of turning inside out.
 fn inset_template(template: &BodyTemplate, person: &mut Person, depth: f32) {
     let normals = body::vertex_normals(&person.est_vertices, &template.topology.faces);
-    for ((v, n), (joints, weights)) in person
+    for ((v, n), joint) in person
         .est_vertices
         .iter_mut()
         .zip(normals)
-        .zip(template.skin.joints.iter().zip(&template.skin.weights))
+        .zip(dominant_joints(template))
     {
-        let dominant = (0..4)
-            .max_by(|&a, &b| weights[a].total_cmp(&weights[b]))
-            .unwrap_or(0);
-        let radius = person
-            .est_joints
-            .get(joints[dominant] as usize)
-            .map_or(0.0, |j| j.distance(*v));
+        let radius = person.est_joints.get(joint).map_or(0.0, |j| j.distance(*v));
         *v -= n * depth.min(0.5 * radius);
     }
+}
+
+/// Each template vertex's joint of largest skinning weight.
+fn dominant_joints(template: &BodyTemplate) -> Vec<usize> {
+    template
+        .skin
+        .joints
+        .iter()
+        .zip(&template.skin.weights)
+        .map(|(j, w)| {
+            let best = (0..4).max_by(|&a, &b| w[a].total_cmp(&w[b])).unwrap_or(0);
+            j[best] as usize
+        })
+        .collect()
 }
 
 /// Fork key of a stream subject's drawn camera distance and light (design.md §8.11).
