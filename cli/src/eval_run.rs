@@ -222,8 +222,13 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
             .collect::<anyhow::Result<Vec<_>>>()?;
         named.extend(others.iter().map(|(n, m)| (n.clone(), m)));
         for (name, m) in named {
+            // `--iterations` sets T here as in the scores above.
+            let m = match opts.iterations {
+                Some(t) => m.clone().with_iterations(t),
+                None => m.clone(),
+            };
             let steps = score_feedback_steps(
-                m,
+                &m,
                 &dataset,
                 subdivide,
                 opts.max_subjects,

@@ -131,6 +131,49 @@ fn eval_on_a_tiny_split_writes_every_file() {
 }
 
 #[test]
+fn feedback_steps_follow_the_iterations_override() {
+    let (tmp, cfg) = tiny_split("eval-steps", |_| {});
+    // Trained with T = 2, evaluated with T = 3: the shared update weights run a third step.
+    let ckpt = untrained_tiny_model(&tmp, 2, 1);
+    let out = tmp.join("out");
+    let outcome = run(&EvalOptions {
+        data: cfg.data.clone(),
+        checkpoint: ckpt,
+        official_network: lifegom_model::reconstructor::ReconstructorConfig::tiny(2),
+        out: out.clone(),
+        device: Device::ndarray(),
+        subdivide: None,
+        iterations: Some(3),
+        sheets: 0,
+        freeview_frames: 0,
+        motions: vec![],
+        sweep: false,
+        sweep_sizes: vec![],
+        sweep_subjects: None,
+        baseline: false,
+        other_models: vec![],
+        per_scene: vec![],
+        per_scene_subjects: None,
+        max_subjects: None,
+        refine_steps: 0,
+        weights_dir: tmp.join("no-weights"),
+        context: vec!["test".into()],
+        feedback_steps: true,
+    })
+    .unwrap();
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let steps = summary["feedback_steps"][0][1].as_array().unwrap();
+    assert_eq!(steps.len(), 3, "{steps:?}");
+    let last = steps[2]["psnr"].as_f64().unwrap();
+    assert!(
+        (last - outcome.summary.psnr).abs() < 1e-3,
+        "{last} vs {}",
+        outcome.summary.psnr
+    );
+}
+
+#[test]
 fn crop_size_scales_the_thuman_protocol() {
     use lifegom_eval::evaluate::thuman_crop_size;
     assert_eq!(thuman_crop_size(1024, 1024), [1000, 500]);

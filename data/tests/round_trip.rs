@@ -717,6 +717,7 @@ fn stream_variety_moves_the_camera_the_light_and_the_template_but_keeps_the_pers
             share,
             prints: synth::StreamPrints::Split,
             template_inset: [0.0; 2],
+            template_inset_subjects: synth::InsetSubjects::Varied,
         }),
         ..s.clone()
     };
@@ -777,6 +778,44 @@ fn stream_variety_moves_the_camera_the_light_and_the_template_but_keeps_the_pers
         "{full} of {} at full depth",
         depths.len()
     );
+    // The share without variety keeps its template unless the inset is for all subjects; then
+    // it moves as a varied one's, its pictures still the split's.
+    let plain = |subjects| synth::SynthConfig {
+        stream_variety: inset(0.02, 0.02)
+            .stream_variety
+            .map(|v| synth::StreamVariety {
+                share: 0.0,
+                template_inset_subjects: subjects,
+                ..v
+            }),
+        ..s.clone()
+    };
+    let kept = synth::generate_subject(
+        &template,
+        &plain(synth::InsetSubjects::Varied),
+        7,
+        1,
+        "x",
+        Some(3),
+    )
+    .unwrap();
+    let moved = synth::generate_subject(
+        &template,
+        &plain(synth::InsetSubjects::All),
+        7,
+        1,
+        "x",
+        Some(3),
+    )
+    .unwrap();
+    assert_eq!(kept.est_vertices, none.est_vertices);
+    assert_eq!(moved.est_vertices, deep.est_vertices);
+    for (fm, fn_) in moved.frames.iter().zip(&none.frames) {
+        assert_eq!(
+            (&fm.rgb, &fm.mask, &fm.body),
+            (&fn_.rgb, &fn_.mask, &fn_.body)
+        );
+    }
     let flat = synth::generate_subject(&template, &inset(0.0, 0.0), 7, 1, "x", Some(3)).unwrap();
     assert_eq!(flat.est_vertices, all.est_vertices);
     let err = inset(0.03, 0.01)

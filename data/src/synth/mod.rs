@@ -244,6 +244,21 @@ pub struct StreamVariety {
     /// its normal by at most half its distance to its dominant joint (design.md §8.11).
     #[serde(default)]
     pub template_inset: [f32; 2],
+    /// Whose template `template_inset` moves: the varied share's only, or every subject's (the
+    /// pictures of the others stay the split's either way).
+    #[serde(default)]
+    pub template_inset_subjects: InsetSubjects,
+}
+
+/// The stream subjects whose template [`StreamVariety::template_inset`] moves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InsetSubjects {
+    /// The varied share ([`StreamVariety::share`]).
+    #[default]
+    Varied,
+    /// Every subject of the stream, varied or not.
+    All,
 }
 
 /// The deepest template inset a config may ask for, metres: deeper, the clamp at half a vertex's
@@ -981,11 +996,14 @@ pub fn generate_subject_frames(
         Some(v) if variety.uniform() < f64::from(v.share) => {
             (Some(v.camera_radius), v.shading, v.prints, v.template_inset)
         }
-        _ => (
+        v => (
             cfg.camera_radius_range,
             cfg.shading,
             StreamPrints::Split,
-            [0.0; 2],
+            match v {
+                Some(v) if v.template_inset_subjects == InsetSubjects::All => v.template_inset,
+                _ => [0.0; 2],
+            },
         ),
     };
     let cfg = SynthConfig {
