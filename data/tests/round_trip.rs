@@ -816,15 +816,36 @@ fn stream_variety_moves_the_camera_the_light_and_the_template_but_keeps_the_pers
             (&fn_.rgb, &fn_.mask, &fn_.body)
         );
     }
+    // A negative depth puts the template outside the body, each vertex by the full depth.
+    let loose =
+        synth::generate_subject(&template, &inset(-0.02, -0.02), 7, 1, "x", Some(3)).unwrap();
+    for ((a, l), n) in all
+        .est_vertices
+        .iter()
+        .zip(&loose.est_vertices)
+        .zip(&normals)
+    {
+        assert!((*l - *a - *n * 0.02).length() < 1e-6, "{a} → {l} along {n}");
+    }
+    for (fl, fa) in loose.frames.iter().zip(&all.frames) {
+        assert_eq!((&fl.rgb, &fl.mask), (&fa.rgb, &fa.mask));
+    }
     let flat = synth::generate_subject(&template, &inset(0.0, 0.0), 7, 1, "x", Some(3)).unwrap();
     assert_eq!(flat.est_vertices, all.est_vertices);
-    let err = inset(0.03, 0.01)
-        .validate(&tiny_config().data, Path::new("tiny.toml"))
-        .unwrap_err()
-        .to_string();
+    for (least, most) in [(0.03, 0.01), (-0.06, 0.0), (0.0, 0.06)] {
+        let err = inset(least, most)
+            .validate(&tiny_config().data, Path::new("tiny.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("synthetic.stream_variety.template_inset"),
+            "{err}"
+        );
+    }
     assert!(
-        err.contains("synthetic.stream_variety.template_inset"),
-        "{err}"
+        inset(-0.02, 0.03)
+            .validate(&tiny_config().data, Path::new("tiny.toml"))
+            .is_ok()
     );
     let bad = synth::SynthConfig {
         camera_radius_range: Some([3.0, 2.0]),

@@ -240,8 +240,9 @@ pub struct StreamVariety {
     #[serde(default)]
     pub prints: StreamPrints,
     /// How far the model's template of a varied subject sits inside the body, metres, drawn
-    /// uniformly from `[least, most]` per subject; `[0, 0]` leaves it. Each vertex moves along
-    /// its normal by at most half its distance to its dominant joint (design.md §8.11).
+    /// uniformly from `[least, most]` per subject; `[0, 0]` leaves it, a negative depth puts it
+    /// outside. Inward, each vertex moves along its normal by at most half its distance to its
+    /// dominant joint (design.md §8.11).
     #[serde(default)]
     pub template_inset: [f32; 2],
     /// Whose template `template_inset` moves: the varied share's only, or every subject's (the
@@ -261,8 +262,8 @@ pub enum InsetSubjects {
     All,
 }
 
-/// The deepest template inset a config may ask for, metres: deeper, the clamp at half a vertex's
-/// distance to its joint would hold most of the limbs at half their thickness.
+/// The deepest template inset a config may ask for, metres, either way: deeper, the clamp at half
+/// a vertex's distance to its joint would hold most of the limbs at half their thickness.
 pub const MAX_TEMPLATE_INSET: f32 = 0.05;
 
 /// The garment prints of the stream's varied subjects (design.md §8.11).
@@ -518,12 +519,12 @@ impl SynthConfig {
             template_inset: [least, most],
             ..
         }) = self.stream_variety
-            && !(0.0 <= least && least <= most && most <= MAX_TEMPLATE_INSET)
+            && !(-MAX_TEMPLATE_INSET <= least && least <= most && most <= MAX_TEMPLATE_INSET)
         {
             return Err(bad(
                 "stream_variety.template_inset",
                 format!(
-                    "must be [least, most] metres with 0 <= least <= most <= {MAX_TEMPLATE_INSET}, got [{least}, {most}]"
+                    "must be [least, most] metres with -{MAX_TEMPLATE_INSET} <= least <= most <= {MAX_TEMPLATE_INSET}, got [{least}, {most}]"
                 ),
             ));
         }
@@ -1031,7 +1032,7 @@ pub fn generate_subject_frames(
         }
     }
     // Last of all, so that the inset changes the template only, never the pictures.
-    if inset[1] > 0.0 {
+    if inset != [0.0; 2] {
         let depth = variety.range(f64::from(inset[0]), f64::from(inset[1])) as f32;
         inset_template(template, &mut person, depth);
     }
@@ -1039,10 +1040,10 @@ pub fn generate_subject_frames(
 }
 
 /// Moves the model's template of `person` (`est_vertices`, what `canonical_joints.pkl` stores)
-/// `depth` metres inward along its vertex normals, so that the gap between the template and the
-/// pictured outline varies by more than the stream's garments alone make it (design.md §8.11).
-/// A vertex moves at most half its distance to its dominant joint, so that fingers, toes and
-/// the nose thin out instead of turning inside out.
+/// `depth` metres inward along its vertex normals (outward where `depth` is negative), so that
+/// the gap between the template and the pictured outline varies by more than the stream's
+/// garments alone make it (design.md §8.11). Inward, a vertex moves at most half its distance to
+/// its dominant joint, so that fingers, toes and the nose thin out instead of turning inside out.
 fn inset_template(template: &BodyTemplate, person: &mut Person, depth: f32) {
     let normals = body::vertex_normals(&person.est_vertices, &template.topology.faces);
     for ((v, n), joint) in person
