@@ -10,7 +10,7 @@ use burn::tensor::Device;
 use lifegom_cli::eval_run::{EvalOptions, run};
 use lifegom_eval::report::WEIGHTS_MISSING;
 
-use common::{tiny_split, untrained_tiny_model};
+use common::{eval_options, tiny_split, untrained_tiny_model};
 
 #[test]
 fn eval_on_a_tiny_split_writes_every_file() {
@@ -21,28 +21,16 @@ fn eval_on_a_tiny_split_writes_every_file() {
 
     let out = tmp.join("out");
     let outcome = run(&EvalOptions {
-        data: cfg.data.clone(),
-        checkpoint: ckpt,
-        official_network: lifegom_model::reconstructor::ReconstructorConfig::tiny(2),
-        out: out.clone(),
-        device: Device::ndarray(),
-        subdivide: None,
-        iterations: None,
         sheets: 2,
         freeview_frames: 3,
         motions: lifegom_render::motion::MotionSource::all_procedural(),
         sweep: true,
-        sweep_sizes: vec![],
         sweep_subjects: Some(1),
         baseline: true,
-        other_models: vec![],
         per_scene: vec![1, 2],
         per_scene_subjects: Some(1),
-        max_subjects: None,
-        refine_steps: 0,
-        weights_dir: tmp.join("no-weights"),
-        context: vec!["test".into()],
         feedback_steps: true,
+        ..eval_options(&cfg.data, ckpt, out.clone(), &tmp)
     })
     .unwrap();
 
@@ -137,28 +125,9 @@ fn feedback_steps_follow_the_iterations_override() {
     let ckpt = untrained_tiny_model(&tmp, 2, 1);
     let out = tmp.join("out");
     let outcome = run(&EvalOptions {
-        data: cfg.data.clone(),
-        checkpoint: ckpt,
-        official_network: lifegom_model::reconstructor::ReconstructorConfig::tiny(2),
-        out: out.clone(),
-        device: Device::ndarray(),
-        subdivide: None,
         iterations: Some(3),
-        sheets: 0,
-        freeview_frames: 0,
-        motions: vec![],
-        sweep: false,
-        sweep_sizes: vec![],
-        sweep_subjects: None,
-        baseline: false,
-        other_models: vec![],
-        per_scene: vec![],
-        per_scene_subjects: None,
-        max_subjects: None,
-        refine_steps: 0,
-        weights_dir: tmp.join("no-weights"),
-        context: vec!["test".into()],
         feedback_steps: true,
+        ..eval_options(&cfg.data, ckpt, out.clone(), &tmp)
     })
     .unwrap();
     let summary: serde_json::Value =

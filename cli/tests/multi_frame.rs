@@ -111,28 +111,18 @@ fn multi_frame_split_trains_and_evaluates_under_the_aistpp_protocol() {
 
     let out = tmp.join("eval");
     let outcome = run(&EvalOptions {
-        data: cfg.file.data.clone(),
-        checkpoint: summary.checkpoint.clone(),
         official_network: cfg.reconstructor(),
-        out: out.clone(),
-        device: Device::ndarray(),
-        subdivide: None,
-        iterations: None,
         sheets: 1,
         freeview_frames: 2,
         motions,
-        sweep: false,
-        sweep_sizes: vec![],
         sweep_subjects: Some(1),
         baseline: true,
-        other_models: vec![],
-        per_scene: vec![],
-        per_scene_subjects: None,
-        max_subjects: None,
-        refine_steps: 0,
-        weights_dir: tmp.join("no-weights"),
-        context: vec!["test".into()],
-        feedback_steps: false,
+        ..common::eval_options(
+            &cfg.file.data,
+            summary.checkpoint.clone(),
+            out.clone(),
+            &tmp,
+        )
     })
     .unwrap();
     // One validation sequence: frames 0-4 are the inputs, its 2 targets are scored.

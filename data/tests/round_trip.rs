@@ -780,34 +780,21 @@ fn stream_variety_moves_the_camera_the_light_and_the_template_but_keeps_the_pers
     );
     // The share without variety keeps its template unless the inset is for all subjects; then
     // it moves as a varied one's, its pictures still the split's.
-    let plain = |subjects| synth::SynthConfig {
-        stream_variety: inset(0.02, 0.02)
-            .stream_variety
-            .map(|v| synth::StreamVariety {
-                share: 0.0,
-                template_inset_subjects: subjects,
-                ..v
-            }),
-        ..s.clone()
+    let plain = |subjects| {
+        let cfg = synth::SynthConfig {
+            stream_variety: inset(0.02, 0.02)
+                .stream_variety
+                .map(|v| synth::StreamVariety {
+                    share: 0.0,
+                    template_inset_subjects: subjects,
+                    ..v
+                }),
+            ..s.clone()
+        };
+        synth::generate_subject(&template, &cfg, 7, 1, "x", Some(3)).unwrap()
     };
-    let kept = synth::generate_subject(
-        &template,
-        &plain(synth::InsetSubjects::Varied),
-        7,
-        1,
-        "x",
-        Some(3),
-    )
-    .unwrap();
-    let moved = synth::generate_subject(
-        &template,
-        &plain(synth::InsetSubjects::All),
-        7,
-        1,
-        "x",
-        Some(3),
-    )
-    .unwrap();
+    let kept = plain(synth::InsetSubjects::Varied);
+    let moved = plain(synth::InsetSubjects::All);
     assert_eq!(kept.est_vertices, none.est_vertices);
     assert_eq!(moved.est_vertices, deep.est_vertices);
     for (fm, fn_) in moved.frames.iter().zip(&none.frames) {

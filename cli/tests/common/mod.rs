@@ -5,7 +5,9 @@
 use std::path::{Path, PathBuf};
 
 use burn::tensor::Device;
+use lifegom_cli::eval_run::EvalOptions;
 use lifegom_data::config::ConfigFile;
+use lifegom_data::dataset::DataConfig;
 use lifegom_data::synth;
 use lifegom_model::reconstructor::ReconstructorConfig;
 use lifegom_model::trained;
@@ -47,4 +49,41 @@ pub fn untrained_tiny_model(dir: &Path, iterations: usize, subdivide: u32) -> Pa
     let path = dir.join("model.lgck");
     trained::save(&path, &model, &config, serde_json::json!({"step": 0}), &[]).unwrap();
     path
+}
+
+/// `lifegom-eval`'s options for `checkpoint` on `data` (ndarray, the CI backend), writing to
+/// `out`, with every extra output off and no perceptual weights (`tmp/no-weights`): a test
+/// turns on what it is about.
+pub fn eval_options(
+    data: &DataConfig,
+    checkpoint: PathBuf,
+    out: PathBuf,
+    tmp: &Path,
+) -> EvalOptions {
+    #[allow(deprecated)] // Device::ndarray(): the CI backend (design.md §1.4).
+    let device = Device::ndarray();
+    EvalOptions {
+        data: data.clone(),
+        checkpoint,
+        official_network: ReconstructorConfig::tiny(2),
+        out,
+        device,
+        subdivide: None,
+        iterations: None,
+        sheets: 0,
+        freeview_frames: 0,
+        motions: vec![],
+        sweep: false,
+        sweep_sizes: vec![],
+        sweep_subjects: None,
+        baseline: false,
+        other_models: vec![],
+        per_scene: vec![],
+        per_scene_subjects: None,
+        max_subjects: None,
+        refine_steps: 0,
+        weights_dir: tmp.join("no-weights"),
+        context: vec!["test".into()],
+        feedback_steps: false,
+    }
 }
