@@ -223,12 +223,16 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<EvalOutcome> {
         named.extend(others.iter().map(|(n, m)| (n.clone(), m)));
         for (name, m) in named {
             // `--iterations` sets T here as in the scores above.
+            let overridden;
             let m = match opts.iterations {
-                Some(t) => m.clone().with_iterations(t),
-                None => m.clone(),
+                Some(t) => {
+                    overridden = m.clone().with_iterations(t);
+                    &overridden
+                }
+                None => m,
             };
             let steps = score_feedback_steps(
-                &m,
+                m,
                 &dataset,
                 subdivide,
                 opts.max_subjects,
