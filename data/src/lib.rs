@@ -13,6 +13,7 @@
 //! | [`dataset`] | splits, the frame-indexing rules of each experiment, per-sample loading |
 //! | [`preprocess`] | undistort → composite over the background → resize (Lanczos-4 / bilinear) → scale `K` |
 //! | [`kinematics`] | SMPL (24), SMPL-X (55) and Anny (104, from the shipped template) parent tables |
+//! | [`registry`] | pinned files of the Python package registry: `pip download`, SHA-256, archive entries |
 //! | [`config`] | `configs/*.toml`: the `[data]` and `[synthetic]` sections |
 //! | [`synth`] | the synthetic generator behind the `lifegom-synth` binary |
 //! | [`error`] | one error type naming file / subject / frame / field |
@@ -38,6 +39,7 @@ pub mod format;
 pub mod kinematics;
 pub mod pickle;
 pub mod preprocess;
+pub mod registry;
 pub mod synth;
 
 pub use error::{DataError, Location, Result};

