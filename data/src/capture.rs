@@ -97,8 +97,8 @@ fn pickle_fields(path: &Path) -> Result<Vec<(String, NdArray)>> {
         .collect())
 }
 
-/// The arrays of an `.npz`, by key (member name without `.npy`).
-fn read_npz(path: &Path) -> Result<Vec<(String, NdArray)>> {
+/// The arrays of an `.npz`, by key (member name without `.npy`), in the archive's order.
+pub fn read_npz(path: &Path) -> Result<Vec<(String, NdArray)>> {
     let file = std::fs::File::open(path).map_err(|e| DataError::io(Location::file(path), e))?;
     let bad = |member: &str, reason: String| {
         DataError::invalid(Location::file(path).field(member.to_string()), reason)
