@@ -15,6 +15,9 @@ What it makes (under --out, default estimate/tests/fixtures/person/):
   - `landmarks`: the 33 body landmarks (x, y, z, visibility, presence);
   - `image_size`: [width, height].
 - `NAME_mask.png`: the person segmentation, 16-bit grey, round(p · 65535) of the probability.
+- `NAME_selfie.png`: the selfie model's segmentation through MediaPipe's own
+  `solutions.selfie_segmentation.SelfieSegmentation(model_selection=0)` (the general 256 × 256
+  model), the same encoding.
 - `reference.json`: versions, the SHA-256 of the wheel and of every photo.
 
 Photos: `astronaut` is scikit-image's `data/astronaut.png` (a NASA portrait, public domain),
@@ -144,6 +147,13 @@ def main():
             json.dump(out, f, indent=1)
             f.write("\n")
     solution.close()
+    from mediapipe.python.solutions import selfie_segmentation
+    with selfie_segmentation.SelfieSegmentation(model_selection=0) as selfie:
+        for name in photos:
+            pixels = np.asarray(Image.open(os.path.join(args.out, f"{name}.png")).convert("RGB"))
+            mask = selfie.process(pixels).segmentation_mask
+            mask = np.clip(np.round(mask * 65535.0), 0, 65535).astype(np.uint16)
+            Image.fromarray(mask).save(os.path.join(args.out, f"{name}_selfie.png"))
     with open(os.path.join(args.out, "reference.json"), "w") as f:
         json.dump(reference, f, indent=1, sort_keys=True)
         f.write("\n")

@@ -11,8 +11,10 @@
 //! | [`crop`] | rotated crops of a photo onto a graph's square input (OpenCV's bilinear arithmetic), and back |
 //! | [`detector`] | BlazePose's detector: SSD anchors, decoding, weighted non-maximum suppression |
 //! | [`landmarks`] | BlazePose's landmark model on a detection's crop: 33 landmarks, heatmap refinement, the mask |
+//! | [`selfie`] | the selfie segmentation model on the whole photo: a second person mask |
 
 pub mod crop;
 pub mod detector;
 pub mod graphs;
 pub mod landmarks;
+pub mod selfie;

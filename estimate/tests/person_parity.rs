@@ -1,7 +1,8 @@
 //! The person pipeline (detector, crop, landmark model, mask) against MediaPipe's own pipeline
 //! (`tools/make_person_fixtures.py`: the mediapipe 0.10.14 Python package's `pose_landmark_cpu`
 //! graph in static-image mode), stage by stage on the photos of `fixtures/person/`: the first
-//! detection and its crop, the 33 landmarks within 1 px, the mask at ≥ 0.99 IoU.
+//! detection and its crop, the 33 landmarks within 1 px, the landmark model's mask and the
+//! selfie model's (`solutions.selfie_segmentation`) at ≥ 0.99 IoU.
 //!
 //! One decision of the reference is a threshold: a landmark moves to its heatmap's weighted
 //! centre only where the window's most confident cell reaches 0.5. A landmark whose window sits
@@ -18,7 +19,7 @@ use std::path::{Path, PathBuf};
 use burn::tensor::Device;
 use glam::Vec2;
 use lifegom_estimate::graphs::{self, PersonGraph};
-use lifegom_estimate::{detector, landmarks};
+use lifegom_estimate::{detector, landmarks, selfie};
 use serde_json::Value;
 
 fn fixture_dir() -> PathBuf {
@@ -55,6 +56,7 @@ fn pipeline_matches_mediapipe(device: &Device) {
     let Some(dir) = graphs_dir() else { return };
     let detector_graph = graphs::load(&dir, PersonGraph::Detector, device).unwrap();
     let landmark_graph = graphs::load(&dir, PersonGraph::Landmarks, device).unwrap();
+    let selfie_graph = graphs::load(&dir, PersonGraph::Selfie, device).unwrap();
     let index: Value = serde_json::from_str(
         &std::fs::read_to_string(fixture_dir().join("reference.json")).unwrap(),
     )
@@ -158,19 +160,27 @@ fn pipeline_matches_mediapipe(device: &Device) {
             worst.0
         );
 
-        // The mask.
-        let reference = image::open(fixture_dir().join(format!("{name}_mask.png")))
-            .unwrap()
-            .to_luma16();
-        let (mut inter, mut union) = (0usize, 0usize);
-        for (p, r) in pose.mask.iter().zip(reference.as_raw()) {
-            let (a, b) = (*p >= 0.5, f32::from(*r) / 65535.0 >= 0.5);
-            inter += usize::from(a && b);
-            union += usize::from(a || b);
+        // The masks: the landmark model's and the selfie model's.
+        let selfie_mask = selfie::mask(&selfie_graph, photo.as_raw(), w, h, device).unwrap();
+        for (what, mask, file) in [
+            (
+                "landmark model's mask",
+                &pose.mask,
+                format!("{name}_mask.png"),
+            ),
+            ("selfie mask", &selfie_mask, format!("{name}_selfie.png")),
+        ] {
+            let reference = image::open(fixture_dir().join(file)).unwrap().to_luma16();
+            let (mut inter, mut union) = (0usize, 0usize);
+            for (p, r) in mask.iter().zip(reference.as_raw()) {
+                let (a, b) = (*p >= 0.5, f32::from(*r) / 65535.0 >= 0.5);
+                inter += usize::from(a && b);
+                union += usize::from(a || b);
+            }
+            let iou = inter as f64 / union.max(1) as f64;
+            eprintln!("{name}: {what} at IoU {iou:.4} with MediaPipe's ({union} px in either)");
+            assert!(iou >= 0.99, "{name}: {what} at IoU {iou}");
         }
-        let iou = inter as f64 / union.max(1) as f64;
-        eprintln!("{name}: mask IoU {iou:.4} ({union} px in either)");
-        assert!(iou >= 0.99, "{name}: mask IoU {iou}");
     }
 }
 

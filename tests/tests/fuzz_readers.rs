@@ -1507,7 +1507,7 @@ fn structured_containers_are_errors_not_panics() {
     tally(run_structured(
         "tflite",
         &all,
-        4000,
+        8000,
         &dir.join("structured.tflite"),
         |e| apply_splice(&base, e),
         |p| read_and_run_tflite(p, &device),

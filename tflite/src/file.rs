@@ -228,6 +228,18 @@ pub(crate) fn read(name: &str, bytes: &[u8]) -> Result<Program> {
         }
     }
     for &i in inputs.iter().chain(&outputs) {
+        let tensor_err = |reason: &str| TfliteError::Tensor {
+            graph: name.to_string(),
+            index: i,
+            name: tensors[i].name.clone(),
+            reason: reason.to_string(),
+        };
+        if inputs.contains(&i) && tensors[i].constant.is_some() {
+            return Err(tensor_err("a graph input that is a constant"));
+        }
+        if matches!(tensors[i].constant, Some(Constant::Int(_))) {
+            return Err(tensor_err("an int32 constant as a graph output"));
+        }
         if tensors[i].shape.is_empty() || tensors[i].shape.len() > 4 {
             return Err(TfliteError::Tensor {
                 graph: name.to_string(),

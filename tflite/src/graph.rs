@@ -246,16 +246,23 @@ impl Graph {
                 values[i] = None;
             }
         }
-        Ok(self
-            .outputs
+        self.outputs
             .iter()
-            .map(|&i| Output {
-                spec: self.spec(i),
-                tensor: values[i]
-                    .clone()
-                    .expect("every output is computed (checked at load)"),
+            .enumerate()
+            .map(|(k, &i)| {
+                // Every output is computed or given (checked at load); kept as an error, not a
+                // panic, should that check ever miss a case.
+                let tensor = values[i].clone().ok_or_else(|| TfliteError::Input {
+                    graph: self.name.clone(),
+                    index: k,
+                    reason: format!("output {k} was not computed"),
+                })?;
+                Ok(Output {
+                    spec: self.spec(i),
+                    tensor,
+                })
             })
-            .collect())
+            .collect()
     }
 
     fn step(&self, step: &Step, values: &[Option<Tensor<4>>]) -> Tensor<4> {
