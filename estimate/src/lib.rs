@@ -12,9 +12,13 @@
 //! | [`detector`] | BlazePose's detector: SSD anchors, decoding, weighted non-maximum suppression |
 //! | [`landmarks`] | BlazePose's landmark model on a detection's crop: 33 landmarks, heatmap refinement, the mask |
 //! | [`selfie`] | the selfie segmentation model on the whole photo: a second person mask |
+//! | [`person`] | the person in one photo, in one call: detection, crop, landmarks, mask; errors name the photo |
+//! | [`overlay`] | the photo with the mask's edge and the skeleton drawn over it, for a person to check |
 
 pub mod crop;
 pub mod detector;
 pub mod graphs;
 pub mod landmarks;
+pub mod overlay;
+pub mod person;
 pub mod selfie;

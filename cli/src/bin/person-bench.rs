@@ -10,8 +10,8 @@
 //! The folder holds subjects, each with `images/` and `masks/` of the same file names (the
 //! official layout, as `lifegom-synth` writes it). One JSON line per photo, then one summary
 //! line: photos, persons found, mean and worst IoU of each mask against the stored mask (both
-//! thresholded at 0.5), and the median milliseconds of each stage (the graphs' times include
-//! reading their outputs back).
+//! thresholded at 0.5), and the median milliseconds of the person pipeline (detector, crop,
+//! landmark model, mask) and of the selfie model, read-backs included.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -19,7 +19,8 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use clap::Parser;
 use lifegom_estimate::graphs::{self, PersonGraph};
-use lifegom_estimate::{detector, landmarks, selfie};
+use lifegom_estimate::person::{PersonError, PersonGraphs};
+use lifegom_estimate::{overlay, selfie};
 use lifegom_render::device::DeviceChoice;
 use serde_json::json;
 
@@ -40,6 +41,10 @@ struct Args {
     /// Only the JSON lines.
     #[arg(long)]
     json: bool,
+    /// Also write each photo's overlay (mask edge, skeleton) into this folder, as
+    /// `<subject>_<photo>.png`.
+    #[arg(long)]
+    overlays: Option<PathBuf>,
 }
 
 /// IoU of two masks thresholded at 0.5.
@@ -100,15 +105,17 @@ fn main() -> anyhow::Result<()> {
         .weights
         .clone()
         .unwrap_or_else(lifegom_data::registry::weights_dir);
-    let detector_graph = graphs::load(&dir, PersonGraph::Detector, &device)?;
-    let landmark_graph = graphs::load(&dir, PersonGraph::Landmarks, &device)?;
+    let person_graphs = PersonGraphs::load(&dir, &device)?;
     let selfie_graph = graphs::load(&dir, PersonGraph::Selfie, &device)?;
     let mut all = photos(&args.data)?;
     if let Some(n) = args.limit {
         all.truncate(n);
     }
     let (mut found, mut pose_ious, mut selfie_ious) = (0, Vec::new(), Vec::new());
-    let (mut t_detect, mut t_landmarks, mut t_selfie) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut t_person, mut t_selfie) = (Vec::new(), Vec::new());
+    if let Some(dir) = &args.overlays {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
     for (image, mask) in &all {
         let rgb = image::open(image)
             .with_context(|| format!("reading {}", image.display()))?
@@ -122,23 +129,31 @@ fn main() -> anyhow::Result<()> {
             .collect();
         let (w, h) = (rgb.width() as usize, rgb.height() as usize);
         let start = Instant::now();
-        let detections = detector::detect(&detector_graph, rgb.as_raw(), w, h, &device)?;
-        t_detect.push(start.elapsed().as_secs_f64() * 1e3);
-        let start = Instant::now();
-        let pose = match detections.first() {
-            Some(d) => {
-                let roi = landmarks::roi_from_detection(d, w, h);
-                landmarks::landmarks(&landmark_graph, rgb.as_raw(), w, h, &roi, &device)?
-            }
-            None => None,
+        let person = match person_graphs.estimate(image, rgb.as_raw(), w, h) {
+            Ok(p) => Some(p),
+            Err(PersonError::NoPerson { .. }) => None,
+            Err(e) => return Err(e.into()),
         };
-        t_landmarks.push(start.elapsed().as_secs_f64() * 1e3);
+        t_person.push(start.elapsed().as_secs_f64() * 1e3);
+        if let (Some(dir), Some(p)) = (&args.overlays, &person) {
+            let subject = image
+                .parent()
+                .and_then(|d| d.parent())
+                .and_then(|d| d.file_name())
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let stem = image.file_stem().unwrap_or_default().to_string_lossy();
+            let out = dir.join(format!("{subject}_{stem}.png"));
+            overlay::draw(&rgb, p)
+                .save(&out)
+                .with_context(|| format!("writing {}", out.display()))?;
+        }
         let start = Instant::now();
         let selfie_mask = selfie::mask(&selfie_graph, rgb.as_raw(), w, h, &device)?;
         t_selfie.push(start.elapsed().as_secs_f64() * 1e3);
         let selfie_iou = iou(&selfie_mask, &truth);
         selfie_ious.push(selfie_iou);
-        let pose_iou = pose.as_ref().map(|p| iou(&p.mask, &truth));
+        let pose_iou = person.as_ref().map(|p| iou(&p.pose.mask, &truth));
         if let Some(v) = pose_iou {
             found += 1;
             pose_ious.push(v);
@@ -147,9 +162,9 @@ fn main() -> anyhow::Result<()> {
             "{}",
             json!({
                 "photo": image.display().to_string(),
-                "found": pose.is_some(),
-                "detection_score": detections.first().map(|d| d.score),
-                "presence": pose.as_ref().map(|p| p.presence),
+                "found": person.is_some(),
+                "detection_score": person.as_ref().map(|p| p.detection.score),
+                "presence": person.as_ref().map(|p| p.pose.presence),
                 "landmark_mask_iou": pose_iou,
                 "selfie_mask_iou": selfie_iou,
             })
@@ -169,8 +184,7 @@ fn main() -> anyhow::Result<()> {
             "landmark_mask_iou_worst": worst(&pose_ious),
             "selfie_mask_iou_mean": mean(&selfie_ious),
             "selfie_mask_iou_worst": worst(&selfie_ious),
-            "detector_ms": median(t_detect),
-            "landmarks_ms": median(t_landmarks),
+            "person_ms": median(t_person),
             "selfie_ms": median(t_selfie),
         })
     );
