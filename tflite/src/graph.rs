@@ -67,6 +67,9 @@ struct Step {
     node: Node,
     /// The kernel in the form the Burn op takes (convolutions), and the bias.
     kernel: Option<(Tensor<4>, Tensor<1>)>,
+    /// A bilinear resize as two products: rows `[out_h, in_h]`, columns transposed
+    /// `[in_w, out_w]`.
+    resize: Option<(Tensor<2>, Tensor<2>)>,
     /// Tensors that are not needed after this step.
     release: Vec<usize>,
 }
@@ -146,6 +149,25 @@ impl Graph {
             } else {
                 None
             };
+            let resize = match node.op {
+                Op::ResizeBilinear { align_corners } => {
+                    let (input, output) = (&shapes[node.inputs[0]], &shapes[node.output]);
+                    let rows = resize_matrix(input[1], output[1], align_corners);
+                    let cols = resize_matrix(input[2], output[2], align_corners);
+                    Some((
+                        Tensor::<2>::from_data(
+                            TensorData::new(rows, [output[1], input[1]]),
+                            device,
+                        ),
+                        Tensor::<2>::from_data(
+                            TensorData::new(cols, [output[2], input[2]]),
+                            device,
+                        )
+                        .transpose(),
+                    ))
+                }
+                _ => None,
+            };
             let release = node
                 .inputs
                 .iter()
@@ -155,6 +177,7 @@ impl Graph {
             steps.push(Step {
                 node,
                 kernel,
+                resize,
                 release,
             });
         }
@@ -367,12 +390,19 @@ impl Graph {
                 }
                 x
             }
-            Op::ResizeBilinear { align_corners } => interpolate(
-                input(0),
-                InterpolateOptions::new(InterpolateMode::Bilinear)
-                    .with_align_corners(*align_corners)
-                    .with_output_size([out_shape[1], out_shape[2]]),
-            ),
+            Op::ResizeBilinear { .. } => {
+                // Two products with the interpolation weights (rows, then columns) rather than
+                // Burn's `interpolate`, whose bilinear kernel gives wrong values on wgpu's
+                // OpenGL backend (5 × 5 → 8 × 8: off by 0.34) while products hold everywhere.
+                let (rows, cols_t) = step.resize.clone().expect("made with the graph");
+                let x = input(0);
+                let [n, c, h, w] = x.dims();
+                let [oh, ow] = [out_shape[1], out_shape[2]];
+                let x = x.reshape([n * c * h, w]).matmul(cols_t);
+                let x = x.reshape([n * c, h, ow]);
+                let rows = rows.unsqueeze_dim::<3>(0).expand([n * c, oh, h]);
+                rows.matmul(x).reshape([n, c, oh, ow])
+            }
             Op::DepthToSpace { block } => {
                 let x = input(0);
                 let [n, c, h, w] = x.dims();
@@ -453,6 +483,31 @@ fn to_rank(x: Tensor<4>, from: usize, to: usize) -> Tensor<4> {
     } else {
         from_file_order(x, to)
     }
+}
+
+/// TensorFlow Lite's bilinear weights from `input` to `output` positions along one axis, as an
+/// `[output, input]` matrix: output `o` samples `(o + ½)·in/out − ½` (half-pixel centres) or
+/// `o·(in − 1)/(out − 1)` (aligned corners), between the clamped neighbours below and above.
+fn resize_matrix(input: usize, output: usize, align_corners: bool) -> Vec<f32> {
+    let mut m = vec![0f32; output * input];
+    let scale = if align_corners && output > 1 {
+        (input as f32 - 1.0) / (output as f32 - 1.0)
+    } else {
+        input as f32 / output as f32
+    };
+    for o in 0..output {
+        let at = if align_corners {
+            o as f32 * scale
+        } else {
+            (o as f32 + 0.5) * scale - 0.5
+        };
+        let below = (at.floor().max(0.0) as usize).min(input - 1);
+        let above = (at.ceil().max(0.0) as usize).min(input - 1);
+        let frac = at - below as f32;
+        m[o * input + below] += 1.0 - frac;
+        m[o * input + above] += frac;
+    }
+    m
 }
 
 fn on_device(values: &[f32], shape: &[usize], device: &Device) -> Tensor<4> {

@@ -10,11 +10,14 @@
 //!   convolutions' outputs) instead of copied to row-major order first.
 //! - [`host`]: host-side plumbing — tensor preparation, buffer allocation, kernel arguments,
 //!   1D launch shapes, small read-backs. Nothing here is specific to one op.
+//! - `float` (crate-private): finiteness read from a float's bits, which no shader compiler may
+//!   assume away (comparisons with NaN may be).
 //! - `view` (crate-private): the camera record every projecting kernel takes (`ViewArgs`),
 //!   passed as launch scalars with named fields instead of a flat `&[f32]` with magic offsets.
 
 pub mod atomic;
 pub mod deferred;
+pub(crate) mod float;
 pub mod host;
 pub mod image;
 pub(crate) mod view;

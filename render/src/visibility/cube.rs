@@ -49,6 +49,7 @@ use burn_cubecl::tensor::CubeTensor;
 use super::ViewSet;
 use super::op::TriangleIdOps;
 use crate::camera::{Camera, ViewParams};
+use crate::cube::float::finite;
 use crate::cube::host::{
     ComputeClient, THREADS_1D, arg, count_1d, empty_u32, prepare, prepare_i32, tensor_of,
 };
@@ -58,8 +59,6 @@ use crate::cube::view::{CAMERA_FLOATS, ViewArgs, camera_of, camera_table};
 const EMPTY_ID: u32 = u32::MAX;
 /// Bit pattern of `+inf`, the depth of an empty pixel; above every finite positive depth.
 const INF_BITS: u32 = 0x7f80_0000;
-/// Largest finite f32; `!(|x| <= BIG)` catches NaN and ±Inf.
-const BIG: f32 = f32::MAX;
 /// The CPU's near plane, in `f32`.
 const NEAR: f32 = super::cpu::NEAR as f32;
 
@@ -101,7 +100,7 @@ fn edge_new(p: &P3, q: &P3, opp: &P3) -> Edge {
     let dx = select(p_first, q.x, p.x) - ax;
     let dy = select(p_first, q.y, p.y) - ay;
     let s = edge_raw(ax, ay, dx, dy, opp.x, opp.y);
-    let valid = s != 0.0 && s.abs() <= BIG;
+    let valid = finite(s) && s != 0.0;
     let sign = select(s > 0.0, 1.0f32, -1.0f32);
     let sdx = dx * sign;
     let sdy = dy * sign;
@@ -196,13 +195,13 @@ fn raster_screen_tri(
     let e0 = edge_new(p1, p2, p0);
     let e1 = edge_new(p2, p0, p1);
     let e2 = edge_new(p0, p1, p2);
-    let finite = p0.x.abs() <= BIG
-        && p0.y.abs() <= BIG
-        && p1.x.abs() <= BIG
-        && p1.y.abs() <= BIG
-        && p2.x.abs() <= BIG
-        && p2.y.abs() <= BIG;
-    if finite && e0.valid && e1.valid && e2.valid {
+    let all_finite = finite(p0.x)
+        && finite(p0.y)
+        && finite(p1.x)
+        && finite(p1.y)
+        && finite(p2.x)
+        && finite(p2.y);
+    if all_finite && e0.valid && e1.valid && e2.valid {
         let i0 = first_pixel(min(min(p0.x, p1.x), p2.x));
         let i1 = last_pixel_plus_one(max(max(p0.x, p1.x), p2.x), width);
         let j0 = first_pixel(min(min(p0.y, p1.y), p2.y));
@@ -218,7 +217,7 @@ fn raster_screen_tri(
                 if covered(&e0, w0) && covered(&e1, w1) && covered(&e2, w2) && sum > 0.0 {
                     let inv_z = (w0 * p0.z + w1 * p1.z + w2 * p2.z) / sum;
                     let z = 1.0 / inv_z;
-                    if z > 0.0 && z <= BIG {
+                    if finite(z) && z > 0.0 {
                         let bits = u32::reinterpret(z);
                         let pix = (first_pixel_of_view + j * width + i) as usize;
                         if ids_pass {
@@ -269,20 +268,20 @@ fn raster_faces_kernel(
             let a = to_camera(&view, vertices, u32::cast_from(ia), stride, offset);
             let b = to_camera(&view, vertices, u32::cast_from(ib), stride, offset);
             let c = to_camera(&view, vertices, u32::cast_from(ic), stride, offset);
-            let finite = a.x.abs() <= BIG
-                && a.y.abs() <= BIG
-                && a.z.abs() <= BIG
-                && b.x.abs() <= BIG
-                && b.y.abs() <= BIG
-                && b.z.abs() <= BIG
-                && c.x.abs() <= BIG
-                && c.y.abs() <= BIG
-                && c.z.abs() <= BIG;
+            let all_finite = finite(a.x)
+                && finite(a.y)
+                && finite(a.z)
+                && finite(b.x)
+                && finite(b.y)
+                && finite(b.z)
+                && finite(c.x)
+                && finite(c.y)
+                && finite(c.z);
             let a_in = a.z >= NEAR;
             let b_in = b.z >= NEAR;
             let c_in = c.z >= NEAR;
             let n_in = u32::cast_from(a_in) + u32::cast_from(b_in) + u32::cast_from(c_in);
-            if finite && n_in == 3 {
+            if all_finite && n_in == 3 {
                 let sa = project(&view, &a);
                 let sb = project(&view, &b);
                 let sc = project(&view, &c);
@@ -298,7 +297,7 @@ fn raster_faces_kernel(
                     first_pixel_of_view,
                     ids_pass,
                 );
-            } else if finite && n_in == 2 {
+            } else if all_finite && n_in == 2 {
                 // Rotate (keeping the winding) so that `r` is the corner behind the plane; the
                 // clipped polygon is the quad `p, q, qr, pr`, fanned from `p`.
                 let p = choose(!a_in, &b, !b_in, &c, &a);
@@ -334,7 +333,7 @@ fn raster_faces_kernel(
                     first_pixel_of_view,
                     ids_pass,
                 );
-            } else if finite && n_in == 1 {
+            } else if all_finite && n_in == 1 {
                 // Rotate so that `p` is the corner in front; the clipped polygon is a triangle.
                 let p = choose(b_in, &b, c_in, &c, &a);
                 let q = choose(b_in, &c, c_in, &a, &b);

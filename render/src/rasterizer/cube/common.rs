@@ -15,8 +15,8 @@
 //! The camera is not a buffer but a launch argument with named fields,
 //! [`crate::cube::view::ViewArgs`].
 //!
-//! Guards are worded so that NaN fails them (`!(x <= MAX)` is true for NaN and ±Inf), matching
-//! the CPU's `is_finite` checks without relying on NaN-aware builtins.
+//! Guards test finiteness on the float's bits ([`crate::cube::float::finite`]), matching the
+//! CPU's `is_finite` checks.
 
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
@@ -28,8 +28,6 @@ pub(crate) const TILE_SIDE: u32 = 16;
 const _: () = assert!(TILE_SIDE as usize == TILE);
 /// Pixels per tile.
 pub(crate) const TILE_PIXELS: u32 = TILE_SIDE * TILE_SIDE;
-/// Largest finite f32; `!(|x| <= BIG)` catches NaN and ±Inf.
-pub(crate) const BIG: f32 = f32::MAX;
 
 /// Floats per projected splat.
 pub(crate) const SPLAT_LANES: usize = 8;

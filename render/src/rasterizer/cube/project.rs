@@ -17,10 +17,10 @@ use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 
 use super::common::{
-    BIG, RECT_LANES, RECT_X0, RECT_X1, RECT_Y0, RECT_Y1, SPLAT_CONIC_A, SPLAT_CONIC_B,
-    SPLAT_CONIC_C, SPLAT_DEPTH, SPLAT_LANES, SPLAT_LOG_CUTOFF, SPLAT_OPACITY, SPLAT_X, SPLAT_Y,
-    TILE_SIDE,
+    RECT_LANES, RECT_X0, RECT_X1, RECT_Y0, RECT_Y1, SPLAT_CONIC_A, SPLAT_CONIC_B, SPLAT_CONIC_C,
+    SPLAT_DEPTH, SPLAT_LANES, SPLAT_LOG_CUTOFF, SPLAT_OPACITY, SPLAT_X, SPLAT_Y, TILE_SIDE,
 };
+use crate::cube::float::finite;
 use crate::cube::view::{ViewArgs, camera_of};
 use crate::rasterizer::cpu::{ALPHA_MIN, DILATION, FOV_CLAMP, NEAR_Z, SMOOTH_LO};
 
@@ -121,7 +121,7 @@ pub(crate) fn project_kernel(
         let cr = colors[3 * g];
         let cg = colors[3 * g + 1];
         let cb = colors[3 * g + 2];
-        if !(cr.abs() <= BIG && cg.abs() <= BIG && cb.abs() <= BIG) {
+        if !(finite(cr) && finite(cg) && finite(cb)) {
             visible = false;
         }
         let mx = means[3 * g];
@@ -130,12 +130,12 @@ pub(crate) fn project_kernel(
         let tx = view.camera_x(mx, my, mz);
         let ty = view.camera_y(mx, my, mz);
         let tz = view.camera_z(mx, my, mz);
-        if !(tz > NEAR_Z && tz <= BIG && tx.abs() <= BIG && ty.abs() <= BIG) {
+        if !(finite(tz) && finite(tx) && finite(ty) && tz > NEAR_Z) {
             visible = false;
         }
         let thr = if smooth { SMOOTH_LO } else { ALPHA_MIN };
         let opacity = opacities[g];
-        if !(opacity > thr && opacity <= BIG) {
+        if !(finite(opacity) && opacity > thr) {
             visible = false;
         }
         // Keep the arithmetic below on finite values even for culled Gaussians.
@@ -154,7 +154,7 @@ pub(crate) fn project_kernel(
         let b = e.t0x * s1x + e.t0y * s1y + e.t0z * s1z;
         let c = e.t1x * s1x + e.t1y * s1y + e.t1z * s1z + DILATION;
         let det = a * c - b * b;
-        if !(det > 0.0 && a > 0.0 && det <= BIG) {
+        if !(finite(det) && finite(a) && det > 0.0 && a > 0.0) {
             visible = false;
         }
         let qa = c / det;
@@ -174,12 +174,7 @@ pub(crate) fn project_kernel(
         let kk = -2.0f32 * log_cutoff;
         let ex = (kk * qc * inv_det).sqrt() * 1.001 + 1e-3;
         let ey = (kk * qa * inv_det).sqrt() * 1.001 + 1e-3;
-        if !(x.abs() <= BIG
-            && y.abs() <= BIG
-            && radius.abs() <= BIG
-            && ex.abs() <= BIG
-            && ey.abs() <= BIG)
-        {
+        if !(finite(x) && finite(y) && finite(radius) && finite(ex) && finite(ey)) {
             visible = false;
         }
         let gx = f32::cast_from((view.width + TILE_SIDE - 1) / TILE_SIDE);
