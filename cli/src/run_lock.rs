@@ -110,6 +110,7 @@ mod tests {
     #[cfg(unix)]
     #[test]
     fn a_killed_holder_leaves_no_lock() {
+        use std::io::BufRead;
         let dir = tempfile::tempdir().unwrap();
         let mut holder = std::process::Command::new(std::env::current_exe().unwrap())
             .args([
@@ -117,26 +118,35 @@ mod tests {
                 "run_lock::tests::hold_the_lock_for_a_minute",
                 "--ignored",
                 "--test-threads=1",
+                "--nocapture",
             ])
             .env(HOLDER_DIR, dir.path())
-            .stdout(std::process::Stdio::null())
+            .stdout(std::process::Stdio::piped())
             .stderr(std::process::Stdio::null())
             .spawn()
             .unwrap();
         // Probing with `acquire` would take the lock whenever the holder has not yet, and a
-        // holder refused then would die; the holder says when it holds the lock instead.
-        let ready = dir.path().join(HOLDER_READY);
-        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
-        while !ready.exists() {
-            assert!(
-                std::time::Instant::now() < deadline,
-                "the holder never took the lock"
-            );
-            assert!(
-                holder.try_wait().unwrap().is_none(),
-                "the holder ended before taking the lock"
-            );
-            std::thread::sleep(std::time::Duration::from_millis(20));
+        // holder refused then would die; the holder says on its stdout when it holds the lock.
+        // (libtest may print its "test … ..." prefix on the same line.) The wait is for that line
+        // or for the pipe's end (the holder gone): a file polled for 60 s once ran out under
+        // load ("the holder never took the lock", cause not found), so the only deadline left
+        // is one against a hang.
+        let stdout = holder.stdout.take().unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let ready = std::io::BufReader::new(stdout)
+                .lines()
+                .map_while(Result::ok)
+                .any(|line| line.contains(HOLDER_READY));
+            let _ = tx.send(ready);
+        });
+        match rx.recv_timeout(std::time::Duration::from_secs(600)) {
+            Ok(true) => {}
+            Ok(false) => panic!("the holder ended before taking the lock"),
+            Err(_) => {
+                let _ = holder.kill();
+                panic!("the holder did not take the lock in 10 minutes");
+            }
         }
         let e = RunLock::acquire(dir.path()).unwrap_err().to_string();
         assert!(e.contains(&format!("process {}", holder.id())), "{e}");
@@ -146,8 +156,8 @@ mod tests {
     }
 
     const HOLDER_DIR: &str = "LIFEGOM_TEST_LOCK_HOLDER_DIR";
-    /// Written by the holder once it holds the lock.
-    const HOLDER_READY: &str = "holder-ready";
+    /// Printed by the holder once it holds the lock.
+    const HOLDER_READY: &str = "lifegom-test-lock-holder-ready";
 
     /// The lock holder of [`a_killed_holder_leaves_no_lock`], run in a child process.
     #[test]
@@ -158,7 +168,12 @@ mod tests {
         };
         let dir = Path::new(&dir);
         let _lock = acquire_soon(dir).unwrap();
-        std::fs::write(dir.join(HOLDER_READY), b"").unwrap();
+        {
+            use std::io::Write;
+            let mut out = std::io::stdout().lock();
+            writeln!(out, "{HOLDER_READY}").unwrap();
+            out.flush().unwrap();
+        }
         std::thread::sleep(std::time::Duration::from_secs(60));
     }
 }

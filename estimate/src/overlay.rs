@@ -77,9 +77,11 @@ pub fn draw(photo: &RgbImage, person: &Person) -> RgbImage {
     // Odd landmarks are the person's left side in BlazePose's numbering.
     let colour = |a: usize, b: usize| {
         let visible = lm[a].visibility >= VISIBLE && lm[b].visibility >= VISIBLE;
-        let base = if a % 2 == 1 && b % 2 == 1 {
+        let left = |k: usize| !k.is_multiple_of(2);
+        let right = |k: usize| k > 0 && k.is_multiple_of(2);
+        let base = if left(a) && left(b) {
             [0u8, 230, 255]
-        } else if a % 2 == 0 && b % 2 == 0 && a > 0 {
+        } else if right(a) && right(b) {
             [255, 60, 220]
         } else {
             [255, 255, 255]
