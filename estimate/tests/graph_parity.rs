@@ -18,7 +18,11 @@
 //! Without the graphs the tests skip loudly, unless `LIFEGOM_REQUIRE_WEIGHTS` is set (CI sets
 //! it after fetching), in which case they fail.
 
+mod common;
+
 use std::path::{Path, PathBuf};
+
+use common::graphs_dir;
 
 use burn::tensor::{Device, Tensor, TensorData};
 use lifegom_estimate::graphs::{self, PersonGraph};
@@ -30,25 +34,6 @@ const MAX_TOLERANCE: f32 = 1e-3;
 
 fn fixture_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mediapipe")
-}
-
-/// The graphs folder, or `None` (after saying so) when the test must skip.
-fn graphs_dir() -> Option<PathBuf> {
-    let dir = std::env::var_os("LIFEGOM_WEIGHTS").map(PathBuf::from);
-    let missing = dir.as_ref().map_or(3, |d| graphs::missing(d).len());
-    if missing == 0 {
-        return dir;
-    }
-    assert!(
-        std::env::var_os("LIFEGOM_REQUIRE_WEIGHTS").is_none(),
-        "LIFEGOM_REQUIRE_WEIGHTS is set but $LIFEGOM_WEIGHTS ({dir:?}) lacks {missing} of the \
-         3 person graphs: run `lifegom-weights fetch --out DIR`"
-    );
-    eprintln!(
-        "PERSON-GRAPH PARITY TEST SKIPPED: set LIFEGOM_WEIGHTS to a folder filled by \
-         `lifegom-weights fetch` to check the MediaPipe graphs against TensorFlow Lite"
-    );
-    None
 }
 
 fn graph_key(graph: PersonGraph) -> &'static str {

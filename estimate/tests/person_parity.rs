@@ -14,7 +14,11 @@
 //! Without the graphs the tests skip loudly, unless `LIFEGOM_REQUIRE_WEIGHTS` is set (CI sets
 //! it after fetching), in which case they fail.
 
+mod common;
+
 use std::path::{Path, PathBuf};
+
+use common::graphs_dir;
 
 use burn::tensor::Device;
 use glam::Vec2;
@@ -24,24 +28,6 @@ use serde_json::Value;
 
 fn fixture_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/person")
-}
-
-fn graphs_dir() -> Option<PathBuf> {
-    let dir = std::env::var_os("LIFEGOM_WEIGHTS").map(PathBuf::from);
-    let missing = dir.as_ref().map_or(3, |d| graphs::missing(d).len());
-    if missing == 0 {
-        return dir;
-    }
-    assert!(
-        std::env::var_os("LIFEGOM_REQUIRE_WEIGHTS").is_none(),
-        "LIFEGOM_REQUIRE_WEIGHTS is set but $LIFEGOM_WEIGHTS ({dir:?}) lacks {missing} of the \
-         3 person graphs: run `lifegom-weights fetch --out DIR`"
-    );
-    eprintln!(
-        "PERSON-PIPELINE PARITY TEST SKIPPED: set LIFEGOM_WEIGHTS to a folder filled by \
-         `lifegom-weights fetch` to check the pipeline against MediaPipe's"
-    );
-    None
 }
 
 fn vec2(v: &Value) -> Vec2 {
