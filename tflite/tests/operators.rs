@@ -24,28 +24,35 @@ fn run_nhwc(bytes: &[u8], shape: [usize; 4], values: Vec<f32>, device: &Device) 
     graph.run(vec![x]).unwrap()[0].to_vec().unwrap()
 }
 
-fn hand_checked_values(device: &Device) {
-    // CONV_2D 3 × 3 of ones, stride 2, SAME on 4 × 4: TensorFlow pads one zero row and column
-    // after, none before.
+/// A CONV_2D of a 3 × 3 box of ones, stride 2, SAME, on a `[1, 4, 4, 1]` input, its output
+/// declared as `declared` (`[1, 2, 2, 1]` is what it makes).
+fn stride_two_box_conv(declared: &[usize]) -> Vec<u8> {
     let mut g = TestGraph::new();
     let x = g.tensor("x", &[1, 4, 4, 1], None);
     let w = g.tensor("w", &[1, 3, 3, 1], Some(Data::F32(vec![1.0; 9])));
     let b = g.tensor("b", &[1], Some(Data::F32(vec![0.0])));
-    let y = g.tensor("y", &[1, 2, 2, 1], None);
-    g.op(
-        CONV_2D,
-        &[x, w, b],
-        y,
-        Options::Conv {
-            same: true,
-            stride: 2,
-            relu6: false,
-        },
-    );
+    let y = g.tensor("y", declared, None);
+    let conv = Options::Conv {
+        same: true,
+        stride: 2,
+        relu6: false,
+    };
+    g.op(CONV_2D, &[x, w, b], y, conv);
     g.input(x);
     g.output(y);
+    g.finish()
+}
+
+fn hand_checked_values(device: &Device) {
+    // CONV_2D 3 × 3 of ones, stride 2, SAME on 4 × 4: TensorFlow pads one zero row and column
+    // after, none before.
     let ramp: Vec<f32> = (1..=16).map(|v| v as f32).collect();
-    let got = run_nhwc(&g.finish(), [1, 4, 4, 1], ramp, device);
+    let got = run_nhwc(
+        &stride_two_box_conv(&[1, 2, 2, 1]),
+        [1, 4, 4, 1],
+        ramp,
+        device,
+    );
     assert_eq!(got, [54.0, 45.0, 72.0, 54.0], "SAME padding");
 
     // RESIZE_BILINEAR 2 → 4 with half-pixel centres: sources at -0.25, 0.25, 0.75, 1.25.
@@ -149,24 +156,7 @@ fn errors_name_the_graph_and_operator(device: &Device) {
     );
 
     // A declared shape the operator does not make.
-    let mut g = TestGraph::new();
-    let x = g.tensor("x", &[1, 4, 4, 1], None);
-    let w = g.tensor("w", &[1, 3, 3, 1], Some(Data::F32(vec![1.0; 9])));
-    let b = g.tensor("b", &[1], Some(Data::F32(vec![0.0])));
-    let y = g.tensor("y", &[1, 3, 3, 1], None);
-    g.op(
-        CONV_2D,
-        &[x, w, b],
-        y,
-        Options::Conv {
-            same: true,
-            stride: 2,
-            relu6: false,
-        },
-    );
-    g.input(x);
-    g.output(y);
-    let text = Graph::from_bytes("conv.tflite", &g.finish(), device)
+    let text = Graph::from_bytes("conv.tflite", &stride_two_box_conv(&[1, 3, 3, 1]), device)
         .unwrap_err()
         .to_string();
     assert!(
