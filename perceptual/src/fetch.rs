@@ -77,14 +77,6 @@ pub enum FetchError {
         /// What is wrong.
         reason: String,
     },
-    /// A file that cannot be read.
-    #[error("{path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        source: std::io::Error,
-    },
     /// A weight file that the readers refuse.
     #[error(transparent)]
     Data(#[from] lifegom_data::DataError),
@@ -118,7 +110,7 @@ pub fn fetch(dir: &Path, progress: &mut dyn FnMut(&str)) -> Result<Fetched, Fetc
     if missing.is_empty() {
         return Ok(done);
     }
-    let tmp = tempfile::tempdir().map_err(|source| FetchError::Io {
+    let tmp = tempfile::tempdir().map_err(|source| RegistryError::Io {
         path: std::env::temp_dir(),
         source,
     })?;
@@ -210,13 +202,13 @@ pub fn convert_archive(
                     .into(),
             ));
         };
-        let bytes = std::fs::read(path).map_err(|source| FetchError::Io {
+        let bytes = std::fs::read(path).map_err(|source| RegistryError::Io {
             path: path.to_path_buf(),
             source,
         })?;
         written.push(lpips_ckpt(net, &bytes, path, dir)?);
     } else if name.ends_with(".pt") {
-        let bytes = std::fs::read(path).map_err(|source| FetchError::Io {
+        let bytes = std::fs::read(path).map_err(|source| RegistryError::Io {
             path: path.to_path_buf(),
             source,
         })?;
